@@ -1,0 +1,2 @@
+//! `nanoeye`: the command-line interface of the nanoeye workspace.
+fn main() {}

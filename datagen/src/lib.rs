@@ -1,0 +1,1 @@
+//! Synthetic data: eye/slippage state sampling (C.2–C.4, D.4) and the eye-region renderer.

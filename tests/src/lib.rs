@@ -1,0 +1,1 @@
+//! Cross-crate integration tests of nanoeye; the tests live in `tests/tests/`.
