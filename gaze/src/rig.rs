@@ -1,0 +1,358 @@
+//! The eye–camera rig: eye spheres, pinhole camera intrinsics and nominal pose, and the
+//! slippage model. Serialized as JSON (schema in docs/formats.md).
+
+use crate::error::GazeError;
+use crate::geom::{self, Mat3, Vec3};
+use serde::{Deserialize, Serialize};
+
+/// Default solver sphere radius (m): the seed's 12 mm eyeball (Sec. A.4).
+pub const DEFAULT_EYE_RADIUS_M: f64 = 12e-3;
+/// Default radius (m) of the sphere the pupil centre moves on: sqrt(12² − 6²) mm ≈ 10.39 mm
+/// (oracles.md, eye and rig).
+pub const DEFAULT_PUPIL_SPHERE_RADIUS_M: f64 = 10.392_304_845_413_264e-3;
+/// Camera offset (m) from the pupil centre at primary gaze, in the world frame (DESIGN.md:
+/// the seed's (−10, 10, −14) mm read as 10 mm lateral, 10 mm in front, 14 mm below).
+pub const CAMERA_OFFSET_M: Vec3 = [-10e-3, -14e-3, 10e-3];
+
+/// Pinhole camera: intrinsics (OpenCV convention, pixel origin at the top-left pixel's corner,
+/// so pixel (col, row) has its centre at (col + 0.5, row + 0.5)) and nominal pose.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Camera {
+    /// Pinhole image distance (m): the metalens-to-sensor distance s, 2 mm in the prototype.
+    pub focal_length_m: f64,
+    /// Effective pixel pitch p̂ (m).
+    pub pixel_pitch_m: f64,
+    /// Focal length in pixels along x: focal_length_m / pixel_pitch_m.
+    pub fx_px: f64,
+    /// Focal length in pixels along y.
+    pub fy_px: f64,
+    /// Principal point x (px from the left image edge).
+    pub cx_px: f64,
+    /// Principal point y (px from the top image edge).
+    pub cy_px: f64,
+    /// Image width (px).
+    pub width_px: usize,
+    /// Image height (px).
+    pub height_px: usize,
+    /// Nominal optical centre T_nom (m, world frame).
+    pub position_m: Vec3,
+    /// Rotation taking camera-frame vectors to the world frame (rows), R_nom.
+    pub rotation_cam_to_world: Mat3,
+}
+
+/// How glasses slip (C.1): a distance d along the nasal bridge moves the camera by
+/// d · `bridge_direction` and pitches it by `pitch_rate_rad_per_m` · d about the interaural
+/// (x) axis; a small random rigid mounting perturbation is added on top.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SlipModel {
+    /// Unit direction (world frame) the glasses move along when sliding down the nose.
+    pub bridge_direction: Vec3,
+    /// Pitch rotation (rad) per metre of slip about the interaural (+x) axis; positive drops
+    /// the front of the frame.
+    pub pitch_rate_rad_per_m: f64,
+    /// Standard deviation (m) of the mounting translation, per axis (truncated at 3σ).
+    pub mount_translation_sigma_m: f64,
+    /// Standard deviation (rad) of the mounting rotation, per axis (truncated at 3σ).
+    pub mount_rotation_sigma_rad: f64,
+}
+
+/// The eye–camera rig shared by the solver, the samplers and the renderer.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Rig {
+    /// Radius (m) of the sphere the solver intersects (R_eye in S12).
+    pub eye_radius_m: f64,
+    /// Radius (m) of the sphere the pupil centre really moves on (used to generate data).
+    pub pupil_sphere_radius_m: f64,
+    /// Kappa angles (horizontal, vertical; rad) from the optical to the visual axis.
+    pub kappa_rad: [f64; 2],
+    /// The camera.
+    pub camera: Camera,
+    /// The slippage model.
+    pub slip: SlipModel,
+}
+
+/// A camera pose: optical centre and camera-to-world rotation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pose {
+    /// Optical centre (m, world frame).
+    pub position: Vec3,
+    /// Camera-to-world rotation (rows).
+    pub rotation: Mat3,
+}
+
+impl Camera {
+    /// A camera with image distance `focal_length_m`, pitch `pixel_pitch_m`, a centred
+    /// principal point, at `position_m` aimed at `target_m` with world +y as image up.
+    pub fn look_at(
+        focal_length_m: f64,
+        pixel_pitch_m: f64,
+        width_px: usize,
+        height_px: usize,
+        position_m: Vec3,
+        target_m: Vec3,
+    ) -> Result<Self, GazeError> {
+        let z = geom::sub(target_m, position_m);
+        if geom::norm(z).is_nan() || geom::norm(z) <= 0.0 {
+            return Err(GazeError::InvalidRig {
+                field: "camera.position_m",
+                reason: "camera centre coincides with its target".into(),
+            });
+        }
+        let z = geom::normalize(z);
+        // Image y points down: the component of −world-y orthogonal to the optical axis.
+        let down = [0.0, -1.0, 0.0];
+        let y = geom::sub(down, geom::scale(z, geom::dot(down, z)));
+        if geom::norm(y) < 1e-9 {
+            return Err(GazeError::InvalidRig {
+                field: "camera.position_m",
+                reason: "optical axis is vertical; image up is undefined".into(),
+            });
+        }
+        let y = geom::normalize(y);
+        let x = geom::cross(y, z);
+        // Columns of R are the camera axes in world coordinates.
+        let rotation_cam_to_world = [[x[0], y[0], z[0]], [x[1], y[1], z[1]], [x[2], y[2], z[2]]];
+        let f_px = focal_length_m / pixel_pitch_m;
+        let cam = Camera {
+            focal_length_m,
+            pixel_pitch_m,
+            fx_px: f_px,
+            fy_px: f_px,
+            cx_px: width_px as f64 / 2.0,
+            cy_px: height_px as f64 / 2.0,
+            width_px,
+            height_px,
+            position_m,
+            rotation_cam_to_world,
+        };
+        cam.validate()?;
+        Ok(cam)
+    }
+
+    /// The same camera resampled to effective pitch `pixel_pitch_m` over the same sensor area
+    /// (focal length in px, principal point and image size scale by old/new pitch).
+    pub fn with_pitch(&self, pixel_pitch_m: f64) -> Result<Self, GazeError> {
+        if !(pixel_pitch_m.is_finite() && pixel_pitch_m > 0.0) {
+            return Err(GazeError::InvalidRig {
+                field: "camera.pixel_pitch_m",
+                reason: format!("must be positive and finite, got {pixel_pitch_m}"),
+            });
+        }
+        let k = self.pixel_pitch_m / pixel_pitch_m;
+        let cam = Camera {
+            pixel_pitch_m,
+            fx_px: self.fx_px * k,
+            fy_px: self.fy_px * k,
+            cx_px: self.cx_px * k,
+            cy_px: self.cy_px * k,
+            width_px: ((self.width_px as f64) * k).round().max(1.0) as usize,
+            height_px: ((self.height_px as f64) * k).round().max(1.0) as usize,
+            ..self.clone()
+        };
+        cam.validate()?;
+        Ok(cam)
+    }
+
+    /// The nominal pose (T_nom, R_nom).
+    pub fn nominal_pose(&self) -> Pose {
+        Pose {
+            position: self.position_m,
+            rotation: self.rotation_cam_to_world,
+        }
+    }
+
+    /// The pose after a pure translation `slip_m` (m) of the camera (S11).
+    pub fn translated_pose(&self, slip_m: Vec3) -> Pose {
+        Pose {
+            position: geom::add(self.position_m, slip_m),
+            rotation: self.rotation_cam_to_world,
+        }
+    }
+
+    /// The pose after translation `slip_m` (m) and a rotation vector `rot_rad` (world frame,
+    /// about the camera's own centre).
+    pub fn slipped_pose(&self, slip_m: Vec3, rot_rad: Vec3) -> Pose {
+        Pose {
+            position: geom::add(self.position_m, slip_m),
+            rotation: geom::mul_mm(&geom::rot_from_vector(rot_rad), &self.rotation_cam_to_world),
+        }
+    }
+
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), GazeError> {
+        let pos = |field, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(GazeError::InvalidRig {
+                    field,
+                    reason: format!("must be positive and finite, got {v}"),
+                })
+            }
+        };
+        pos("camera.focal_length_m", self.focal_length_m)?;
+        pos("camera.pixel_pitch_m", self.pixel_pitch_m)?;
+        pos("camera.fx_px", self.fx_px)?;
+        pos("camera.fy_px", self.fy_px)?;
+        let f_px = self.focal_length_m / self.pixel_pitch_m;
+        if (self.fx_px - f_px).abs() > 1e-6 * f_px {
+            return Err(GazeError::InvalidRig {
+                field: "camera.fx_px",
+                reason: format!(
+                    "{} px disagrees with focal_length_m / pixel_pitch_m = {f_px} px",
+                    self.fx_px
+                ),
+            });
+        }
+        if !(self.cx_px.is_finite() && self.cy_px.is_finite()) {
+            return Err(GazeError::InvalidRig {
+                field: "camera.cx_px",
+                reason: "principal point must be finite".into(),
+            });
+        }
+        if self.width_px == 0 || self.height_px == 0 {
+            return Err(GazeError::InvalidRig {
+                field: "camera.width_px",
+                reason: "image size must be at least 1×1 px".into(),
+            });
+        }
+        if !geom::is_finite(self.position_m) {
+            return Err(GazeError::InvalidRig {
+                field: "camera.position_m",
+                reason: "must be finite".into(),
+            });
+        }
+        let (dev, det) = geom::orthonormality(&self.rotation_cam_to_world);
+        if !(dev < 1e-9 && (det - 1.0).abs() < 1e-9) {
+            return Err(GazeError::InvalidRig {
+                field: "camera.rotation_cam_to_world",
+                reason: format!("must be a proper rotation (|RᵀR − I| = {dev:e}, det = {det})"),
+            });
+        }
+        Ok(())
+    }
+}
+
+impl Default for SlipModel {
+    fn default() -> Self {
+        // The nasal bridge slopes ≈30° from vertical, so glasses slide down and forward.
+        let a = 30f64.to_radians();
+        SlipModel {
+            bridge_direction: [0.0, -a.cos(), a.sin()],
+            // Frames pivot on the ears ≈90 mm behind the nose pads: pitch ≈ d / 90 mm.
+            pitch_rate_rad_per_m: 1.0 / 0.09,
+            mount_translation_sigma_m: 0.2e-3,
+            mount_rotation_sigma_rad: 0.5f64.to_radians(),
+        }
+    }
+}
+
+impl SlipModel {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), GazeError> {
+        let n = geom::norm(self.bridge_direction);
+        if !(n.is_finite() && (n - 1.0).abs() < 1e-6) {
+            return Err(GazeError::InvalidRig {
+                field: "slip.bridge_direction",
+                reason: format!("must be a unit vector, has norm {n}"),
+            });
+        }
+        for (field, v) in [
+            ("slip.pitch_rate_rad_per_m", self.pitch_rate_rad_per_m),
+            (
+                "slip.mount_translation_sigma_m",
+                self.mount_translation_sigma_m,
+            ),
+            (
+                "slip.mount_rotation_sigma_rad",
+                self.mount_rotation_sigma_rad,
+            ),
+        ] {
+            if !v.is_finite() {
+                return Err(GazeError::InvalidRig {
+                    field,
+                    reason: format!("must be finite, got {v}"),
+                });
+            }
+        }
+        if self.mount_translation_sigma_m < 0.0 || self.mount_rotation_sigma_rad < 0.0 {
+            return Err(GazeError::InvalidRig {
+                field: "slip.mount_translation_sigma_m",
+                reason: "standard deviations must be ≥ 0".into(),
+            });
+        }
+        Ok(())
+    }
+}
+
+impl Default for Rig {
+    /// The seed rig: 12 mm solver sphere, pupil on a 10.39 mm sphere, a 1280×800, 3 µm sensor
+    /// (OV9281, as in the prototype, Sec. D.3) read out at 4× binning (320×200 at 12 µm)
+    /// 2 mm behind the lens, at pupil_primary + (−10, −14, +10) mm aimed at the eye centre.
+    fn default() -> Self {
+        let pupil_primary = [0.0, 0.0, DEFAULT_PUPIL_SPHERE_RADIUS_M];
+        let camera = Camera::look_at(
+            2e-3,
+            12e-6,
+            320,
+            200,
+            geom::add(pupil_primary, CAMERA_OFFSET_M),
+            [0.0, 0.0, 0.0],
+        )
+        .expect("the built-in rig is valid");
+        Rig {
+            eye_radius_m: DEFAULT_EYE_RADIUS_M,
+            pupil_sphere_radius_m: DEFAULT_PUPIL_SPHERE_RADIUS_M,
+            kappa_rad: [0.0, 0.0],
+            camera,
+            slip: SlipModel::default(),
+        }
+    }
+}
+
+impl Rig {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), GazeError> {
+        for (field, v) in [
+            ("eye_radius_m", self.eye_radius_m),
+            ("pupil_sphere_radius_m", self.pupil_sphere_radius_m),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(GazeError::InvalidRig {
+                    field,
+                    reason: format!("must be positive and finite, got {v}"),
+                });
+            }
+        }
+        if !self
+            .kappa_rad
+            .iter()
+            .all(|k| k.is_finite() && k.abs() < 0.5)
+        {
+            return Err(GazeError::InvalidRig {
+                field: "kappa_rad",
+                reason: format!("must be finite and below 0.5 rad, got {:?}", self.kappa_rad),
+            });
+        }
+        self.camera.validate()?;
+        self.slip.validate()
+    }
+
+    /// Parses and validates a rig from JSON.
+    pub fn from_json(text: &str) -> Result<Self, GazeError> {
+        let rig: Rig = serde_json::from_str(text).map_err(|e| GazeError::InvalidRig {
+            field: "(json)",
+            reason: e.to_string(),
+        })?;
+        rig.validate()?;
+        Ok(rig)
+    }
+
+    /// The 3D pupil centre (m) for a unit gaze direction `g` (optical axis).
+    pub fn pupil_center(&self, g: Vec3) -> Vec3 {
+        geom::scale(g, self.pupil_sphere_radius_m)
+    }
+}
