@@ -1,0 +1,98 @@
+//! The eye-region renderer (C.1): procedural scene or user mesh, BVH ray tracing, ground truth
+//! (radiance, depth, pupil masks, landmarks, depth layers) and the dataset writer.
+//!
+//! Units: metres and radians; radiance in W/(m²·sr) (f32); depth is the distance (m) along the
+//! pixel's ray from the camera centre to the first surface. Conventions in docs/renderer.md.
+
+pub mod bvh;
+pub mod dataset;
+pub mod landmarks;
+pub mod material;
+pub mod mesh;
+pub mod prim;
+pub mod scene;
+pub mod trace;
+
+pub use dataset::{
+    DatasetOptions, DatasetSummary, FrameFiles, FrameRecord, RenderSet, SceneSource, write_dataset,
+};
+pub use landmarks::{Landmark, Landmarks, landmarks, refracted_pupil_px};
+pub use material::{Material, MaterialKind};
+pub use mesh::{Mesh, MeshUnits};
+pub use scene::{EyeGeometry, Light, Scene, Subject, procedural_scene};
+pub use trace::{DepthLayer, DepthLayers, Frame, LayerSpec, RenderOptions, render};
+
+use nanoeye_gaze::{GazeError, Vec3, geom};
+
+/// Errors of the renderer and dataset writer.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    /// A parameter is out of range; `what` names it.
+    #[error("invalid {what}: {reason}")]
+    Invalid {
+        /// The parameter.
+        what: &'static str,
+        /// What is wrong.
+        reason: String,
+    },
+    /// Rig or eye-orientation failure.
+    #[error(transparent)]
+    Geometry(#[from] GazeError),
+    /// State sampling failed.
+    #[error(transparent)]
+    States(#[from] crate::states::StatesError),
+    /// A mesh file could not be read or is malformed.
+    #[error("mesh {path}: {reason}")]
+    Mesh {
+        /// File.
+        path: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// File output failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// File.
+        path: String,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// Image encoding failed.
+    #[error("{path}: {reason}")]
+    Encode {
+        /// File.
+        path: String,
+        /// Cause.
+        reason: String,
+    },
+}
+
+/// A ray with unit direction (m).
+#[derive(Debug, Clone, Copy)]
+pub struct Ray {
+    /// Origin.
+    pub origin: Vec3,
+    /// Unit direction.
+    pub dir: Vec3,
+    /// Component-wise 1/dir for slab tests.
+    pub inv_dir: Vec3,
+}
+
+impl Ray {
+    /// A ray from `origin` along `dir` (normalized here).
+    #[inline]
+    pub fn new(origin: Vec3, dir: Vec3) -> Ray {
+        let d = geom::normalize(dir);
+        Ray {
+            origin,
+            dir: d,
+            inv_dir: [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]],
+        }
+    }
+
+    /// Point at distance `t`.
+    #[inline]
+    pub fn at(&self, t: f64) -> Vec3 {
+        geom::add(self.origin, geom::scale(self.dir, t))
+    }
+}

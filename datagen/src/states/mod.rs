@@ -1,0 +1,13 @@
+//! Eye/slippage state sampling: TRUNCNORM, the state vector, and the ambiguity, variational and
+//! protocol sets.
+
+pub mod sets;
+pub mod state;
+pub mod truncnorm;
+
+pub use sets::{
+    AmbiguityPair, Capture, Protocol, StatesError, TableS2, Triplet, ambiguity, protocol,
+    variational,
+};
+pub use state::{Mounting, State};
+pub use truncnorm::{TruncNormError, TruncNormal};

@@ -1,0 +1,405 @@
+//! The state sets: ambiguity pairs (C.3, Table S2), variational triplets (C.2, Table S3) and
+//! the acquisition protocol (D.4). Item i draws from its own ChaCha stream (seed, set, i), so
+//! a set is identical whatever the thread count.
+
+use super::state::{Mounting, State};
+use super::truncnorm::{TruncNormError, TruncNormal, uniform};
+use nanoeye_gaze::{
+    GazeError, Rig, Vec3, eye, geom, project, solver::back_project, solver::ray_sphere,
+};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use serde::Serialize;
+
+/// Errors of the state samplers.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StatesError {
+    /// A distribution's parameters are invalid.
+    #[error(transparent)]
+    Distribution(#[from] TruncNormError),
+    /// The rig is invalid or a projection failed.
+    #[error(transparent)]
+    Geometry(#[from] GazeError),
+    /// No valid state was found within the attempt budget (the rig cannot see the pupil).
+    #[error("item {index}: no valid state in {attempts} attempts: {why}")]
+    Exhausted {
+        /// Item index.
+        index: usize,
+        /// Attempts made.
+        attempts: usize,
+        /// The last reason a draw was rejected.
+        why: &'static str,
+    },
+}
+
+const MAX_ATTEMPTS: usize = 10_000;
+
+/// The per-item random stream for (`seed`, `set`, `index`).
+pub fn item_rng(seed: u64, set: u64, index: u64) -> ChaCha8Rng {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ set.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    rng.set_stream(index);
+    rng
+}
+
+/// Table S2's distributions (angles in rad, distances in m).
+#[derive(Debug, Clone, Copy)]
+pub struct TableS2 {
+    /// Eye yaw φ.
+    pub azimuth: TruncNormal,
+    /// Eye pitch θ.
+    pub elevation: TruncNormal,
+    /// Eye roll ω.
+    pub torsion: TruncNormal,
+    /// Anchor slip distance along the nasal bridge.
+    pub slip_anchor: TruncNormal,
+    /// Extra slip of the `slip` member of an ambiguity pair.
+    pub slip_extra: TruncNormal,
+}
+
+impl TableS2 {
+    /// The values of Table S2.
+    pub fn paper() -> Self {
+        let d = f64::to_radians;
+        TableS2 {
+            azimuth: TruncNormal::new(0.0, d(15.0), d(-35.0), d(45.0)).expect("Table S2"),
+            elevation: TruncNormal::new(0.0, d(5.0), d(-15.0), d(15.0)).expect("Table S2"),
+            torsion: TruncNormal::new(0.0, d(0.3), d(-0.8), d(0.8)).expect("Table S2"),
+            slip_anchor: TruncNormal::new(2e-3, 5e-3, 0.0, 20e-3).expect("Table S2"),
+            slip_extra: TruncNormal::new(1e-3, 2e-3, 0.2e-3, 5e-3).expect("Table S2"),
+        }
+    }
+}
+
+/// Draws a mounting perturbation with the rig's σ, each axis truncated at ±3σ.
+pub fn draw_mounting<R: Rng>(rig: &Rig, rng: &mut R) -> Result<Mounting, StatesError> {
+    let axis = |sigma: f64, rng: &mut R| -> Result<f64, StatesError> {
+        if sigma == 0.0 {
+            return Ok(0.0);
+        }
+        Ok(TruncNormal::new(0.0, sigma, -3.0 * sigma, 3.0 * sigma)?.sample(rng))
+    };
+    let (st, sr) = (
+        rig.slip.mount_translation_sigma_m,
+        rig.slip.mount_rotation_sigma_rad,
+    );
+    Ok(Mounting {
+        translation_m: [axis(st, rng)?, axis(st, rng)?, axis(st, rng)?],
+        rotation_rad: [axis(sr, rng)?, axis(sr, rng)?, axis(sr, rng)?],
+    })
+}
+
+fn in_image(rig: &Rig, px: [f64; 2]) -> bool {
+    (0.0..rig.camera.width_px as f64).contains(&px[0])
+        && (0.0..rig.camera.height_px as f64).contains(&px[1])
+}
+
+/// A state whose pupil the camera sees (faces the camera, projects inside the image).
+fn visible(rig: &Rig, s: &State) -> Option<[f64; 2]> {
+    if !s.pupil_faces_camera(rig) {
+        return None;
+    }
+    s.pupil_px(rig).ok().filter(|px| in_image(rig, *px))
+}
+
+/// An anchor state drawn from Table S2 with slip distance d (returned) and mounting.
+fn draw_anchor<R: Rng>(rig: &Rig, t: &TableS2, m: &Mounting, rng: &mut R) -> (State, f64) {
+    let az = t.azimuth.sample(rng);
+    let el = t.elevation.sample(rng);
+    let om = t.torsion.sample(rng);
+    let d = t.slip_anchor.sample(rng);
+    let (slip_m, cam_rot_rad) = m.slip(rig, d);
+    (
+        State {
+            azimuth_rad: az,
+            elevation_rad: el,
+            torsion_rad: om,
+            slip_m,
+            cam_rot_rad,
+        },
+        d,
+    )
+}
+
+/// One ambiguity pair (C.3).
+#[derive(Debug, Clone, Serialize)]
+pub struct AmbiguityPair {
+    /// The anchor (pose + slip d_anchor).
+    pub anchor: State,
+    /// The anchor with extra slip d_slip+ along the bridge.
+    pub slip: State,
+    /// The anchor's camera with the eye rotated so its pupil lands on `pupil_px_slip`.
+    pub gaze: State,
+    /// Pupil pixel in the `slip` state.
+    pub pupil_px_slip: [f64; 2],
+    /// Pupil pixel in the `gaze` state (equal to `pupil_px_slip` to ≪ 1e-6 px).
+    pub pupil_px_gaze: [f64; 2],
+}
+
+/// The eye rotation (same torsion) that puts the pupil centre on pixel `px` of `camera_state`'s
+/// camera: intersect the pixel's ray with the pupil sphere, read the gaze off the hit point.
+pub fn gaze_state_for_pixel(rig: &Rig, camera_state: &State, px: [f64; 2]) -> Option<State> {
+    let pose = camera_state.camera_pose(rig);
+    let dir = back_project(&rig.camera, &pose, px);
+    let p = ray_sphere(pose.position, dir, rig.pupil_sphere_radius_m)?;
+    let (az, el) = eye::angles_from_gaze(geom::normalize(p));
+    Some(State {
+        azimuth_rad: az,
+        elevation_rad: el,
+        ..*camera_state
+    })
+}
+
+/// The ambiguity set: `n` pairs from `seed`.
+pub fn ambiguity(rig: &Rig, n: usize, seed: u64) -> Result<Vec<AmbiguityPair>, StatesError> {
+    rig.validate()?;
+    let t = TableS2::paper();
+    (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let mut rng = item_rng(seed, 1, i as u64);
+            let mut why = "";
+            for _ in 0..MAX_ATTEMPTS {
+                let m = draw_mounting(rig, &mut rng)?;
+                let (anchor, d) = draw_anchor(rig, &t, &m, &mut rng);
+                let extra = t.slip_extra.sample(&mut rng);
+                let (slip_m, cam_rot_rad) = m.slip(rig, d + extra);
+                let slip = State {
+                    slip_m,
+                    cam_rot_rad,
+                    ..anchor
+                };
+                let Some(px_slip) = visible(rig, &slip) else {
+                    why = "pupil not visible in the slipped camera";
+                    continue;
+                };
+                let Some(gaze) = gaze_state_for_pixel(rig, &anchor, px_slip) else {
+                    why = "pixel ray misses the pupil sphere";
+                    continue;
+                };
+                let Some(px_gaze) = visible(rig, &gaze) else {
+                    why = "matched pupil not visible";
+                    continue;
+                };
+                if !(t.azimuth.bounds().0..=t.azimuth.bounds().1).contains(&gaze.azimuth_rad)
+                    || !(t.elevation.bounds().0..=t.elevation.bounds().1)
+                        .contains(&gaze.elevation_rad)
+                {
+                    why = "matched gaze leaves Table S2's range";
+                    continue;
+                }
+                return Ok(AmbiguityPair {
+                    anchor,
+                    slip,
+                    gaze,
+                    pupil_px_slip: px_slip,
+                    pupil_px_gaze: px_gaze,
+                });
+            }
+            Err(StatesError::Exhausted {
+                index: i,
+                attempts: MAX_ATTEMPTS,
+                why,
+            })
+        })
+        .collect()
+}
+
+/// One variational triplet (C.2).
+#[derive(Debug, Clone, Serialize)]
+pub struct Triplet {
+    /// Randomly drawn anchor (Table S2).
+    pub anchor: State,
+    /// The anchor slipped a further d ~ UNIFORM(0.1 mm, 0.3 mm) along the bridge (Table S3).
+    pub slip_plus: State,
+    /// The anchor with the eye rotated by (δφ, δθ, δω).
+    pub gaze_plus: State,
+}
+
+/// Table S3's slip perturbation range (m).
+pub const TABLE_S3_SLIP_M: (f64, f64) = (0.1e-3, 0.3e-3);
+/// Range (rad) of the extra torsion δω of a gaze+ state.
+pub const GAZE_PLUS_TORSION_RAD: f64 = 0.1 * std::f64::consts::PI / 180.0;
+
+/// The variational set: `n` triplets from `seed`. The gaze perturbation moves the pupil centre
+/// by the same distance range as the slip (an angle of δ/r_pupil, δ ~ UNIFORM(0.1, 0.3) mm) in
+/// a uniformly random direction of the (φ, θ) plane, with δω ~ UNIFORM(−0.1°, 0.1°), so both
+/// finite differences sit equally far above the noise floor in the local linear regime.
+pub fn variational(rig: &Rig, n: usize, seed: u64) -> Result<Vec<Triplet>, StatesError> {
+    rig.validate()?;
+    let t = TableS2::paper();
+    (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let mut rng = item_rng(seed, 2, i as u64);
+            for _ in 0..MAX_ATTEMPTS {
+                let m = draw_mounting(rig, &mut rng)?;
+                let (anchor, d) = draw_anchor(rig, &t, &m, &mut rng);
+                let extra = uniform(TABLE_S3_SLIP_M.0, TABLE_S3_SLIP_M.1, &mut rng);
+                let (slip_m, cam_rot_rad) = m.slip(rig, d + extra);
+                let slip_plus = State {
+                    slip_m,
+                    cam_rot_rad,
+                    ..anchor
+                };
+                let delta = uniform(TABLE_S3_SLIP_M.0, TABLE_S3_SLIP_M.1, &mut rng)
+                    / rig.pupil_sphere_radius_m;
+                let dir = uniform(0.0, std::f64::consts::TAU, &mut rng);
+                let gaze_plus = State {
+                    azimuth_rad: anchor.azimuth_rad + delta * dir.cos(),
+                    elevation_rad: anchor.elevation_rad + delta * dir.sin(),
+                    torsion_rad: anchor.torsion_rad
+                        + uniform(-GAZE_PLUS_TORSION_RAD, GAZE_PLUS_TORSION_RAD, &mut rng),
+                    ..anchor
+                };
+                if visible(rig, &anchor).is_some()
+                    && visible(rig, &slip_plus).is_some()
+                    && visible(rig, &gaze_plus).is_some()
+                {
+                    return Ok(Triplet {
+                        anchor,
+                        slip_plus,
+                        gaze_plus,
+                    });
+                }
+            }
+            Err(StatesError::Exhausted {
+                index: i,
+                attempts: MAX_ATTEMPTS,
+                why: "pupil not visible in all three states",
+            })
+        })
+        .collect()
+}
+
+/// The acquisition protocol's geometry (D.4).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Protocol {
+    /// Horizontal span of the 7×7 grid (rad).
+    pub span_h_rad: f64,
+    /// Vertical span of the grid (rad).
+    pub span_v_rad: f64,
+    /// Upward shift of the grid (rad).
+    pub shift_up_rad: f64,
+    /// Monitor distance from the pupil (m).
+    pub distance_m: f64,
+    /// Stage step (m).
+    pub step_m: f64,
+    /// Targets per grid side.
+    pub grid: usize,
+}
+
+impl Default for Protocol {
+    /// D.4: 7×7 grid spanning 25° (horizontal) × 35° (vertical), shifted up by 5°, at 40 cm;
+    /// stage steps of 2.5 mm.
+    fn default() -> Self {
+        Protocol {
+            span_h_rad: 25f64.to_radians(),
+            span_v_rad: 35f64.to_radians(),
+            shift_up_rad: 5f64.to_radians(),
+            distance_m: 0.40,
+            step_m: 2.5e-3,
+            grid: 7,
+        }
+    }
+}
+
+impl Protocol {
+    /// The seven stage positions: origin, ±1 step along x (lateral), ±1 and ±2 steps along z.
+    pub fn slip_states(&self) -> [Vec3; 7] {
+        let s = self.step_m;
+        [
+            [0.0, 0.0, 0.0],
+            [-s, 0.0, 0.0],
+            [s, 0.0, 0.0],
+            [0.0, 0.0, -2.0 * s],
+            [0.0, 0.0, -s],
+            [0.0, 0.0, s],
+            [0.0, 0.0, 2.0 * s],
+        ]
+    }
+
+    /// Target (column, row) → position on the monitor (m, relative to the point straight ahead
+    /// of the pupil); targets are evenly spaced on the screen between the angular extremes.
+    pub fn target_on_screen(&self, col: usize, row: usize) -> [f64; 2] {
+        let n = (self.grid.max(2) - 1) as f64;
+        let d = self.distance_m;
+        let lerp = |lo: f64, hi: f64, i: usize| {
+            let (a, b) = (d * lo.tan(), d * hi.tan());
+            a + (b - a) * i as f64 / n
+        };
+        let (h, v) = (0.5 * self.span_h_rad, 0.5 * self.span_v_rad);
+        [
+            lerp(-h, h, col),
+            lerp(-v + self.shift_up_rad, v + self.shift_up_rad, row),
+        ]
+    }
+}
+
+/// One protocol capture.
+#[derive(Debug, Clone, Serialize)]
+pub struct Capture {
+    /// Subject index.
+    pub subject: usize,
+    /// Target index: row · grid + column (row 0 lowest, column 0 most negative azimuth).
+    pub target_index: usize,
+    /// Stage state index into [`Protocol::slip_states`].
+    pub slip_index: usize,
+    /// Target direction seen from the pupil [azimuth, elevation] (deg).
+    pub target_deg: [f64; 2],
+    /// The state: the eye's optical axis through the target, stage slip plus mounting.
+    pub state: State,
+}
+
+/// The protocol set for `subjects` subjects: per subject one mounting perturbation, per capture
+/// a Table S2 torsion draw; lines ordered subject, slip state, target.
+pub fn protocol(
+    rig: &Rig,
+    p: &Protocol,
+    subjects: usize,
+    seed: u64,
+) -> Result<Vec<Capture>, StatesError> {
+    rig.validate()?;
+    let t = TableS2::paper();
+    let per_subject: Result<Vec<Vec<Capture>>, StatesError> = (0..subjects)
+        .into_par_iter()
+        .map(|subject| {
+            let mut rng = item_rng(seed, 3, subject as u64);
+            let m = draw_mounting(rig, &mut rng)?;
+            let mut out = Vec::with_capacity(7 * p.grid * p.grid);
+            for (slip_index, stage) in p.slip_states().iter().enumerate() {
+                for row in 0..p.grid {
+                    for col in 0..p.grid {
+                        let [x, y] = p.target_on_screen(col, row);
+                        let target = [x, y, rig.pupil_sphere_radius_m + p.distance_m];
+                        let (az, el) = eye::angles_from_gaze(geom::normalize(target));
+                        let state = State {
+                            azimuth_rad: az,
+                            elevation_rad: el,
+                            torsion_rad: t.torsion.sample(&mut rng),
+                            slip_m: geom::add(*stage, m.translation_m),
+                            cam_rot_rad: m.rotation_rad,
+                        };
+                        out.push(Capture {
+                            subject,
+                            target_index: row * p.grid + col,
+                            slip_index,
+                            target_deg: [
+                                (x / p.distance_m).atan().to_degrees(),
+                                (y / p.distance_m).atan().to_degrees(),
+                            ],
+                            state,
+                        });
+                    }
+                }
+            }
+            Ok(out)
+        })
+        .collect();
+    Ok(per_subject?.into_iter().flatten().collect())
+}
+
+/// Pixel of the pupil of `s` (convenience for callers that only hold a rig).
+pub fn pupil_px(rig: &Rig, s: &State) -> Result<[f64; 2], GazeError> {
+    project(&rig.camera, &s.camera_pose(rig), s.pupil_center(rig))
+}
