@@ -1,0 +1,478 @@
+//! The (height, pitch, diameter) design sweep of Sec. D.1: parallel, checkpointed, NPY output.
+//!
+//! Layout of an output directory: `manifest.json`, `phase.npy`, `transmittance.npy`, `t_re.npy`,
+//! `t_im.npy` (f64, C order, shape [n_heights, n_pitches, n_fractions]), and while running
+//! `partial/pitch_XXXX.bin` checkpoints (one per completed pitch), removed when the sweep
+//! completes. A restarted sweep with the same manifest reuses every completed pitch.
+
+use crate::error::MetalibError;
+use crate::material::Materials;
+use crate::rcwa::{CellSpec, LayerModes, Rule};
+use rayon::prelude::*;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// Format version written into the manifest.
+pub const SWEEP_FORMAT_VERSION: u32 = 1;
+
+/// An inclusive arithmetic range start:stop:step (SI units or fractions).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Range {
+    /// First value.
+    pub start: f64,
+    /// Last value (inclusive, up to rounding).
+    pub stop: f64,
+    /// Step (> 0).
+    pub step: f64,
+}
+
+impl Range {
+    /// Values of the range; errors for non-finite, non-positive step or stop < start.
+    pub fn values(&self, name: &'static str) -> Result<Vec<f64>, MetalibError> {
+        if !(self.start.is_finite() && self.stop.is_finite() && self.step.is_finite()) {
+            return Err(MetalibError::param(name, "range bounds must be finite"));
+        }
+        if self.step <= 0.0 || self.stop < self.start {
+            return Err(MetalibError::param(name, "need step > 0 and stop >= start"));
+        }
+        let n = ((self.stop - self.start) / self.step + 1e-9).floor() as usize + 1;
+        if n > 100_000 {
+            return Err(MetalibError::param(name, "more than 100000 samples"));
+        }
+        Ok((0..n).map(|i| self.start + i as f64 * self.step).collect())
+    }
+}
+
+/// Full description of a sweep (what the manifest records).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SweepConfig {
+    /// Heights (m).
+    pub heights_m: Range,
+    /// Pitches (m).
+    pub pitches_m: Range,
+    /// Diameter as a fraction of the pitch.
+    pub fractions: Range,
+    /// Wavelength (m).
+    pub wavelength_m: f64,
+    /// Materials.
+    pub materials: Materials,
+    /// Truncation order.
+    pub harmonics: usize,
+    /// Factorisation rule.
+    pub rule: Rule,
+}
+
+impl Default for SweepConfig {
+    fn default() -> Self {
+        Self {
+            heights_m: Range {
+                start: 100e-9,
+                stop: 1500e-9,
+                step: 10e-9,
+            },
+            pitches_m: Range {
+                start: 100e-9,
+                stop: 1000e-9,
+                step: 10e-9,
+            },
+            fractions: Range {
+                start: 0.10,
+                stop: 0.90,
+                step: 0.005,
+            },
+            wavelength_m: crate::material::DEFAULT_WAVELENGTH_M,
+            materials: Materials::default(),
+            harmonics: crate::rcwa::DEFAULT_HARMONICS,
+            rule: crate::rcwa::DEFAULT_RULE,
+        }
+    }
+}
+
+/// Manifest written next to the arrays.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Manifest {
+    /// Format version.
+    pub version: u32,
+    /// Crate version that wrote it.
+    pub crate_version: String,
+    /// Sweep parameters.
+    pub config: SweepConfig,
+    /// Array shape [heights, pitches, fractions].
+    pub shape: [usize; 3],
+    /// Index order of the arrays.
+    pub index_order: String,
+    /// Phase convention.
+    pub phase_convention: String,
+    /// Cells whose solve failed (stored as NaN).
+    pub failed_cells: usize,
+    /// Whether every pitch is complete.
+    pub complete: bool,
+}
+
+/// Sweep results in memory, each array flattened [h, s, f] (C order).
+#[derive(Debug, Clone)]
+pub struct SweepData {
+    /// Manifest.
+    pub manifest: Manifest,
+    /// Heights (m).
+    pub heights_m: Vec<f64>,
+    /// Pitches (m).
+    pub pitches_m: Vec<f64>,
+    /// Diameter fractions of the pitch.
+    pub fractions: Vec<f64>,
+    /// arg t (rad).
+    pub phase: Vec<f64>,
+    /// τ.
+    pub transmittance: Vec<f64>,
+    /// Re t.
+    pub t_re: Vec<f64>,
+    /// Im t.
+    pub t_im: Vec<f64>,
+}
+
+impl SweepData {
+    /// Flat index of (height, pitch, fraction).
+    pub fn idx(&self, ih: usize, is: usize, id: usize) -> usize {
+        (ih * self.pitches_m.len() + is) * self.fractions.len() + id
+    }
+}
+
+fn io_err(path: &Path, source: std::io::Error) -> MetalibError {
+    MetalibError::Io {
+        path: path.display().to_string(),
+        source,
+    }
+}
+
+/// Writes `bytes` to `path` atomically (temporary file in the same directory, then rename).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MetalibError> {
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(|e| io_err(path, e))?;
+    tmp.write_all(bytes).map_err(|e| io_err(path, e))?;
+    // NamedTempFile is created 0600; outputs are ordinary data files.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        tmp.as_file()
+            .set_permissions(std::fs::Permissions::from_mode(0o644))
+            .map_err(|e| io_err(path, e))?;
+    }
+    tmp.persist(path).map_err(|e| io_err(path, e.error))?;
+    Ok(())
+}
+
+/// Serialises a C-order f64 array as NPY bytes.
+pub fn npy_bytes(shape: &[u64], data: &[f64]) -> Result<Vec<u8>, MetalibError> {
+    let mut buf = Vec::with_capacity(data.len() * 8 + 128);
+    {
+        use npyz::WriterBuilder;
+        let mut w = npyz::WriteOptions::new()
+            .default_dtype()
+            .shape(shape)
+            .writer(std::io::Cursor::new(&mut buf))
+            .begin_nd()
+            .map_err(|e| MetalibError::Numerical(format!("npy header: {e}")))?;
+        w.extend(data.iter().copied())
+            .map_err(|e| MetalibError::Numerical(format!("npy write: {e}")))?;
+        w.finish()
+            .map_err(|e| MetalibError::Numerical(format!("npy finish: {e}")))?;
+    }
+    Ok(buf)
+}
+
+/// Reads an NPY file of f64 or f32 into (shape, data as f64).
+pub fn read_npy(path: &Path) -> Result<(Vec<u64>, Vec<f64>), MetalibError> {
+    let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
+    let fmt = |r: String| MetalibError::Format {
+        path: path.display().to_string(),
+        reason: r,
+    };
+    let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| fmt(e.to_string()))?;
+    let shape = npy.shape().to_vec();
+    if npy.order() != npyz::Order::C {
+        return Err(fmt("Fortran-order arrays are not supported".into()));
+    }
+    let descr = npy.dtype().descr();
+    let data: Vec<f64> = if descr.contains("f8") {
+        npy.into_vec::<f64>().map_err(|e| fmt(e.to_string()))?
+    } else if descr.contains("f4") {
+        npy.into_vec::<f32>()
+            .map_err(|e| fmt(e.to_string()))?
+            .into_iter()
+            .map(f64::from)
+            .collect()
+    } else {
+        return Err(fmt(format!("unsupported dtype {descr} (need f4 or f8)")));
+    };
+    Ok((shape, data))
+}
+
+fn checkpoint_path(dir: &Path, is: usize) -> PathBuf {
+    dir.join("partial").join(format!("pitch_{is:04}.bin"))
+}
+
+/// Per-pitch block: for each fraction, for each height, (phase, τ, Re t, Im t).
+fn encode_block(block: &[[f64; 4]]) -> Vec<u8> {
+    block
+        .iter()
+        .flat_map(|c| c.iter().flat_map(|v| v.to_le_bytes()))
+        .collect()
+}
+
+fn decode_block(bytes: &[u8], expect: usize) -> Option<Vec<[f64; 4]>> {
+    if bytes.len() != expect * 32 {
+        return None;
+    }
+    Some(
+        bytes
+            .chunks_exact(32)
+            .map(|c| {
+                let mut v = [0.0; 4];
+                for (k, x) in v.iter_mut().enumerate() {
+                    let mut b = [0u8; 8];
+                    b.copy_from_slice(&c[8 * k..8 * k + 8]);
+                    *x = f64::from_le_bytes(b);
+                }
+                v
+            })
+            .collect(),
+    )
+}
+
+/// Solves every height of one (pitch, diameter) cell: one eigen-decomposition, many heights.
+/// Failed solves are stored as NaN and counted in the manifest.
+fn solve_column(spec: &CellSpec, heights: &[f64]) -> Vec<[f64; 4]> {
+    let nan = [f64::NAN; 4];
+    match LayerModes::new(spec) {
+        Ok(modes) => heights
+            .iter()
+            .map(|&h| match modes.transmission_at(h) {
+                Ok(t) => [t.arg(), modes.transmittance_of(t), t.re, t.im],
+                Err(_) => nan,
+            })
+            .collect(),
+        Err(_) => vec![nan; heights.len()],
+    }
+}
+
+/// Runs (or resumes) a sweep into `dir`, reporting completed cells to `progress`.
+pub fn run_sweep(
+    config: &SweepConfig,
+    dir: &Path,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<Manifest, MetalibError> {
+    let heights = config.heights_m.values("heights")?;
+    let pitches = config.pitches_m.values("pitches")?;
+    let fractions = config.fractions.values("fractions")?;
+    if let Some(f) = fractions.iter().find(|f| !(**f >= 0.0 && **f <= 1.0)) {
+        return Err(MetalibError::param(
+            "fractions",
+            format!("fraction {f} outside [0, 1]"),
+        ));
+    }
+    if let Some(h) = heights.iter().find(|h| **h < 0.0) {
+        return Err(MetalibError::param(
+            "heights",
+            format!("negative height {h}"),
+        ));
+    }
+    if let Some(s) = pitches.iter().find(|s| **s <= 0.0) {
+        return Err(MetalibError::param(
+            "pitches",
+            format!("non-positive pitch {s}"),
+        ));
+    }
+    // Validate the materials/harmonics once with a representative cell.
+    CellSpec {
+        wavelength_m: config.wavelength_m,
+        pitch_m: pitches[0],
+        diameter_m: fractions[0] * pitches[0],
+        materials: config.materials,
+        harmonics: config.harmonics,
+        rule: config.rule,
+    }
+    .validate()?;
+    let (nh, ns, nf) = (heights.len(), pitches.len(), fractions.len());
+    std::fs::create_dir_all(dir.join("partial")).map_err(|e| io_err(dir, e))?;
+    let mut manifest = Manifest {
+        version: SWEEP_FORMAT_VERSION,
+        crate_version: env!("CARGO_PKG_VERSION").to_string(),
+        config: config.clone(),
+        shape: [nh, ns, nf],
+        index_order: "[height, pitch, diameter_fraction], C order".into(),
+        phase_convention: "time dependence exp(-i omega t); t = Ex(z = h+, zero order) / Ex_inc(z = 0-); \
+                           phase = arg t in (-pi, pi]; z = 0 is the pillar top, z = h the substrate surface"
+            .into(),
+        failed_cells: 0,
+        complete: false,
+    };
+    let mpath = dir.join("manifest.json");
+    if mpath.exists() {
+        let old: Manifest =
+            serde_json::from_slice(&std::fs::read(&mpath).map_err(|e| io_err(&mpath, e))?)
+                .map_err(|e| MetalibError::Format {
+                    path: mpath.display().to_string(),
+                    reason: e.to_string(),
+                })?;
+        if old.config != manifest.config || old.version != manifest.version {
+            return Err(MetalibError::param(
+                "out",
+                format!(
+                    "{} holds a sweep with different parameters; use another directory",
+                    dir.display()
+                ),
+            ));
+        }
+    }
+    let json =
+        serde_json::to_vec_pretty(&manifest).map_err(|e| MetalibError::Numerical(e.to_string()))?;
+    write_atomic(&mpath, &json)?;
+
+    let mut blocks: Vec<Option<Vec<[f64; 4]>>> = vec![None; ns];
+    for (is, b) in blocks.iter_mut().enumerate() {
+        let p = checkpoint_path(dir, is);
+        if let Ok(bytes) = std::fs::read(&p) {
+            *b = decode_block(&bytes, nh * nf);
+            if b.is_some() {
+                progress((nh * nf) as u64);
+            }
+        }
+    }
+    for (is, &s) in pitches.iter().enumerate() {
+        if blocks[is].is_some() {
+            continue;
+        }
+        let cols: Vec<Vec<[f64; 4]>> = fractions
+            .par_iter()
+            .map(|&f| {
+                let spec = CellSpec {
+                    wavelength_m: config.wavelength_m,
+                    pitch_m: s,
+                    diameter_m: (f * s).min(s),
+                    materials: config.materials,
+                    harmonics: config.harmonics,
+                    rule: config.rule,
+                };
+                let out = solve_column(&spec, &heights);
+                progress(nh as u64);
+                out
+            })
+            .collect();
+        let mut block = Vec::with_capacity(nh * nf);
+        for col in cols {
+            block.extend(col);
+        }
+        write_atomic(&checkpoint_path(dir, is), &encode_block(&block))?;
+        blocks[is] = Some(block);
+    }
+    // Assemble [h, s, f] arrays from the per-pitch blocks (stored [f][h]).
+    let total = nh * ns * nf;
+    let mut arrays = vec![vec![0.0; total]; 4];
+    for (is, b) in blocks.iter().enumerate() {
+        let b = b
+            .as_ref()
+            .ok_or_else(|| MetalibError::Numerical("missing pitch block".into()))?;
+        for id in 0..nf {
+            for ih in 0..nh {
+                let c = b[id * nh + ih];
+                let k = (ih * ns + is) * nf + id;
+                for (a, v) in arrays.iter_mut().zip(c) {
+                    a[k] = v;
+                }
+            }
+        }
+    }
+    manifest.failed_cells = arrays[0].iter().filter(|v| v.is_nan()).count();
+    let shape = [nh as u64, ns as u64, nf as u64];
+    for (name, a) in ["phase", "transmittance", "t_re", "t_im"]
+        .iter()
+        .zip(&arrays)
+    {
+        write_atomic(&dir.join(format!("{name}.npy")), &npy_bytes(&shape, a)?)?;
+    }
+    manifest.complete = true;
+    let json =
+        serde_json::to_vec_pretty(&manifest).map_err(|e| MetalibError::Numerical(e.to_string()))?;
+    write_atomic(&mpath, &json)?;
+    let _ = std::fs::remove_dir_all(dir.join("partial"));
+    Ok(manifest)
+}
+
+/// [`run_sweep`] with an indicatif progress bar on stderr (drawn only when stderr is a terminal).
+/// The faer global parallelism is set to sequential for the duration, since the sweep already
+/// runs one cell per rayon task, and restored afterwards.
+pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibError> {
+    let total = (config.heights_m.values("heights")?.len()
+        * config.pitches_m.values("pitches")?.len()
+        * config.fractions.values("fractions")?.len()) as u64;
+    let bar = indicatif::ProgressBar::with_draw_target(
+        Some(total),
+        indicatif::ProgressDrawTarget::stderr(),
+    );
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{elapsed_precise} [{bar:40}] {pos}/{len} cells, eta {eta}",
+    ) {
+        bar.set_style(style);
+    }
+    let saved = faer::get_global_parallelism();
+    faer::set_global_parallelism(faer::Par::Seq);
+    let out = run_sweep(config, dir, &|n| bar.inc(n));
+    faer::set_global_parallelism(saved);
+    bar.finish_and_clear();
+    out
+}
+
+/// Loads a completed sweep directory.
+pub fn load_sweep(dir: &Path) -> Result<SweepData, MetalibError> {
+    let mpath = dir.join("manifest.json");
+    let manifest: Manifest = serde_json::from_slice(
+        &std::fs::read(&mpath).map_err(|e| io_err(&mpath, e))?,
+    )
+    .map_err(|e| MetalibError::Format {
+        path: mpath.display().to_string(),
+        reason: e.to_string(),
+    })?;
+    if !manifest.complete {
+        return Err(MetalibError::Format {
+            path: mpath.display().to_string(),
+            reason: "sweep incomplete; rerun `sweep` to resume it".into(),
+        });
+    }
+    let heights_m = manifest.config.heights_m.values("heights")?;
+    let pitches_m = manifest.config.pitches_m.values("pitches")?;
+    let fractions = manifest.config.fractions.values("fractions")?;
+    let expect = [
+        heights_m.len() as u64,
+        pitches_m.len() as u64,
+        fractions.len() as u64,
+    ];
+    let mut arrays = Vec::new();
+    for name in ["phase", "transmittance", "t_re", "t_im"] {
+        let p = dir.join(format!("{name}.npy"));
+        let (shape, data) = read_npy(&p)?;
+        if shape != expect {
+            return Err(MetalibError::Format {
+                path: p.display().to_string(),
+                reason: format!("shape {shape:?} != manifest {expect:?}"),
+            });
+        }
+        arrays.push(data);
+    }
+    let t_im = arrays.pop().unwrap_or_default();
+    let t_re = arrays.pop().unwrap_or_default();
+    let transmittance = arrays.pop().unwrap_or_default();
+    let phase = arrays.pop().unwrap_or_default();
+    Ok(SweepData {
+        manifest,
+        heights_m,
+        pitches_m,
+        fractions,
+        phase,
+        transmittance,
+        t_re,
+        t_im,
+    })
+}
