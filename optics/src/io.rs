@@ -1,0 +1,100 @@
+//! NPY input/output: free-form phase maps in, PSF stacks out ([depth, y, x], float32).
+
+use crate::error::{OpticsError, Result};
+use crate::psf::PsfStack;
+use faer::Mat;
+use npyz::WriterBuilder;
+use std::io::Write;
+use std::path::Path;
+
+fn io_err(path: &Path, source: std::io::Error) -> OpticsError {
+    OpticsError::Io {
+        path: path.display().to_string(),
+        source,
+    }
+}
+
+fn fmt_err(path: &Path, reason: impl Into<String>) -> OpticsError {
+    OpticsError::Format {
+        path: path.display().to_string(),
+        reason: reason.into(),
+    }
+}
+
+/// Reads a 2-D square float32/float64 NPY array (C or Fortran order) as a phase map (rad).
+pub fn read_phase_npy(path: &Path) -> Result<Mat<f64>> {
+    let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
+    let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| fmt_err(path, e.to_string()))?;
+    let shape = npy.shape().to_vec();
+    if shape.len() != 2 || shape[0] != shape[1] || shape[0] == 0 {
+        return Err(fmt_err(
+            path,
+            format!("expected a square 2-D array, got shape {shape:?}"),
+        ));
+    }
+    let n = shape[0] as usize;
+    let fortran = npy.order() == npyz::Order::Fortran;
+    let descr = npy.dtype().descr();
+    let data: Vec<f64> = if descr.contains("f8") {
+        npy.into_vec::<f64>()
+            .map_err(|e| fmt_err(path, e.to_string()))?
+    } else if descr.contains("f4") {
+        let v = npy
+            .into_vec::<f32>()
+            .map_err(|e| fmt_err(path, e.to_string()))?;
+        v.into_iter().map(f64::from).collect()
+    } else {
+        return Err(fmt_err(
+            path,
+            format!("dtype {descr} is not float32/float64"),
+        ));
+    };
+    if data.iter().any(|v| !v.is_finite()) {
+        return Err(fmt_err(path, "phase map holds non-finite values"));
+    }
+    Ok(Mat::from_fn(n, n, |i, j| {
+        if fortran {
+            data[j * n + i]
+        } else {
+            data[i * n + j]
+        }
+    }))
+}
+
+/// Writes the stack's planes as one float32 NPY array [depth, y, x] to `w`.
+pub fn write_stack_npy<W: Write>(stack: &PsfStack, w: W) -> std::io::Result<()> {
+    let (nz, ny, nx) = (
+        stack.planes.len(),
+        stack.planes.first().map_or(0, |m| m.nrows()),
+        stack.planes.first().map_or(0, |m| m.ncols()),
+    );
+    let mut wr = npyz::WriteOptions::new()
+        .default_dtype()
+        .shape(&[nz as u64, ny as u64, nx as u64])
+        .writer(w)
+        .begin_nd()?;
+    for p in &stack.planes {
+        for i in 0..ny {
+            for j in 0..nx {
+                wr.push(&p[(i, j)])?;
+            }
+        }
+    }
+    wr.finish()
+}
+
+/// Writes the stack to `path` atomically (temporary file in the same directory, then rename).
+pub fn save_stack_npy(stack: &PsfStack, path: &Path) -> Result<()> {
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(|e| io_err(path, e))?;
+    {
+        let mut bw = std::io::BufWriter::new(tmp.as_file_mut());
+        write_stack_npy(stack, &mut bw).map_err(|e| io_err(path, e))?;
+        bw.flush().map_err(|e| io_err(path, e))?;
+    }
+    tmp.persist(path).map_err(|e| io_err(path, e.error))?;
+    Ok(())
+}

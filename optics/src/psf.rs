@@ -1,0 +1,682 @@
+//! Depth-dependent PSFs by band-limited angular-spectrum propagation, evaluated only over the
+//! sensor window by a separable matrix DFT and box-integrated over pixels (S24), with the
+//! finite-difference ∂PSF/∂z stack and the vector–Jacobian product w.r.t. the phase map.
+//!
+//! Per depth z: point source → spherical wave e^{ik(r−z)} over the pupil → pupil weight ·
+//! a·e^{iφ} → spectrum sampled at spacing 1/L (the aperture field folded modulo the period L,
+//! then an N_L×N_L FFT; exact samples of its continuous spectrum) → × H(f) = e^{i2πs√(λ⁻²−f²)},
+//! zero outside the band of directions that can reach the window → matrix DFT onto q×q
+//! sub-pixel points of every sensor pixel → |·|² summed per pixel → ÷ power incident on the
+//! aperture. Sampling the spectrum at 1/L periodizes the sensor field with period L, so L must
+//! exceed the region of the sensor plane that holds light (see docs/optics.md).
+
+use crate::error::{OpticsError, Result, positive};
+use crate::grid::ApertureGrid;
+use crate::profile::{PhaseMap, sag_phase};
+use faer::{Accum, Mat, Par, c64};
+use rayon::prelude::*;
+use rustfft::{Fft, FftPlanner};
+use std::f64::consts::TAU;
+use std::sync::Arc;
+
+/// Optical and sensor parameters of a PSF evaluation (SI units).
+#[derive(Clone, Copy, Debug)]
+pub struct PsfConfig {
+    /// Wavelength λ (m).
+    pub wavelength_m: f64,
+    /// Metasurface-to-sensor distance s (m).
+    pub sensor_distance_m: f64,
+    /// Sensor pixel pitch p (m).
+    pub pitch_m: f64,
+    /// PSF window width W (pixels per side); the window is centred on `window_center_m`.
+    pub window_px: usize,
+    /// Largest sub-pixel spacing (m) of the box integration; q = ⌈p / this⌉ points per pixel
+    /// side. `None`: 0.8·λs/(2D), i.e. finer than the intensity's Nyquist spacing.
+    pub max_subpixel_m: Option<f64>,
+    /// Period L (m) of the spectral sampling (the padding). `None`: D + W·p.
+    pub period_m: Option<f64>,
+    /// Lateral position (x, y) of the point source (m); (0, 0) is on axis.
+    pub source_xy_m: [f64; 2],
+    /// Sensor-plane position (x, y) of the window centre (m).
+    pub window_center_m: [f64; 2],
+}
+
+impl Default for PsfConfig {
+    /// λ = 940 nm, s = 2 mm, p = 3 µm, W = 64, on axis.
+    fn default() -> Self {
+        Self {
+            wavelength_m: 940e-9,
+            sensor_distance_m: 2e-3,
+            pitch_m: 3e-6,
+            window_px: 64,
+            max_subpixel_m: None,
+            period_m: None,
+            source_xy_m: [0.0, 0.0],
+            window_center_m: [0.0, 0.0],
+        }
+    }
+}
+
+/// PSFs of one lens over a set of depths, with their finite-difference depth derivative.
+#[derive(Clone, Debug)]
+pub struct PsfStack {
+    /// Source depths z_k (m), as requested (any order; ∂/∂z uses neighbours in this order).
+    pub depths_m: Vec<f64>,
+    /// Sensor pixel pitch p (m).
+    pub pitch_m: f64,
+    /// PSF per depth, W×W, rows along y; pixel values are the fraction of the power incident
+    /// on the aperture that falls on the pixel. Zero for planes not computed.
+    pub planes: Vec<Mat<f32>>,
+    /// ∂PSF/∂z per depth (1/m) by finite differences across the stack (central inside,
+    /// one-sided at the ends); zero where a needed neighbour was not computed.
+    pub dz_planes: Vec<Mat<f32>>,
+    /// Whether each plane was computed (false: skipped as empty).
+    pub computed: Vec<bool>,
+}
+
+/// Gradient of a scalar loss w.r.t. a [`PhaseMap`].
+#[derive(Clone, Debug)]
+pub struct PhaseMapGrad {
+    /// ∂loss/∂φ (per radian), n×n.
+    pub phase_rad: Mat<f64>,
+    /// ∂loss/∂a (per unit amplitude), n×n.
+    pub amplitude: Mat<f64>,
+}
+
+/// A model mapping a metasurface to PSF stacks over depth, with its VJP.
+pub trait PsfModel: Send + Sync {
+    /// PSF stack at `depths_m` (m, each > 0). `active[k] == false` skips depth k (its plane
+    /// and derivative stay zero): use it for depth planes without scene content.
+    fn forward(
+        &self,
+        map: &PhaseMap,
+        depths_m: &[f64],
+        active: Option<&[bool]>,
+    ) -> Result<PsfStack>;
+
+    /// Gradient w.r.t. `map` of a scalar loss whose gradient w.r.t. the stack is
+    /// `grad_planes[k]` (∂loss/∂planes[k], W×W) and optionally `grad_dz[k]`
+    /// (∂loss/∂dz_planes[k]). Planes whose total upstream gradient is zero are skipped.
+    fn vjp(
+        &self,
+        map: &PhaseMap,
+        depths_m: &[f64],
+        grad_planes: &[Mat<f64>],
+        grad_dz: Option<&[Mat<f64>]>,
+    ) -> Result<PhaseMapGrad>;
+}
+
+/// Band-limited angular-spectrum PSF model on a fixed aperture grid and sensor window.
+pub struct AsmPsf {
+    cfg: PsfConfig,
+    grid: ApertureGrid,
+    weights: Mat<f64>,
+    /// Sub-pixel points per pixel side.
+    q: usize,
+    /// FFT size of the folded grid.
+    n_fold: usize,
+    /// Band frequency indices m (f = m / L), ascending.
+    band: Vec<i64>,
+    /// Transfer function × Δ², Nb×Nb (rows f_y, columns f_x).
+    h: Mat<c64>,
+    /// Sub-pixel DFT matrices (Wq × Nb) for y and x.
+    ey: Mat<c64>,
+    ex: Mat<c64>,
+    /// Power incident on the aperture for a unit-amplitude wave (m²).
+    p_in: f64,
+    fft: Arc<dyn Fft<f64>>,
+    ifft: Arc<dyn Fft<f64>>,
+}
+
+/// Smallest n' ≥ n whose prime factors are all in {2, 3, 5, 7} (fast FFT sizes).
+pub fn fast_fft_size(n: usize) -> usize {
+    let mut m = n.max(1);
+    loop {
+        let mut r = m;
+        for p in [2, 3, 5, 7] {
+            while r % p == 0 {
+                r /= p;
+            }
+        }
+        if r == 1 {
+            return m;
+        }
+        m += 1;
+    }
+}
+
+struct Sample {
+    /// Index into the folded N_L×N_L buffer.
+    fold: usize,
+    /// Index (row-major) into the n×n aperture grid.
+    cell: usize,
+    /// Squared lateral distance to the source (m²).
+    d2: f64,
+    /// Pupil weight × e^{iφ}.
+    unit: c64,
+    /// Amplitude a.
+    amp: f64,
+}
+
+struct Workspace {
+    buf: Vec<c64>,
+    col: Vec<c64>,
+    scratch: Vec<c64>,
+    m: Mat<c64>,
+    t: Mat<c64>,
+    v: Mat<c64>,
+}
+
+impl AsmPsf {
+    /// Builds the model for `grid` and `cfg`: validates, sizes the folded FFT and the band,
+    /// and precomputes the transfer function and window DFT matrices.
+    pub fn new(cfg: PsfConfig, grid: ApertureGrid) -> Result<Self> {
+        let lam = positive("wavelength_m", cfg.wavelength_m)?;
+        let s = positive("sensor_distance_m", cfg.sensor_distance_m)?;
+        let p = positive("pitch_m", cfg.pitch_m)?;
+        if cfg.window_px == 0 || cfg.window_px > 4096 {
+            return Err(OpticsError::param(
+                "window_px",
+                format!("must be 1..=4096, got {}", cfg.window_px),
+            ));
+        }
+        for v in cfg.source_xy_m.iter().chain(cfg.window_center_m.iter()) {
+            if !v.is_finite() {
+                return Err(OpticsError::param(
+                    "source_xy_m/window_center_m",
+                    "must be finite",
+                ));
+            }
+        }
+        let d = grid.diameter_m;
+        let delta = grid.pitch_m;
+        let w = cfg.window_px;
+        let sub_max = match cfg.max_subpixel_m {
+            Some(v) => positive("max_subpixel_m", v)?,
+            None => 0.8 * lam * s / (2.0 * d),
+        };
+        let q = (p / sub_max - 1e-9).ceil().max(1.0) as usize;
+        if w * q > 8192 {
+            return Err(OpticsError::param(
+                "max_subpixel_m",
+                format!("{w}×{q} sub-pixel points per side is too many (max 8192)"),
+            ));
+        }
+        let period = match cfg.period_m {
+            Some(v) => positive("period_m", v)?,
+            None => d + w as f64 * p,
+        };
+        let n_fold = fast_fft_size(((period / delta) - 1e-9).ceil().max(2.0) as usize);
+        if n_fold > 16384 {
+            return Err(OpticsError::param(
+                "period_m",
+                format!("folded grid {n_fold} too large"),
+            ));
+        }
+        let l_eff = n_fold as f64 * delta;
+        let df = 1.0 / l_eff;
+        // Directions whose rays from the aperture can land in the window (per axis), capped
+        // below the grid's Nyquist frequency and the evanescent cut.
+        let half_win = 0.5 * w as f64 * p;
+        let reach = 0.5 * d
+            + half_win
+            + cfg.window_center_m[0]
+                .abs()
+                .max(cfg.window_center_m[1].abs());
+        let t = reach / s;
+        let f_reach = t / (lam * (1.0 + t * t).sqrt());
+        let f_b = f_reach.min(0.5 / delta * (1.0 - 1e-9)).min(1.0 / lam);
+        let m_max = (f_b / df).floor() as i64;
+        let band: Vec<i64> = (-m_max..=m_max).collect();
+        let nb = band.len();
+        let k_inv2 = 1.0 / (lam * lam);
+        let h = Mat::from_fn(nb, nb, |a, b| {
+            let (fy, fx) = (band[a] as f64 * df, band[b] as f64 * df);
+            let arg = k_inv2 - fx * fx - fy * fy;
+            if arg <= 0.0 {
+                c64::new(0.0, 0.0)
+            } else {
+                c64::from_polar(delta * delta, TAU * s * arg.sqrt())
+            }
+        });
+        let c = (grid.n as f64 - 1.0) * 0.5 * delta;
+        let sub = p / q as f64;
+        let make_e = |center: f64| {
+            Mat::from_fn(w * q, nb, |j, b| {
+                let y = center - half_win + (j as f64 + 0.5) * sub;
+                c64::from_polar(df, TAU * (band[b] as f64 * df) * (y + c))
+            })
+        };
+        let ey = make_e(cfg.window_center_m[1]);
+        let ex = make_e(cfg.window_center_m[0]);
+        let weights = grid.aperture_weights();
+        let p_in = weights
+            .col_iter()
+            .map(|c| c.iter().sum::<f64>())
+            .sum::<f64>()
+            * delta
+            * delta;
+        let mut planner = FftPlanner::<f64>::new();
+        let fft = planner.plan_fft_forward(n_fold);
+        let ifft = planner.plan_fft_inverse(n_fold);
+        Ok(Self {
+            cfg,
+            grid,
+            weights,
+            q,
+            n_fold,
+            band,
+            h,
+            ey,
+            ex,
+            p_in,
+            fft,
+            ifft,
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &PsfConfig {
+        &self.cfg
+    }
+
+    /// The aperture grid.
+    pub fn grid(&self) -> &ApertureGrid {
+        &self.grid
+    }
+
+    /// Sub-pixel points per pixel side q of the box integration.
+    pub fn subpixels(&self) -> usize {
+        self.q
+    }
+
+    /// FFT size N_L of the folded spectral grid and the number of band frequencies per axis.
+    pub fn sizes(&self) -> (usize, usize) {
+        (self.n_fold, self.band.len())
+    }
+
+    /// Power incident on the aperture for a unit-amplitude wave (m²): the PSF normalization.
+    pub fn incident_power_m2(&self) -> f64 {
+        self.p_in
+    }
+
+    fn check_map(&self, map: &PhaseMap) -> Result<()> {
+        if map.grid.n != self.grid.n
+            || (map.grid.pitch_m - self.grid.pitch_m).abs() > 1e-12 * self.grid.pitch_m
+            || (map.grid.diameter_m - self.grid.diameter_m).abs() > 1e-12 * self.grid.diameter_m
+        {
+            return Err(OpticsError::Shape(format!(
+                "phase map grid {:?} differs from the model's {:?}",
+                map.grid, self.grid
+            )));
+        }
+        Ok(())
+    }
+
+    fn check_depths(depths_m: &[f64]) -> Result<()> {
+        if depths_m.is_empty() {
+            return Err(OpticsError::param("depths_m", "no depths given"));
+        }
+        for &z in depths_m {
+            positive("depths_m", z)?;
+        }
+        Ok(())
+    }
+
+    fn samples(&self, map: &PhaseMap) -> Vec<Sample> {
+        let n = self.grid.n;
+        let [x0, y0] = self.cfg.source_xy_m;
+        let mut out = Vec::with_capacity(n * n);
+        for i in 0..n {
+            let y = self.grid.coord(i);
+            for j in 0..n {
+                let wgt = self.weights[(i, j)];
+                if wgt == 0.0 {
+                    continue;
+                }
+                let x = self.grid.coord(j);
+                out.push(Sample {
+                    fold: (i % self.n_fold) * self.n_fold + (j % self.n_fold),
+                    cell: i * n + j,
+                    d2: (x - x0).powi(2) + (y - y0).powi(2),
+                    unit: c64::from_polar(wgt, map.phase_rad[(i, j)]),
+                    amp: map.amplitude[(i, j)],
+                });
+            }
+        }
+        out
+    }
+
+    fn workspace(&self) -> Workspace {
+        let nl = self.n_fold;
+        let nb = self.band.len();
+        let wq = self.cfg.window_px * self.q;
+        let scratch_len = self
+            .fft
+            .get_inplace_scratch_len()
+            .max(self.ifft.get_inplace_scratch_len());
+        Workspace {
+            buf: vec![c64::new(0.0, 0.0); nl * nl],
+            col: vec![c64::new(0.0, 0.0); nl],
+            scratch: vec![c64::new(0.0, 0.0); scratch_len],
+            m: Mat::zeros(nb, nb),
+            t: Mat::zeros(wq, nb),
+            v: Mat::zeros(wq, wq),
+        }
+    }
+
+    #[inline]
+    fn band_index(&self, m: i64) -> usize {
+        m.rem_euclid(self.n_fold as i64) as usize
+    }
+
+    /// Sensor-window field V (Wq×Wq) for depth z, left in `ws.v`.
+    fn field(&self, samples: &[Sample], z: f64, ws: &mut Workspace) {
+        let k = TAU / self.cfg.wavelength_m;
+        let nl = self.n_fold;
+        ws.buf.fill(c64::new(0.0, 0.0));
+        for smp in samples {
+            let psi = sag_phase(k, smp.d2, z);
+            ws.buf[smp.fold] += smp.unit * c64::from_polar(smp.amp, psi);
+        }
+        self.fft.process_with_scratch(&mut ws.buf, &mut ws.scratch);
+        for (b, &mx) in self.band.iter().enumerate() {
+            let cx = self.band_index(mx);
+            for (r, v) in ws.col.iter_mut().enumerate() {
+                *v = ws.buf[r * nl + cx];
+            }
+            self.fft.process_with_scratch(&mut ws.col, &mut ws.scratch);
+            for (a, &my) in self.band.iter().enumerate() {
+                ws.m[(a, b)] = ws.col[self.band_index(my)] * self.h[(a, b)];
+            }
+        }
+        faer::linalg::matmul::matmul(
+            ws.t.as_mut(),
+            Accum::Replace,
+            self.ey.as_ref(),
+            ws.m.as_ref(),
+            c64::new(1.0, 0.0),
+            Par::Seq,
+        );
+        faer::linalg::matmul::matmul(
+            ws.v.as_mut(),
+            Accum::Replace,
+            ws.t.as_ref(),
+            self.ex.transpose(),
+            c64::new(1.0, 0.0),
+            Par::Seq,
+        );
+    }
+
+    fn plane_from_field(&self, v: &Mat<c64>) -> Mat<f64> {
+        let q = self.q;
+        let w = self.cfg.window_px;
+        let sub = self.cfg.pitch_m / q as f64;
+        let scale = sub * sub / self.p_in;
+        let mut out = Mat::<f64>::zeros(w, w);
+        for c in 0..w * q {
+            for r in 0..w * q {
+                out[(r / q, c / q)] += v[(r, c)].norm_sqr();
+            }
+        }
+        for c in 0..w {
+            for r in 0..w {
+                out[(r, c)] *= scale;
+            }
+        }
+        out
+    }
+
+    /// PSF of one depth `depth_m` (m) in f64 (W×W, fraction of incident power per pixel).
+    pub fn plane(&self, map: &PhaseMap, depth_m: f64) -> Result<Mat<f64>> {
+        self.check_map(map)?;
+        positive("depth_m", depth_m)?;
+        let samples = self.samples(map);
+        let mut ws = self.workspace();
+        self.field(&samples, depth_m, &mut ws);
+        Ok(self.plane_from_field(&ws.v))
+    }
+
+    /// PSF planes in f64 (zero where not active).
+    pub fn planes_f64(
+        &self,
+        map: &PhaseMap,
+        depths_m: &[f64],
+        active: Option<&[bool]>,
+    ) -> Result<Vec<Option<Mat<f64>>>> {
+        self.check_map(map)?;
+        Self::check_depths(depths_m)?;
+        if let Some(a) = active {
+            if a.len() != depths_m.len() {
+                return Err(OpticsError::Shape(format!(
+                    "active has {} flags for {} depths",
+                    a.len(),
+                    depths_m.len()
+                )));
+            }
+        }
+        let samples = self.samples(map);
+        Ok(depths_m
+            .par_iter()
+            .enumerate()
+            .map_init(
+                || None,
+                |ws: &mut Option<Workspace>, (k, &z)| {
+                    if active.is_some_and(|a| !a[k]) {
+                        return None;
+                    }
+                    let ws = ws.get_or_insert_with(|| self.workspace());
+                    self.field(&samples, z, ws);
+                    Some(self.plane_from_field(&ws.v))
+                },
+            )
+            .collect())
+    }
+}
+
+/// Finite-difference weights (k−, k+, coefficients) of ∂/∂z at stack index `k`.
+fn fd_stencil(depths: &[f64], k: usize) -> Option<(usize, usize, f64)> {
+    let n = depths.len();
+    if n < 2 {
+        return None;
+    }
+    let (lo, hi) = if k == 0 {
+        (0, 1)
+    } else if k == n - 1 {
+        (n - 2, n - 1)
+    } else {
+        (k - 1, k + 1)
+    };
+    let dz = depths[hi] - depths[lo];
+    if dz == 0.0 {
+        None
+    } else {
+        Some((lo, hi, 1.0 / dz))
+    }
+}
+
+/// ∂PSF/∂z across a stack by finite differences (central inside, one-sided at the ends);
+/// `None` where a needed plane is missing.
+pub fn depth_derivative(depths_m: &[f64], planes: &[Option<Mat<f64>>]) -> Vec<Option<Mat<f64>>> {
+    (0..planes.len())
+        .map(|k| {
+            let (lo, hi, inv) = fd_stencil(depths_m, k)?;
+            let (a, b) = (planes[lo].as_ref()?, planes[hi].as_ref()?);
+            Some(Mat::from_fn(a.nrows(), a.ncols(), |i, j| {
+                (b[(i, j)] - a[(i, j)]) * inv
+            }))
+        })
+        .collect()
+}
+
+/// Adjoint of [`depth_derivative`]: adds the plane gradients implied by `grad_dz` into `grad`.
+pub fn depth_derivative_vjp(depths_m: &[f64], grad_dz: &[Mat<f64>], grad: &mut [Mat<f64>]) {
+    for (k, g) in grad_dz.iter().enumerate() {
+        if let Some((lo, hi, inv)) = fd_stencil(depths_m, k) {
+            for j in 0..g.ncols() {
+                for i in 0..g.nrows() {
+                    grad[hi][(i, j)] += g[(i, j)] * inv;
+                    grad[lo][(i, j)] -= g[(i, j)] * inv;
+                }
+            }
+        }
+    }
+}
+
+fn to_f32(m: &Mat<f64>) -> Mat<f32> {
+    Mat::from_fn(m.nrows(), m.ncols(), |i, j| m[(i, j)] as f32)
+}
+
+impl PsfModel for AsmPsf {
+    fn forward(
+        &self,
+        map: &PhaseMap,
+        depths_m: &[f64],
+        active: Option<&[bool]>,
+    ) -> Result<PsfStack> {
+        let planes = self.planes_f64(map, depths_m, active)?;
+        let dz = depth_derivative(depths_m, &planes);
+        let w = self.cfg.window_px;
+        let conv = |v: &Option<Mat<f64>>| v.as_ref().map_or_else(|| Mat::zeros(w, w), to_f32);
+        Ok(PsfStack {
+            depths_m: depths_m.to_vec(),
+            pitch_m: self.cfg.pitch_m,
+            computed: planes.iter().map(Option::is_some).collect(),
+            planes: planes.iter().map(conv).collect(),
+            dz_planes: dz.iter().map(conv).collect(),
+        })
+    }
+
+    fn vjp(
+        &self,
+        map: &PhaseMap,
+        depths_m: &[f64],
+        grad_planes: &[Mat<f64>],
+        grad_dz: Option<&[Mat<f64>]>,
+    ) -> Result<PhaseMapGrad> {
+        self.check_map(map)?;
+        Self::check_depths(depths_m)?;
+        let w = self.cfg.window_px;
+        let nz = depths_m.len();
+        let check = |name: &str, g: &[Mat<f64>]| -> Result<()> {
+            if g.len() != nz || g.iter().any(|m| m.nrows() != w || m.ncols() != w) {
+                return Err(OpticsError::Shape(format!(
+                    "{name} must hold {nz} planes of {w}×{w}"
+                )));
+            }
+            if g.iter()
+                .any(|m| m.col_iter().any(|c| c.iter().any(|v| !v.is_finite())))
+            {
+                return Err(OpticsError::param(
+                    "grad_planes",
+                    "non-finite upstream gradient",
+                ));
+            }
+            Ok(())
+        };
+        check("grad_planes", grad_planes)?;
+        let mut grad: Vec<Mat<f64>> = grad_planes.to_vec();
+        if let Some(gdz) = grad_dz {
+            check("grad_dz", gdz)?;
+            depth_derivative_vjp(depths_m, gdz, &mut grad);
+        }
+        let samples = self.samples(map);
+        let ns = samples.len();
+        let (gp, ga) = (0..nz)
+            .into_par_iter()
+            .filter(|&k| grad[k].col_iter().any(|c| c.iter().any(|&v| v != 0.0)))
+            .fold(
+                || (None::<Workspace>, vec![0.0; ns], vec![0.0; ns]),
+                |(ws, mut gp, mut ga), k| {
+                    let mut ws = ws.unwrap_or_else(|| self.workspace());
+                    self.plane_adjoint(&samples, depths_m[k], &grad[k], &mut ws, &mut gp, &mut ga);
+                    (Some(ws), gp, ga)
+                },
+            )
+            .map(|(_, gp, ga)| (gp, ga))
+            .reduce(
+                || (vec![0.0; ns], vec![0.0; ns]),
+                |(mut a, mut b), (c, d)| {
+                    a.iter_mut().zip(&c).for_each(|(x, y)| *x += y);
+                    b.iter_mut().zip(&d).for_each(|(x, y)| *x += y);
+                    (a, b)
+                },
+            );
+        let n = self.grid.n;
+        let mut out = PhaseMapGrad {
+            phase_rad: Mat::zeros(n, n),
+            amplitude: Mat::zeros(n, n),
+        };
+        for (s, smp) in samples.iter().enumerate() {
+            let (i, j) = (smp.cell / n, smp.cell % n);
+            out.phase_rad[(i, j)] = gp[s];
+            out.amplitude[(i, j)] = ga[s];
+        }
+        Ok(out)
+    }
+}
+
+impl AsmPsf {
+    /// Accumulates the gradient of ⟨g, PSF(z)⟩ w.r.t. phase and amplitude per sample.
+    fn plane_adjoint(
+        &self,
+        samples: &[Sample],
+        z: f64,
+        g: &Mat<f64>,
+        ws: &mut Workspace,
+        gp: &mut [f64],
+        ga: &mut [f64],
+    ) {
+        self.field(samples, z, ws);
+        let q = self.q;
+        let sub = self.cfg.pitch_m / q as f64;
+        let scale = 2.0 * sub * sub / self.p_in;
+        let wq = self.cfg.window_px * q;
+        // gV = 2 g δ²/P · V (Wirtinger gradient of |V|²), written over V in place.
+        for c in 0..wq {
+            for r in 0..wq {
+                let f = g[(r / q, c / q)] * scale;
+                ws.v[(r, c)] *= f;
+            }
+        }
+        // V = E_y M E_xᵀ ⇒ gT = gV·conj(E_x), gM = E_yᴴ·gT.
+        faer::linalg::matmul::matmul(
+            ws.t.as_mut(),
+            Accum::Replace,
+            ws.v.as_ref(),
+            self.ex.conjugate(),
+            c64::new(1.0, 0.0),
+            Par::Seq,
+        );
+        faer::linalg::matmul::matmul(
+            ws.m.as_mut(),
+            Accum::Replace,
+            self.ey.adjoint(),
+            ws.t.as_ref(),
+            c64::new(1.0, 0.0),
+            Par::Seq,
+        );
+        let nl = self.n_fold;
+        ws.buf.fill(c64::new(0.0, 0.0));
+        for (b, &mx) in self.band.iter().enumerate() {
+            ws.col.fill(c64::new(0.0, 0.0));
+            for (a, &my) in self.band.iter().enumerate() {
+                ws.col[self.band_index(my)] = ws.m[(a, b)] * self.h[(a, b)].conj();
+            }
+            self.ifft.process_with_scratch(&mut ws.col, &mut ws.scratch);
+            let cx = self.band_index(mx);
+            for (r, v) in ws.col.iter().enumerate() {
+                ws.buf[r * nl + cx] = *v;
+            }
+        }
+        self.ifft.process_with_scratch(&mut ws.buf, &mut ws.scratch);
+        let k = TAU / self.cfg.wavelength_m;
+        for (s, smp) in samples.iter().enumerate() {
+            let gu = ws.buf[smp.fold];
+            let e = smp.unit * c64::from_polar(1.0, sag_phase(k, smp.d2, z));
+            let u = e * smp.amp;
+            gp[s] += (gu * u.conj()).im;
+            ga[s] += (gu.conj() * e).re;
+        }
+    }
+}
