@@ -1,0 +1,70 @@
+//! Point-wise activations (ReLU, h-swish, h-sigmoid) and their derivatives.
+
+use serde::{Deserialize, Serialize};
+
+/// An element-wise activation; h-swish(x) = x·ReLU6(x+3)/6, h-sigmoid(x) = ReLU6(x+3)/6.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Act {
+    /// y = x.
+    Identity,
+    /// y = max(x, 0).
+    Relu,
+    /// y = x·ReLU6(x+3)/6 (Howard et al. 2019).
+    HSwish,
+    /// y = ReLU6(x+3)/6.
+    HSigmoid,
+}
+
+impl Act {
+    /// The activation at `x`.
+    #[inline]
+    pub fn apply(self, x: f32) -> f32 {
+        match self {
+            Act::Identity => x,
+            Act::Relu => x.max(0.0),
+            Act::HSwish => x * ((x + 3.0).clamp(0.0, 6.0) / 6.0),
+            Act::HSigmoid => (x + 3.0).clamp(0.0, 6.0) / 6.0,
+        }
+    }
+
+    /// dy/dx at the pre-activation `x` (one-sided value 0 at the kinks' lower side).
+    #[inline]
+    pub fn deriv(self, x: f32) -> f32 {
+        match self {
+            Act::Identity => 1.0,
+            Act::Relu => {
+                if x > 0.0 {
+                    1.0
+                } else {
+                    0.0
+                }
+            }
+            Act::HSwish => {
+                if x <= -3.0 {
+                    0.0
+                } else if x >= 3.0 {
+                    1.0
+                } else {
+                    (2.0 * x + 3.0) / 6.0
+                }
+            }
+            Act::HSigmoid => {
+                if x > -3.0 && x < 3.0 {
+                    1.0 / 6.0
+                } else {
+                    0.0
+                }
+            }
+        }
+    }
+
+    /// Applies the activation to every element of `x` into a new vector.
+    pub fn forward(self, x: &[f32]) -> Vec<f32> {
+        x.iter().map(|&v| self.apply(v)).collect()
+    }
+
+    /// VJP: dL/dx = dL/dy ⊙ f'(x), with `x` the pre-activation.
+    pub fn vjp(self, x: &[f32], dy: &[f32]) -> Vec<f32> {
+        x.iter().zip(dy).map(|(&v, &g)| g * self.deriv(v)).collect()
+    }
+}

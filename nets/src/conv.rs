@@ -1,0 +1,328 @@
+//! Convolutions with explicit vector–Jacobian products: dense k×k (the stem), depthwise k×k,
+//! and 1×1 (pointwise) on faer's GEMM. Padding is "same" (k/2), strides 1 or 2.
+
+use crate::error::{NetsError, Result};
+use crate::tensor::Tensor;
+use faer::linalg::matmul::matmul;
+use faer::{Accum, MatMut, MatRef, Par};
+use rayon::prelude::*;
+
+/// Output size of a same-padded convolution: ⌊(n + 2⌊k/2⌋ − k)/s⌋ + 1.
+pub fn out_size(n: usize, k: usize, stride: usize) -> usize {
+    (n + 2 * (k / 2) - k) / stride + 1
+}
+
+/// Range of output indices `o` for which `o·s + t − p` lies in [0, n).
+#[inline]
+fn valid_range(n_in: usize, n_out: usize, s: usize, t: usize, p: usize) -> (usize, usize) {
+    let lo = if t >= p { 0 } else { (p - t).div_ceil(s) };
+    let hi = if n_in + p > t {
+        ((n_in - 1 + p - t) / s + 1).min(n_out)
+    } else {
+        0
+    };
+    (lo, hi.max(lo))
+}
+
+fn check_weights(len: usize, want: usize, what: &str) -> Result<()> {
+    if len != want {
+        return Err(NetsError::Shape(format!(
+            "{what}: {len} weights, expected {want}"
+        )));
+    }
+    Ok(())
+}
+
+/// Dense k×k convolution (groups = 1, no bias): weights (C_out, C_in, k, k).
+pub fn conv2d_forward(
+    x: &Tensor,
+    w: &[f32],
+    cout: usize,
+    k: usize,
+    stride: usize,
+) -> Result<Tensor> {
+    check_weights(w.len(), cout * x.c * k * k, "conv2d")?;
+    let (ho, wo) = (out_size(x.h, k, stride), out_size(x.w, k, stride));
+    let mut y = Tensor::zeros(x.n, cout, ho, wo);
+    let p = k / 2;
+    let cin = x.c;
+    y.data
+        .par_chunks_mut(ho * wo)
+        .enumerate()
+        .for_each(|(idx, out)| {
+            let (n, o) = (idx / cout, idx % cout);
+            for i in 0..cin {
+                let xp = &x.data[(n * cin + i) * x.h * x.w..][..x.h * x.w];
+                for ky in 0..k {
+                    let (y0, y1) = valid_range(x.h, ho, stride, ky, p);
+                    for kx in 0..k {
+                        let wv = w[((o * cin + i) * k + ky) * k + kx];
+                        let (x0, x1) = valid_range(x.w, wo, stride, kx, p);
+                        for oy in y0..y1 {
+                            let iy = oy * stride + ky - p;
+                            let row = &xp[iy * x.w..];
+                            let orow = &mut out[oy * wo..];
+                            for ox in x0..x1 {
+                                orow[ox] += wv * row[ox * stride + kx - p];
+                            }
+                        }
+                    }
+                }
+            }
+        });
+    Ok(y)
+}
+
+/// VJP of [`conv2d_forward`]: returns dL/dx and adds dL/dw into `dw`.
+pub fn conv2d_vjp(
+    x: &Tensor,
+    w: &[f32],
+    cout: usize,
+    k: usize,
+    stride: usize,
+    dy: &Tensor,
+    dw: &mut [f32],
+) -> Result<Tensor> {
+    check_weights(w.len(), cout * x.c * k * k, "conv2d")?;
+    check_weights(dw.len(), w.len(), "conv2d gradient")?;
+    let (ho, wo) = (out_size(x.h, k, stride), out_size(x.w, k, stride));
+    if dy.shape() != [x.n, cout, ho, wo] {
+        return Err(NetsError::Shape(format!(
+            "conv2d upstream gradient {:?}",
+            dy.shape()
+        )));
+    }
+    let p = k / 2;
+    let cin = x.c;
+    let mut dx = Tensor::zeros(x.n, cin, x.h, x.w);
+    let dws: Vec<Vec<f32>> = dx
+        .data
+        .par_chunks_mut(cin * x.h * x.w)
+        .enumerate()
+        .map(|(n, dxi)| {
+            let mut dwl = vec![0.0f32; w.len()];
+            for o in 0..cout {
+                let g = &dy.data[(n * cout + o) * ho * wo..][..ho * wo];
+                for i in 0..cin {
+                    let xp = &x.data[(n * cin + i) * x.h * x.w..][..x.h * x.w];
+                    let dxp = &mut dxi[i * x.h * x.w..][..x.h * x.w];
+                    for ky in 0..k {
+                        let (y0, y1) = valid_range(x.h, ho, stride, ky, p);
+                        for kx in 0..k {
+                            let wi = ((o * cin + i) * k + ky) * k + kx;
+                            let wv = w[wi];
+                            let (x0, x1) = valid_range(x.w, wo, stride, kx, p);
+                            let mut acc = 0.0f32;
+                            for oy in y0..y1 {
+                                let iy = oy * stride + ky - p;
+                                for ox in x0..x1 {
+                                    let ix = ox * stride + kx - p;
+                                    let gv = g[oy * wo + ox];
+                                    acc += gv * xp[iy * x.w + ix];
+                                    dxp[iy * x.w + ix] += gv * wv;
+                                }
+                            }
+                            dwl[wi] += acc;
+                        }
+                    }
+                }
+            }
+            dwl
+        })
+        .collect();
+    for d in dws {
+        for (a, b) in dw.iter_mut().zip(d) {
+            *a += b;
+        }
+    }
+    Ok(dx)
+}
+
+/// Depthwise k×k convolution: weights (C, k, k), one filter per channel, no bias.
+pub fn depthwise_forward(x: &Tensor, w: &[f32], k: usize, stride: usize) -> Result<Tensor> {
+    check_weights(w.len(), x.c * k * k, "depthwise")?;
+    let (ho, wo) = (out_size(x.h, k, stride), out_size(x.w, k, stride));
+    let mut y = Tensor::zeros(x.n, x.c, ho, wo);
+    let p = k / 2;
+    let (c, hw) = (x.c, x.h * x.w);
+    y.data
+        .par_chunks_mut(ho * wo)
+        .enumerate()
+        .for_each(|(idx, out)| {
+            let ch = idx % c;
+            let xp = &x.data[idx * hw..][..hw];
+            let wk = &w[ch * k * k..][..k * k];
+            for ky in 0..k {
+                let (y0, y1) = valid_range(x.h, ho, stride, ky, p);
+                for kx in 0..k {
+                    let wv = wk[ky * k + kx];
+                    let (x0, x1) = valid_range(x.w, wo, stride, kx, p);
+                    for oy in y0..y1 {
+                        let row = &xp[(oy * stride + ky - p) * x.w..][..x.w];
+                        let orow = &mut out[oy * wo..][..wo];
+                        if stride == 1 {
+                            let off = kx as isize - p as isize;
+                            for ox in x0..x1 {
+                                orow[ox] += wv * row[(ox as isize + off) as usize];
+                            }
+                        } else {
+                            for ox in x0..x1 {
+                                orow[ox] += wv * row[ox * stride + kx - p];
+                            }
+                        }
+                    }
+                }
+            }
+        });
+    Ok(y)
+}
+
+/// VJP of [`depthwise_forward`]: returns dL/dx and adds dL/dw into `dw`.
+pub fn depthwise_vjp(
+    x: &Tensor,
+    w: &[f32],
+    k: usize,
+    stride: usize,
+    dy: &Tensor,
+    dw: &mut [f32],
+) -> Result<Tensor> {
+    check_weights(w.len(), x.c * k * k, "depthwise")?;
+    check_weights(dw.len(), w.len(), "depthwise gradient")?;
+    let (ho, wo) = (out_size(x.h, k, stride), out_size(x.w, k, stride));
+    if dy.shape() != [x.n, x.c, ho, wo] {
+        return Err(NetsError::Shape(format!(
+            "depthwise upstream gradient {:?}",
+            dy.shape()
+        )));
+    }
+    let p = k / 2;
+    let (c, hw) = (x.c, x.h * x.w);
+    let mut dx = Tensor::zeros(x.n, x.c, x.h, x.w);
+    let dws: Vec<Vec<f32>> = dx
+        .data
+        .par_chunks_mut(hw)
+        .enumerate()
+        .map(|(idx, dxp)| {
+            let ch = idx % c;
+            let xp = &x.data[idx * hw..][..hw];
+            let g = &dy.data[idx * ho * wo..][..ho * wo];
+            let wk = &w[ch * k * k..][..k * k];
+            let mut dwl = vec![0.0f32; k * k];
+            for ky in 0..k {
+                let (y0, y1) = valid_range(x.h, ho, stride, ky, p);
+                for kx in 0..k {
+                    let wv = wk[ky * k + kx];
+                    let (x0, x1) = valid_range(x.w, wo, stride, kx, p);
+                    let mut acc = 0.0f32;
+                    for oy in y0..y1 {
+                        let base = (oy * stride + ky - p) * x.w;
+                        for ox in x0..x1 {
+                            let ix = base + ox * stride + kx - p;
+                            let gv = g[oy * wo + ox];
+                            acc += gv * xp[ix];
+                            dxp[ix] += gv * wv;
+                        }
+                    }
+                    dwl[ky * k + kx] = acc;
+                }
+            }
+            dwl
+        })
+        .collect();
+    for (idx, d) in dws.into_iter().enumerate() {
+        let ch = idx % c;
+        for (a, b) in dw[ch * k * k..][..k * k].iter_mut().zip(d) {
+            *a += b;
+        }
+    }
+    Ok(dx)
+}
+
+/// 1×1 convolution as one GEMM per image, Y_n = W·X_n (+ b): weights (C_out, C_in) row-major.
+pub fn pointwise_forward(
+    x: &Tensor,
+    w: &[f32],
+    cout: usize,
+    bias: Option<&[f32]>,
+) -> Result<Tensor> {
+    check_weights(w.len(), cout * x.c, "pointwise")?;
+    if let Some(b) = bias {
+        check_weights(b.len(), cout, "pointwise bias")?;
+    }
+    let hw = x.plane();
+    let cin = x.c;
+    let mut y = Tensor::zeros(x.n, cout, x.h, x.w);
+    if hw == 0 || x.n == 0 {
+        return Ok(y);
+    }
+    let wm = MatRef::from_row_major_slice(w, cout, cin);
+    y.data
+        .par_chunks_mut(cout * hw)
+        .enumerate()
+        .for_each(|(n, yi)| {
+            let xm = MatRef::from_row_major_slice(&x.data[n * cin * hw..][..cin * hw], cin, hw);
+            let ym = MatMut::from_row_major_slice_mut(yi, cout, hw);
+            matmul(ym, Accum::Replace, wm, xm, 1.0f32, Par::Seq);
+            if let Some(b) = bias {
+                for (o, row) in yi.chunks_mut(hw).enumerate() {
+                    row.iter_mut().for_each(|v| *v += b[o]);
+                }
+            }
+        });
+    Ok(y)
+}
+
+/// VJP of [`pointwise_forward`]: returns dL/dx = Wᵀ·dY and adds dY·Xᵀ into `dw`, Σ dY into `db`.
+pub fn pointwise_vjp(
+    x: &Tensor,
+    w: &[f32],
+    cout: usize,
+    dy: &Tensor,
+    dw: &mut [f32],
+    db: Option<&mut [f32]>,
+) -> Result<Tensor> {
+    check_weights(w.len(), cout * x.c, "pointwise")?;
+    check_weights(dw.len(), w.len(), "pointwise gradient")?;
+    if dy.shape() != [x.n, cout, x.h, x.w] {
+        return Err(NetsError::Shape(format!(
+            "pointwise upstream gradient {:?}",
+            dy.shape()
+        )));
+    }
+    let hw = x.plane();
+    let cin = x.c;
+    let mut dx = Tensor::zeros(x.n, cin, x.h, x.w);
+    if hw == 0 || x.n == 0 {
+        return Ok(dx);
+    }
+    let wm = MatRef::from_row_major_slice(w, cout, cin);
+    let dws: Vec<Vec<f32>> = dx
+        .data
+        .par_chunks_mut(cin * hw)
+        .enumerate()
+        .map(|(n, dxi)| {
+            let g = MatRef::from_row_major_slice(&dy.data[n * cout * hw..][..cout * hw], cout, hw);
+            let xm = MatRef::from_row_major_slice(&x.data[n * cin * hw..][..cin * hw], cin, hw);
+            let dxm = MatMut::from_row_major_slice_mut(dxi, cin, hw);
+            matmul(dxm, Accum::Replace, wm.transpose(), g, 1.0f32, Par::Seq);
+            let mut dwl = vec![0.0f32; cout * cin];
+            let dwm = MatMut::from_row_major_slice_mut(&mut dwl, cout, cin);
+            matmul(dwm, Accum::Replace, g, xm.transpose(), 1.0f32, Par::Seq);
+            dwl
+        })
+        .collect();
+    for d in dws {
+        for (a, b) in dw.iter_mut().zip(d) {
+            *a += b;
+        }
+    }
+    if let Some(db) = db {
+        check_weights(db.len(), cout, "pointwise bias gradient")?;
+        for n in 0..x.n {
+            for (o, dbo) in db.iter_mut().enumerate() {
+                *dbo += dy.data[(n * cout + o) * hw..][..hw].iter().sum::<f32>();
+            }
+        }
+    }
+    Ok(dx)
+}

@@ -1,0 +1,57 @@
+//! Bilinear resampling to an arbitrary size (half-pixel centres, edge clamp) and its adjoint.
+
+use crate::tensor::Tensor;
+
+/// Per output index: (lower source index, upper source index, weight of the upper one).
+fn taps(n_in: usize, n_out: usize) -> Vec<(usize, usize, f32)> {
+    let scale = n_in as f32 / n_out as f32;
+    (0..n_out)
+        .map(|o| {
+            let s = ((o as f32 + 0.5) * scale - 0.5).max(0.0);
+            let i0 = (s.floor() as usize).min(n_in - 1);
+            let i1 = (i0 + 1).min(n_in - 1);
+            (i0, i1, s - i0 as f32)
+        })
+        .collect()
+}
+
+/// Resizes every plane of `x` to (h, w) by bilinear interpolation.
+pub fn bilinear_forward(x: &Tensor, h: usize, w: usize) -> Tensor {
+    let mut y = Tensor::zeros(x.n, x.c, h, w);
+    if x.plane() == 0 || h == 0 || w == 0 {
+        return y;
+    }
+    let (ty, tx) = (taps(x.h, h), taps(x.w, w));
+    for (p, out) in x.data.chunks(x.plane()).zip(y.data.chunks_mut(h * w)) {
+        for (oy, &(y0, y1, ly)) in ty.iter().enumerate() {
+            for (ox, &(x0, x1, lx)) in tx.iter().enumerate() {
+                let top = p[y0 * x.w + x0] * (1.0 - lx) + p[y0 * x.w + x1] * lx;
+                let bot = p[y1 * x.w + x0] * (1.0 - lx) + p[y1 * x.w + x1] * lx;
+                out[oy * w + ox] = top * (1.0 - ly) + bot * ly;
+            }
+        }
+    }
+    y
+}
+
+/// VJP (adjoint) of [`bilinear_forward`] from input shape `like`.
+pub fn bilinear_vjp(like: [usize; 4], dy: &Tensor) -> Tensor {
+    let [n, c, hi, wi] = like;
+    let mut dx = Tensor::zeros(n, c, hi, wi);
+    if hi * wi == 0 || dy.plane() == 0 {
+        return dx;
+    }
+    let (ty, tx) = (taps(hi, dy.h), taps(wi, dy.w));
+    for (g, p) in dy.data.chunks(dy.plane()).zip(dx.data.chunks_mut(hi * wi)) {
+        for (oy, &(y0, y1, ly)) in ty.iter().enumerate() {
+            for (ox, &(x0, x1, lx)) in tx.iter().enumerate() {
+                let v = g[oy * dy.w + ox];
+                p[y0 * wi + x0] += v * (1.0 - ly) * (1.0 - lx);
+                p[y0 * wi + x1] += v * (1.0 - ly) * lx;
+                p[y1 * wi + x0] += v * ly * (1.0 - lx);
+                p[y1 * wi + x1] += v * ly * lx;
+            }
+        }
+    }
+    dx
+}

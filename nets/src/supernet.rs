@@ -1,0 +1,414 @@
+//! The elastic OFA-MobileNetV3 supernet with its perception (pupil-mask logits) and
+//! calibration (slippage Δt) heads; explicit backward down to the input image.
+
+use crate::act::Act;
+use crate::arch::{Arch, N_STAGES, STAGES, STEM_CHANNELS, SupernetConfig};
+use crate::block::{MbBlock, normal_param};
+use crate::conv::{conv2d_forward, conv2d_vjp, pointwise_forward, pointwise_vjp};
+use crate::error::{NetsError, Result};
+use crate::norm::{BatchNorm, BnMode};
+use crate::pool::{gap_forward, gap_vjp};
+use crate::resize::{bilinear_forward, bilinear_vjp};
+use crate::tensor::{Param, Tensor};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+/// Outputs of one forward pass.
+#[derive(Clone, Debug)]
+pub struct SupernetOutput {
+    /// Pupil-mask logits at the input resolution (N, 1, H, W).
+    pub mask_logits: Tensor,
+    /// Slippage Δt (N, 3, 1, 1), in the units of the training targets (metres for real data).
+    pub slip: Tensor,
+}
+
+struct Cache {
+    x_shape: [usize; 4],
+    xr: Tensor,
+    v0: Tensor,
+    f2: Tensor,
+    f8: Tensor,
+    f32_: Tensor,
+    // decoder
+    p32: Tensor,
+    p8: Tensor,
+    r8: Tensor,
+    p2: Tensor,
+    r2: Tensor,
+    // calibration head
+    hv: Tensor,
+    ha: Tensor,
+    g: Tensor,
+    z: Tensor,
+    za: Tensor,
+    active: Vec<(usize, usize)>,
+}
+
+/// A biased 1×1 convolution (or, on 1×1 maps, a linear layer): W (C_out × C_in), b.
+pub struct Dense {
+    /// Weights.
+    pub w: Param,
+    /// Bias.
+    pub b: Param,
+    /// Output channels.
+    pub cout: usize,
+}
+
+impl Dense {
+    fn new(rng: &mut ChaCha8Rng, cin: usize, cout: usize, std: f32) -> Self {
+        Self {
+            w: normal_param(rng, cin * cout, std),
+            b: Param::new(vec![0.0; cout]),
+            cout,
+        }
+    }
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        pointwise_forward(x, &self.w.value, self.cout, Some(&self.b.value))
+    }
+    fn vjp(&mut self, x: &Tensor, dy: &Tensor) -> Result<Tensor> {
+        pointwise_vjp(
+            x,
+            &self.w.value,
+            self.cout,
+            dy,
+            &mut self.w.grad,
+            Some(&mut self.b.grad),
+        )
+    }
+}
+
+/// The weight-sharing supernet (stem, first block, 5 elastic stages of 4 blocks, heads).
+pub struct Supernet {
+    /// Fixed widths.
+    pub config: SupernetConfig,
+    /// Stem 3×3 stride-2 weights (16 × C_in × 3 × 3).
+    pub stem: Param,
+    /// Stem batch norm.
+    pub stem_bn: BatchNorm,
+    /// First block (depthwise 3×3, 16 → 16) then the 20 elastic blocks, stage-major.
+    pub blocks: Vec<MbBlock>,
+    /// Calibration head 1×1 expansion (head_expand × 160).
+    pub head_expand: Param,
+    /// Its batch norm.
+    pub head_bn: BatchNorm,
+    /// Calibration head hidden linear.
+    pub head_hidden: Dense,
+    /// Calibration head output linear (→ 3).
+    pub head_out: Dense,
+    /// Decoder projections of the stride-32, -8 and -2 features, and the logit conv.
+    pub dec: [Dense; 4],
+    cache: Option<Cache>,
+}
+
+impl Supernet {
+    /// A freshly initialized supernet; `seed` fixes every weight.
+    pub fn new(config: SupernetConfig, seed: u64) -> Result<Self> {
+        config.validate()?;
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let cin = config.in_channels;
+        let stem = normal_param(
+            &mut rng,
+            STEM_CHANNELS * cin * 9,
+            (2.0 / (9 * cin) as f32).sqrt(),
+        );
+        let mut blocks = vec![MbBlock::new(
+            STEM_CHANNELS,
+            STEM_CHANNELS,
+            1,
+            Act::Relu,
+            false,
+            true,
+            &mut rng,
+        )];
+        let mut c = STEM_CHANNELS;
+        for st in STAGES {
+            for b in 0..4 {
+                let s = if b == 0 { st.stride } else { 1 };
+                blocks.push(MbBlock::new(
+                    c,
+                    st.channels,
+                    s,
+                    st.act,
+                    st.se,
+                    false,
+                    &mut rng,
+                ));
+                c = st.channels;
+            }
+        }
+        let (he, hh, dw) = (config.head_expand, config.head_hidden, config.decoder_width);
+        Ok(Self {
+            stem,
+            stem_bn: BatchNorm::new(STEM_CHANNELS),
+            blocks,
+            head_expand: normal_param(&mut rng, he * c, (2.0 / c as f32).sqrt()),
+            head_bn: BatchNorm::new(he),
+            head_hidden: Dense::new(&mut rng, he, hh, (2.0 / he as f32).sqrt()),
+            head_out: Dense::new(&mut rng, hh, 3, (0.1 / hh as f32).sqrt()),
+            dec: [
+                Dense::new(&mut rng, c, dw, (1.0 / c as f32).sqrt()),
+                Dense::new(
+                    &mut rng,
+                    STAGES[1].channels,
+                    dw,
+                    (1.0 / STAGES[1].channels as f32).sqrt(),
+                ),
+                Dense::new(
+                    &mut rng,
+                    STEM_CHANNELS,
+                    dw,
+                    (1.0 / STEM_CHANNELS as f32).sqrt(),
+                ),
+                Dense::new(&mut rng, dw, 1, (1.0 / dw as f32).sqrt()),
+            ],
+            config,
+            cache: None,
+        })
+    }
+
+    /// Forward pass of subnet `arch` on images `x` (N, C_in, H, W).
+    pub fn forward(&mut self, arch: &Arch, x: &Tensor, mode: BnMode) -> Result<SupernetOutput> {
+        arch.validate()?;
+        if x.c != self.config.in_channels || x.n == 0 || x.h == 0 || x.w == 0 {
+            return Err(NetsError::Shape(format!(
+                "input {:?} does not fit a supernet of {} input channels",
+                x.shape(),
+                self.config.in_channels
+            )));
+        }
+        let (hs, ws) = (arch.scaled(x.h), arch.scaled(x.w));
+        let xr = if (hs, ws) == (x.h, x.w) {
+            x.clone()
+        } else {
+            bilinear_forward(x, hs, ws)
+        };
+        let u0 = conv2d_forward(&xr, &self.stem.value, STEM_CHANNELS, 3, 2)?;
+        let v0 = self.stem_bn.forward(&u0, mode)?;
+        let mut h = Tensor {
+            data: Act::HSwish.forward(&v0.data),
+            ..v0.clone()
+        };
+        h = self.blocks[0].forward(&h, 3, 1, mode)?;
+        let f2 = h.clone();
+        let mut f8 = h.clone();
+        let mut active = Vec::new();
+        for s in 0..N_STAGES {
+            for b in 0..arch.depth[s] {
+                let l = s * 4 + b;
+                h = self.blocks[1 + l].forward(&h, arch.kernel[l], arch.expand[l], mode)?;
+                active.push((1 + l, s));
+            }
+            if s == 1 {
+                f8 = h.clone();
+            }
+        }
+        let f32_ = h;
+        // Perception decoder.
+        let p32 = self.dec[0].forward(&f32_)?;
+        let mut p8 = self.dec[1].forward(&f8)?;
+        p8.add_assign(&bilinear_forward(&p32, f8.h, f8.w));
+        let r8 = Tensor {
+            data: Act::Relu.forward(&p8.data),
+            ..p8.clone()
+        };
+        let mut p2 = self.dec[2].forward(&f2)?;
+        p2.add_assign(&bilinear_forward(&r8, f2.h, f2.w));
+        let r2 = Tensor {
+            data: Act::Relu.forward(&p2.data),
+            ..p2.clone()
+        };
+        let lo = self.dec[3].forward(&r2)?;
+        let mask_logits = bilinear_forward(&lo, x.h, x.w);
+        // Calibration head.
+        let hu = pointwise_forward(
+            &f32_,
+            &self.head_expand.value,
+            self.config.head_expand,
+            None,
+        )?;
+        let hv = self.head_bn.forward(&hu, mode)?;
+        let ha = Tensor {
+            data: Act::HSwish.forward(&hv.data),
+            ..hv.clone()
+        };
+        let g = gap_forward(&ha);
+        let z = self.head_hidden.forward(&g)?;
+        let za = Tensor {
+            data: Act::HSwish.forward(&z.data),
+            ..z.clone()
+        };
+        let slip = self.head_out.forward(&za)?;
+        self.cache = Some(Cache {
+            x_shape: x.shape(),
+            xr,
+            v0,
+            f2,
+            f8,
+            f32_,
+            p32,
+            p8,
+            r8,
+            p2,
+            r2,
+            hv,
+            ha,
+            g,
+            z,
+            za,
+            active,
+        });
+        Ok(SupernetOutput { mask_logits, slip })
+    }
+
+    /// Backward pass of the last forward from dL/dlogits and dL/dslip; accumulates every
+    /// parameter gradient and returns dL/dx, the gradient w.r.t. the input images.
+    pub fn backward(&mut self, d_logits: &Tensor, d_slip: &Tensor) -> Result<Tensor> {
+        let c = self
+            .cache
+            .take()
+            .ok_or_else(|| NetsError::Shape("backward without forward".into()))?;
+        let [n, _, h, w] = c.x_shape;
+        if d_logits.shape() != [n, 1, h, w] || d_slip.shape() != [n, 3, 1, 1] {
+            return Err(NetsError::Shape(format!(
+                "upstream gradients {:?}, {:?} do not match the forward pass",
+                d_logits.shape(),
+                d_slip.shape()
+            )));
+        }
+        // Calibration head.
+        let dza = self.head_out.vjp(&c.za, d_slip)?;
+        let dz = Tensor {
+            data: Act::HSwish.vjp(&c.z.data, &dza.data),
+            ..dza
+        };
+        let dg = self.head_hidden.vjp(&c.g, &dz)?;
+        let dha = gap_vjp(c.ha.shape(), &dg);
+        let dhv = Tensor {
+            data: Act::HSwish.vjp(&c.hv.data, &dha.data),
+            ..dha
+        };
+        let dhu = self.head_bn.backward(&dhv)?;
+        let mut df32 = pointwise_vjp(
+            &c.f32_,
+            &self.head_expand.value,
+            self.config.head_expand,
+            &dhu,
+            &mut self.head_expand.grad,
+            None,
+        )?;
+        // Decoder.
+        let dlo = bilinear_vjp([n, 1, c.r2.h, c.r2.w], d_logits);
+        let dr2 = self.dec[3].vjp(&c.r2, &dlo)?;
+        let dp2 = Tensor {
+            data: Act::Relu.vjp(&c.p2.data, &dr2.data),
+            ..dr2
+        };
+        let mut df2 = self.dec[2].vjp(&c.f2, &dp2)?;
+        let dr8 = bilinear_vjp(c.r8.shape(), &dp2);
+        let dp8 = Tensor {
+            data: Act::Relu.vjp(&c.p8.data, &dr8.data),
+            ..dr8
+        };
+        let df8 = self.dec[1].vjp(&c.f8, &dp8)?;
+        let dp32 = bilinear_vjp(c.p32.shape(), &dp8);
+        df32.add_assign(&self.dec[0].vjp(&c.f32_, &dp32)?);
+        // Backbone, last block first; decoder taps join at the stage-2 and first-block outputs.
+        let mut g = df32;
+        let mut injected8 = false;
+        for &(bi, s) in c.active.iter().rev() {
+            if s <= 1 && !injected8 {
+                g.add_assign(&df8);
+                injected8 = true;
+            }
+            g = self.blocks[bi].backward(&g)?;
+        }
+        if !injected8 {
+            g.add_assign(&df8);
+        }
+        df2.add_assign(&g);
+        let g = self.blocks[0].backward(&df2)?;
+        let dv0 = Tensor {
+            data: Act::HSwish.vjp(&c.v0.data, &g.data),
+            ..g
+        };
+        let du0 = self.stem_bn.backward(&dv0)?;
+        let dxr = conv2d_vjp(
+            &c.xr,
+            &self.stem.value,
+            STEM_CHANNELS,
+            3,
+            2,
+            &du0,
+            &mut self.stem.grad,
+        )?;
+        Ok(if (c.xr.h, c.xr.w) == (h, w) {
+            dxr
+        } else {
+            bilinear_vjp(c.x_shape, &dxr)
+        })
+    }
+
+    /// Visits every learnable parameter with a stable name.
+    pub fn visit(&mut self, f: &mut dyn FnMut(&str, &mut Param)) {
+        f("stem", &mut self.stem);
+        f("stem_bn.gamma", &mut self.stem_bn.gamma);
+        f("stem_bn.beta", &mut self.stem_bn.beta);
+        for (i, b) in self.blocks.iter_mut().enumerate() {
+            b.visit(&mut |name, p| f(&format!("blocks.{i}.{name}"), p));
+        }
+        f("head_expand", &mut self.head_expand);
+        f("head_bn.gamma", &mut self.head_bn.gamma);
+        f("head_bn.beta", &mut self.head_bn.beta);
+        f("head_hidden.w", &mut self.head_hidden.w);
+        f("head_hidden.b", &mut self.head_hidden.b);
+        f("head_out.w", &mut self.head_out.w);
+        f("head_out.b", &mut self.head_out.b);
+        for (i, d) in self.dec.iter_mut().enumerate() {
+            f(&format!("dec.{i}.w"), &mut d.w);
+            f(&format!("dec.{i}.b"), &mut d.b);
+        }
+    }
+
+    /// Visits every batch-norm layer with a stable name.
+    pub fn visit_bn(&mut self, f: &mut dyn FnMut(&str, &mut BatchNorm)) {
+        f("stem_bn", &mut self.stem_bn);
+        for (i, b) in self.blocks.iter_mut().enumerate() {
+            b.visit_bn(&mut |name, bn| f(&format!("blocks.{i}.{name}"), bn));
+        }
+        f("head_bn", &mut self.head_bn);
+    }
+
+    /// Sets every gradient to zero.
+    pub fn zero_grad(&mut self) {
+        self.visit(&mut |_, p| p.zero_grad());
+    }
+
+    /// Total stored scalars.
+    pub fn num_params(&mut self) -> usize {
+        let mut n = 0;
+        self.visit(&mut |_, p| n += p.len());
+        n
+    }
+
+    /// Sorts every block's middle channels by importance (elastic width, OFA's reorganize).
+    pub fn reorganize(&mut self) {
+        self.blocks.iter_mut().for_each(MbBlock::reorganize);
+    }
+
+    /// Exact BN recalibration of subnet `arch`: every batch goes through in batch-statistics
+    /// mode while per-channel Σx, Σx² are summed; running statistics become the pooled values.
+    pub fn recalibrate_bn(&mut self, arch: &Arch, batches: &[Tensor]) -> Result<()> {
+        if batches.is_empty() {
+            return Err(NetsError::Param(
+                "BN recalibration needs at least one batch".into(),
+            ));
+        }
+        self.visit_bn(&mut |_, bn| bn.begin_recalibration());
+        for b in batches {
+            self.forward(arch, b, BnMode::Recalibrate)?;
+        }
+        self.visit_bn(&mut |_, bn| bn.finish_recalibration());
+        self.cache = None;
+        Ok(())
+    }
+}

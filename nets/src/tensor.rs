@@ -1,0 +1,125 @@
+//! The crate's own dense 4D tensor (N, C, H, W), f32, row-major with W fastest.
+
+use crate::error::{NetsError, Result};
+
+/// A dense f32 tensor of shape (N, C, H, W); dimensionless values (pixels, activations).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Tensor {
+    /// Batch size.
+    pub n: usize,
+    /// Channels.
+    pub c: usize,
+    /// Height in pixels.
+    pub h: usize,
+    /// Width in pixels.
+    pub w: usize,
+    /// Values, index ((n·C + c)·H + y)·W + x.
+    pub data: Vec<f32>,
+}
+
+impl Tensor {
+    /// An all-zero tensor of the given shape.
+    pub fn zeros(n: usize, c: usize, h: usize, w: usize) -> Self {
+        Self {
+            n,
+            c,
+            h,
+            w,
+            data: vec![0.0; n * c * h * w],
+        }
+    }
+
+    /// Wraps `data`; fails when its length is not n·c·h·w.
+    pub fn from_vec(n: usize, c: usize, h: usize, w: usize, data: Vec<f32>) -> Result<Self> {
+        if data.len() != n * c * h * w {
+            return Err(NetsError::Shape(format!(
+                "data of length {} cannot hold ({n},{c},{h},{w})",
+                data.len()
+            )));
+        }
+        Ok(Self { n, c, h, w, data })
+    }
+
+    /// Shape as [N, C, H, W].
+    pub fn shape(&self) -> [usize; 4] {
+        [self.n, self.c, self.h, self.w]
+    }
+
+    /// Number of elements.
+    pub fn len(&self) -> usize {
+        self.data.len()
+    }
+
+    /// True when the tensor holds no element.
+    pub fn is_empty(&self) -> bool {
+        self.data.is_empty()
+    }
+
+    /// Pixels per channel plane (H·W).
+    pub fn plane(&self) -> usize {
+        self.h * self.w
+    }
+
+    /// The values of image `i` (C·H·W contiguous).
+    pub fn image(&self, i: usize) -> &[f32] {
+        let s = self.c * self.plane();
+        &self.data[i * s..(i + 1) * s]
+    }
+
+    /// Mutable values of image `i`.
+    pub fn image_mut(&mut self, i: usize) -> &mut [f32] {
+        let s = self.c * self.plane();
+        &mut self.data[i * s..(i + 1) * s]
+    }
+
+    /// Fails unless `other` has the same shape (used to validate upstream gradients).
+    pub fn check_same(&self, other: &Tensor, what: &str) -> Result<()> {
+        if self.shape() != other.shape() {
+            return Err(NetsError::Shape(format!(
+                "{what}: expected {:?}, got {:?}",
+                self.shape(),
+                other.shape()
+            )));
+        }
+        Ok(())
+    }
+
+    /// Element-wise in-place addition of a same-shaped tensor.
+    pub fn add_assign(&mut self, other: &Tensor) {
+        for (a, b) in self.data.iter_mut().zip(&other.data) {
+            *a += b;
+        }
+    }
+}
+
+/// A learnable parameter: values and their accumulated gradient (same length).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Param {
+    /// Current values.
+    pub value: Vec<f32>,
+    /// Gradient accumulated by backward passes since the last `zero_grad`.
+    pub grad: Vec<f32>,
+}
+
+impl Param {
+    /// A parameter holding `value` with a zero gradient.
+    pub fn new(value: Vec<f32>) -> Self {
+        let grad = vec![0.0; value.len()];
+        Self { value, grad }
+    }
+
+    /// Number of scalars.
+    pub fn len(&self) -> usize {
+        self.value.len()
+    }
+
+    /// True when the parameter holds no scalar.
+    pub fn is_empty(&self) -> bool {
+        self.value.is_empty()
+    }
+
+    /// Sets the gradient to zero.
+    pub fn zero_grad(&mut self) {
+        self.grad.iter_mut().for_each(|g| *g = 0.0);
+    }
+}
