@@ -1,2 +1,83 @@
 //! `nanoeye`: the command-line interface of the nanoeye workspace.
-fn main() {}
+//!
+//! One subcommand group per stage crate; every command that prints results takes `--json`.
+//! Errors name the offending parameter and exit non-zero; outputs are written atomically.
+
+mod datagen;
+mod datagen_render;
+mod fisher;
+mod gaze;
+mod metalib;
+mod nets;
+mod optics;
+mod rig;
+mod run;
+mod sensor;
+mod util;
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+/// nanoeye: co-designed nano-optical eye tracking, every stage from pillars to gaze.
+#[derive(Parser)]
+#[command(name = "nanoeye", version, about, propagate_version = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the main job on the built-in default config (protocol set → gaze → error summary).
+    Run(run::RunArgs),
+    /// Eye–camera rig.
+    #[command(subcommand)]
+    Rig(rig::Cmd),
+    /// Geometric gaze solver (S9–S14).
+    #[command(subcommand)]
+    Gaze(gaze::Cmd),
+    /// State sampling and rendering (C.1–C.4, D.4).
+    #[command(subcommand)]
+    Datagen(datagen::Cmd),
+    // Each stage adds its group here (one variant) and its arm in `dispatch`.
+    /// Networks: supernet cost model (S23) and toy training.
+    #[command(subcommand)]
+    Nets(nets::NetsCmd),
+    /// Nanopillar library: RCWA cell, sweep, selection, blueprint.
+    #[command(subcommand)]
+    Metalib(metalib::MetalibCmd),
+    /// Metasurface optics: PSF stacks over depth.
+    #[command(subcommand)]
+    Optics(optics::Cmd),
+    /// Sensor model: pitch integration, noise, ADC (S2, S24).
+    #[command(subcommand)]
+    Sensor(sensor::Cmd),
+    /// Fisher-information design losses, initialization loop, PSF analysis (S3–S6, S25, A.2, E).
+    #[command(subcommand)]
+    Fisher(fisher::Cmd),
+}
+
+fn dispatch(command: Command) -> anyhow::Result<()> {
+    match command {
+        Command::Run(a) => run::run(a),
+        Command::Rig(c) => rig::run(c),
+        Command::Gaze(c) => gaze::run(c),
+        Command::Datagen(c) => datagen::run(c),
+        Command::Metalib(c) => metalib::run(c),
+        Command::Optics(c) => optics::run(c),
+        Command::Sensor(c) => sensor::run(c),
+        Command::Fisher(c) => fisher::run(c),
+        Command::Nets(c) => nets::run(c),
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match dispatch(cli.command) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

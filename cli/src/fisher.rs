@@ -1,0 +1,397 @@
+//! `nanoeye fisher …`: the initialization loop of Sec. A.2 and the PSF analysis of Sec. E.
+
+use crate::util::{parse_list, parse_range, print_json, write_atomic};
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use faer::Mat;
+use nanoeye_fisher::nanoeye_optics::{
+    ApertureGrid, AsmPsf, DoubleHelix, Hyperbolic, PhaseMap, PhaseProfile, PsfConfig, PsfModel,
+    io::read_phase_npy,
+};
+use nanoeye_fisher::{FisherNoise, InitConfig, InitState, compare_lenses, init_step, write_npy};
+use nanoeye_sensor::SensorConfig;
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Fisher-information design commands.
+#[derive(Subcommand)]
+pub enum Cmd {
+    /// Initialization loop (A.2): Adam on a free-form phase map minimizing L_init (S3–S6),
+    /// starting from the hyperbolic lens; resumes from DIR/checkpoint when present.
+    Init(InitArgs),
+    /// Depth Fisher information (S25) of lenses at several pixel pitches (Sec. E, Fig. S10).
+    Compare(CompareArgs),
+}
+
+/// Optics shared by both commands.
+#[derive(Args, Clone)]
+pub struct OpticsArgs {
+    /// Aperture sampling step of the phase map (µm); the aperture is 1 mm wide.
+    #[arg(long, default_value_t = 1.5)]
+    aperture_step_um: f64,
+    /// PSF window at the native 3 µm pitch (pixels; a multiple of 3 keeps 3×3 binning exact).
+    #[arg(long, default_value_t = 63)]
+    window_px: usize,
+    /// Photons from the point source incident on the aperture per exposure.
+    #[arg(long, default_value_t = 1e5)]
+    photons: f64,
+}
+
+/// Arguments of `fisher init`.
+#[derive(Args)]
+pub struct InitArgs {
+    /// Output directory (phase.npy, psf_montage.png, history.json, checkpoint/).
+    #[arg(long)]
+    out: PathBuf,
+    /// Total number of Adam iterations (a resumed run continues up to this count).
+    #[arg(long, default_value_t = 200)]
+    iterations: usize,
+    /// Effective sensor pitch p̂ the losses see (µm).
+    #[arg(long, default_value_t = 9.0)]
+    pitch_um: f64,
+    /// Depth planes (mm), a:b:step.
+    #[arg(long, default_value = "17:26:1.5")]
+    depths_mm: String,
+    /// Adam step on the phase (rad).
+    #[arg(long, default_value_t = 0.05)]
+    lr_rad: f64,
+    /// Checkpoint every this many iterations.
+    #[arg(long, default_value_t = 10)]
+    checkpoint_every: usize,
+    #[command(flatten)]
+    optics: OpticsArgs,
+    /// Print a JSON summary.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Arguments of `fisher compare`.
+#[derive(Args)]
+pub struct CompareArgs {
+    /// Lenses: hyperbolic, double-helix, file:PATH.npy (a phase map, rad, on the aperture grid).
+    #[arg(long, default_value = "hyperbolic,double-helix")]
+    lenses: String,
+    /// Depth planes (mm), a:b:step.
+    #[arg(long, default_value = "17:26:1.5")]
+    depths_mm: String,
+    /// Pixel pitches (µm); the smallest is the native pitch, the others box-integrate it.
+    #[arg(long, default_value = "3,9")]
+    pitch_um: String,
+    /// Montage PNG of all lenses at all pitches.
+    #[arg(long, default_value = "fisher_compare.png")]
+    montage: PathBuf,
+    #[command(flatten)]
+    optics: OpticsArgs,
+    /// Print one line of JSON: {"results":[{"lens","pitch_um","fisher_z"}…],"retained":{…}}.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Runs a fisher command.
+pub fn run(cmd: Cmd) -> Result<()> {
+    match cmd {
+        Cmd::Init(a) => init(a),
+        Cmd::Compare(a) => compare(a),
+    }
+}
+
+fn depths(flag: &str, text: &str) -> Result<Vec<f64>> {
+    let d = parse_range(flag, text)?;
+    if d.len() < 2 {
+        bail!("{flag}: need at least 2 depth planes for ∂PSF/∂z");
+    }
+    if d.iter().any(|&z| z <= 0.0) {
+        bail!("{flag}: depths must be positive");
+    }
+    Ok(d.into_iter().map(|z| z * 1e-3).collect())
+}
+
+fn model(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, AsmPsf)> {
+    if !(o.aperture_step_um.is_finite() && o.aperture_step_um > 0.0) {
+        bail!(
+            "--aperture-step-um: must be positive, got {}",
+            o.aperture_step_um
+        );
+    }
+    if o.window_px < 3 || o.window_px > 1024 {
+        bail!("--window-px: must lie in 3..=1024, got {}", o.window_px);
+    }
+    if !(o.photons.is_finite() && o.photons > 0.0) {
+        bail!("--photons: must be positive, got {}", o.photons);
+    }
+    let grid = ApertureGrid::new(1e-3, o.aperture_step_um * 1e-6).context("--aperture-step-um")?;
+    let cfg = PsfConfig {
+        pitch_m: native_pitch_m,
+        window_px: o.window_px,
+        ..PsfConfig::default()
+    };
+    let m = AsmPsf::new(cfg, grid).context("--window-px / --aperture-step-um")?;
+    Ok((grid, m))
+}
+
+/// Fisher noise of the default sensor: electrons = QE · photons · PSF, σ² = read noise².
+fn sensor_noise(photons: f64) -> FisherNoise {
+    let s = SensorConfig::default();
+    FisherNoise {
+        photons: s.quantum_efficiency * photons,
+        noise_var: s.read_noise_e * s.read_noise_e,
+        ..FisherNoise::default()
+    }
+}
+
+/// Gray montage: one row per entry, one tile per plane, each tile scaled to its own maximum
+/// and upscaled by `up` (nearest) so that all rows show the same sensor area.
+fn montage(rows: &[(Vec<Mat<f32>>, usize)]) -> Result<Vec<u8>> {
+    let gap = 2usize;
+    let tile = rows
+        .iter()
+        .map(|(p, up)| p.first().map_or(0, |m| m.nrows() * up))
+        .max()
+        .unwrap_or(0);
+    let ncol = rows.iter().map(|(p, _)| p.len()).max().unwrap_or(0);
+    if tile == 0 || ncol == 0 {
+        bail!("nothing to draw");
+    }
+    let (w, h) = (ncol * (tile + gap) + gap, rows.len() * (tile + gap) + gap);
+    let mut img = image::GrayImage::from_pixel(w as u32, h as u32, image::Luma([40u8]));
+    for (ri, (planes, up)) in rows.iter().enumerate() {
+        for (ci, p) in planes.iter().enumerate() {
+            let mx = p
+                .col_iter()
+                .flat_map(|c| c.iter().copied().collect::<Vec<_>>())
+                .fold(0f32, f32::max);
+            for i in 0..p.nrows() * up {
+                for j in 0..p.ncols() * up {
+                    let v = if mx > 0.0 {
+                        p[(i / up, j / up)] / mx
+                    } else {
+                        0.0
+                    };
+                    let x = gap + ci * (tile + gap) + j;
+                    let y = gap + ri * (tile + gap) + i;
+                    if x < w && y < h {
+                        img.put_pixel(
+                            x as u32,
+                            y as u32,
+                            image::Luma([(v.clamp(0.0, 1.0) * 255.0) as u8]),
+                        );
+                    }
+                }
+            }
+        }
+    }
+    let mut buf = Vec::new();
+    image::DynamicImage::ImageLuma8(img)
+        .write_to(&mut std::io::Cursor::new(&mut buf), image::ImageFormat::Png)?;
+    Ok(buf)
+}
+
+fn init(a: InitArgs) -> Result<()> {
+    if a.iterations == 0 {
+        bail!("--iterations: must be at least 1");
+    }
+    if !(a.pitch_um.is_finite() && a.pitch_um >= 3.0) {
+        bail!(
+            "--pitch-um: must be >= 3 (the native pitch), got {}",
+            a.pitch_um
+        );
+    }
+    if !(a.lr_rad.is_finite() && a.lr_rad > 0.0) {
+        bail!("--lr-rad: must be positive, got {}", a.lr_rad);
+    }
+    let depths_m = depths("--depths-mm", &a.depths_mm)?;
+    let (grid, model) = model(&a.optics, 3e-6)?;
+    let ckpt = a.out.join("checkpoint");
+    let (mut state, cfg) = if ckpt.join("state.json").exists() {
+        let (s, c) = InitState::load(&ckpt)
+            .with_context(|| format!("--out: cannot resume from '{}'", ckpt.display()))?;
+        if s.phase.nrows() != grid.n {
+            bail!(
+                "--aperture-step-um: checkpoint grid is {} samples, this run's is {}",
+                s.phase.nrows(),
+                grid.n
+            );
+        }
+        eprintln!(
+            "resuming from '{}' at iteration {}",
+            ckpt.display(),
+            s.iteration
+        );
+        (s, c)
+    } else {
+        let phase = Hyperbolic::default().phase_map(&grid)?.phase_rad;
+        let cfg = InitConfig {
+            depths_m: depths_m.clone(),
+            sensor_pitch_m: a.pitch_um * 1e-6,
+            lr_phase: a.lr_rad,
+            noise: sensor_noise(a.optics.photons),
+            ..InitConfig::default()
+        };
+        (InitState::new(phase), cfg)
+    };
+    let t0 = Instant::now();
+    let start = state.iteration;
+    let mut first = None;
+    while state.iteration < a.iterations {
+        let rec = init_step(&model, &grid, &cfg, &mut state).context("initialization step")?;
+        first.get_or_insert(rec.clone());
+        let done = state.iteration - start;
+        let per = t0.elapsed().as_secs_f64() / done as f64;
+        eprint!(
+            "\rinit {:>5}/{}  L_init {:+.4}  (prec {:+.3}, dist {:.3e}, comp {:.3})  {:.2} s/it, ETA {:.0} s   ",
+            state.iteration,
+            a.iterations,
+            rec.l_init,
+            rec.terms[0],
+            rec.terms[1],
+            rec.terms[2],
+            per,
+            per * (a.iterations - state.iteration) as f64
+        );
+        let _ = std::io::stderr().flush();
+        if a.checkpoint_every > 0 && state.iteration % a.checkpoint_every == 0 {
+            state
+                .save(&ckpt, &cfg)
+                .context("--out: writing the checkpoint")?;
+        }
+    }
+    eprintln!();
+    state
+        .save(&ckpt, &cfg)
+        .context("--out: writing the checkpoint")?;
+    let phase_path = a.out.join("phase.npy");
+    write_npy(&phase_path, &state.phase).context("--out: writing phase.npy")?;
+    // Final PSFs at the native pitch and at p̂.
+    let map = PhaseMap::phase_only(grid, state.phase.clone())?;
+    let st = model.forward(&map, &cfg.depths_m, None)?;
+    let (_, op) =
+        nanoeye_fisher::bin_planes(&st.planes, st.pitch_m, cfg.sensor_pitch_m, &cfg.depths_m)?;
+    let mut rows = vec![(st.planes.clone(), 1usize)];
+    if let Some(op) = op {
+        let b = st
+            .planes
+            .iter()
+            .map(|p| op.forward(p))
+            .collect::<Result<Vec<_>, _>>()?;
+        rows.push((
+            b,
+            (cfg.sensor_pitch_m / st.pitch_m).round().max(1.0) as usize,
+        ));
+    }
+    let montage_path = a.out.join("psf_montage.png");
+    write_atomic(&montage_path, &montage(&rows)?)?;
+    write_atomic(
+        &a.out.join("history.json"),
+        &serde_json::to_vec_pretty(&state.history)?,
+    )?;
+    let last = state.history.last().cloned();
+    let first = first.or_else(|| state.history.first().cloned());
+    let summary = serde_json::json!({
+        "iterations": state.iteration,
+        "seconds": t0.elapsed().as_secs_f64(),
+        "l_init_first": first.as_ref().map(|r| r.l_init),
+        "l_init_last": last.as_ref().map(|r| r.l_init),
+        "terms_first": first.as_ref().map(|r| r.terms),
+        "terms_last": last.as_ref().map(|r| r.terms),
+        "phase": phase_path,
+        "montage": montage_path,
+    });
+    if a.json {
+        print_json(&summary)
+    } else {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+        Ok(())
+    }
+}
+
+fn lens_map(spec: &str, grid: &ApertureGrid) -> Result<PhaseMap> {
+    match spec {
+        "hyperbolic" => Ok(Hyperbolic::default().phase_map(grid)?),
+        "double-helix" => Ok(DoubleHelix::default().phase_map(grid)?),
+        s if s.starts_with("file:") => {
+            let path = Path::new(&s[5..]);
+            let phi = read_phase_npy(path)
+                .with_context(|| format!("--lenses: cannot read '{}'", path.display()))?;
+            if phi.nrows() != grid.n {
+                bail!(
+                    "--lenses: '{}' is {}x{} but the aperture grid is {}x{} (check --aperture-step-um)",
+                    path.display(),
+                    phi.nrows(),
+                    phi.ncols(),
+                    grid.n,
+                    grid.n
+                );
+            }
+            Ok(PhaseMap::phase_only(*grid, phi)?)
+        }
+        other => bail!("--lenses: unknown lens '{other}' (hyperbolic, double-helix, file:PATH)"),
+    }
+}
+
+fn compare(a: CompareArgs) -> Result<()> {
+    let depths_m = depths("--depths-mm", &a.depths_mm)?;
+    let pitches_um = parse_list("--pitch-um", &a.pitch_um)?;
+    if pitches_um.is_empty() || pitches_um.iter().any(|&p| p <= 0.0) {
+        bail!("--pitch-um: need positive pitches");
+    }
+    let native = pitches_um.iter().copied().fold(f64::INFINITY, f64::min);
+    let (grid, model) = model(&a.optics, native * 1e-6)?;
+    let specs: Vec<&str> = a
+        .lenses
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .collect();
+    if specs.is_empty() {
+        bail!("--lenses: no lens given");
+    }
+    let lenses = specs
+        .iter()
+        .map(|s| Ok((s.to_string(), lens_map(s, &grid)?)))
+        .collect::<Result<Vec<_>>>()?;
+    let pitches_m: Vec<f64> = pitches_um.iter().map(|p| p * 1e-6).collect();
+    let noise = sensor_noise(a.optics.photons);
+    let (rows, planes) = compare_lenses(&model, &lenses, &depths_m, &pitches_m, &noise)?;
+    let coarse = pitches_um.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let mut retained = BTreeMap::new();
+    for s in &specs {
+        let f = |p: f64| {
+            rows.iter()
+                .find(|r| r.lens == *s && (r.pitch_um - p).abs() < 1e-9)
+                .map(|r| r.fisher_z)
+        };
+        if let (Some(fc), Some(ff)) = (f(coarse), f(native)) {
+            retained.insert(s.to_string(), if ff > 0.0 { fc / ff } else { 0.0 });
+        }
+    }
+    let tiles: Vec<(Vec<Mat<f32>>, usize)> = planes
+        .into_iter()
+        .map(|p| (p.planes, (p.pitch_um / native).round().max(1.0) as usize))
+        .collect();
+    write_atomic(&a.montage, &montage(&tiles)?).context("--montage")?;
+    if a.json {
+        let results: Vec<_> = rows
+            .iter()
+            .map(|r| serde_json::json!({"lens": r.lens, "pitch_um": r.pitch_um, "fisher_z": r.fisher_z}))
+            .collect();
+        print_json(&serde_json::json!({"results": results, "retained": retained}))
+    } else {
+        println!(
+            "depth Fisher information Σ_z I(z) (S25, m⁻²), {} photons, default sensor noise:",
+            a.optics.photons
+        );
+        for r in &rows {
+            println!(
+                "  {:<28} {:>5.1} µm  {:.4e}",
+                r.lens, r.pitch_um, r.fisher_z
+            );
+        }
+        for (k, v) in &retained {
+            println!("  retained {k}: {v:.4}");
+        }
+        println!("montage: {}", a.montage.display());
+        Ok(())
+    }
+}

@@ -1,0 +1,167 @@
+//! `nanoeye gaze …`: batch gaze solving and the pupil-sphere bias study.
+
+use crate::{rig, util};
+use anyhow::{Context, Result, bail};
+use clap::Subcommand;
+use faer::Mat;
+use nanoeye_gaze::bias::{GazeGrid, pupil_sphere_bias};
+use nanoeye_gaze::{GazeSolver, SphereSolver};
+use serde::Deserialize;
+use serde_json::json;
+use std::io::{BufRead, Write};
+use std::path::{Path, PathBuf};
+
+/// Gaze commands.
+#[derive(Subcommand)]
+pub enum Cmd {
+    /// Solve gaze for a batch of queries (JSONL, one per line; docs/formats.md).
+    Solve {
+        /// Input JSONL: {"pupil_px":[u,v],"slip_m":[x,y,z]} or {"mask_png":"path","slip_m":[…]}.
+        #[arg(long)]
+        input: PathBuf,
+        /// Rig JSON file; default: the built-in seed rig.
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Also output the visual axis (rig's kappa applied).
+        #[arg(long)]
+        kappa: bool,
+        /// Write results here (atomically) instead of stdout.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Angular bias over Table S2's gaze range when the solver sphere differs from the pupil's.
+    Bias {
+        /// Rig JSON file; default: the built-in seed rig.
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Solver radii to evaluate (mm, comma-separated).
+        #[arg(long, default_value = "9,10,10.392,11,12,13")]
+        solver_radii_mm: String,
+        /// Grid samples per axis.
+        #[arg(long, default_value_t = 41)]
+        steps: usize,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Query {
+    pupil_px: Option<[f64; 2]>,
+    mask_png: Option<String>,
+    #[serde(default)]
+    slip_m: [f64; 3],
+}
+
+/// Reads a PNG mask (8- or 16-bit grey, or any format reduced to luma) into [0, 1].
+pub fn read_mask_png(path: &Path) -> Result<Mat<f32>> {
+    let img = image::open(path)
+        .with_context(|| format!("cannot read mask '{}'", path.display()))?
+        .into_luma16();
+    let (w, h) = img.dimensions();
+    Ok(Mat::from_fn(h as usize, w as usize, |i, j| {
+        img.get_pixel(j as u32, i as u32)[0] as f32 / 65535.0
+    }))
+}
+
+fn solve_line(solver: &SphereSolver, line: &str, base: &Path) -> Result<serde_json::Value> {
+    let q: Query = serde_json::from_str(line).context("not a query object")?;
+    let sol = match (q.pupil_px, q.mask_png) {
+        (Some(px), None) => solver.solve_pixel(px, q.slip_m)?,
+        (None, Some(png)) => {
+            let mask = read_mask_png(&base.join(png))?;
+            solver.solve_mask(mask.as_ref(), q.slip_m)?
+        }
+        _ => bail!("exactly one of \"pupil_px\" and \"mask_png\" is required"),
+    };
+    let mut out = json!({"gaze": sol.gaze, "pupil_3d_m": sol.pupil_3d_m, "pupil_px": sol.pupil_px});
+    if let Some(v) = sol.visual_axis {
+        out["visual_axis"] = json!(v);
+    }
+    Ok(out)
+}
+
+pub fn run(cmd: Cmd) -> Result<()> {
+    match cmd {
+        Cmd::Solve {
+            input,
+            rig,
+            kappa,
+            out,
+        } => {
+            let rig = rig::load(rig.as_deref())?;
+            let mut solver = SphereSolver::new(&rig)?;
+            if kappa {
+                solver = solver.with_kappa(&rig);
+            }
+            let file = std::fs::File::open(&input)
+                .with_context(|| format!("--input: cannot open '{}'", input.display()))?;
+            // Mask paths are relative to the query file's directory.
+            let base = input.parent().unwrap_or(Path::new(".")).to_path_buf();
+            let mut lines = Vec::new();
+            for (n, line) in std::io::BufReader::new(file).lines().enumerate() {
+                let line =
+                    line.with_context(|| format!("--input: read error at line {}", n + 1))?;
+                if line.trim().is_empty() {
+                    continue;
+                }
+                // A bad line answers with an error object and never stops the batch.
+                let v = solve_line(&solver, &line, &base)
+                    .unwrap_or_else(|e| json!({"error": format!("line {}: {e:#}", n + 1)}));
+                lines.push(serde_json::to_string(&v)?);
+            }
+            let mut text = lines.join("\n");
+            text.push('\n');
+            match out {
+                Some(p) => util::write_atomic(&p, text.as_bytes()),
+                None => {
+                    std::io::stdout().write_all(text.as_bytes())?;
+                    Ok(())
+                }
+            }
+        }
+        Cmd::Bias {
+            rig,
+            solver_radii_mm,
+            steps,
+            json,
+        } => {
+            let rig = rig::load(rig.as_deref())?;
+            if steps < 2 {
+                bail!("--steps: need at least 2 samples per axis, got {steps}");
+            }
+            let radii = util::parse_list("--solver-radii-mm", &solver_radii_mm)?;
+            let grid = GazeGrid::table_s2(steps);
+            let reports = radii
+                .iter()
+                .map(|r| pupil_sphere_bias(&rig, r * 1e-3, &grid))
+                .collect::<Result<Vec<_>, _>>()
+                .context("--solver-radii-mm")?;
+            if json {
+                return util::print_json(&json!({"reports": reports}));
+            }
+            println!(
+                "true pupil sphere {:.3} mm; gaze grid az −35…45°, el −15…15°, {steps}×{steps}",
+                rig.pupil_sphere_radius_m * 1e3
+            );
+            println!("solver R (mm)  mean (°)  median (°)  p95 (°)  max (°)  in view  missed");
+            for r in &reports {
+                let e = r.error_deg;
+                let f = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{v:.3}"));
+                println!(
+                    "{:>12.3}  {:>8}  {:>10}  {:>7}  {:>7}  {:>7}  {:>6}",
+                    r.solver_radius_m * 1e3,
+                    f(e.map(|s| s.mean)),
+                    f(e.map(|s| s.median)),
+                    f(e.map(|s| s.p95)),
+                    f(e.map(|s| s.max)),
+                    r.in_view,
+                    r.missed
+                );
+            }
+            Ok(())
+        }
+    }
+}

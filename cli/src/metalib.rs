@@ -1,0 +1,459 @@
+//! `nanoeye metalib …`: RCWA unit cell, design sweep, candidate selection, blueprint.
+
+use anyhow::{Context, Result, anyhow, bail};
+use clap::{Args, Subcommand};
+use nanoeye_metalib::blueprint::{self, BlueprintOptions};
+use nanoeye_metalib::library::{PillarLibrary, TabulatedLibrary};
+use nanoeye_metalib::material::{DEFAULT_WAVELENGTH_M, Materials};
+use nanoeye_metalib::rcwa::{CellSpec, DEFAULT_HARMONICS, DEFAULT_RULE, LayerModes, Rule};
+use nanoeye_metalib::select::{self, Criteria};
+use nanoeye_metalib::sweep::{self, Range, SweepConfig};
+use std::path::PathBuf;
+
+/// Nanopillar library: RCWA cell, sweep, selection, blueprint.
+#[derive(Subcommand)]
+pub enum MetalibCmd {
+    /// Solve one unit cell (zero-order t, τ, R, phase).
+    Cell(CellArgs),
+    /// Run (or resume) the (height, pitch, diameter) sweep.
+    Sweep(SweepArgs),
+    /// Apply the D.1 selection criteria to a sweep and draw Fig. S4/S5.
+    Select(SelectArgs),
+    /// Phase map (NPY) → diameter map, GDSII, preview PNG, RMS phase error.
+    Blueprint(BlueprintArgs),
+}
+
+/// Material and solver flags shared by the commands.
+#[derive(Args, Clone)]
+pub struct SolverArgs {
+    /// Fourier orders −N..N per direction.
+    #[arg(long, default_value_t = DEFAULT_HARMONICS)]
+    harmonics: usize,
+    /// Factorisation rule: laurent | nv.
+    #[arg(long, default_value = DEFAULT_RULE.name())]
+    rule: String,
+    /// Pillar refractive index (real part); default a-Si (Pierce & Spicer 1972).
+    #[arg(long)]
+    n_pillar: Option<f64>,
+    /// Pillar extinction coefficient.
+    #[arg(long)]
+    k_pillar: Option<f64>,
+    /// Substrate index; default fused silica 1.4512.
+    #[arg(long)]
+    n_substrate: Option<f64>,
+    /// Index around the pillars inside the layer (default air).
+    #[arg(long)]
+    n_background: Option<f64>,
+    /// Wavelength in nm.
+    #[arg(long, default_value_t = DEFAULT_WAVELENGTH_M * 1e9)]
+    wavelength_nm: f64,
+}
+
+impl SolverArgs {
+    fn materials(&self) -> Result<Materials> {
+        let mut m = Materials::default();
+        if let Some(v) = self.n_pillar {
+            m.n_pillar = v;
+        }
+        if let Some(v) = self.k_pillar {
+            m.k_pillar = v;
+        }
+        if let Some(v) = self.n_substrate {
+            m.n_substrate = v;
+        }
+        if let Some(v) = self.n_background {
+            m.n_background = v;
+        }
+        m.validate()
+            .map_err(|e| anyhow!("--{}", flagify(&e.to_string())))?;
+        Ok(m)
+    }
+    fn rule(&self) -> Result<Rule> {
+        self.rule.parse().map_err(|e| anyhow!("--rule: {e}"))
+    }
+    fn wavelength_m(&self) -> Result<f64> {
+        if !(self.wavelength_nm.is_finite() && self.wavelength_nm > 0.0) {
+            bail!("--wavelength-nm must be finite and > 0");
+        }
+        Ok(self.wavelength_nm * 1e-9)
+    }
+}
+
+/// Turns "invalid parameter `n_pillar`: …" into "n-pillar: …" for flag-named messages.
+fn flagify(msg: &str) -> String {
+    msg.replace("invalid parameter `", "")
+        .replacen("`:", ":", 1)
+        .replace('_', "-")
+}
+
+#[derive(Args)]
+pub struct CellArgs {
+    /// Pillar height in nm.
+    #[arg(long)]
+    height_nm: f64,
+    /// Lattice pitch in nm.
+    #[arg(long)]
+    pitch_nm: f64,
+    /// Pillar diameter in nm.
+    #[arg(long)]
+    diameter_nm: f64,
+    #[command(flatten)]
+    solver: SolverArgs,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+pub struct SweepArgs {
+    /// Output directory (resumes a matching interrupted sweep).
+    #[arg(long)]
+    out: PathBuf,
+    /// Heights a:b:step in nm.
+    #[arg(long, default_value = "100:1500:10")]
+    heights_nm: String,
+    /// Pitches a:b:step in nm.
+    #[arg(long, default_value = "100:1000:10")]
+    pitches_nm: String,
+    /// Diameter fractions of the pitch a:b:step.
+    #[arg(long, default_value = "0.10:0.90:0.005")]
+    fractions: String,
+    #[command(flatten)]
+    solver: SolverArgs,
+    /// Print the manifest as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+pub struct SelectArgs {
+    /// Sweep directory.
+    #[arg(long)]
+    sweep: PathBuf,
+    /// Where to write the figures (default: <sweep>/figures).
+    #[arg(long)]
+    figures: Option<PathBuf>,
+    /// Height (nm) of the pair marked in the figures.
+    #[arg(long, default_value_t = 700.0)]
+    mark_height_nm: f64,
+    /// Pitch (nm) of the marked pair and of the Fig. S5 curves.
+    #[arg(long, default_value_t = 530.0)]
+    mark_pitch_nm: f64,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+pub struct BlueprintArgs {
+    /// Phase map (NPY, 2-D, radians, one value per lattice site; NaN = no pillar).
+    #[arg(long)]
+    phase: PathBuf,
+    /// Pillar height in nm.
+    #[arg(long)]
+    height_nm: f64,
+    /// Lattice pitch in nm.
+    #[arg(long)]
+    pitch_nm: f64,
+    /// Output directory.
+    #[arg(long)]
+    out: PathBuf,
+    /// Sweep directory holding (height, pitch); if absent, the library is computed directly.
+    #[arg(long)]
+    sweep: Option<PathBuf>,
+    /// User library CSV `diameter_nm,phase_rad,transmittance` instead of a sweep.
+    #[arg(long)]
+    library_csv: Option<PathBuf>,
+    /// Fabrication diameter grid in nm (0 = continuous).
+    #[arg(long, default_value_t = 1.0)]
+    diameter_step_nm: f64,
+    /// Vertices per GDSII circle.
+    #[arg(long, default_value_t = blueprint::DEFAULT_CIRCLE_VERTICES)]
+    circle_vertices: usize,
+    /// Use the whole map instead of the inscribed circular aperture.
+    #[arg(long)]
+    square_aperture: bool,
+    #[command(flatten)]
+    solver: SolverArgs,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Runs one `metalib` subcommand.
+pub fn run(cmd: MetalibCmd) -> Result<()> {
+    match cmd {
+        MetalibCmd::Cell(a) => cell(a),
+        MetalibCmd::Sweep(a) => sweep_cmd(a),
+        MetalibCmd::Select(a) => select_cmd(a),
+        MetalibCmd::Blueprint(a) => blueprint_cmd(a),
+    }
+}
+
+fn nm(flag: &str, v: f64) -> Result<f64> {
+    if !v.is_finite() {
+        bail!("{flag} must be finite, got {v}");
+    }
+    Ok(v * 1e-9)
+}
+
+fn cell(a: CellArgs) -> Result<()> {
+    let spec = CellSpec {
+        wavelength_m: a.solver.wavelength_m()?,
+        pitch_m: nm("--pitch-nm", a.pitch_nm)?,
+        diameter_m: nm("--diameter-nm", a.diameter_nm)?,
+        materials: a.solver.materials()?,
+        harmonics: a.solver.harmonics,
+        rule: a.solver.rule()?,
+    };
+    let h = nm("--height-nm", a.height_nm)?;
+    if h < 0.0 {
+        bail!("--height-nm must be >= 0");
+    }
+    let r = LayerModes::new(&spec)
+        .map_err(|e| anyhow!("--{}", flagify(&e.to_string())))?
+        .at_height(h)
+        .map_err(|e| anyhow!("--{}", flagify(&e.to_string())))?;
+    if a.json {
+        let v = serde_json::json!({
+            "t_re": r.t.re, "t_im": r.t.im, "transmittance": r.transmittance,
+            "reflectance": r.reflectance, "transmitted_total": r.transmitted_total,
+            "phase_rad": r.phase_rad, "harmonics": spec.harmonics, "rule": spec.rule.name(),
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!(
+            "t = {:.6}{:+.6}i  τ = {:.6}  R = {:.6}  T_total = {:.6}  phase = {:.6} rad  (N = {}, rule {})",
+            r.t.re,
+            r.t.im,
+            r.transmittance,
+            r.reflectance,
+            r.transmitted_total,
+            r.phase_rad,
+            spec.harmonics,
+            spec.rule.name()
+        );
+    }
+    Ok(())
+}
+
+fn range(flag: &str, text: &str, scale: f64) -> Result<Range> {
+    let p: Vec<&str> = text.split(':').collect();
+    if p.len() != 3 {
+        bail!("{flag}: expected a:b:step, got `{text}`");
+    }
+    let f = |s: &str| {
+        s.trim()
+            .parse::<f64>()
+            .map_err(|_| anyhow!("{flag}: `{s}` is not a number"))
+    };
+    let r = Range {
+        start: f(p[0])? * scale,
+        stop: f(p[1])? * scale,
+        step: f(p[2])? * scale,
+    };
+    r.values("range").map_err(|e| anyhow!("{flag}: {e}"))?;
+    Ok(r)
+}
+
+fn sweep_cmd(a: SweepArgs) -> Result<()> {
+    let config = SweepConfig {
+        heights_m: range("--heights-nm", &a.heights_nm, 1e-9)?,
+        pitches_m: range("--pitches-nm", &a.pitches_nm, 1e-9)?,
+        fractions: range("--fractions", &a.fractions, 1.0)?,
+        wavelength_m: a.solver.wavelength_m()?,
+        materials: a.solver.materials()?,
+        harmonics: a.solver.harmonics,
+        rule: a.solver.rule()?,
+    };
+    let t0 = std::time::Instant::now();
+    let m = sweep::run_sweep_with_progress(&config, &a.out)
+        .with_context(|| format!("--out {}", a.out.display()))?;
+    let secs = t0.elapsed().as_secs_f64();
+    let cells = m.shape.iter().product::<usize>();
+    if a.json {
+        let mut v = serde_json::to_value(&m)?;
+        v["seconds"] = serde_json::json!(secs);
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!(
+            "{cells} cells ({:?}) in {secs:.1} s, {} failed → {}",
+            m.shape,
+            m.failed_cells,
+            a.out.display()
+        );
+    }
+    Ok(())
+}
+
+fn select_cmd(a: SelectArgs) -> Result<()> {
+    let data =
+        sweep::load_sweep(&a.sweep).with_context(|| format!("--sweep {}", a.sweep.display()))?;
+    let sel = select::select_sweep(&data, &Criteria::default());
+    let figdir = a.figures.clone().unwrap_or_else(|| a.sweep.join("figures"));
+    let files = select::write_figures(
+        &figdir,
+        &data,
+        &sel,
+        Some((a.mark_height_nm * 1e-9, a.mark_pitch_nm * 1e-9)),
+        a.mark_pitch_nm * 1e-9,
+    )?;
+    let key = |p: &select::PairSelection| {
+        format!(
+            "{}x{}",
+            (p.height_m * 1e9).round(),
+            (p.pitch_m * 1e9).round()
+        )
+    };
+    let viable: Vec<[f64; 2]> = sel
+        .iter()
+        .filter(|p| p.viable)
+        .map(|p| [(p.height_m * 1e9).round(), (p.pitch_m * 1e9).round()])
+        .collect();
+    let mut pairs = serde_json::Map::new();
+    let num = |v: f64| {
+        if v.is_finite() {
+            serde_json::json!(v)
+        } else {
+            serde_json::Value::Null
+        }
+    };
+    for p in &sel {
+        pairs.insert(
+            key(p),
+            serde_json::json!({
+                "viable": p.viable,
+                "diameter_min_nm": num(p.diameter_min_m * 1e9),
+                "diameter_max_nm": num(p.diameter_max_m * 1e9),
+                "phase_coverage_rad": p.phase_coverage_rad,
+                "min_transmittance_2pi": num(p.min_transmittance_2pi),
+                "max_aspect_ratio": num(p.max_aspect_ratio),
+            }),
+        );
+    }
+    let mut viable_map = Vec::with_capacity(sel.len() * 8);
+    for p in &sel {
+        viable_map.push(if p.viable { 1.0 } else { 0.0 });
+    }
+    let shape = [data.heights_m.len() as u64, data.pitches_m.len() as u64];
+    sweep::write_atomic(
+        &figdir.join("viable.npy"),
+        &sweep::npy_bytes(&shape, &viable_map)?,
+    )?;
+    if a.json {
+        let v = serde_json::json!({"viable": viable, "pairs": pairs, "figures": files});
+        println!("{}", serde_json::to_string(&v)?);
+    } else {
+        println!(
+            "{} of {} (height, pitch) pairs viable; figures in {}",
+            viable.len(),
+            sel.len(),
+            figdir.display()
+        );
+        let k = format!("{}x{}", a.mark_height_nm.round(), a.mark_pitch_nm.round());
+        if let Some(p) = pairs.get(&k) {
+            println!("{k}: {p}");
+        }
+    }
+    Ok(())
+}
+
+fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
+    let h = nm("--height-nm", a.height_nm)?;
+    let s = nm("--pitch-nm", a.pitch_nm)?;
+    let (shape, phase) =
+        sweep::read_npy(&a.phase).with_context(|| format!("--phase {}", a.phase.display()))?;
+    if shape.len() != 2 {
+        bail!("--phase: expected a 2-D array, got shape {shape:?}");
+    }
+    let (rows, cols) = (shape[0] as usize, shape[1] as usize);
+    let materials = a.solver.materials()?;
+    let tau_per_t2 = materials.n_substrate / materials.n_superstrate;
+    let lib: TabulatedLibrary = if let Some(csv) = &a.library_csv {
+        let text = std::fs::read_to_string(csv)
+            .with_context(|| format!("--library-csv {}", csv.display()))?;
+        TabulatedLibrary::from_csv(&text, h, s, a.solver.wavelength_m()?, tau_per_t2)
+            .map_err(|e| anyhow!("--library-csv: {e}"))?
+    } else if let Some(dir) = &a.sweep {
+        let data = sweep::load_sweep(dir).with_context(|| format!("--sweep {}", dir.display()))?;
+        TabulatedLibrary::from_sweep(&data, h, s, &Criteria::default())
+            .map_err(|e| anyhow!("--sweep: {e}"))?
+            .0
+    } else {
+        // Compute the (h, s) slice directly: one eigen-solve per diameter.
+        let cfg = SweepConfig {
+            heights_m: Range {
+                start: h,
+                stop: h,
+                step: 1e-9,
+            },
+            pitches_m: Range {
+                start: s,
+                stop: s,
+                step: 1e-9,
+            },
+            fractions: Range {
+                start: 0.10,
+                stop: 0.90,
+                step: 0.005,
+            },
+            wavelength_m: a.solver.wavelength_m()?,
+            materials,
+            harmonics: a.solver.harmonics,
+            rule: a.solver.rule()?,
+        };
+        let dir = a.out.join("library_sweep");
+        sweep::run_sweep_with_progress(&cfg, &dir)?;
+        let data = sweep::load_sweep(&dir)?;
+        TabulatedLibrary::from_sweep(
+            &data,
+            data.heights_m[0],
+            data.pitches_m[0],
+            &Criteria::default(),
+        )
+        .map_err(|e| anyhow!("--height-nm/--pitch-nm: {e}"))?
+        .0
+    };
+    let opt = BlueprintOptions {
+        diameter_step_m: nm("--diameter-step-nm", a.diameter_step_nm)?,
+        circle_vertices: a.circle_vertices,
+        layer: 1,
+        circular_aperture: !a.square_aperture,
+    };
+    let bp = blueprint::invert_phase_map(&lib, &phase, rows, cols, &opt)
+        .map_err(|e| anyhow!("--phase: {e}"))?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+    sweep::write_atomic(
+        &a.out.join("diameters.npy"),
+        &sweep::npy_bytes(&[rows as u64, cols as u64], &bp.diameters_m)?,
+    )?;
+    sweep::write_atomic(
+        &a.out.join("layout.gds"),
+        &blueprint::gdsii(&bp, s, &opt).map_err(|e| anyhow!("--circle-vertices: {e}"))?,
+    )?;
+    let (dmin, dmax) = lib.diameter_range_m();
+    sweep::write_atomic(
+        &a.out.join("preview.png"),
+        &blueprint::preview_png(&bp, dmin, dmax)?,
+    )?;
+    let v = serde_json::json!({
+        "pillars": bp.pillars, "rows": rows, "cols": cols,
+        "diameter_min_nm": dmin * 1e9, "diameter_max_nm": dmax * 1e9,
+        "library_coverage_rad": lib.coverage_rad(),
+        "rms_phase_error_rad": bp.rms_phase_error_rad, "max_phase_error_rad": bp.max_phase_error_rad,
+        "circle_vertices": opt.circle_vertices, "gds_db_unit_m": blueprint::GDS_DB_UNIT_M,
+    });
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!(
+            "{} pillars, diameters {:.1}–{:.1} nm, RMS phase error {:.4} rad → {}",
+            bp.pillars,
+            dmin * 1e9,
+            dmax * 1e9,
+            bp.rms_phase_error_rad,
+            a.out.display()
+        );
+    }
+    Ok(())
+}

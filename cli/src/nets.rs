@@ -1,0 +1,190 @@
+//! `nanoeye nets …`: MAC/parameter counts of subnets (S23) and a toy training run.
+
+use crate::util::print_json;
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use nanoeye_nets::arch::{Arch, SupernetConfig};
+use nanoeye_nets::cost::{Cost, mobilenet_v3_large, mobilenet_v3_small, subnet_cost};
+use nanoeye_nets::toy::{ToyConfig, fit_toy};
+use serde::Serialize;
+use std::time::Instant;
+
+/// Networks: cost model and toy training.
+#[derive(Subcommand)]
+pub enum NetsCmd {
+    /// MACs and parameters of a network at a resolution (MobileNetV3 or a supernet subnet).
+    Macs(MacsArgs),
+    /// Train the smallest and largest subnet on synthetic disk masks; report held-out metrics.
+    FitToy(FitToyArgs),
+}
+
+/// Arguments of `nets macs`.
+#[derive(Args)]
+pub struct MacsArgs {
+    /// large | small (torchvision MobileNetV3 with its 1000-class head) | max | min |
+    /// file:ARCH.json (supernet subnet with both heads).
+    #[arg(long)]
+    arch: String,
+    /// Input image side in pixels (a subnet sees it scaled by its resolution scale).
+    #[arg(long, default_value_t = 224)]
+    resolution: usize,
+    /// Image channels of the supernet stem (1 = NIR eye images).
+    #[arg(long, default_value_t = 1)]
+    in_channels: usize,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Arguments of `nets fit-toy`.
+#[derive(Args)]
+pub struct FitToyArgs {
+    /// Training steps per subnet.
+    #[arg(long, default_value_t = 300)]
+    steps: usize,
+    /// Images per step.
+    #[arg(long, default_value_t = 16)]
+    batch: usize,
+    /// Image side in pixels.
+    #[arg(long, default_value_t = 64)]
+    size_px: usize,
+    /// Peak Adam learning rate.
+    #[arg(long, default_value_t = 3e-3)]
+    lr: f64,
+    /// Seed of weights and data.
+    #[arg(long, default_value_t = 7)]
+    seed: u64,
+    /// Only train the smallest subnet.
+    #[arg(long)]
+    min_only: bool,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Runs one `nets` subcommand.
+pub fn run(cmd: NetsCmd) -> Result<()> {
+    match cmd {
+        NetsCmd::Macs(a) => macs(a),
+        NetsCmd::FitToy(a) => fit(a),
+    }
+}
+
+fn macs(a: MacsArgs) -> Result<()> {
+    if a.resolution == 0 {
+        bail!("--resolution must be positive");
+    }
+    let cfg = SupernetConfig {
+        in_channels: a.in_channels,
+        ..SupernetConfig::default()
+    };
+    let cost: Cost = match a.arch.as_str() {
+        "large" => mobilenet_v3_large(a.resolution),
+        "small" => mobilenet_v3_small(a.resolution),
+        "max" => {
+            subnet_cost(&cfg, &Arch::max(), a.resolution, a.resolution).context("--arch max")?
+        }
+        "min" => {
+            subnet_cost(&cfg, &Arch::min(), a.resolution, a.resolution).context("--arch min")?
+        }
+        other => {
+            let Some(path) = other.strip_prefix("file:") else {
+                bail!("--arch: '{other}' is not large, small, max, min or file:PATH");
+            };
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("--arch: cannot read '{path}'"))?;
+            let arch: Arch = serde_json::from_str(&text)
+                .with_context(|| format!("--arch: '{path}' is not an Arch JSON"))?;
+            subnet_cost(&cfg, &arch, a.resolution, a.resolution)
+                .with_context(|| format!("--arch {path}"))?
+        }
+    };
+    if a.json {
+        print_json(&cost)?;
+    } else {
+        println!(
+            "{}: {:.2} M MACs, {} parameters (pointwise {:.2} M, depthwise {:.2} M, SE {:.2} M, other {:.2} M)",
+            a.arch,
+            cost.macs as f64 / 1e6,
+            cost.params,
+            cost.per_kind.pointwise as f64 / 1e6,
+            cost.per_kind.depthwise as f64 / 1e6,
+            cost.per_kind.se as f64 / 1e6,
+            cost.per_kind.other as f64 / 1e6
+        );
+    }
+    Ok(())
+}
+
+#[derive(Serialize)]
+struct Metrics {
+    dice: f64,
+    slip_mse: f64,
+    seconds: f64,
+}
+
+#[derive(Serialize)]
+struct FitReport {
+    min: Metrics,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    max: Option<Metrics>,
+    seconds: f64,
+}
+
+fn fit(a: FitToyArgs) -> Result<()> {
+    if a.steps == 0 {
+        bail!("--steps must be positive");
+    }
+    if a.batch == 0 {
+        bail!("--batch must be positive");
+    }
+    if a.size_px < 8 {
+        bail!("--size-px must be at least 8");
+    }
+    if !(a.lr.is_finite() && a.lr > 0.0) {
+        bail!("--lr must be positive");
+    }
+    let cfg = ToyConfig {
+        size: a.size_px,
+        steps: a.steps,
+        batch: a.batch,
+        lr: a.lr,
+        seed: a.seed,
+        ..ToyConfig::default()
+    };
+    let t0 = Instant::now();
+    let run = |arch: &Arch| -> Result<Metrics> {
+        let r = fit_toy(arch, &cfg)?;
+        Ok(Metrics {
+            dice: r.dice,
+            slip_mse: r.slip_mse,
+            seconds: r.seconds,
+        })
+    };
+    let min = run(&Arch::min())?;
+    let max = if a.min_only {
+        None
+    } else {
+        Some(run(&Arch::max())?)
+    };
+    let rep = FitReport {
+        min,
+        max,
+        seconds: t0.elapsed().as_secs_f64(),
+    };
+    if a.json {
+        print_json(&rep)?;
+    } else {
+        println!(
+            "min subnet: held-out Dice {:.4}, slip MSE {:.4} ({:.1} s)",
+            rep.min.dice, rep.min.slip_mse, rep.min.seconds
+        );
+        if let Some(m) = &rep.max {
+            println!(
+                "max subnet: held-out Dice {:.4}, slip MSE {:.4} ({:.1} s)",
+                m.dice, m.slip_mse, m.seconds
+            );
+        }
+    }
+    Ok(())
+}

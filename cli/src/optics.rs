@@ -1,0 +1,207 @@
+//! `nanoeye optics …`: PSF stacks of metasurface lenses over depth.
+
+use crate::util::{parse_range, print_json, write_atomic, write_atomic_with};
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use faer::Mat;
+use nanoeye_optics::stats::plane_stats;
+use nanoeye_optics::{
+    ApertureGrid, AsmPsf, DoubleHelix, FreeForm, Hyperbolic, PhaseMap, PhaseProfile, PsfConfig,
+    PsfModel,
+};
+use std::path::PathBuf;
+
+/// Optics commands.
+#[derive(Subcommand)]
+pub enum Cmd {
+    /// PSF stack of a lens over depth: DIR/psf.npy [depth, y, x] float32 and DIR/montage.png.
+    Psf(PsfArgs),
+}
+
+/// Arguments of `nanoeye optics psf`.
+#[derive(Args)]
+pub struct PsfArgs {
+    /// Lens: hyperbolic | double-helix | file:PATH.npy (square phase map in rad on the aperture grid).
+    #[arg(long, default_value = "hyperbolic")]
+    lens: String,
+    /// Source depths in mm, a:b:step or a single value.
+    #[arg(long, default_value = "17:26:1.5")]
+    depths_mm: String,
+    /// Sensor pixel pitch in µm.
+    #[arg(long, default_value_t = 3.0)]
+    pitch_um: f64,
+    /// PSF window width in pixels.
+    #[arg(long, default_value_t = 64)]
+    window_px: usize,
+    /// Aperture diameter in mm.
+    #[arg(long, default_value_t = 1.0)]
+    aperture_mm: f64,
+    /// Aperture sampling pitch in µm (must match a file: phase map's pitch).
+    #[arg(long, default_value_t = 1.5)]
+    sample_um: f64,
+    /// Metasurface-to-sensor distance in mm.
+    #[arg(long, default_value_t = 2.0)]
+    sensor_mm: f64,
+    /// Wavelength in nm.
+    #[arg(long, default_value_t = 940.0)]
+    wavelength_nm: f64,
+    /// Object distance in focus in mm (hyperbolic lens).
+    #[arg(long, default_value_t = 25.0)]
+    focus_mm: f64,
+    /// Number of annular zones of the double-helix lens.
+    #[arg(long, default_value_t = 4)]
+    dh_zones: usize,
+    /// Spectral period L in mm (padding); default aperture + window.
+    #[arg(long)]
+    period_mm: Option<f64>,
+    /// Output directory.
+    #[arg(long)]
+    out: PathBuf,
+    /// Print a JSON summary on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Runs an optics command.
+pub fn run(cmd: Cmd) -> Result<()> {
+    match cmd {
+        Cmd::Psf(a) => psf(a),
+    }
+}
+
+fn positive(flag: &str, v: f64) -> Result<f64> {
+    if v.is_finite() && v > 0.0 {
+        Ok(v)
+    } else {
+        bail!("{flag}: must be finite and > 0, got {v}")
+    }
+}
+
+fn psf(a: PsfArgs) -> Result<()> {
+    let lam = positive("--wavelength-nm", a.wavelength_nm)? * 1e-9;
+    let s = positive("--sensor-mm", a.sensor_mm)? * 1e-3;
+    let d = positive("--aperture-mm", a.aperture_mm)? * 1e-3;
+    let dx = positive("--sample-um", a.sample_um)? * 1e-6;
+    let pitch = positive("--pitch-um", a.pitch_um)? * 1e-6;
+    let zf = positive("--focus-mm", a.focus_mm)? * 1e-3;
+    if a.window_px == 0 || a.window_px > 1024 {
+        bail!("--window-px: must be 1..=1024, got {}", a.window_px);
+    }
+    let depths: Vec<f64> = parse_range("--depths-mm", &a.depths_mm)?
+        .iter()
+        .map(|z| z * 1e-3)
+        .collect();
+    if depths.iter().any(|&z| z <= 0.0) {
+        bail!("--depths-mm: depths must be > 0");
+    }
+    let period = a
+        .period_mm
+        .map(|p| positive("--period-mm", p).map(|p| p * 1e-3))
+        .transpose()?;
+    let grid = ApertureGrid::new(d, dx).context("--aperture-mm/--sample-um")?;
+    let lens = Hyperbolic {
+        wavelength_m: lam,
+        object_distance_m: zf,
+        image_distance_m: s,
+    };
+    let map: PhaseMap = match a.lens.as_str() {
+        "hyperbolic" => lens.phase_map(&grid)?,
+        "double-helix" => {
+            let dh = DoubleHelix {
+                lens: Hyperbolic {
+                    wavelength_m: lam,
+                    image_distance_m: s,
+                    ..DoubleHelix::default().lens
+                },
+                zones: a.dh_zones,
+            };
+            dh.phase_map(&grid).context("--dh-zones")?
+        }
+        other => match other.strip_prefix("file:") {
+            Some(path) => {
+                let phase = nanoeye_optics::io::read_phase_npy(std::path::Path::new(path))
+                    .with_context(|| format!("--lens: cannot read '{path}'"))?;
+                let ff = FreeForm {
+                    map: PhaseMap::phase_only(
+                        ApertureGrid {
+                            n: phase.nrows(),
+                            ..grid
+                        },
+                        phase,
+                    )?,
+                };
+                ff.phase_map(&grid).with_context(|| {
+                    format!(
+                        "--lens: map is {0}×{0}; --aperture-mm/--sample-um give {1}×{1}",
+                        ff.map.grid.n, grid.n
+                    )
+                })?
+            }
+            None => {
+                bail!("--lens: expected hyperbolic, double-helix or file:PATH.npy, got '{other}'")
+            }
+        },
+    };
+    let cfg = PsfConfig {
+        wavelength_m: lam,
+        sensor_distance_m: s,
+        pitch_m: pitch,
+        window_px: a.window_px,
+        period_m: period,
+        ..PsfConfig::default()
+    };
+    let model = AsmPsf::new(cfg, grid).context("--pitch-um/--window-px/--period-mm")?;
+    let stack = model.forward(&map, &depths, None)?;
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("--out: cannot create '{}'", a.out.display()))?;
+    write_atomic_with(&a.out.join("psf.npy"), |w| {
+        nanoeye_optics::io::write_stack_npy(&stack, w).map_err(Into::into)
+    })?;
+    write_atomic(&a.out.join("montage.png"), &montage(&stack.planes)?)?;
+    if a.json {
+        let planes: Vec<serde_json::Value> = stack
+            .planes
+            .iter()
+            .zip(&stack.depths_m)
+            .map(|(p, &z)| {
+                let st = plane_stats(p);
+                serde_json::json!({
+                    "depth_m": z, "energy": st.energy, "peak": st.peak,
+                    "centroid_px": st.centroid_px, "rms_radius_px": st.rms_radius_px,
+                })
+            })
+            .collect();
+        print_json(&serde_json::json!({
+            "pitch_m": stack.pitch_m, "depths_m": stack.depths_m, "planes": planes,
+        }))?;
+    }
+    Ok(())
+}
+
+/// One tile per depth, left to right, each scaled to its own peak (as in Fig. S10), as PNG.
+fn montage(planes: &[Mat<f32>]) -> Result<Vec<u8>> {
+    let w = planes.first().map_or(0, |p| p.ncols());
+    let h = planes.first().map_or(0, |p| p.nrows());
+    let gap = 2;
+    let width = (planes.len() * (w + gap)).saturating_sub(gap).max(1);
+    let mut img = image::GrayImage::new(width as u32, h.max(1) as u32);
+    for (k, p) in planes.iter().enumerate() {
+        let peak = plane_stats(p).peak.max(f64::MIN_POSITIVE) as f32;
+        for i in 0..h {
+            for j in 0..w {
+                let v = (p[(i, j)] / peak).clamp(0.0, 1.0).sqrt();
+                img.put_pixel(
+                    (k * (w + gap) + j) as u32,
+                    i as u32,
+                    image::Luma([(v * 255.0).round() as u8]),
+                );
+            }
+        }
+    }
+    let mut bytes = Vec::new();
+    img.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        image::ImageFormat::Png,
+    )?;
+    Ok(bytes)
+}
