@@ -34,8 +34,8 @@ pub enum Cmd {
         /// Rig JSON file; default: the built-in seed rig.
         #[arg(long)]
         rig: Option<PathBuf>,
-        /// Solver radii to evaluate (mm, comma-separated).
-        #[arg(long, default_value = "9,10,10.392,11,12,13")]
+        /// Solver radii to evaluate (mm, comma-separated); the rig's pupil radius is always added.
+        #[arg(long, default_value = "9,10,11,12,13")]
         solver_radii_mm: String,
         /// Grid samples per axis.
         #[arg(long, default_value_t = 41)]
@@ -132,7 +132,13 @@ pub fn run(cmd: Cmd) -> Result<()> {
             if steps < 2 {
                 bail!("--steps: need at least 2 samples per axis, got {steps}");
             }
-            let radii = util::parse_list("--solver-radii-mm", &solver_radii_mm)?;
+            let mut radii = util::parse_list("--solver-radii-mm", &solver_radii_mm)?;
+            // The rig's true pupil radius is always a row: the zero-bias reference.
+            let true_mm = rig.pupil_sphere_radius_m * 1e3;
+            if !radii.iter().any(|r| (r - true_mm).abs() < 1e-9) {
+                radii.push(true_mm);
+                radii.sort_by(f64::total_cmp);
+            }
             let grid = GazeGrid::table_s2(steps);
             let reports = radii
                 .iter()
@@ -146,21 +152,27 @@ pub fn run(cmd: Cmd) -> Result<()> {
                 "true pupil sphere {:.3} mm; gaze grid az −35…45°, el −15…15°, {steps}×{steps}",
                 rig.pupil_sphere_radius_m * 1e3
             );
-            println!("solver R (mm)  mean (°)  median (°)  p95 (°)  max (°)  in view  missed");
+            println!(
+                "solver R (mm)  mean (°)  median (°)  p95 (°)  max (°)  in view  hidden  missed"
+            );
             for r in &reports {
                 let e = r.error_deg;
                 let f = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{v:.3}"));
                 println!(
-                    "{:>12.3}  {:>8}  {:>10}  {:>7}  {:>7}  {:>7}  {:>6}",
+                    "{:>12.3}  {:>8}  {:>10}  {:>7}  {:>7}  {:>7}  {:>6}  {:>6}",
                     r.solver_radius_m * 1e3,
                     f(e.map(|s| s.mean)),
                     f(e.map(|s| s.median)),
                     f(e.map(|s| s.p95)),
                     f(e.map(|s| s.max)),
                     r.in_view,
+                    r.hidden,
                     r.missed
                 );
             }
+            println!(
+                "hidden: pupil beyond the sphere's limb as the camera sees it, left out of the statistics"
+            );
             Ok(())
         }
     }

@@ -6,8 +6,8 @@ use nanoeye_datagen::render::prim::{Clip, Shape};
 use nanoeye_datagen::render::scene::{LAYER_ALL, LAYER_EYE, LAYER_SKIN, Prim};
 use nanoeye_datagen::render::trace::pixel_dir;
 use nanoeye_datagen::render::{
-    Light, Material, MaterialKind, Ray, RenderOptions, Scene, Subject, landmarks, procedural_scene,
-    render,
+    Light, Material, MaterialKind, Ray, RayTracer, RenderOptions, Renderer, Scene, Subject,
+    landmarks, procedural_scene, render,
 };
 use nanoeye_datagen::states::{self, State};
 use nanoeye_gaze::{Camera, Pose, Rig, geom};
@@ -392,7 +392,9 @@ fn depth_layers_conserve_radiance_and_coverage() {
         ..Default::default()
     };
     let cam = rig.camera.with_pitch(48e-6).unwrap(); // 80×50 keeps the test fast
-    let f = render(&scene, &cam, &pose, &opts).unwrap();
+    // Through the stage trait, as a pipeline holding a `dyn Renderer` would call it.
+    let stage: &dyn Renderer = &RayTracer { opts };
+    let f = stage.render(&scene, &cam, &pose).unwrap();
     for l in &f.layers.layers {
         let any = (0..l.alpha.nrows()).any(|i| (0..l.alpha.ncols()).any(|j| l.alpha[(i, j)] > 0.0));
         assert_eq!(l.empty, !any);

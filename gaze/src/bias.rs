@@ -3,6 +3,7 @@
 
 use crate::error::GazeError;
 use crate::eye;
+use crate::geom;
 use crate::rig::Rig;
 use crate::solver::{GazeSolver, SphereSolver, project};
 use crate::stats::{Summary, angular_error};
@@ -50,6 +51,9 @@ pub struct BiasReport {
     pub error_deg: Option<Summary>,
     /// Grid points whose pupil projects inside the image.
     pub in_view: usize,
+    /// In-view points whose pupil lies beyond the pupil sphere's limb as the camera sees it
+    /// (p·(O − p) ≤ 0): no sphere solver can recover them, so they are left out of `error_deg`.
+    pub hidden: usize,
     /// Grid points whose ray missed the solver sphere.
     pub missed: usize,
     /// Grid points in total.
@@ -68,11 +72,12 @@ pub fn pupil_sphere_bias(
     let solver = SphereSolver::new(&solver_rig)?;
     let cam = &rig.camera;
     let pose = cam.nominal_pose();
-    let (mut errs, mut missed, mut total, mut in_view) = (Vec::new(), 0, 0, 0);
+    let (mut errs, mut missed, mut total, mut in_view, mut hidden) = (Vec::new(), 0, 0, 0, 0);
     for (az, el) in grid.points() {
         total += 1;
         let g = eye::gaze_from_angles(az, el);
-        let px = match project(cam, &pose, rig.pupil_center(g)) {
+        let p = rig.pupil_center(g);
+        let px = match project(cam, &pose, p) {
             Ok(px) => px,
             Err(_) => continue,
         };
@@ -82,6 +87,10 @@ pub fn pupil_sphere_bias(
             continue;
         }
         in_view += 1;
+        if geom::dot(p, geom::sub(pose.position, p)) <= 0.0 {
+            hidden += 1;
+            continue;
+        }
         match solver.solve_pixel(px, [0.0; 3]) {
             Ok(sol) => errs.push(angular_error(sol.gaze, g).to_degrees()),
             Err(_) => missed += 1,
@@ -92,6 +101,7 @@ pub fn pupil_sphere_bias(
         solver_radius_m,
         error_deg: Summary::of(&errs),
         in_view,
+        hidden,
         missed,
         total,
     })

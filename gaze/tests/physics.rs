@@ -273,3 +273,26 @@ fn kappa_rotates_visual_axis_by_kappa() {
     );
     assert!((angular_error(sol.gaze, v) - expect).abs() < 1e-12);
 }
+
+#[test]
+fn pupil_sphere_bias_vanishes_at_the_true_radius_and_grows_away_from_it() {
+    use nanoeye_gaze::bias::{GazeGrid, pupil_sphere_bias};
+    let rig = Rig::default();
+    let grid = GazeGrid::table_s2(21);
+    let exact = pupil_sphere_bias(&rig, rig.pupil_sphere_radius_m, &grid).unwrap();
+    let e = exact.error_deg.unwrap();
+    assert!(e.max < 1e-9, "bias at the true radius: {} deg", e.max);
+    assert_eq!(exact.missed, 0);
+    // Only gazes far up and towards +x put the pupil beyond the limb for this camera.
+    assert!(exact.hidden < exact.in_view / 5);
+    let mean = |r_mm: f64| {
+        pupil_sphere_bias(&rig, r_mm * 1e-3, &grid)
+            .unwrap()
+            .error_deg
+            .unwrap()
+            .mean
+    };
+    // Solving on a larger sphere intersects the ray nearer the camera, a growing bias.
+    let (m11, m12, m13) = (mean(11.0), mean(12.0), mean(13.0));
+    assert!(0.0 < m11 && m11 < m12 && m12 < m13, "{m11} {m12} {m13}");
+}

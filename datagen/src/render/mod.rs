@@ -22,7 +22,27 @@ pub use mesh::{Mesh, MeshUnits};
 pub use scene::{EyeGeometry, Light, Scene, Subject, procedural_scene};
 pub use trace::{DepthLayer, DepthLayers, Frame, LayerSpec, RenderOptions, render};
 
-use nanoeye_gaze::{GazeError, Vec3, geom};
+use nanoeye_gaze::{Camera, GazeError, Pose, Vec3, geom};
+
+/// The rendering stage: a scene seen by a camera at a pose → a [`Frame`] (radiance, depth,
+/// masks and depth layers). Swap this to plug in another renderer behind the same data flow.
+pub trait Renderer: Send + Sync {
+    /// Renders `scene` through `camera` at `pose`.
+    fn render(&self, scene: &Scene, camera: &Camera, pose: &Pose) -> Result<Frame, RenderError>;
+}
+
+/// The built-in BVH ray tracer ([`render`]) with fixed options.
+#[derive(Debug, Clone, Copy)]
+pub struct RayTracer {
+    /// Samples per pixel, depth layers and seed.
+    pub opts: RenderOptions,
+}
+
+impl Renderer for RayTracer {
+    fn render(&self, scene: &Scene, camera: &Camera, pose: &Pose) -> Result<Frame, RenderError> {
+        trace::render(scene, camera, pose, &self.opts)
+    }
+}
 
 /// Errors of the renderer and dataset writer.
 #[derive(Debug, thiserror::Error)]
