@@ -547,3 +547,33 @@ fn ambiguity_pair_centroid_difference_is_the_refraction_difference() {
         assert!(e < 0.5, "rendered {rendered:?} vs predicted {predicted:?}");
     }
 }
+
+#[test]
+fn ambiguity_pair_centroids_agree_once_matched_through_the_cornea() {
+    // The dataset re-aims the `gaze` member so its refracted pupil centre lands on the `slip`
+    // member's: with the refracting cornea the rendered pupils then coincide, as C.3 intends.
+    use nanoeye_datagen::render::SceneSource;
+    use nanoeye_datagen::render::dataset::{RenderSet, plan};
+    let rig = Rig::default();
+    let frames = plan(RenderSet::Ambiguity, &rig, &SceneSource::Procedural, 6, 7).unwrap();
+    let mut checked = 0;
+    for item in frames.chunks(3) {
+        let (slip, gaze) = (&item[1], &item[2]);
+        assert_eq!((slip.role, gaze.role), ("slip", "gaze"));
+        let subject = Subject::from_seed(slip.subject);
+        let (vs, ps, rs, _) = pupil_render(&rig, &slip.state, &subject);
+        let (vg, pg, rg, _) = pupil_render(&rig, &gaze.state, &subject);
+        assert!(dist(rs, rg) < 1e-5, "refracted centres {rs:?} vs {rg:?}");
+        if !(same_mask(&vs, &ps) && same_mask(&vg, &pg)) {
+            continue; // a lid occludes one member
+        }
+        let d = dist(centroid(&vs), centroid(&vg));
+        eprintln!("n = 1.376, refracted match: centroids differ by {d:.3} px");
+        assert!(d < 0.5, "ambiguity pair centroids differ by {d} px");
+        checked += 1;
+        if checked == 2 {
+            break;
+        }
+    }
+    assert!(checked > 0, "no unoccluded pair");
+}

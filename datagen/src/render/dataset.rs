@@ -4,7 +4,7 @@
 //! Format: docs/renderer.md.
 
 use super::RenderError;
-use super::landmarks::{Landmarks, landmarks};
+use super::landmarks::{Landmarks, aim_refracted_pupil, landmarks};
 use super::mesh::Mesh;
 use super::scene::{Light, Subject, procedural_scene};
 use super::trace::{Frame, LayerSpec, RenderOptions, render};
@@ -125,10 +125,14 @@ pub struct PlannedFrame {
     pub state: State,
 }
 
-/// The frames of a set, in file order.
+/// The frames of a set, in file order. In an ambiguity pair the `gaze` member is re-aimed so
+/// its *refracted* pupil centre lands where the `slip` member's does (the state set matches
+/// the pinhole projections; the cornea shifts them differently), so the two rendered pupils
+/// coincide; where that Newton solve fails the pinhole match is kept.
 pub fn plan(
     set: RenderSet,
     rig: &Rig,
+    source: &SceneSource,
     n: usize,
     seed: u64,
 ) -> Result<Vec<PlannedFrame>, RenderError> {
@@ -137,7 +141,13 @@ pub fn plan(
     match set {
         RenderSet::Ambiguity => {
             for (i, p) in states::ambiguity(rig, n, seed)?.into_iter().enumerate() {
-                for (role, state) in [("anchor", p.anchor), ("slip", p.slip), ("gaze", p.gaze)] {
+                let subject = subject_of(source, subj(i));
+                let target = landmarks(rig, &p.slip, &subject)?.pupil_center_refracted_px;
+                let gaze = match target {
+                    Some(t) => aim_refracted_pupil(rig, &p.gaze, &subject, t)?.unwrap_or(p.gaze),
+                    None => p.gaze,
+                };
+                for (role, state) in [("anchor", p.anchor), ("slip", p.slip), ("gaze", gaze)] {
                     out.push(PlannedFrame {
                         item: i,
                         role,
@@ -290,6 +300,15 @@ fn mask_png(m: &Mat<f32>) -> Result<Vec<u8>, RenderError> {
     png_bytes(g, m.ncols(), m.nrows())
 }
 
+/// The appearance a frame is rendered with: the seeded subject for the procedural eye, the
+/// default subject's optics for a mesh.
+fn subject_of(source: &SceneSource, seed: u64) -> Subject {
+    match source {
+        SceneSource::Procedural => Subject::from_seed(seed),
+        SceneSource::Mesh(_) => Subject::default(),
+    }
+}
+
 /// Renders one planned frame.
 pub fn render_planned(
     rig: &Rig,
@@ -301,15 +320,10 @@ pub fn render_planned(
 ) -> Result<(Frame, Landmarks), RenderError> {
     let pose = f.state.camera_pose(rig);
     let light = Light::near_camera(&pose);
-    let (scene, subject) = match source {
-        SceneSource::Procedural => {
-            let s = Subject::from_seed(f.subject);
-            (procedural_scene(rig, &f.state, &s, light)?, s)
-        }
-        SceneSource::Mesh(m) => {
-            let s = Subject::default();
-            (m.scene(&f.state, light, s.cornea_index)?, s)
-        }
+    let subject = subject_of(source, f.subject);
+    let scene = match source {
+        SceneSource::Procedural => procedural_scene(rig, &f.state, &subject, light)?,
+        SceneSource::Mesh(m) => m.scene(&f.state, light, subject.cornea_index)?,
     };
     let opts = RenderOptions { spp, seed, layers };
     let frame = render(&scene, &rig.camera, &pose, &opts)?;
@@ -325,7 +339,7 @@ pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderErro
             reason: "must be ≥ 1".into(),
         });
     }
-    let planned = plan(opts.set, &rig, opts.n, opts.seed)?;
+    let planned = plan(opts.set, &rig, &opts.source, opts.n, opts.seed)?;
     let fdir = opts.out_dir.join("frames");
     std::fs::create_dir_all(&fdir).map_err(|e| io_err(&fdir, e))?;
     let bar = if opts.progress {

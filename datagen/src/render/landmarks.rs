@@ -132,3 +132,52 @@ pub fn refracted_pupil_px(
     }
     None
 }
+
+/// Re-aims the eye of `state` so its refracted pupil centre lands on `target_px` (px): Newton
+/// in (azimuth, elevation) with a forward-difference Jacobian, torsion and camera kept. Used
+/// to make ambiguity pairs coincide in the rendered image, where the cornea shifts the pupil.
+/// `Ok(None)` when the pupil leaves view or Newton does not reach 1e-6 px in 16 steps.
+pub fn aim_refracted_pupil(
+    rig: &Rig,
+    state: &State,
+    subject: &Subject,
+    target_px: [f64; 2],
+) -> Result<Option<State>, RenderError> {
+    let px_of = |s: &State| -> Result<Option<[f64; 2]>, RenderError> {
+        Ok(landmarks(rig, s, subject)?.pupil_center_refracted_px)
+    };
+    // 1e-6 rad moves the pupil ≈7e-5 px, far above the 1e-9 px the inner Newton resolves.
+    const H: f64 = 1e-6;
+    let mut s = *state;
+    for _ in 0..16 {
+        let Some(p) = px_of(&s)? else {
+            return Ok(None);
+        };
+        let r = [p[0] - target_px[0], p[1] - target_px[1]];
+        if r[0].hypot(r[1]) < 1e-6 {
+            return Ok(Some(s));
+        }
+        let pa = px_of(&State {
+            azimuth_rad: s.azimuth_rad + H,
+            ..s
+        })?;
+        let pe = px_of(&State {
+            elevation_rad: s.elevation_rad + H,
+            ..s
+        })?;
+        let (Some(pa), Some(pe)) = (pa, pe) else {
+            return Ok(None);
+        };
+        let j = [
+            [(pa[0] - p[0]) / H, (pe[0] - p[0]) / H],
+            [(pa[1] - p[1]) / H, (pe[1] - p[1]) / H],
+        ];
+        let det = j[0][0] * j[1][1] - j[0][1] * j[1][0];
+        if det == 0.0 || !det.is_finite() {
+            return Ok(None);
+        }
+        s.azimuth_rad -= (j[1][1] * r[0] - j[0][1] * r[1]) / det;
+        s.elevation_rad -= (-j[1][0] * r[0] + j[0][0] * r[1]) / det;
+    }
+    Ok(None)
+}

@@ -16,7 +16,7 @@ pub mod trace;
 pub use dataset::{
     DatasetOptions, DatasetSummary, FrameFiles, FrameRecord, RenderSet, SceneSource, write_dataset,
 };
-pub use landmarks::{Landmark, Landmarks, landmarks, refracted_pupil_px};
+pub use landmarks::{Landmark, Landmarks, aim_refracted_pupil, landmarks, refracted_pupil_px};
 pub use material::{Material, MaterialKind};
 pub use mesh::{Mesh, MeshUnits};
 pub use scene::{EyeGeometry, Light, Scene, Subject, procedural_scene};

@@ -1,6 +1,6 @@
 //! Convergence study: τ and phase vs harmonics at h = 700 nm, s = 530 nm for d = 100, 200, 275 nm,
 //! both rules, against a high-harmonic reference; plus time per (s, d) eigen-solve and per height.
-//! Usage: cargo run -p nanoeye-metalib --example convergence -- [N_REF] [N_MAX]
+//! Usage: cargo run -p nanoeye-metalib --example rcwa_convergence -- [N_REF] [N_MAX]
 use nanoeye_metalib::material::Materials;
 use nanoeye_metalib::rcwa::{CellSpec, LayerModes, Rule};
 use std::time::Instant;

@@ -1,5 +1,5 @@
 //! Time-vs-error table of the PSF model (docs/bench/optics.md):
-//! `cargo run --release -p nanoeye-optics --example convergence`.
+//! `cargo run --release -p nanoeye-optics --example psf_convergence`.
 //! Reference: Δ = 0.75 µm, L = 2 mm. Error: max |PSF − ref| / max ref over depths 17, 20, 23, 26 mm.
 
 use nanoeye_optics::{ApertureGrid, AsmPsf, Hyperbolic, PhaseProfile, PsfConfig};
