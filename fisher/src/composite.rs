@@ -9,6 +9,14 @@ use crate::error::FisherError;
 use crate::precision::Precision;
 use crate::stack::{PsfStack, StackGrad};
 
+/// Unit (m²) in which S6 sees L_prec = log Tr(I⁻¹): 1 µm².
+///
+/// S6's balancing needs L_k > 0 (its optimum over s_k is e^{s_k} = L_k). In m², log Tr(I⁻¹)
+/// of a useful PSF is ≈ −22 (a 20 µm CRLB), so s_prec runs to its clamp and the composite
+/// diverges to −∞ with L_prec weighted 10¹³ times the others. In µm² the same PSF gives ≈ +6
+/// and stays positive down to a 1 µm CRLB; the change is a constant, so ∂L_prec/∂PSF is the same.
+pub const PREC_UNIT_M2: f64 = 1e-12;
+
 /// The three initialization losses, in the order (prec, dist, comp) of `log_vars`.
 #[derive(Clone, Debug, Default)]
 pub struct InitLoss {
@@ -25,7 +33,7 @@ pub struct InitLoss {
 pub struct InitEval {
     /// L_init (S6).
     pub value: f64,
-    /// (L_prec, L_dist, L_comp).
+    /// (L_prec in units of [`PREC_UNIT_M2`], L_dist, L_comp).
     pub terms: [f64; 3],
     /// ∂L_init/∂s_k.
     pub d_log_vars: [f64; 3],
@@ -41,7 +49,7 @@ impl InitLoss {
         let mut grads = Vec::with_capacity(3);
         for (k, l) in parts.iter().enumerate() {
             let (v, g) = l.value_and_grad(s)?;
-            terms[k] = v;
+            terms[k] = if k == 0 { v - PREC_UNIT_M2.ln() } else { v };
             grads.push(g);
         }
         let kd = kendall(&terms, log_vars)?;

@@ -51,7 +51,7 @@ pub struct InitRecord {
     pub iteration: usize,
     /// L_init (S6).
     pub l_init: f64,
-    /// L_prec, L_dist, L_comp.
+    /// L_prec (in units of [`crate::PREC_UNIT_M2`]), L_dist, L_comp.
     pub terms: [f64; 3],
     /// s_k = log σ_k² used.
     pub log_vars: [f64; 3],

@@ -20,7 +20,7 @@ mod stack;
 pub use balance::{KENDALL_S_LIMIT, Kendall, kendall};
 pub use compact::Compactness;
 pub use compare::{ComparePlanes, CompareRow, compare_lenses};
-pub use composite::{InitEval, InitLoss};
+pub use composite::{InitEval, InitLoss, PREC_UNIT_M2};
 pub use distinct::Distinctness;
 pub use embedding::{EmbeddingGrad, EmbeddingTerms, optical_embedding};
 pub use error::FisherError;

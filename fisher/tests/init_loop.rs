@@ -36,6 +36,13 @@ fn loss_decreases_and_checkpoint_resumes_exactly() {
     let phase = Hyperbolic::default().phase_map(&grid).unwrap().phase_rad;
     let mut a = InitState::new(phase);
     let first = init_step(&model, &grid, &cfg, &mut a).unwrap();
+    // S6's balancing presumes every L_k > 0 (its optimum is e^{s_k} = L_k); L_prec is in µm²
+    // for this reason, and a useful lens must give a positive value there.
+    assert!(
+        first.terms.iter().all(|&t| t > 0.0),
+        "terms {:?}",
+        first.terms
+    );
     for _ in 0..5 {
         init_step(&model, &grid, &cfg, &mut a).unwrap();
     }
@@ -56,4 +63,5 @@ fn loss_decreases_and_checkpoint_resumes_exactly() {
         ra.l_init
     );
     assert!(ra.l_init.is_finite());
+    assert!(ra.terms.iter().all(|&t| t > 0.0), "terms {:?}", ra.terms);
 }
