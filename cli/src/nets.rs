@@ -5,7 +5,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use nanoeye_nets::arch::{Arch, SupernetConfig};
 use nanoeye_nets::cost::{Cost, mobilenet_v3_large, mobilenet_v3_small, subnet_cost};
-use nanoeye_nets::toy::{ToyConfig, fit_toy};
+use nanoeye_nets::toy::{ToyConfig, fit_toy_with_progress};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -153,19 +153,28 @@ fn fit(a: FitToyArgs) -> Result<()> {
         ..ToyConfig::default()
     };
     let t0 = Instant::now();
-    let run = |arch: &Arch| -> Result<Metrics> {
-        let r = fit_toy(arch, &cfg)?;
+    let run = |arch: &Arch, name: &str| -> Result<Metrics> {
+        let t = Instant::now();
+        let r = fit_toy_with_progress(arch, &cfg, &mut |done, loss| {
+            let per = t.elapsed().as_secs_f64() / done as f64;
+            eprint!(
+                "\rfit-toy {name}: step {done:>5}/{}  L_task {loss:.4}  {per:.2} s/step, ETA {:.0} s   ",
+                cfg.steps,
+                per * (cfg.steps - done) as f64
+            );
+        })?;
+        eprintln!();
         Ok(Metrics {
             dice: r.dice,
             slip_mse: r.slip_mse,
             seconds: r.seconds,
         })
     };
-    let min = run(&Arch::min())?;
+    let min = run(&Arch::min(), "min")?;
     let max = if a.min_only {
         None
     } else {
-        Some(run(&Arch::max())?)
+        Some(run(&Arch::max(), "max")?)
     };
     let rep = FitReport {
         min,

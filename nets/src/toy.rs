@@ -117,6 +117,15 @@ pub struct ToyResult {
 
 /// Trains subnet `arch` of a fresh supernet on the toy task, recalibrates BN, evaluates.
 pub fn fit_toy(arch: &Arch, cfg: &ToyConfig) -> Result<ToyResult> {
+    fit_toy_with_progress(arch, cfg, &mut |_, _| {})
+}
+
+/// [`fit_toy`], calling `progress(steps_done, training L_task)` after every step.
+pub fn fit_toy_with_progress(
+    arch: &Arch,
+    cfg: &ToyConfig,
+    progress: &mut dyn FnMut(usize, f64),
+) -> Result<ToyResult> {
     if cfg.steps == 0 || cfg.batch == 0 || cfg.n_train == 0 || cfg.n_test == 0 || cfg.size < 8 {
         return Err(NetsError::Param(format!(
             "toy config needs positive counts and size ≥ 8: {cfg:?}"
@@ -141,6 +150,7 @@ pub fn fit_toy(arch: &Arch, cfg: &ToyConfig) -> Result<ToyResult> {
         net.zero_grad();
         net.backward(&dl, &ds)?;
         opt.step(&mut net, cosine_lr(cfg.lr, 0.01 * cfg.lr, step, cfg.steps))?;
+        progress(step + 1, last);
     }
     let batches: Vec<Tensor> = (0..(cfg.n_train / cfg.batch).clamp(1, 8))
         .map(|b| toy_batch(cfg.size, train_seed, (b * cfg.batch) as u64, cfg.batch).map(|t| t.0))

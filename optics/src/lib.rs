@@ -2,6 +2,7 @@
 //! band-limited angular-spectrum propagation, depth-dependent PSF stacks with their VJP, and
 //! occlusion-aware layered image formation (S1). Main traits: `PhaseProfile`, `PsfModel`.
 
+mod czt;
 pub mod error;
 pub mod grid;
 pub mod io;

@@ -1,19 +1,20 @@
 //! Depth-dependent PSFs by band-limited angular-spectrum propagation, evaluated only over the
-//! sensor window by a separable matrix DFT and box-integrated over pixels (S24), with the
+//! sensor window by a separable chirp-z DFT and box-integrated over pixels (S24), with the
 //! finite-difference ∂PSF/∂z stack and the vector–Jacobian product w.r.t. the phase map.
 //!
 //! Per depth z: point source → spherical wave e^{ik(r−z)} over the pupil → pupil weight ·
 //! a·e^{iφ} → spectrum sampled at spacing 1/L (the aperture field folded modulo the period L,
 //! then an N_L×N_L FFT; exact samples of its continuous spectrum) → × H(f) = e^{i2πs√(λ⁻²−f²)},
-//! zero outside the band of directions that can reach the window → matrix DFT onto q×q
-//! sub-pixel points of every sensor pixel → |·|² summed per pixel → ÷ power incident on the
+//! zero outside the band of directions that can reach the window → separable window DFT onto
+//! q×q sub-pixel points of every sensor pixel, by chirp-z (`czt`) → |·|² summed per pixel → ÷ power incident on the
 //! aperture. Sampling the spectrum at 1/L periodizes the sensor field with period L, so L must
 //! exceed the region of the sensor plane that holds light (see docs/optics.md).
 
+use crate::czt::ChirpOp;
 use crate::error::{OpticsError, Result, positive};
 use crate::grid::ApertureGrid;
 use crate::profile::{PhaseMap, sag_phase};
-use faer::{Accum, Mat, Par, c64};
+use faer::{Mat, c64};
 use rayon::prelude::*;
 use rustfft::{Fft, FftPlanner};
 use std::f64::consts::TAU;
@@ -115,13 +116,17 @@ pub struct AsmPsf {
     q: usize,
     /// FFT size of the folded grid.
     n_fold: usize,
+    /// Rows of the folded grid that hold aperture samples: min(n, N_L).
+    fold_rows: usize,
     /// Band frequency indices m (f = m / L), ascending.
     band: Vec<i64>,
     /// Transfer function × Δ², Nb×Nb (rows f_y, columns f_x).
     h: Mat<c64>,
-    /// Sub-pixel DFT matrices (Wq × Nb) for y and x.
-    ey: Mat<c64>,
-    ex: Mat<c64>,
+    /// Window DFTs (Nb band samples → Wq sub-pixel points) for y and x, and their adjoints.
+    ey: ChirpOp,
+    ex: ChirpOp,
+    ey_adj: ChirpOp,
+    ex_adj: ChirpOp,
     /// Power incident on the aperture for a unit-amplitude wave (m²).
     p_in: f64,
     fft: Arc<dyn Fft<f64>>,
@@ -145,6 +150,9 @@ pub fn fast_fft_size(n: usize) -> usize {
     }
 }
 
+/// Band columns per batched FFT call (bounds the column buffer to COL_CHUNK·N_L values).
+const COL_CHUNK: usize = 16;
+
 struct Sample {
     /// Index into the folded N_L×N_L buffer.
     fold: usize,
@@ -160,8 +168,10 @@ struct Sample {
 
 struct Workspace {
     buf: Vec<c64>,
-    col: Vec<c64>,
+    cols: Vec<c64>,
     scratch: Vec<c64>,
+    cbuf: Vec<c64>,
+    cscratch: Vec<c64>,
     m: Mat<c64>,
     t: Mat<c64>,
     v: Mat<c64>,
@@ -241,14 +251,14 @@ impl AsmPsf {
         });
         let c = (grid.n as f64 - 1.0) * 0.5 * delta;
         let sub = p / q as f64;
-        let make_e = |center: f64| {
-            Mat::from_fn(w * q, nb, |j, b| {
-                let y = center - half_win + (j as f64 + 0.5) * sub;
-                c64::from_polar(df, TAU * (band[b] as f64 * df) * (y + c))
-            })
+        let mut planner = FftPlanner::<f64>::new();
+        // Sub-pixel j sits at y_j = centre − W p/2 + (j + ½)δ; the grid's origin is at −c.
+        let mut make_e = |center: f64| {
+            let y0 = center - half_win + 0.5 * sub + c;
+            ChirpOp::window_dft(&mut planner, -m_max, nb, w * q, df, y0, sub)
         };
-        let ey = make_e(cfg.window_center_m[1]);
-        let ex = make_e(cfg.window_center_m[0]);
+        let (ey, ey_adj) = make_e(cfg.window_center_m[1]);
+        let (ex, ex_adj) = make_e(cfg.window_center_m[0]);
         let weights = grid.aperture_weights();
         let p_in = weights
             .col_iter()
@@ -256,7 +266,6 @@ impl AsmPsf {
             .sum::<f64>()
             * delta
             * delta;
-        let mut planner = FftPlanner::<f64>::new();
         let fft = planner.plan_fft_forward(n_fold);
         let ifft = planner.plan_fft_inverse(n_fold);
         Ok(Self {
@@ -265,10 +274,13 @@ impl AsmPsf {
             weights,
             q,
             n_fold,
+            fold_rows: grid.n.min(n_fold),
             band,
             h,
             ey,
             ex,
+            ey_adj,
+            ex_adj,
             p_in,
             fft,
             ifft,
@@ -293,6 +305,11 @@ impl AsmPsf {
     /// FFT size N_L of the folded spectral grid and the number of band frequencies per axis.
     pub fn sizes(&self) -> (usize, usize) {
         (self.n_fold, self.band.len())
+    }
+
+    /// FFT length of the chirp-z window DFT along y (≥ N_b + W q − 1).
+    pub fn chirp_len(&self) -> usize {
+        self.ey.len()
     }
 
     /// Power incident on the aperture for a unit-amplitude wave (m²): the PSF normalization.
@@ -355,9 +372,15 @@ impl AsmPsf {
             .fft
             .get_inplace_scratch_len()
             .max(self.ifft.get_inplace_scratch_len());
+        let ops = [&self.ey, &self.ex, &self.ey_adj, &self.ex_adj];
         Workspace {
+            cbuf: vec![c64::new(0.0, 0.0); ops.iter().map(|o| o.buf_len()).max().unwrap_or(0)],
+            cscratch: vec![
+                c64::new(0.0, 0.0);
+                ops.iter().map(|o| o.scratch_len()).max().unwrap_or(0)
+            ],
             buf: vec![c64::new(0.0, 0.0); nl * nl],
-            col: vec![c64::new(0.0, 0.0); nl],
+            cols: vec![c64::new(0.0, 0.0); COL_CHUNK * nl],
             scratch: vec![c64::new(0.0, 0.0); scratch_len],
             m: Mat::zeros(nb, nb),
             t: Mat::zeros(wq, nb),
@@ -374,37 +397,51 @@ impl AsmPsf {
     fn field(&self, samples: &[Sample], z: f64, ws: &mut Workspace) {
         let k = TAU / self.cfg.wavelength_m;
         let nl = self.n_fold;
-        ws.buf.fill(c64::new(0.0, 0.0));
+        let rows = self.fold_rows;
+        ws.buf[..rows * nl].fill(c64::new(0.0, 0.0));
         for smp in samples {
             let psi = sag_phase(k, smp.d2, z);
             ws.buf[smp.fold] += smp.unit * c64::from_polar(smp.amp, psi);
         }
-        self.fft.process_with_scratch(&mut ws.buf, &mut ws.scratch);
-        for (b, &mx) in self.band.iter().enumerate() {
-            let cx = self.band_index(mx);
-            for (r, v) in ws.col.iter_mut().enumerate() {
-                *v = ws.buf[r * nl + cx];
+        // Rows past `fold_rows` hold no samples: their FFTs would be of zeros.
+        self.fft
+            .process_with_scratch(&mut ws.buf[..rows * nl], &mut ws.scratch);
+        // Band columns, COL_CHUNK at a time through one batched FFT call.
+        let nb = self.band.len();
+        for b0 in (0..nb).step_by(COL_CHUNK) {
+            let nc = COL_CHUNK.min(nb - b0);
+            let cols = &mut ws.cols[..nc * nl];
+            for (c, col) in cols.chunks_exact_mut(nl).enumerate() {
+                let cx = self.band_index(self.band[b0 + c]);
+                for (r, v) in col[..rows].iter_mut().enumerate() {
+                    *v = ws.buf[r * nl + cx];
+                }
+                col[rows..].fill(c64::new(0.0, 0.0));
             }
-            self.fft.process_with_scratch(&mut ws.col, &mut ws.scratch);
-            for (a, &my) in self.band.iter().enumerate() {
-                ws.m[(a, b)] = ws.col[self.band_index(my)] * self.h[(a, b)];
+            self.fft.process_with_scratch(cols, &mut ws.scratch);
+            for (c, col) in cols.chunks_exact(nl).enumerate() {
+                let b = b0 + c;
+                for (a, &my) in self.band.iter().enumerate() {
+                    ws.m[(a, b)] = col[self.band_index(my)] * self.h[(a, b)];
+                }
             }
         }
-        faer::linalg::matmul::matmul(
-            ws.t.as_mut(),
-            Accum::Replace,
-            self.ey.as_ref(),
-            ws.m.as_ref(),
-            c64::new(1.0, 0.0),
-            Par::Seq,
+        // T = E_y M (down the columns of M), V = T E_xᵀ (along the rows of T).
+        let (m, t, v) = (&ws.m, &mut ws.t, &mut ws.v);
+        let wq = t.nrows();
+        self.ey.apply(
+            nb,
+            &mut ws.cbuf,
+            &mut ws.cscratch,
+            |b, a| m[(a, b)],
+            |b, j, y| t[(j, b)] = y,
         );
-        faer::linalg::matmul::matmul(
-            ws.v.as_mut(),
-            Accum::Replace,
-            ws.t.as_ref(),
-            self.ex.transpose(),
-            c64::new(1.0, 0.0),
-            Par::Seq,
+        self.ex.apply(
+            wq,
+            &mut ws.cbuf,
+            &mut ws.cscratch,
+            |r, b| t[(r, b)],
+            |r, j, y| v[(r, j)] = y,
         );
     }
 
@@ -639,37 +676,46 @@ impl AsmPsf {
                 ws.v[(r, c)] *= f;
             }
         }
-        // V = E_y M E_xᵀ ⇒ gT = gV·conj(E_x), gM = E_yᴴ·gT.
-        faer::linalg::matmul::matmul(
-            ws.t.as_mut(),
-            Accum::Replace,
-            ws.v.as_ref(),
-            self.ex.conjugate(),
-            c64::new(1.0, 0.0),
-            Par::Seq,
+        // V = E_y M E_xᵀ ⇒ gT = gV·conj(E_x) (rows), gM = E_yᴴ·gT (columns).
+        let (m, t, v) = (&mut ws.m, &mut ws.t, &ws.v);
+        let nb = self.band.len();
+        self.ex_adj.apply(
+            wq,
+            &mut ws.cbuf,
+            &mut ws.cscratch,
+            |r, j| v[(r, j)],
+            |r, b, y| t[(r, b)] = y,
         );
-        faer::linalg::matmul::matmul(
-            ws.m.as_mut(),
-            Accum::Replace,
-            self.ey.adjoint(),
-            ws.t.as_ref(),
-            c64::new(1.0, 0.0),
-            Par::Seq,
+        self.ey_adj.apply(
+            nb,
+            &mut ws.cbuf,
+            &mut ws.cscratch,
+            |b, j| t[(j, b)],
+            |b, a, y| m[(a, b)] = y,
         );
         let nl = self.n_fold;
-        ws.buf.fill(c64::new(0.0, 0.0));
-        for (b, &mx) in self.band.iter().enumerate() {
-            ws.col.fill(c64::new(0.0, 0.0));
-            for (a, &my) in self.band.iter().enumerate() {
-                ws.col[self.band_index(my)] = ws.m[(a, b)] * self.h[(a, b)].conj();
+        let rows = self.fold_rows;
+        ws.buf[..rows * nl].fill(c64::new(0.0, 0.0));
+        for b0 in (0..nb).step_by(COL_CHUNK) {
+            let nc = COL_CHUNK.min(nb - b0);
+            let cols = &mut ws.cols[..nc * nl];
+            cols.fill(c64::new(0.0, 0.0));
+            for (c, col) in cols.chunks_exact_mut(nl).enumerate() {
+                for (a, &my) in self.band.iter().enumerate() {
+                    col[self.band_index(my)] = ws.m[(a, b0 + c)] * self.h[(a, b0 + c)].conj();
+                }
             }
-            self.ifft.process_with_scratch(&mut ws.col, &mut ws.scratch);
-            let cx = self.band_index(mx);
-            for (r, v) in ws.col.iter().enumerate() {
-                ws.buf[r * nl + cx] = *v;
+            self.ifft.process_with_scratch(cols, &mut ws.scratch);
+            // Only rows that hold samples are read back.
+            for (c, col) in cols.chunks_exact(nl).enumerate() {
+                let cx = self.band_index(self.band[b0 + c]);
+                for (r, v) in col[..rows].iter().enumerate() {
+                    ws.buf[r * nl + cx] = *v;
+                }
             }
         }
-        self.ifft.process_with_scratch(&mut ws.buf, &mut ws.scratch);
+        self.ifft
+            .process_with_scratch(&mut ws.buf[..rows * nl], &mut ws.scratch);
         let k = TAU / self.cfg.wavelength_m;
         for (s, smp) in samples.iter().enumerate() {
             let gu = ws.buf[smp.fold];
