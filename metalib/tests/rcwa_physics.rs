@@ -126,3 +126,20 @@ fn homogeneous_layer_matches_airy() {
         }
     }
 }
+
+#[test]
+fn sweep_fast_path_matches_the_full_response() {
+    // transmission_at drops modes below 1e-6 one-way amplitude; at_height keeps them to 1e-12.
+    for &(d, s) in &[(100.0, 530.0), (275.0, 530.0), (450.0, 530.0)] {
+        let modes = LayerModes::new(&spec(d, s, 8, Rule::Nv, Materials::default())).unwrap();
+        for i in 0..=15 {
+            let h = i as f64 * 100e-9;
+            let fast = modes.transmission_at(h).unwrap();
+            let full = modes.at_height(h).unwrap().t;
+            assert!(
+                (fast - full).norm() < 2e-6,
+                "d={d} s={s} h={h}: {fast} vs {full}"
+            );
+        }
+    }
+}
