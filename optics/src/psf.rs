@@ -6,8 +6,8 @@
 //! a·e^{iφ} → spectrum sampled at spacing 1/L (the aperture field folded modulo the period L,
 //! then an N_L×N_L FFT; exact samples of its continuous spectrum) → × H(f) = e^{i2πs√(λ⁻²−f²)},
 //! zero outside the band of directions that can reach the window → separable window DFT onto
-//! q×q sub-pixel points of every sensor pixel, by chirp-z (`czt`) → |·|² summed per pixel → ÷ power incident on the
-//! aperture. Sampling the spectrum at 1/L periodizes the sensor field with period L, so L must
+//! q×q sub-pixel points of every sensor pixel, by chirp-z (`czt`) → |·|² summed per pixel →
+//! ÷ power incident on the aperture. Sampling the spectrum at 1/L periodizes the sensor field with period L, so L must
 //! exceed the region of the sensor plane that holds light (see docs/optics.md).
 
 use crate::czt::ChirpOp;
@@ -171,7 +171,6 @@ struct Workspace {
     cols: Vec<c64>,
     scratch: Vec<c64>,
     cbuf: Vec<c64>,
-    cscratch: Vec<c64>,
     m: Mat<c64>,
     t: Mat<c64>,
     v: Mat<c64>,
@@ -368,17 +367,14 @@ impl AsmPsf {
         let nl = self.n_fold;
         let nb = self.band.len();
         let wq = self.cfg.window_px * self.q;
-        let scratch_len = self
-            .fft
-            .get_inplace_scratch_len()
-            .max(self.ifft.get_inplace_scratch_len());
         let ops = [&self.ey, &self.ex, &self.ey_adj, &self.ex_adj];
+        let scratch_len = ops
+            .iter()
+            .map(|o| o.scratch_len())
+            .fold(self.fft.get_inplace_scratch_len(), usize::max)
+            .max(self.ifft.get_inplace_scratch_len());
         Workspace {
             cbuf: vec![c64::new(0.0, 0.0); ops.iter().map(|o| o.buf_len()).max().unwrap_or(0)],
-            cscratch: vec![
-                c64::new(0.0, 0.0);
-                ops.iter().map(|o| o.scratch_len()).max().unwrap_or(0)
-            ],
             buf: vec![c64::new(0.0, 0.0); nl * nl],
             cols: vec![c64::new(0.0, 0.0); COL_CHUNK * nl],
             scratch: vec![c64::new(0.0, 0.0); scratch_len],
@@ -432,14 +428,14 @@ impl AsmPsf {
         self.ey.apply(
             nb,
             &mut ws.cbuf,
-            &mut ws.cscratch,
+            &mut ws.scratch,
             |b, a| m[(a, b)],
             |b, j, y| t[(j, b)] = y,
         );
         self.ex.apply(
             wq,
             &mut ws.cbuf,
-            &mut ws.cscratch,
+            &mut ws.scratch,
             |r, b| t[(r, b)],
             |r, j, y| v[(r, j)] = y,
         );
@@ -682,14 +678,14 @@ impl AsmPsf {
         self.ex_adj.apply(
             wq,
             &mut ws.cbuf,
-            &mut ws.cscratch,
+            &mut ws.scratch,
             |r, j| v[(r, j)],
             |r, b, y| t[(r, b)] = y,
         );
         self.ey_adj.apply(
             nb,
             &mut ws.cbuf,
-            &mut ws.cscratch,
+            &mut ws.scratch,
             |b, j| t[(j, b)],
             |b, a, y| m[(a, b)] = y,
         );
