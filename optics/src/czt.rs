@@ -105,28 +105,73 @@ impl ChirpOp {
             .max(self.ifft.get_inplace_scratch_len())
     }
 
+    /// The pre-multipliers (one per input element).
+    pub(crate) fn pre(&self) -> &[c64] {
+        &self.pre
+    }
+
+    /// The post-multipliers (one per output element).
+    pub(crate) fn post(&self) -> &[c64] {
+        &self.post
+    }
+
     /// Applies the map to `count` vectors: element i of input v is `get(v, i)`, element j of
     /// output v is passed to `set(v, j, y)`. `buf` and `scratch` have at least
     /// [`Self::buf_len`] and [`Self::scratch_len`] values.
+    #[cfg(test)]
     pub(crate) fn apply(
         &self,
         count: usize,
         buf: &mut [c64],
         scratch: &mut [c64],
         get: impl Fn(usize, usize) -> c64,
+        set: impl FnMut(usize, usize, c64),
+    ) {
+        self.run(count, buf, scratch, true, get, set);
+    }
+
+    /// [`Self::apply`] without the pre- and post-multipliers: y = K x, the bare convolution.
+    /// Callers fold the diagonals into neighbouring operators (the PSF folds the window
+    /// DFT's pre-multipliers into the transfer function and drops its unit-modulus
+    /// post-multipliers, which |·|² does not see).
+    pub(crate) fn apply_conv(
+        &self,
+        count: usize,
+        buf: &mut [c64],
+        scratch: &mut [c64],
+        get: impl Fn(usize, usize) -> c64,
+        set: impl FnMut(usize, usize, c64),
+    ) {
+        self.run(count, buf, scratch, false, get, set);
+    }
+
+    fn run(
+        &self,
+        count: usize,
+        buf: &mut [c64],
+        scratch: &mut [c64],
+        diag: bool,
+        get: impl Fn(usize, usize) -> c64,
         mut set: impl FnMut(usize, usize, c64),
     ) {
         let len = self.len();
+        let (n_in, n_out) = (self.pre.len(), self.post.len());
         let zero = c64::new(0.0, 0.0);
         let mut first = 0;
         while first < count {
             let nv = CHUNK.min(count - first);
             let buf = &mut buf[..nv * len];
             for (v, row) in buf.chunks_exact_mut(len).enumerate() {
-                for (i, (r, p)) in row.iter_mut().zip(&self.pre).enumerate() {
-                    *r = get(first + v, i) * p;
+                if diag {
+                    for (i, (r, p)) in row.iter_mut().zip(&self.pre).enumerate() {
+                        *r = get(first + v, i) * p;
+                    }
+                } else {
+                    for (i, r) in row[..n_in].iter_mut().enumerate() {
+                        *r = get(first + v, i);
+                    }
                 }
-                row[self.pre.len()..].fill(zero);
+                row[n_in..].fill(zero);
             }
             self.fft.process_with_scratch(buf, scratch);
             for row in buf.chunks_exact_mut(len) {
@@ -136,8 +181,14 @@ impl ChirpOp {
             }
             self.ifft.process_with_scratch(buf, scratch);
             for (v, row) in buf.chunks_exact(len).enumerate() {
-                for (j, (r, p)) in row.iter().zip(&self.post).enumerate() {
-                    set(first + v, j, r * p);
+                if diag {
+                    for (j, (r, p)) in row.iter().zip(&self.post).enumerate() {
+                        set(first + v, j, r * p);
+                    }
+                } else {
+                    for (j, r) in row[..n_out].iter().enumerate() {
+                        set(first + v, j, *r);
+                    }
                 }
             }
             first += nv;
@@ -198,6 +249,31 @@ mod tests {
                 (d - xa[b]).norm() < 1e-12 * scale,
                 "b {b}: {d} vs {}",
                 xa[b]
+            );
+        }
+    }
+
+    #[test]
+    fn bare_convolution_with_the_diagonals_applied_outside_equals_the_map() {
+        let mut planner = FftPlanner::new();
+        let (nb, nout, df) = (23usize, 17usize, 1.0 / 173e-6);
+        let (op, _) = ChirpOp::window_dft(&mut planner, -11, nb, nout, df, -41e-6, 0.37e-6);
+        let x: Vec<c64> = (0..nb)
+            .map(|b| c64::new((b as f64 * 0.29).cos(), (b as f64 * 0.53).sin()))
+            .collect();
+        let y = apply1(&op, &x, nout);
+        let xp: Vec<c64> = x.iter().zip(op.pre()).map(|(a, p)| a * p).collect();
+        let mut buf = vec![c64::new(0.0, 0.0); op.buf_len()];
+        let mut scratch = vec![c64::new(0.0, 0.0); op.scratch_len()];
+        let mut yc = vec![c64::new(0.0, 0.0); nout];
+        op.apply_conv(1, &mut buf, &mut scratch, |_, i| xp[i], |_, j, v| yc[j] = v);
+        let scale: f64 = x.iter().map(|v| v.norm()).sum::<f64>() * df;
+        for j in 0..nout {
+            let d = yc[j] * op.post()[j];
+            assert!((d - y[j]).norm() < 1e-12 * scale, "j {j}: {d} vs {}", y[j]);
+            assert!(
+                (op.post()[j].norm() - df).abs() < 1e-12 * df,
+                "post modulus"
             );
         }
     }

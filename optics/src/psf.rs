@@ -120,8 +120,12 @@ pub struct AsmPsf {
     fold_rows: usize,
     /// Band frequency indices m (f = m / L), ascending.
     band: Vec<i64>,
-    /// Transfer function × Δ², Nb×Nb (rows f_y, columns f_x).
+    /// Transfer function × Δ² × the window DFTs' pre-multipliers (pre_y[a]·pre_x[b]), Nb×Nb
+    /// (rows f_y, columns f_x).
     h: Mat<c64>,
+    /// |post_y[j]·post_x[k]|²: the window DFTs' post-multipliers are this modulus times a
+    /// phase, which the intensity does not see, so they are left out of the field.
+    post_gain: f64,
     /// Window DFTs (Nb band samples → Wq sub-pixel points) for y and x, and their adjoints.
     ey: ChirpOp,
     ex: ChirpOp,
@@ -153,20 +157,36 @@ pub fn fast_fft_size(n: usize) -> usize {
 /// Band columns per batched FFT call (bounds the column buffer to COL_CHUNK·N_L values).
 const COL_CHUNK: usize = 16;
 
-struct Sample {
+/// Aperture samples of one phase map, structure-of-arrays so the per-depth loop streams
+/// 24 bytes per sample.
+struct Samples {
     /// Index into the folded N_L×N_L buffer.
-    fold: usize,
-    /// Index (row-major) into the n×n aperture grid.
-    cell: usize,
-    /// Squared lateral distance to the source (m²).
-    d2: f64,
+    fold: Vec<u32>,
+    /// Index into `d2` of the sample's distance to the source.
+    wave: Vec<u32>,
+    /// Amplitude a × pupil weight × e^{iφ}.
+    ua: Vec<c64>,
     /// Pupil weight × e^{iφ}.
-    unit: c64,
+    unit: Vec<c64>,
     /// Amplitude a.
-    amp: f64,
+    amp: Vec<f64>,
+    /// Index (row-major) into the n×n aperture grid.
+    cell: Vec<u32>,
+    /// Distinct squared lateral distances to the source (m²): an on-axis source sees each of
+    /// them from up to 8 samples (the grid's mirror and diagonal symmetries), so the spherical
+    /// wave costs one sincos per distinct radius, not per sample.
+    d2: Vec<f64>,
+}
+
+impl Samples {
+    fn len(&self) -> usize {
+        self.fold.len()
+    }
 }
 
 struct Workspace {
+    /// Spherical-wave factor e^{ik(r−z)} per distinct radius.
+    wave: Vec<c64>,
     buf: Vec<c64>,
     cols: Vec<c64>,
     scratch: Vec<c64>,
@@ -239,7 +259,7 @@ impl AsmPsf {
         let band: Vec<i64> = (-m_max..=m_max).collect();
         let nb = band.len();
         let k_inv2 = 1.0 / (lam * lam);
-        let h = Mat::from_fn(nb, nb, |a, b| {
+        let h_raw = Mat::from_fn(nb, nb, |a, b| {
             let (fy, fx) = (band[a] as f64 * df, band[b] as f64 * df);
             let arg = k_inv2 - fx * fx - fy * fy;
             if arg <= 0.0 {
@@ -258,6 +278,10 @@ impl AsmPsf {
         };
         let (ey, ey_adj) = make_e(cfg.window_center_m[1]);
         let (ex, ex_adj) = make_e(cfg.window_center_m[0]);
+        // V = E_y M E_xᵀ with E = diag(post)·K·diag(pre): the pre-multipliers act on M's rows
+        // and columns, so they fold into H once here instead of into every plane.
+        let h = Mat::from_fn(nb, nb, |a, b| h_raw[(a, b)] * ey.pre()[a] * ex.pre()[b]);
+        let post_gain = ey.post()[0].norm_sqr() * ex.post()[0].norm_sqr();
         let weights = grid.aperture_weights();
         let p_in = weights
             .col_iter()
@@ -276,6 +300,7 @@ impl AsmPsf {
             fold_rows: grid.n.min(n_fold),
             band,
             h,
+            post_gain,
             ey,
             ex,
             ey_adj,
@@ -339,28 +364,78 @@ impl AsmPsf {
         Ok(())
     }
 
-    fn samples(&self, map: &PhaseMap) -> Vec<Sample> {
+    fn samples(&self, map: &PhaseMap) -> Samples {
         let n = self.grid.n;
         let [x0, y0] = self.cfg.source_xy_m;
-        let mut out = Vec::with_capacity(n * n);
+        // Key of a sample's distance to the source: along an axis where the source sits on
+        // the grid's centre, |2i − (n−1)| (mirror pairs share it), else the index itself; on
+        // axis the pair is also sorted (the diagonal mirror). Keys lie in 0..n.
+        let key = |i: usize, on_axis: bool| {
+            if on_axis { (2 * i).abs_diff(n - 1) } else { i }
+        };
+        let (sym_x, sym_y) = (x0 == 0.0, y0 == 0.0);
+        let half = 0.5 * self.grid.pitch_m;
+        let mut table = vec![u32::MAX; n * n];
+        let cap = n * n;
+        let mut out = Samples {
+            fold: Vec::with_capacity(cap),
+            wave: Vec::with_capacity(cap),
+            ua: Vec::with_capacity(cap),
+            unit: Vec::with_capacity(cap),
+            amp: Vec::with_capacity(cap),
+            cell: Vec::with_capacity(cap),
+            d2: Vec::new(),
+        };
         for i in 0..n {
-            let y = self.grid.coord(i);
             for j in 0..n {
                 let wgt = self.weights[(i, j)];
                 if wgt == 0.0 {
                     continue;
                 }
-                let x = self.grid.coord(j);
-                out.push(Sample {
-                    fold: (i % self.n_fold) * self.n_fold + (j % self.n_fold),
-                    cell: i * n + j,
-                    d2: (x - x0).powi(2) + (y - y0).powi(2),
-                    unit: c64::from_polar(wgt, map.phase_rad[(i, j)]),
-                    amp: map.amplitude[(i, j)],
-                });
+                let (mut kx, mut ky) = (key(j, sym_x), key(i, sym_y));
+                if sym_x && sym_y && kx > ky {
+                    std::mem::swap(&mut kx, &mut ky);
+                }
+                let slot = &mut table[kx * n + ky];
+                if *slot == u32::MAX {
+                    *slot = out.d2.len() as u32;
+                    // On a symmetric axis the key is the doubled offset from the centre.
+                    let dx = if sym_x {
+                        kx as f64 * half
+                    } else {
+                        self.grid.coord(j) - x0
+                    };
+                    let dy = if sym_y {
+                        ky as f64 * half
+                    } else {
+                        self.grid.coord(i) - y0
+                    };
+                    out.d2.push(dx * dx + dy * dy);
+                }
+                let unit = c64::from_polar(wgt, map.phase_rad[(i, j)]);
+                let amp = map.amplitude[(i, j)];
+                out.fold
+                    .push(((i % self.n_fold) * self.n_fold + (j % self.n_fold)) as u32);
+                out.wave.push(*slot);
+                out.ua.push(unit * amp);
+                out.unit.push(unit);
+                out.amp.push(amp);
+                out.cell.push((i * n + j) as u32);
             }
         }
         out
+    }
+
+    /// Fills `wave` with e^{ik(r−z)} for every distinct radius of `samples`.
+    fn spherical_wave(&self, samples: &Samples, z: f64, wave: &mut Vec<c64>) {
+        let k = TAU / self.cfg.wavelength_m;
+        wave.clear();
+        wave.extend(
+            samples
+                .d2
+                .iter()
+                .map(|&d2| c64::from_polar(1.0, sag_phase(k, d2, z))),
+        );
     }
 
     fn workspace(&self) -> Workspace {
@@ -374,6 +449,7 @@ impl AsmPsf {
             .fold(self.fft.get_inplace_scratch_len(), usize::max)
             .max(self.ifft.get_inplace_scratch_len());
         Workspace {
+            wave: Vec::new(),
             cbuf: vec![c64::new(0.0, 0.0); ops.iter().map(|o| o.buf_len()).max().unwrap_or(0)],
             buf: vec![c64::new(0.0, 0.0); nl * nl],
             cols: vec![c64::new(0.0, 0.0); COL_CHUNK * nl],
@@ -389,15 +465,15 @@ impl AsmPsf {
         m.rem_euclid(self.n_fold as i64) as usize
     }
 
-    /// Sensor-window field V (Wq×Wq) for depth z, left in `ws.v`.
-    fn field(&self, samples: &[Sample], z: f64, ws: &mut Workspace) {
-        let k = TAU / self.cfg.wavelength_m;
+    /// Sensor-window field V (Wq×Wq) for depth z, left in `ws.v`, up to the unit-modulus
+    /// post-multipliers of the window DFTs (|V|² = `post_gain`·|ws.v|²).
+    fn field(&self, samples: &Samples, z: f64, ws: &mut Workspace) {
         let nl = self.n_fold;
         let rows = self.fold_rows;
         ws.buf[..rows * nl].fill(c64::new(0.0, 0.0));
-        for smp in samples {
-            let psi = sag_phase(k, smp.d2, z);
-            ws.buf[smp.fold] += smp.unit * c64::from_polar(smp.amp, psi);
+        self.spherical_wave(samples, z, &mut ws.wave);
+        for ((&f, &w), &ua) in samples.fold.iter().zip(&samples.wave).zip(&samples.ua) {
+            ws.buf[f as usize] += ua * ws.wave[w as usize];
         }
         // Rows past `fold_rows` hold no samples: their FFTs would be of zeros.
         self.fft
@@ -425,14 +501,14 @@ impl AsmPsf {
         // T = E_y M (down the columns of M), V = T E_xᵀ (along the rows of T).
         let (m, t, v) = (&ws.m, &mut ws.t, &mut ws.v);
         let wq = t.nrows();
-        self.ey.apply(
+        self.ey.apply_conv(
             nb,
             &mut ws.cbuf,
             &mut ws.scratch,
             |b, a| m[(a, b)],
             |b, j, y| t[(j, b)] = y,
         );
-        self.ex.apply(
+        self.ex.apply_conv(
             wq,
             &mut ws.cbuf,
             &mut ws.scratch,
@@ -445,7 +521,7 @@ impl AsmPsf {
         let q = self.q;
         let w = self.cfg.window_px;
         let sub = self.cfg.pitch_m / q as f64;
-        let scale = sub * sub / self.p_in;
+        let scale = sub * sub * self.post_gain / self.p_in;
         let mut out = Mat::<f64>::zeros(w, w);
         for c in 0..w * q {
             for r in 0..w * q {
@@ -640,8 +716,8 @@ impl PsfModel for AsmPsf {
             phase_rad: Mat::zeros(n, n),
             amplitude: Mat::zeros(n, n),
         };
-        for (s, smp) in samples.iter().enumerate() {
-            let (i, j) = (smp.cell / n, smp.cell % n);
+        for (s, &cell) in samples.cell.iter().enumerate() {
+            let (i, j) = (cell as usize / n, cell as usize % n);
             out.phase_rad[(i, j)] = gp[s];
             out.amplitude[(i, j)] = ga[s];
         }
@@ -653,7 +729,7 @@ impl AsmPsf {
     /// Accumulates the gradient of ⟨g, PSF(z)⟩ w.r.t. phase and amplitude per sample.
     fn plane_adjoint(
         &self,
-        samples: &[Sample],
+        samples: &Samples,
         z: f64,
         g: &Mat<f64>,
         ws: &mut Workspace,
@@ -663,26 +739,27 @@ impl AsmPsf {
         self.field(samples, z, ws);
         let q = self.q;
         let sub = self.cfg.pitch_m / q as f64;
-        let scale = 2.0 * sub * sub / self.p_in;
+        let scale = 2.0 * sub * sub * self.post_gain / self.p_in;
         let wq = self.cfg.window_px * q;
-        // gV = 2 g δ²/P · V (Wirtinger gradient of |V|²), written over V in place.
+        // gV = 2 g δ² |post|²/P · V (Wirtinger gradient of |V|²), written over V in place.
         for c in 0..wq {
             for r in 0..wq {
                 let f = g[(r / q, c / q)] * scale;
                 ws.v[(r, c)] *= f;
             }
         }
-        // V = E_y M E_xᵀ ⇒ gT = gV·conj(E_x) (rows), gM = E_yᴴ·gT (columns).
+        // V = K_y M K_xᵀ (bare convolutions, diagonals folded into H) ⇒ gT = gV·conj(K_x)
+        // (rows), gM = K_yᴴ·gT (columns).
         let (m, t, v) = (&mut ws.m, &mut ws.t, &ws.v);
         let nb = self.band.len();
-        self.ex_adj.apply(
+        self.ex_adj.apply_conv(
             wq,
             &mut ws.cbuf,
             &mut ws.scratch,
             |r, j| v[(r, j)],
             |r, b, y| t[(r, b)] = y,
         );
-        self.ey_adj.apply(
+        self.ey_adj.apply_conv(
             nb,
             &mut ws.cbuf,
             &mut ws.scratch,
@@ -712,11 +789,11 @@ impl AsmPsf {
         }
         self.ifft
             .process_with_scratch(&mut ws.buf[..rows * nl], &mut ws.scratch);
-        let k = TAU / self.cfg.wavelength_m;
-        for (s, smp) in samples.iter().enumerate() {
-            let gu = ws.buf[smp.fold];
-            let e = smp.unit * c64::from_polar(1.0, sag_phase(k, smp.d2, z));
-            let u = e * smp.amp;
+        // `field` left e^{ik(r−z)} per distinct radius in ws.wave.
+        for s in 0..samples.len() {
+            let gu = ws.buf[samples.fold[s] as usize];
+            let e = samples.unit[s] * ws.wave[samples.wave[s] as usize];
+            let u = e * samples.amp[s];
             gp[s] += (gu * u.conj()).im;
             ga[s] += (gu.conj() * e).re;
         }
