@@ -284,8 +284,11 @@ pub struct LayerModes {
     d1: Mat<c64>,
     /// R2: reflection of downward modes back up at z = h.
     r2: Mat<c64>,
-    /// T2: transmission of downward modes into the substrate orders.
-    t2: Mat<c64>,
+    /// Row 0 of T2 = 2(W⁻¹ + V⁻¹V_sub)⁻¹ (transmission of downward modes into the zero
+    /// substrate order), the only row the sweep's fast path needs.
+    t2_row0: Vec<Complex64>,
+    /// LU of W⁻¹ + V⁻¹V_sub, for the full transmitted field T2 u = 2(W⁻¹ + V⁻¹V_sub)⁻¹u.
+    ss_lu: faer::linalg::solvers::PartialPivLu<c64>,
     /// LU of S = W⁻¹ + U (for the reflected field B1 = 2S⁻¹).
     s_lu: faer::linalg::solvers::PartialPivLu<c64>,
     /// Superstrate and substrate admittance-like matrices V (reduced basis) for flux sums.
@@ -562,13 +565,18 @@ impl LayerModes {
         let s_mat = &wi + &u;
         let dm = &wi - &u;
         let s_lu = s_mat.partial_piv_lu();
-        // D1 = Dm S⁻¹ = (S⁻ᵀ Dmᵀ)ᵀ.
-        let s_inv = s_lu.inverse();
-        let d1 = &dm * &s_inv;
-        let ss = &wi + &us;
-        let ss_inv = ss.partial_piv_lu().inverse();
-        let r2 = (&wi - &us) * &ss_inv;
-        let t2 = &ss_inv * faer::Scale(c64::new(2.0, 0.0));
+        // D1 = Dm S⁻¹ and R2 = (W⁻¹ − Us)(W⁻¹ + Us)⁻¹ by right solves on the LUs: no
+        // explicit inverse and no product with it.
+        let mut d1 = dm.clone();
+        s_lu.rsolve_in_place(d1.as_mut());
+        let ss_lu = (&wi + &us).partial_piv_lu();
+        let mut r2 = &wi - &us;
+        ss_lu.rsolve_in_place(r2.as_mut());
+        // Row 0 of 2 Ss⁻¹ is 2 (Ss⁻ᵀ e₀)ᵀ.
+        let mut e0 = Mat::<c64>::zeros(dim, 1);
+        e0[(0, 0)] = c64::new(2.0, 0.0);
+        ss_lu.solve_transpose_in_place(e0.as_mut());
+        let t2_row0: Vec<Complex64> = (0..dim).map(|j| e0[(j, 0)]).collect();
         check_finite(&d1, "interface reflection matrix")?;
         check_finite(&r2, "interface reflection matrix")?;
         // Incident e₀ = Ex of order (0,0) = reduced index 0 of ee.
@@ -596,7 +604,8 @@ impl LayerModes {
             a1e0,
             d1,
             r2,
-            t2,
+            t2_row0,
+            ss_lu,
             s_lu,
             v_sup,
             v_sub,
@@ -649,7 +658,7 @@ impl LayerModes {
         let (_, keep, u) = self.downward_amplitudes(height_m, SWEEP_CUTOFF);
         let mut t0 = Complex64::new(0.0, 0.0);
         for (a, &ja) in keep.iter().enumerate() {
-            t0 += self.t2[(0, ja)] * u[a];
+            t0 += self.t2_row0[ja] * u[a];
         }
         if !(t0.re.is_finite() && t0.im.is_finite()) {
             return Err(MetalibError::Numerical("non-finite cell response".into()));
@@ -714,15 +723,13 @@ impl LayerModes {
         }
         let dim = self.gamma.len();
         let (x, keep, u) = self.downward_amplitudes(height_m, EVANESCENT_CUTOFF);
-        // Transmitted reduced amplitudes t = T2_{:,K} u.
-        let mut t_vec = vec![Complex64::new(0.0, 0.0); dim];
-        for (i, ti) in t_vec.iter_mut().enumerate() {
-            let mut acc = Complex64::new(0.0, 0.0);
-            for (a, &ja) in keep.iter().enumerate() {
-                acc += self.t2[(i, ja)] * u[a];
-            }
-            *ti = acc;
+        // Transmitted reduced amplitudes t = T2_{:,K} u = 2 Ss⁻¹ (u on K, 0 elsewhere).
+        let mut tm = Mat::<c64>::zeros(dim, 1);
+        for (a, &ja) in keep.iter().enumerate() {
+            tm[(ja, 0)] = 2.0 * u[a];
         }
+        self.ss_lu.solve_in_place(tm.as_mut());
+        let t_vec: Vec<Complex64> = (0..dim).map(|i| tm[(i, 0)]).collect();
         // Reflected r = A1 e0 + 2 S⁻¹ X R2 u.
         let mut y = Mat::<c64>::zeros(dim, 1);
         for i in 0..dim {
