@@ -1,7 +1,7 @@
 //! Candidate selection (Sec. D.1 criteria) over a sweep, and the Fig. S4 / S5 figures.
 
 use crate::error::MetalibError;
-use crate::plot::{Canvas, colormap};
+use crate::plot::{Canvas, Curve, colormap, curves_svg, heatmap_svg};
 use crate::sweep::{SweepData, write_atomic};
 use rayon::prelude::*;
 use std::f64::consts::PI;
@@ -274,13 +274,48 @@ pub fn write_figures(
         .copied()
         .filter(|v| v.is_finite())
         .fold(1.0, f64::max);
-    for (name, vals, lo, hi) in [
-        ("figS4a_min_transmittance.png", &min_tau, 0.0, 1.0),
-        ("figS4b_max_aspect_ratio.png", &aspect, 0.0, amax),
-        ("figS4c_viable.png", &viable, 0.0, 1.0),
+    let heights_nm: Vec<f64> = data.heights_m.iter().map(|h| h * 1e9).collect();
+    let pitches_nm: Vec<f64> = data.pitches_m.iter().map(|s| s * 1e9).collect();
+    for (name, vals, lo, hi, title, bar) in [
+        (
+            "figS4a_min_transmittance",
+            &min_tau,
+            0.0,
+            1.0,
+            "Fig. S4a: largest minimum τ over a diameter window spanning 2π",
+            "min τ",
+        ),
+        (
+            "figS4b_max_aspect_ratio",
+            &aspect,
+            0.0,
+            amax,
+            "Fig. S4b: aspect ratio h / d_min of the usable run (viable pairs)",
+            "h / d_min",
+        ),
+        (
+            "figS4c_viable",
+            &viable,
+            0.0,
+            1.0,
+            "Fig. S4c: viable (h, s) pairs under the D.1 criteria",
+            "viable (1) or not (0)",
+        ),
     ] {
-        let p = dir.join(name);
+        let p = dir.join(format!("{name}.png"));
         write_atomic(&p, &heatmap(vals, nh, ns, lo, hi, mark_idx).png()?)?;
+        written.push(p.display().to_string());
+        let svg = heatmap_svg(
+            title,
+            bar,
+            vals,
+            &heights_nm,
+            &pitches_nm,
+            (lo, hi),
+            mark_idx,
+        )?;
+        let p = dir.join(format!("{name}.svg"));
+        write_atomic(&p, svg.as_bytes())?;
         written.push(p.display().to_string());
     }
     // Fig. S5: unwrapped phase vs diameter at the chosen pitch for every 100 nm of height.
@@ -298,9 +333,22 @@ pub fn write_figures(
         .filter(|&ih| ((data.heights_m[ih] * 1e9).round() as i64) % 100 == 0)
         .collect();
     let ymax = 4.0 * PI;
+    let mut curves = Vec::with_capacity(heights.len());
     for (k, &ih) in heights.iter().enumerate() {
         let base = data.idx(ih, is, 0);
         let uw = unwrap(&data.phase[base..base + nf]);
+        curves.push(Curve {
+            label: format!("h = {:.0} nm", data.heights_m[ih] * 1e9),
+            points: (0..nf)
+                .map(|j| {
+                    (
+                        d[j] * 1e9,
+                        uw[j] - uw[0],
+                        data.transmittance[base + j] >= 0.9,
+                    )
+                })
+                .collect(),
+        });
         let rgb = colormap(k as f64 / heights.len().max(2) as f64 - 0.0);
         let pt = |j: usize| {
             let x = x0 + w * (d[j] - d[0]) / (d[nf - 1] - d[0]).max(1e-30);
@@ -331,6 +379,20 @@ pub fn write_figures(
     let p = dir.join("figS5_phase_curves.png");
     write_atomic(&p, &c.png()?)?;
     written.push(p.display().to_string());
+    if !curves.is_empty() {
+        let svg = curves_svg(
+            &format!(
+                "Fig. S5: unwrapped phase vs diameter at s = {:.0} nm (solid where τ ≥ 0.90)",
+                s * 1e9
+            ),
+            "pillar diameter d (nm)",
+            "phase − phase at the smallest d (rad)",
+            &curves,
+        )?;
+        let p = dir.join("figS5_phase_curves.svg");
+        write_atomic(&p, svg.as_bytes())?;
+        written.push(p.display().to_string());
+    }
     let p = dir.join("figS5_phase_curves.csv");
     write_atomic(&p, csv.as_bytes())?;
     written.push(p.display().to_string());
