@@ -115,23 +115,10 @@ impl ChirpOp {
         &self.post
     }
 
-    /// Applies the map to `count` vectors: element i of input v is `get(v, i)`, element j of
-    /// output v is passed to `set(v, j, y)`. `buf` and `scratch` have at least
-    /// [`Self::buf_len`] and [`Self::scratch_len`] values.
-    #[cfg(test)]
-    pub(crate) fn apply(
-        &self,
-        count: usize,
-        buf: &mut [c64],
-        scratch: &mut [c64],
-        get: impl Fn(usize, usize) -> c64,
-        set: impl FnMut(usize, usize, c64),
-    ) {
-        self.run(count, buf, scratch, true, get, set);
-    }
-
-    /// [`Self::apply`] without the pre- and post-multipliers: y = K x, the bare convolution.
-    /// Callers fold the diagonals into neighbouring operators (the PSF folds the window
+    /// Applies the bare convolution y = K x, without the pre- and post-multipliers, to `count`
+    /// vectors: element i of input v is `get(v, i)`, element j of output v is passed to
+    /// `set(v, j, y)`; `buf` and `scratch` have at least [`Self::buf_len`] and
+    /// [`Self::scratch_len`] values. Callers fold the diagonals into neighbouring operators (the PSF folds the window
     /// DFT's pre-multipliers into the transfer function and drops its unit-modulus
     /// post-multipliers, which |·|² does not see).
     pub(crate) fn apply_conv(
@@ -145,6 +132,7 @@ impl ChirpOp {
         self.run(count, buf, scratch, false, get, set);
     }
 
+    /// The whole map y = diag(post)·K·diag(pre) x (`diag`) or the bare K x.
     fn run(
         &self,
         count: usize,
@@ -217,7 +205,14 @@ mod tests {
         let mut buf = vec![c64::new(0.0, 0.0); op.buf_len()];
         let mut scratch = vec![c64::new(0.0, 0.0); op.scratch_len()];
         let mut y = vec![c64::new(0.0, 0.0); n_out];
-        op.apply(1, &mut buf, &mut scratch, |_, i| x[i], |_, j, v| y[j] = v);
+        op.run(
+            1,
+            &mut buf,
+            &mut scratch,
+            true,
+            |_, i| x[i],
+            |_, j, v| y[j] = v,
+        );
         y
     }
 

@@ -224,10 +224,9 @@ fn defocus_zeros_match_paraxial_theory() {
     }
 }
 
-/// Gaussian-apodized pupil (amplitude e^{−ρ²/w²}, w = D/5): its focus is a compact Gaussian,
-/// so a 32 µm window holds the whole PSF and its sum must equal the transmitted power.
-#[test]
-fn energy_is_conserved_for_a_compact_psf() {
+/// A 100 µm hyperbolic lens (object at 2.5 mm, sensor at 200 µm, Δ = 0.5 µm) with a Gaussian
+/// pupil amplitude e^{−ρ²/w²}, w = 20 µm.
+fn compact_rig() -> (ApertureGrid, PhaseMap) {
     let grid = ApertureGrid::new(100e-6, 0.5e-6).unwrap();
     let lens = Hyperbolic {
         wavelength_m: LAMBDA,
@@ -235,11 +234,18 @@ fn energy_is_conserved_for_a_compact_psf() {
         image_distance_m: 200e-6,
     };
     let mut map = lens.phase_map(&grid).unwrap();
-    let wr = 20e-6;
     map.amplitude = Mat::from_fn(grid.n, grid.n, |i, j| {
         let (y, x) = (grid.coord(i), grid.coord(j));
-        (-(x * x + y * y) / (wr * wr)).exp()
+        (-(x * x + y * y) / (20e-6f64).powi(2)).exp()
     });
+    (grid, map)
+}
+
+/// Gaussian-apodized pupil (amplitude e^{−ρ²/w²}, w = D/5): its focus is a compact Gaussian,
+/// so a 32 µm window holds the whole PSF and its sum must equal the transmitted power.
+#[test]
+fn energy_is_conserved_for_a_compact_psf() {
+    let (grid, map) = compact_rig();
     let cfg = PsfConfig {
         sensor_distance_m: 200e-6,
         pitch_m: 0.5e-6,
@@ -551,17 +557,7 @@ fn skipped_planes_stay_zero_and_invalid_input_is_rejected() {
 /// The compact Gaussian-apodized rig of `energy_is_conserved_for_a_compact_psf`, with the
 /// source at `src` and the window centred at `win` (m).
 fn compact_plane(src: [f64; 2], win: [f64; 2], z: f64) -> Mat<f64> {
-    let grid = ApertureGrid::new(100e-6, 0.5e-6).unwrap();
-    let lens = Hyperbolic {
-        wavelength_m: LAMBDA,
-        object_distance_m: 2.5e-3,
-        image_distance_m: 200e-6,
-    };
-    let mut map = lens.phase_map(&grid).unwrap();
-    map.amplitude = Mat::from_fn(grid.n, grid.n, |i, j| {
-        let (y, x) = (grid.coord(i), grid.coord(j));
-        (-(x * x + y * y) / (20e-6f64).powi(2)).exp()
-    });
+    let (grid, map) = compact_rig();
     let cfg = PsfConfig {
         sensor_distance_m: 200e-6,
         pitch_m: 0.5e-6,
