@@ -401,7 +401,8 @@ pub fn run_sweep(
     Ok(manifest)
 }
 
-/// [`run_sweep`] with an indicatif progress bar on stderr (drawn only when stderr is a terminal).
+/// [`run_sweep`] with an indicatif progress bar on stderr when stderr is a terminal, and a
+/// plain line per 10 % of the cells otherwise (logs of long runs under nohup or CI).
 /// The faer global parallelism is set to sequential for the duration, since the sweep already
 /// runs one cell per rayon task, and restored afterwards.
 pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibError> {
@@ -417,9 +418,35 @@ pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manif
     ) {
         bar.set_style(style);
     }
+    let plain = !std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let done = std::sync::atomic::AtomicU64::new(0);
+    let next_tenth = std::sync::atomic::AtomicU64::new(1);
+    let start = std::time::Instant::now();
+    let report = |n: u64| {
+        bar.inc(n);
+        if !plain || total == 0 {
+            return;
+        }
+        use std::sync::atomic::Ordering::Relaxed;
+        let d = done.fetch_add(n, Relaxed) + n;
+        let tenth = next_tenth.load(Relaxed);
+        // One thread wins the swap and prints each tenth once.
+        if d * 10 >= tenth * total
+            && next_tenth
+                .compare_exchange(tenth, d * 10 / total + 1, Relaxed, Relaxed)
+                .is_ok()
+        {
+            let t = start.elapsed().as_secs_f64();
+            eprintln!(
+                "sweep: {:.0} % ({d}/{total} cells), {t:.0} s elapsed, about {:.0} s left",
+                100.0 * d as f64 / total as f64,
+                t * (total - d) as f64 / d as f64
+            );
+        }
+    };
     let saved = faer::get_global_parallelism();
     faer::set_global_parallelism(faer::Par::Seq);
-    let out = run_sweep(config, dir, &|n| bar.inc(n));
+    let out = run_sweep(config, dir, &report);
     faer::set_global_parallelism(saved);
     bar.finish_and_clear();
     out
