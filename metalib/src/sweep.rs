@@ -406,9 +406,11 @@ pub fn run_sweep(
 /// The faer global parallelism is set to sequential for the duration, since the sweep already
 /// runs one cell per rayon task, and restored afterwards.
 pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibError> {
-    let total = (config.heights_m.values("heights")?.len()
-        * config.pitches_m.values("pitches")?.len()
-        * config.fractions.values("fractions")?.len()) as u64;
+    let (nh, nf) = (
+        config.heights_m.values("heights")?.len() as u64,
+        config.fractions.values("fractions")?.len() as u64,
+    );
+    let total = nh * nf * config.pitches_m.values("pitches")?.len() as u64;
     let bar = indicatif::ProgressBar::with_draw_target(
         Some(total),
         indicatif::ProgressDrawTarget::stderr(),
@@ -420,6 +422,9 @@ pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manif
     }
     let plain = !std::io::IsTerminal::is_terminal(&std::io::stderr());
     let done = std::sync::atomic::AtomicU64::new(0);
+    // Pitches restored from checkpoints arrive as whole blocks (nh·nf cells, computed columns
+    // as nh): they count as done but not towards the rate.
+    let restored = std::sync::atomic::AtomicU64::new(0);
     let next_tenth = std::sync::atomic::AtomicU64::new(1);
     let start = std::time::Instant::now();
     let report = |n: u64| {
@@ -428,6 +433,9 @@ pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manif
             return;
         }
         use std::sync::atomic::Ordering::Relaxed;
+        if nf > 1 && n == nh * nf {
+            restored.fetch_add(n, Relaxed);
+        }
         let d = done.fetch_add(n, Relaxed) + n;
         let tenth = next_tenth.load(Relaxed);
         // One thread wins the swap and prints each tenth once.
@@ -437,10 +445,18 @@ pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manif
                 .is_ok()
         {
             let t = start.elapsed().as_secs_f64();
+            let computed = d.saturating_sub(restored.load(Relaxed));
+            let left = if computed > 0 {
+                format!(
+                    ", about {:.0} s left",
+                    t * (total - d) as f64 / computed as f64
+                )
+            } else {
+                " (restored from checkpoints)".to_string()
+            };
             eprintln!(
-                "sweep: {:.0} % ({d}/{total} cells), {t:.0} s elapsed, about {:.0} s left",
+                "sweep: {:.0} % ({d}/{total} cells), {t:.0} s elapsed{left}",
                 100.0 * d as f64 / total as f64,
-                t * (total - d) as f64 / d as f64
             );
         }
     };

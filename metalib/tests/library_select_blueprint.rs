@@ -219,3 +219,38 @@ fn sweep_matches_direct_solves_and_round_trips_npy() {
     };
     assert!(sweep::run_sweep(&other, dir.path(), &|_| {}).is_err());
 }
+
+/// The CLI builds ranges as nm × 1e-9; a resumed sweep compares them with the manifest's copy,
+/// so JSON must give back the exact f64 (serde_json's default parser was 1 ulp off for
+/// 500 × 1e-9 and refused to resume).
+#[test]
+fn sweep_ranges_survive_the_manifest_exactly_so_a_sweep_resumes() {
+    for nm in 1..=2000 {
+        let v = nm as f64 * 1e-9;
+        let back: f64 = serde_json::from_str(&serde_json::to_string(&v).unwrap()).unwrap();
+        assert_eq!(back.to_bits(), v.to_bits(), "{nm} nm");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = SweepConfig {
+        heights_m: Range {
+            start: 700.0 * 1e-9,
+            stop: 700.0 * 1e-9,
+            step: 10.0 * 1e-9,
+        },
+        pitches_m: Range {
+            start: 500.0 * 1e-9,
+            stop: 510.0 * 1e-9,
+            step: 10.0 * 1e-9,
+        },
+        fractions: Range {
+            start: 0.3,
+            stop: 0.3,
+            step: 0.005,
+        },
+        harmonics: 1,
+        rule: Rule::Nv,
+        ..Default::default()
+    };
+    sweep::run_sweep(&cfg, dir.path(), &|_| {}).unwrap();
+    assert!(sweep::run_sweep(&cfg, dir.path(), &|_| {}).is_ok());
+}
