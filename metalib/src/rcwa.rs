@@ -63,6 +63,11 @@ const EVANESCENT_CUTOFF: f64 = 1e-12;
 /// s = 530 nm sweep slice against 1e-12: |Δt| ≤ 4.2e-7, |Δφ| ≤ 4.5e-6 rad, three orders below
 /// the N = 10 truncation error, for 1.5× fewer seconds (docs/bench/metalib.md).
 const SWEEP_CUTOFF: f64 = 1e-6;
+/// Largest error of the probe x ↦ W⁻¹Wx (and V⁻¹Vx) for which the transpose-symmetry
+/// inverses are used; above it (near-degenerate modes) the LU path is taken. Probe errors of
+/// 1e-8–1e-7 occur for nearly degenerate modes at large pitch; they perturb the interface
+/// matrices at that relative level, below the sweep fast path's 1e-6 cut-off.
+const SYMMETRY_PROBE_TOL: f64 = 1e-6;
 /// Smallest |γ| admitted: a Rayleigh anomaly (grazing order) is shifted off the branch point.
 const GAMMA_FLOOR: f64 = 1e-9;
 
@@ -297,6 +302,8 @@ pub struct LayerModes {
     /// Multiplicity of each reduced component in [Ex(ee); Ey(oo)] order.
     mult: Vec<f64>,
     n1: usize,
+    /// Whether W⁻¹ and V⁻¹ came from the transpose symmetry (else from LU factorizations).
+    symmetric: bool,
     gamma_sup0: f64,
     gamma_sub0: Complex64,
 }
@@ -353,9 +360,135 @@ fn check_finite(m: &Mat<c64>, what: &str) -> Result<(), MetalibError> {
     Ok(())
 }
 
+/// W⁻¹ and V⁻¹·B for each B in `blocks`, from the transpose symmetry of the mode problem
+/// instead of LU factorizations; `None` when the result fails its check (degenerate
+/// eigenvalues, where eigenvectors of one eigenvalue need not be biorthogonal).
+///
+/// With M = diag(multiplicity) every reduced operator A here satisfies Aᵀ M = M A (the full
+/// Toeplitz and K matrices are symmetric). Reordering Q's rows to [h_y(ee); h_x(oo)] and
+/// negating the h_x rows gives Q_s = SΠQ with Q_sᵀ M = M Q_s, and Ω² = P Q = P̃ Q_s with
+/// P̃ = PΠᵀS of the same kind. So M Q_s w_j are left eigenvectors of Ω²:
+/// W⁻¹ = D⁻¹ (Q_s W)ᵀ M with D = diag((Q_s W)ᵀ M W), and since V = Q W Γ⁻¹,
+/// V⁻¹ = Γ D⁻¹ Wᵀ M S Π. Q W is formed for V anyway, and the homogeneous V_sup, V_sub have at
+/// most two non-zeros per column, so this is O(n²) after Q W against 2⅓ n³ for the LU path.
+fn symmetric_inverses(
+    w: &Mat<c64>,
+    qw: &Mat<c64>,
+    gamma: &[Complex64],
+    mult: &[f64],
+    n1: usize,
+    blocks: &[&Mat<c64>],
+) -> Option<(Mat<c64>, Vec<Mat<c64>>)> {
+    let dim = w.nrows();
+    let n2 = dim - n1;
+    // Row i of S Π: which row r_i of an h-ordered vector [h_x(oo); h_y(ee)] and its sign.
+    let rows: Vec<(usize, f64)> = (0..dim)
+        .map(|i| {
+            if i < n1 {
+                (n2 + i, 1.0)
+            } else {
+                (i - n1, -1.0)
+            }
+        })
+        .collect();
+    // Column j of Q W is contiguous, so d_j = Σ_i M_i (S Π Q W)_ij W_ij runs down columns.
+    let mut dinv = vec![Complex64::new(0.0, 0.0); dim];
+    for (j, di) in dinv.iter_mut().enumerate() {
+        let mut dj = Complex64::new(0.0, 0.0);
+        for (i, &(r, sg)) in rows.iter().enumerate() {
+            dj += qw[(r, j)] * w[(i, j)] * (sg * mult[i]);
+        }
+        if !(dj.norm() > 0.0 && dj.re.is_finite() && dj.im.is_finite()) {
+            return None;
+        }
+        *di = dj.inv();
+    }
+    // W⁻¹[j, i] = M_i (S Π Q W)_ij / d_j: column i of W⁻¹ is row r_i of Q W, i.e. column r_i of
+    // (Q W)ᵀ.
+    let qwt = qw.transpose().to_owned();
+    let wi = Mat::<c64>::from_fn(dim, dim, |j, i| {
+        let (r, sg) = rows[i];
+        qwt[(j, r)] * dinv[j] * (sg * mult[i])
+    });
+    // Probe W⁻¹ W x = x and V⁻¹ V x = x with one fixed, generic x: O(n²). Where eigenvalues
+    // (nearly) coincide, the solver's eigenvectors of one eigenvalue need not be biorthogonal
+    // and the probe fails.
+    let x: Vec<Complex64> = (0..dim)
+        .map(|i| Complex64::from_polar(1.0, 0.7 + 1.3 * i as f64))
+        .collect();
+    let matvec = |a: &Mat<c64>, v: &[Complex64]| -> Vec<Complex64> {
+        let mut out = vec![Complex64::new(0.0, 0.0); a.nrows()];
+        for (k, &vk) in v.iter().enumerate() {
+            for (i, o) in out.iter_mut().enumerate() {
+                *o += a[(i, k)] * vk;
+            }
+        }
+        out
+    };
+    let gd: Vec<Complex64> = gamma.iter().zip(&dinv).map(|(g, di)| g * di).collect();
+    // V⁻¹ z = Γ D⁻¹ Wᵀ M S Π z.
+    let vinv = |z: &[Complex64]| -> Vec<Complex64> {
+        let msz: Vec<Complex64> = rows
+            .iter()
+            .zip(mult)
+            .map(|(&(r, sg), m)| z[r] * (sg * m))
+            .collect();
+        (0..dim)
+            .map(|j| {
+                let mut acc = Complex64::new(0.0, 0.0);
+                for (i, m) in msz.iter().enumerate() {
+                    acc += w[(i, j)] * m;
+                }
+                acc * gd[j]
+            })
+            .collect()
+    };
+    let back = matvec(&wi, &matvec(w, &x));
+    let gx: Vec<Complex64> = x.iter().zip(gamma).map(|(a, g)| a / g).collect();
+    let back_v = vinv(&matvec(qw, &gx));
+    let err = |b: &[Complex64]| {
+        b.iter()
+            .zip(&x)
+            .map(|(a, e)| (a - e).norm())
+            .fold(0.0, f64::max)
+    };
+    if !(err(&back) < SYMMETRY_PROBE_TOL && err(&back_v) < SYMMETRY_PROBE_TOL) {
+        return None;
+    }
+    // V⁻¹ B = Γ D⁻¹ Wᵀ (M S Π B); M S Π B has a few non-zeros per column, and column i of Wᵀ
+    // is row i of W.
+    let wt = w.transpose().to_owned();
+    let mut outs = Vec::with_capacity(blocks.len());
+    for blk in blocks {
+        let mut u = Mat::<c64>::zeros(dim, dim);
+        for c in 0..dim {
+            for (i, &(r, sg)) in rows.iter().enumerate() {
+                let m = blk[(r, c)];
+                if m == Complex64::new(0.0, 0.0) {
+                    continue;
+                }
+                let m = m * (sg * mult[i]);
+                for j in 0..dim {
+                    u[(j, c)] += wt[(j, i)] * m;
+                }
+            }
+            for j in 0..dim {
+                u[(j, c)] *= gd[j];
+            }
+        }
+        outs.push(u);
+    }
+    Some((wi, outs))
+}
+
 impl LayerModes {
     /// Solves the layer eigenproblem and the two interfaces for `spec` (all heights at once).
     pub fn new(spec: &CellSpec) -> Result<Self, MetalibError> {
+        Self::build(spec, true)
+    }
+
+    /// [`Self::new`]; `use_symmetry` = false forces the LU path for W⁻¹ and V⁻¹ (tests).
+    fn build(spec: &CellSpec, use_symmetry: bool) -> Result<Self, MetalibError> {
         spec.validate()?;
         let n = spec.harmonics;
         let s = spec.pitch_m;
@@ -525,7 +658,8 @@ impl LayerModes {
             .map(|&l| csqrt_branch(l))
             .collect();
         // V = Q W Γ⁻¹.
-        let mut v = &q * &w;
+        let qw = &q * &w;
+        let mut v = qw.clone();
         for (j, g) in gamma.iter().enumerate() {
             let gi = g.inv();
             for i in 0..dim {
@@ -557,11 +691,28 @@ impl LayerModes {
         let (v_sup, g_sup) = homogeneous(Complex64::new(nsup * nsup, 0.0));
         let (v_sub, g_sub) = homogeneous(Complex64::new(nsub * nsub, 0.0));
 
-        let w_lu = w.partial_piv_lu();
-        let wi = w_lu.inverse();
-        let v_lu = v.partial_piv_lu();
-        let u = lu_solve(&v_lu, &v_sup);
-        let us = lu_solve(&v_lu, &v_sub);
+        let mult: Vec<f64> = (0..n1)
+            .map(|i| b.ee.multiplicity(i))
+            .chain((0..n2).map(|i| b.oo.multiplicity(i)))
+            .collect();
+        let sym = if use_symmetry {
+            symmetric_inverses(&w, &qw, &gamma, &mult, n1, &[&v_sup, &v_sub])
+        } else {
+            None
+        };
+        let symmetric = sym.is_some();
+        let (wi, u, us) = match sym {
+            Some((wi, mut us)) => {
+                let u_sub = us.pop().expect("two blocks");
+                let u_sup = us.pop().expect("two blocks");
+                (wi, u_sup, u_sub)
+            }
+            None => {
+                let wi = w.partial_piv_lu().inverse();
+                let v_lu = v.partial_piv_lu();
+                (wi, lu_solve(&v_lu, &v_sup), lu_solve(&v_lu, &v_sub))
+            }
+        };
         let s_mat = &wi + &u;
         let dm = &wi - &u;
         let s_lu = s_mat.partial_piv_lu();
@@ -592,10 +743,6 @@ impl LayerModes {
             }
             *c = 0.5 * acc;
         }
-        let mult: Vec<f64> = (0..n1)
-            .map(|i| b.ee.multiplicity(i))
-            .chain((0..n2).map(|i| b.oo.multiplicity(i)))
-            .collect();
         Ok(Self {
             spec: *spec,
             k0,
@@ -611,6 +758,7 @@ impl LayerModes {
             v_sub,
             mult,
             n1,
+            symmetric,
             gamma_sup0: g_sup[0].re,
             gamma_sub0: g_sub[0],
         })
@@ -619,6 +767,12 @@ impl LayerModes {
     /// Specification the modes were computed for.
     pub fn spec(&self) -> &CellSpec {
         &self.spec
+    }
+
+    /// Whether W⁻¹ and V⁻¹ came from the transpose symmetry of the mode problem (false: the
+    /// LU path, taken when near-degenerate modes fail the probe).
+    pub fn used_transpose_symmetry(&self) -> bool {
+        self.symmetric
     }
 
     /// Number of reduced modes (size of the eigenproblem).
@@ -760,4 +914,70 @@ impl LayerModes {
 /// Convenience: solves one cell at one height.
 pub fn solve_cell(spec: &CellSpec, height_m: f64) -> Result<CellResult, MetalibError> {
     LayerModes::new(spec)?.at_height(height_m)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::material::Materials;
+
+    /// The transpose-symmetry inverses give the same cell responses as the LU path, for both
+    /// rules, lossy and lossless pillars, several fills and pitches, short and tall pillars;
+    /// and a homogeneous layer (degenerate modes) falls back to LU.
+    #[test]
+    fn symmetric_inverses_match_the_lu_path() {
+        let lossless = Materials {
+            k_pillar: 0.0,
+            ..Materials::default()
+        };
+        for rule in [Rule::Nv, Rule::Laurent] {
+            for (pitch, frac, mat) in [
+                (530e-9, 0.38, Materials::default()),
+                (530e-9, 0.8, lossless),
+                (300e-9, 0.2, Materials::default()),
+                (900e-9, 0.55, lossless),
+            ] {
+                let spec = CellSpec {
+                    wavelength_m: 940e-9,
+                    pitch_m: pitch,
+                    diameter_m: frac * pitch,
+                    materials: mat,
+                    harmonics: 5,
+                    rule,
+                };
+                let fast = LayerModes::build(&spec, true).unwrap();
+                let lu = LayerModes::build(&spec, false).unwrap();
+                assert!(fast.symmetric, "{spec:?} fell back to LU");
+                assert!(!lu.symmetric);
+                for h in [0.0, 100e-9, 700e-9, 1500e-9, 20e-6] {
+                    let (a, b) = (fast.at_height(h).unwrap(), lu.at_height(h).unwrap());
+                    assert!(
+                        (a.t - b.t).norm() < 1e-10,
+                        "{spec:?} h {h}: {} vs {}",
+                        a.t,
+                        b.t
+                    );
+                    assert!((a.reflectance - b.reflectance).abs() < 1e-10);
+                    assert!((a.transmitted_total - b.transmitted_total).abs() < 1e-10);
+                }
+            }
+        }
+        let film = CellSpec {
+            wavelength_m: 940e-9,
+            pitch_m: 530e-9,
+            diameter_m: 200e-9,
+            materials: Materials {
+                n_pillar: 1.0,
+                k_pillar: 0.0,
+                ..Materials::default()
+            },
+            harmonics: 4,
+            rule: Rule::Nv,
+        };
+        let m = LayerModes::build(&film, true).unwrap();
+        assert!(
+            !m.symmetric,
+            "degenerate plane-wave modes must fall back to LU"
+        );
+    }
 }
