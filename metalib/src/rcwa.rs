@@ -10,7 +10,7 @@
 use crate::error::MetalibError;
 use crate::material::Materials;
 use faer::linalg::solvers::{DenseSolveCore, Solve};
-use faer::{Mat, c64};
+use faer::{Col, Mat, c64};
 use num_complex::Complex64;
 use std::f64::consts::PI;
 
@@ -360,7 +360,7 @@ fn check_finite(m: &Mat<c64>, what: &str) -> Result<(), MetalibError> {
     Ok(())
 }
 
-/// W⁻¹ and V⁻¹·B for each B in `blocks`, from the transpose symmetry of the mode problem
+/// W⁻¹, V⁻¹V_sup and V⁻¹V_sub from the transpose symmetry of the mode problem
 /// instead of LU factorizations; `None` when the result fails its check (degenerate
 /// eigenvalues, where eigenvectors of one eigenvalue need not be biorthogonal).
 ///
@@ -377,8 +377,9 @@ fn symmetric_inverses(
     gamma: &[Complex64],
     mult: &[f64],
     n1: usize,
-    blocks: &[&Mat<c64>],
-) -> Option<(Mat<c64>, Vec<Mat<c64>>)> {
+    v_sup: &Mat<c64>,
+    v_sub: &Mat<c64>,
+) -> Option<(Mat<c64>, Mat<c64>, Mat<c64>)> {
     let dim = w.nrows();
     let n2 = dim - n1;
     // Row i of S Π: which row r_i of an h-ordered vector [h_x(oo); h_y(ee)] and its sign.
@@ -413,53 +414,25 @@ fn symmetric_inverses(
     // Probe W⁻¹ W x = x and V⁻¹ V x = x with one fixed, generic x: O(n²). Where eigenvalues
     // (nearly) coincide, the solver's eigenvectors of one eigenvalue need not be biorthogonal
     // and the probe fails.
-    let x: Vec<Complex64> = (0..dim)
-        .map(|i| Complex64::from_polar(1.0, 0.7 + 1.3 * i as f64))
-        .collect();
-    let matvec = |a: &Mat<c64>, v: &[Complex64]| -> Vec<Complex64> {
-        let mut out = vec![Complex64::new(0.0, 0.0); a.nrows()];
-        for (k, &vk) in v.iter().enumerate() {
-            for (i, o) in out.iter_mut().enumerate() {
-                *o += a[(i, k)] * vk;
-            }
-        }
-        out
-    };
+    let x = Col::<c64>::from_fn(dim, |i| c64::from_polar(1.0, 0.7 + 1.3 * i as f64));
     let gd: Vec<Complex64> = gamma.iter().zip(&dinv).map(|(g, di)| g * di).collect();
-    // V⁻¹ z = Γ D⁻¹ Wᵀ M S Π z.
-    let vinv = |z: &[Complex64]| -> Vec<Complex64> {
-        let msz: Vec<Complex64> = rows
-            .iter()
-            .zip(mult)
-            .map(|(&(r, sg), m)| z[r] * (sg * m))
-            .collect();
-        (0..dim)
-            .map(|j| {
-                let mut acc = Complex64::new(0.0, 0.0);
-                for (i, m) in msz.iter().enumerate() {
-                    acc += w[(i, j)] * m;
-                }
-                acc * gd[j]
-            })
-            .collect()
-    };
-    let back = matvec(&wi, &matvec(w, &x));
-    let gx: Vec<Complex64> = x.iter().zip(gamma).map(|(a, g)| a / g).collect();
-    let back_v = vinv(&matvec(qw, &gx));
-    let err = |b: &[Complex64]| {
-        b.iter()
-            .zip(&x)
-            .map(|(a, e)| (a - e).norm())
-            .fold(0.0, f64::max)
-    };
+    let back = &wi * (w * &x);
+    // V⁻¹ V x = Γ D⁻¹ Wᵀ M S Π (Q W Γ⁻¹ x).
+    let vx = qw * Col::<c64>::from_fn(dim, |i| x[i] / gamma[i]);
+    let msz = Col::<c64>::from_fn(dim, |i| {
+        let (r, sg) = rows[i];
+        vx[r] * (sg * mult[i])
+    });
+    let wtz = w.transpose() * &msz;
+    let back_v = Col::<c64>::from_fn(dim, |j| wtz[j] * gd[j]);
+    let err = |b: &Col<c64>| (0..dim).map(|i| (b[i] - x[i]).norm()).fold(0.0, f64::max);
     if !(err(&back) < SYMMETRY_PROBE_TOL && err(&back_v) < SYMMETRY_PROBE_TOL) {
         return None;
     }
     // V⁻¹ B = Γ D⁻¹ Wᵀ (M S Π B); M S Π B has a few non-zeros per column, and column i of Wᵀ
     // is row i of W.
     let wt = w.transpose().to_owned();
-    let mut outs = Vec::with_capacity(blocks.len());
-    for blk in blocks {
+    let apply = |blk: &Mat<c64>| {
         let mut u = Mat::<c64>::zeros(dim, dim);
         for c in 0..dim {
             for (i, &(r, sg)) in rows.iter().enumerate() {
@@ -476,9 +449,9 @@ fn symmetric_inverses(
                 u[(j, c)] *= gd[j];
             }
         }
-        outs.push(u);
-    }
-    Some((wi, outs))
+        u
+    };
+    Some((wi, apply(v_sup), apply(v_sub)))
 }
 
 impl LayerModes {
@@ -657,16 +630,10 @@ impl LayerModes {
             .iter()
             .map(|&l| csqrt_branch(l))
             .collect();
-        // V = Q W Γ⁻¹.
+        // V = Q W Γ⁻¹ (γ is floored away from 0, so V is finite iff Q W is); V itself is only
+        // formed on the LU path below.
         let qw = &q * &w;
-        let mut v = qw.clone();
-        for (j, g) in gamma.iter().enumerate() {
-            let gi = g.inv();
-            for i in 0..dim {
-                v[(i, j)] *= gi;
-            }
-        }
-        check_finite(&v, "mode magnetic-field matrix")?;
+        check_finite(&qw, "mode magnetic-field matrix")?;
 
         let homogeneous = |eps: Complex64| -> (Mat<c64>, Vec<Complex64>) {
             let qh = q_homogeneous(&b, &kx, &ky, eps);
@@ -696,21 +663,21 @@ impl LayerModes {
             .chain((0..n2).map(|i| b.oo.multiplicity(i)))
             .collect();
         let sym = if use_symmetry {
-            symmetric_inverses(&w, &qw, &gamma, &mult, n1, &[&v_sup, &v_sub])
+            symmetric_inverses(&w, &qw, &gamma, &mult, n1, &v_sup, &v_sub)
         } else {
             None
         };
         let symmetric = sym.is_some();
         let (wi, u, us) = match sym {
-            Some((wi, mut us)) => {
-                let u_sub = us.pop().expect("two blocks");
-                let u_sup = us.pop().expect("two blocks");
-                (wi, u_sup, u_sub)
-            }
+            Some(inverses) => inverses,
             None => {
-                let wi = w.partial_piv_lu().inverse();
+                let v = Mat::<c64>::from_fn(dim, dim, |i, j| qw[(i, j)] / gamma[j]);
                 let v_lu = v.partial_piv_lu();
-                (wi, lu_solve(&v_lu, &v_sup), lu_solve(&v_lu, &v_sub))
+                (
+                    w.partial_piv_lu().inverse(),
+                    lu_solve(&v_lu, &v_sup),
+                    lu_solve(&v_lu, &v_sub),
+                )
             }
         };
         let s_mat = &wi + &u;

@@ -258,11 +258,12 @@ fn solve_column(spec: &CellSpec, heights: &[f64]) -> Vec<[f64; 4]> {
     }
 }
 
-/// Runs (or resumes) a sweep into `dir`, reporting completed cells to `progress`.
+/// Runs (or resumes) a sweep into `dir`, reporting completed cells to `progress` as
+/// (cells, restored): `restored` is true for cells read back from a checkpoint.
 pub fn run_sweep(
     config: &SweepConfig,
     dir: &Path,
-    progress: &(dyn Fn(u64) + Sync),
+    progress: &(dyn Fn(u64, bool) + Sync),
 ) -> Result<Manifest, MetalibError> {
     let heights = config.heights_m.values("heights")?;
     let pitches = config.pitches_m.values("pitches")?;
@@ -337,7 +338,7 @@ pub fn run_sweep(
         if let Ok(bytes) = std::fs::read(&p) {
             *b = decode_block(&bytes, nh * nf);
             if b.is_some() {
-                progress((nh * nf) as u64);
+                progress((nh * nf) as u64, true);
             }
         }
     }
@@ -357,7 +358,7 @@ pub fn run_sweep(
                     rule: config.rule,
                 };
                 let out = solve_column(&spec, &heights);
-                progress(nh as u64);
+                progress(nh as u64, false);
                 out
             })
             .collect();
@@ -406,11 +407,9 @@ pub fn run_sweep(
 /// The faer global parallelism is set to sequential for the duration, since the sweep already
 /// runs one cell per rayon task, and restored afterwards.
 pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibError> {
-    let (nh, nf) = (
-        config.heights_m.values("heights")?.len() as u64,
-        config.fractions.values("fractions")?.len() as u64,
-    );
-    let total = nh * nf * config.pitches_m.values("pitches")?.len() as u64;
+    let total = (config.heights_m.values("heights")?.len()
+        * config.pitches_m.values("pitches")?.len()
+        * config.fractions.values("fractions")?.len()) as u64;
     let bar = indicatif::ProgressBar::with_draw_target(
         Some(total),
         indicatif::ProgressDrawTarget::stderr(),
@@ -422,18 +421,17 @@ pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manif
     }
     let plain = !std::io::IsTerminal::is_terminal(&std::io::stderr());
     let done = std::sync::atomic::AtomicU64::new(0);
-    // Pitches restored from checkpoints arrive as whole blocks (nh·nf cells, computed columns
-    // as nh): they count as done but not towards the rate.
+    // Cells restored from checkpoints count as done but not towards the rate.
     let restored = std::sync::atomic::AtomicU64::new(0);
     let next_tenth = std::sync::atomic::AtomicU64::new(1);
     let start = std::time::Instant::now();
-    let report = |n: u64| {
+    let report = |n: u64, from_checkpoint: bool| {
         bar.inc(n);
         if !plain || total == 0 {
             return;
         }
         use std::sync::atomic::Ordering::Relaxed;
-        if nf > 1 && n == nh * nf {
+        if from_checkpoint {
             restored.fetch_add(n, Relaxed);
         }
         let d = done.fetch_add(n, Relaxed) + n;

@@ -189,7 +189,7 @@ fn sweep_matches_direct_solves_and_round_trips_npy() {
         rule: Rule::Nv,
         ..Default::default()
     };
-    let m = sweep::run_sweep(&cfg, dir.path(), &|_| {}).unwrap();
+    let m = sweep::run_sweep(&cfg, dir.path(), &|_, _| {}).unwrap();
     assert_eq!(m.shape, [2, 2, 3]);
     assert_eq!(m.failed_cells, 0);
     let data = sweep::load_sweep(dir.path()).unwrap();
@@ -212,12 +212,12 @@ fn sweep_matches_direct_solves_and_round_trips_npy() {
     assert!((data.phase[k] - r.phase_rad).abs() < 1e-5);
     assert!((data.transmittance[k] - r.transmittance).abs() < 1e-5);
     // Re-running on a complete directory with the same parameters is accepted; others are not.
-    assert!(sweep::run_sweep(&cfg, dir.path(), &|_| {}).is_ok());
+    assert!(sweep::run_sweep(&cfg, dir.path(), &|_, _| {}).is_ok());
     let other = SweepConfig {
         harmonics: 3,
         ..cfg
     };
-    assert!(sweep::run_sweep(&other, dir.path(), &|_| {}).is_err());
+    assert!(sweep::run_sweep(&other, dir.path(), &|_, _| {}).is_err());
 }
 
 /// The CLI builds ranges as nm × 1e-9; a resumed sweep compares them with the manifest's copy,
@@ -251,6 +251,6 @@ fn sweep_ranges_survive_the_manifest_exactly_so_a_sweep_resumes() {
         rule: Rule::Nv,
         ..Default::default()
     };
-    sweep::run_sweep(&cfg, dir.path(), &|_| {}).unwrap();
-    assert!(sweep::run_sweep(&cfg, dir.path(), &|_| {}).is_ok());
+    sweep::run_sweep(&cfg, dir.path(), &|_, _| {}).unwrap();
+    assert!(sweep::run_sweep(&cfg, dir.path(), &|_, _| {}).is_ok());
 }

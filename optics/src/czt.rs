@@ -115,30 +115,17 @@ impl ChirpOp {
         &self.post
     }
 
-    /// Applies the bare convolution y = K x, without the pre- and post-multipliers, to `count`
+    /// Applies the bare convolution y = K x of the map y = diag(post)·K·diag(pre) x to `count`
     /// vectors: element i of input v is `get(v, i)`, element j of output v is passed to
     /// `set(v, j, y)`; `buf` and `scratch` have at least [`Self::buf_len`] and
-    /// [`Self::scratch_len`] values. Callers fold the diagonals into neighbouring operators (the PSF folds the window
-    /// DFT's pre-multipliers into the transfer function and drops its unit-modulus
-    /// post-multipliers, which |·|² does not see).
+    /// [`Self::scratch_len`] values. Callers fold the diagonals [`Self::pre`], [`Self::post`]
+    /// into neighbouring operators (the PSF folds the window DFT's pre-multipliers into the
+    /// transfer function and drops its unit-modulus post-multipliers, which |·|² does not see).
     pub(crate) fn apply_conv(
         &self,
         count: usize,
         buf: &mut [c64],
         scratch: &mut [c64],
-        get: impl Fn(usize, usize) -> c64,
-        set: impl FnMut(usize, usize, c64),
-    ) {
-        self.run(count, buf, scratch, false, get, set);
-    }
-
-    /// The whole map y = diag(post)·K·diag(pre) x (`diag`) or the bare K x.
-    fn run(
-        &self,
-        count: usize,
-        buf: &mut [c64],
-        scratch: &mut [c64],
-        diag: bool,
         get: impl Fn(usize, usize) -> c64,
         mut set: impl FnMut(usize, usize, c64),
     ) {
@@ -150,14 +137,8 @@ impl ChirpOp {
             let nv = CHUNK.min(count - first);
             let buf = &mut buf[..nv * len];
             for (v, row) in buf.chunks_exact_mut(len).enumerate() {
-                if diag {
-                    for (i, (r, p)) in row.iter_mut().zip(&self.pre).enumerate() {
-                        *r = get(first + v, i) * p;
-                    }
-                } else {
-                    for (i, r) in row[..n_in].iter_mut().enumerate() {
-                        *r = get(first + v, i);
-                    }
+                for (i, r) in row[..n_in].iter_mut().enumerate() {
+                    *r = get(first + v, i);
                 }
                 row[n_in..].fill(zero);
             }
@@ -169,14 +150,8 @@ impl ChirpOp {
             }
             self.ifft.process_with_scratch(buf, scratch);
             for (v, row) in buf.chunks_exact(len).enumerate() {
-                if diag {
-                    for (j, (r, p)) in row.iter().zip(&self.post).enumerate() {
-                        set(first + v, j, r * p);
-                    }
-                } else {
-                    for (j, r) in row[..n_out].iter().enumerate() {
-                        set(first + v, j, *r);
-                    }
+                for (j, r) in row[..n_out].iter().enumerate() {
+                    set(first + v, j, *r);
                 }
             }
             first += nv;
@@ -201,17 +176,17 @@ mod tests {
             .collect()
     }
 
+    /// The whole map diag(post)·K·diag(pre) applied to one vector.
     fn apply1(op: &ChirpOp, x: &[c64], n_out: usize) -> Vec<c64> {
         let mut buf = vec![c64::new(0.0, 0.0); op.buf_len()];
         let mut scratch = vec![c64::new(0.0, 0.0); op.scratch_len()];
         let mut y = vec![c64::new(0.0, 0.0); n_out];
-        op.run(
+        op.apply_conv(
             1,
             &mut buf,
             &mut scratch,
-            true,
-            |_, i| x[i],
-            |_, j, v| y[j] = v,
+            |_, i| x[i] * op.pre()[i],
+            |_, j, v| y[j] = v * op.post()[j],
         );
         y
     }
@@ -248,15 +223,22 @@ mod tests {
         }
     }
 
+    /// A second geometry; and the post-multipliers have modulus df, which the PSF relies on
+    /// when it drops them from the field.
     #[test]
     fn bare_convolution_with_the_diagonals_applied_outside_equals_the_map() {
         let mut planner = FftPlanner::new();
-        let (nb, nout, df) = (23usize, 17usize, 1.0 / 173e-6);
-        let (op, _) = ChirpOp::window_dft(&mut planner, -11, nb, nout, df, -41e-6, 0.37e-6);
+        let (m0, nb, nout, df) = (-11_i64, 23usize, 17usize, 1.0 / 173e-6);
+        let (y0, delta) = (-41e-6, 0.37e-6);
+        let (op, _) = ChirpOp::window_dft(&mut planner, m0, nb, nout, df, y0, delta);
         let x: Vec<c64> = (0..nb)
             .map(|b| c64::new((b as f64 * 0.29).cos(), (b as f64 * 0.53).sin()))
             .collect();
-        let y = apply1(&op, &x, nout);
+        let e = dense(m0, nb, nout, df, y0, delta);
+        let y: Vec<c64> = e
+            .iter()
+            .map(|row| row.iter().zip(&x).map(|(a, b)| a * b).sum())
+            .collect();
         let xp: Vec<c64> = x.iter().zip(op.pre()).map(|(a, p)| a * p).collect();
         let mut buf = vec![c64::new(0.0, 0.0); op.buf_len()];
         let mut scratch = vec![c64::new(0.0, 0.0); op.scratch_len()];
