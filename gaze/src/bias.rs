@@ -9,6 +9,9 @@ use crate::solver::{GazeSolver, SphereSolver, project};
 use crate::stats::{Summary, angular_error};
 use serde::Serialize;
 
+/// Largest number of samples per axis of a [`GazeGrid`] (16.8 M gaze points per radius).
+pub const MAX_GRID_STEPS: usize = 4096;
+
 /// A rectangular grid of Fick gaze angles (rad), inclusive of both ends.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GazeGrid {
@@ -67,6 +70,15 @@ pub fn pupil_sphere_bias(
     solver_radius_m: f64,
     grid: &GazeGrid,
 ) -> Result<BiasReport, GazeError> {
+    if grid.steps > MAX_GRID_STEPS {
+        return Err(GazeError::InvalidParameter {
+            name: "steps",
+            reason: format!(
+                "{} samples per axis exceeds the maximum of {MAX_GRID_STEPS}",
+                grid.steps
+            ),
+        });
+    }
     let mut solver_rig = rig.clone();
     solver_rig.eye_radius_m = solver_radius_m;
     let solver = SphereSolver::new(&solver_rig)?;
@@ -105,4 +117,16 @@ pub fn pupil_sphere_bias(
         missed,
         total,
     })
+}
+
+#[cfg(test)]
+mod bad_input_tests {
+    use super::*;
+
+    #[test]
+    fn grid_beyond_the_step_limit_is_refused_before_any_work() {
+        let e = pupil_sphere_bias(&Rig::default(), 12e-3, &GazeGrid::table_s2(1_000_000_000_000))
+            .unwrap_err();
+        assert!(matches!(e, GazeError::InvalidParameter { name: "steps", .. }), "{e}");
+    }
 }

@@ -70,6 +70,14 @@ pub enum GazeError {
         /// The offending unit gaze vector.
         gaze: [f64; 3],
     },
+    /// A study or solver parameter (not part of the rig) is out of range.
+    #[error("parameter `{name}`: {reason}")]
+    InvalidParameter {
+        /// Name of the parameter.
+        name: &'static str,
+        /// What is wrong and what is expected.
+        reason: String,
+    },
     /// A rig parameter is out of range or inconsistent.
     #[error("rig field `{field}`: {reason}")]
     InvalidRig {

@@ -14,6 +14,23 @@ pub const DEFAULT_PUPIL_SPHERE_RADIUS_M: f64 = 10.392_304_845_413_264e-3;
 /// the seed's (−10, 10, −14) mm read as 10 mm lateral, 10 mm in front, 14 mm below).
 pub const CAMERA_OFFSET_M: Vec3 = [-10e-3, -14e-3, 10e-3];
 
+/// Plausible range (m) of the eye and pupil sphere radii: a human eye is ≈12 mm in radius;
+/// anything outside 1 mm…100 mm is a unit mistake, not an eye.
+pub const EYE_RADIUS_RANGE_M: (f64, f64) = (1e-3, 0.1);
+/// Plausible range (m) of the camera's lens-to-sensor distance.
+pub const FOCAL_LENGTH_RANGE_M: (f64, f64) = (1e-5, 1.0);
+/// Plausible range (m) of the effective pixel pitch.
+pub const PIXEL_PITCH_RANGE_M: (f64, f64) = (1e-7, 1e-3);
+/// Largest image side (px) a rig may declare.
+pub const MAX_IMAGE_SIDE_PX: usize = 1 << 16;
+/// Largest slippage pitch rate (rad per m of slip): 1 rad per mm.
+pub const MAX_PITCH_RATE_RAD_PER_M: f64 = 1e3;
+/// Largest σ of the mounting translation (m) per axis.
+pub const MAX_MOUNT_TRANSLATION_SIGMA_M: f64 = 5e-3;
+/// Largest σ of the mounting rotation (rad) per axis.
+pub const MAX_MOUNT_ROTATION_SIGMA_RAD: f64 = 0.2;
+const SQRT_3: f64 = 1.732_050_807_568_877_2;
+
 /// Pinhole camera: intrinsics (OpenCV convention, pixel origin at the top-left pixel's corner,
 /// so pixel (col, row) has its centre at (col + 0.5, row + 0.5)) and nominal pose.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -197,15 +214,36 @@ impl Camera {
         pos("camera.pixel_pitch_m", self.pixel_pitch_m)?;
         pos("camera.fx_px", self.fx_px)?;
         pos("camera.fy_px", self.fy_px)?;
+        let within = |field, v: f64, (lo, hi): (f64, f64)| {
+            if (lo..=hi).contains(&v) {
+                Ok(())
+            } else {
+                Err(GazeError::InvalidRig {
+                    field,
+                    reason: format!("{v} lies outside the plausible range [{lo:e}, {hi:e}]"),
+                })
+            }
+        };
+        within(
+            "camera.focal_length_m",
+            self.focal_length_m,
+            FOCAL_LENGTH_RANGE_M,
+        )?;
+        within(
+            "camera.pixel_pitch_m",
+            self.pixel_pitch_m,
+            PIXEL_PITCH_RANGE_M,
+        )?;
         let f_px = self.focal_length_m / self.pixel_pitch_m;
-        if (self.fx_px - f_px).abs() > 1e-6 * f_px {
-            return Err(GazeError::InvalidRig {
-                field: "camera.fx_px",
-                reason: format!(
-                    "{} px disagrees with focal_length_m / pixel_pitch_m = {f_px} px",
-                    self.fx_px
-                ),
-            });
+        for (field, v) in [("camera.fx_px", self.fx_px), ("camera.fy_px", self.fy_px)] {
+            if (v - f_px).abs() > 1e-6 * f_px {
+                return Err(GazeError::InvalidRig {
+                    field,
+                    reason: format!(
+                        "{v} px disagrees with focal_length_m / pixel_pitch_m = {f_px} px"
+                    ),
+                });
+            }
         }
         if !(self.cx_px.is_finite() && self.cy_px.is_finite()) {
             return Err(GazeError::InvalidRig {
@@ -217,6 +255,15 @@ impl Camera {
             return Err(GazeError::InvalidRig {
                 field: "camera.width_px",
                 reason: "image size must be at least 1×1 px".into(),
+            });
+        }
+        if self.width_px > MAX_IMAGE_SIDE_PX || self.height_px > MAX_IMAGE_SIDE_PX {
+            return Err(GazeError::InvalidRig {
+                field: "camera.width_px",
+                reason: format!(
+                    "image size {}×{} px exceeds the maximum side of {MAX_IMAGE_SIDE_PX} px",
+                    self.width_px, self.height_px
+                ),
             });
         }
         if !geom::is_finite(self.position_m) {
@@ -284,6 +331,30 @@ impl SlipModel {
                 reason: "standard deviations must be ≥ 0".into(),
             });
         }
+        for (field, v, max) in [
+            (
+                "slip.pitch_rate_rad_per_m",
+                self.pitch_rate_rad_per_m.abs(),
+                MAX_PITCH_RATE_RAD_PER_M,
+            ),
+            (
+                "slip.mount_translation_sigma_m",
+                self.mount_translation_sigma_m,
+                MAX_MOUNT_TRANSLATION_SIGMA_M,
+            ),
+            (
+                "slip.mount_rotation_sigma_rad",
+                self.mount_rotation_sigma_rad,
+                MAX_MOUNT_ROTATION_SIGMA_RAD,
+            ),
+        ] {
+            if v > max {
+                return Err(GazeError::InvalidRig {
+                    field,
+                    reason: format!("magnitude {v} exceeds the plausible maximum {max}"),
+                });
+            }
+        }
         Ok(())
     }
 }
@@ -316,6 +387,7 @@ impl Default for Rig {
 impl Rig {
     /// Checks every field; the error names the first bad one.
     pub fn validate(&self) -> Result<(), GazeError> {
+        let (lo, hi) = EYE_RADIUS_RANGE_M;
         for (field, v) in [
             ("eye_radius_m", self.eye_radius_m),
             ("pupil_sphere_radius_m", self.pupil_sphere_radius_m),
@@ -324,6 +396,12 @@ impl Rig {
                 return Err(GazeError::InvalidRig {
                     field,
                     reason: format!("must be positive and finite, got {v}"),
+                });
+            }
+            if !(lo..=hi).contains(&v) {
+                return Err(GazeError::InvalidRig {
+                    field,
+                    reason: format!("{v} m lies outside the plausible range [{lo}, {hi}] m"),
                 });
             }
         }
@@ -338,7 +416,21 @@ impl Rig {
             });
         }
         self.camera.validate()?;
-        self.slip.validate()
+        self.slip.validate()?;
+        // The camera must sit outside both spheres (with room for the largest slip the
+        // mounting perturbation can add), or no ray from it reaches the eye from outside.
+        let d = geom::norm(self.camera.position_m);
+        let r = self.eye_radius_m.max(self.pupil_sphere_radius_m);
+        if d <= r + 3.0 * SQRT_3 * self.slip.mount_translation_sigma_m {
+            return Err(GazeError::InvalidRig {
+                field: "camera.position_m",
+                reason: format!(
+                    "the camera centre is {d} m from the eye centre, inside (or within the \
+                     mounting tolerance of) the {r} m sphere"
+                ),
+            });
+        }
+        Ok(())
     }
 
     /// Parses and validates a rig from JSON.
@@ -354,5 +446,47 @@ impl Rig {
     /// The 3D pupil centre (m) for a unit gaze direction `g` (optical axis).
     pub fn pupil_center(&self, g: Vec3) -> Vec3 {
         geom::scale(g, self.pupil_sphere_radius_m)
+    }
+}
+
+#[cfg(test)]
+mod bad_input_tests {
+    use super::*;
+
+    fn field_of(rig: &Rig) -> &'static str {
+        match rig.validate() {
+            Err(GazeError::InvalidRig { field, .. }) => field,
+            other => panic!("expected InvalidRig, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn wrong_fy_px_is_refused() {
+        let mut rig = Rig::default();
+        rig.camera.fy_px *= 1.5;
+        assert_eq!(field_of(&rig), "camera.fy_px");
+    }
+
+    #[test]
+    fn impossible_rigs_are_refused() {
+        let mut rig = Rig::default();
+        rig.eye_radius_m = 1e-300;
+        assert_eq!(field_of(&rig), "eye_radius_m");
+        let mut rig = Rig::default();
+        rig.pupil_sphere_radius_m = 1e300;
+        assert_eq!(field_of(&rig), "pupil_sphere_radius_m");
+        let mut rig = Rig::default();
+        rig.camera.position_m = [0.0, 0.0, 5e-3];
+        assert_eq!(field_of(&rig), "camera.position_m");
+        let mut rig = Rig::default();
+        rig.slip.mount_translation_sigma_m = 1e300;
+        assert_eq!(field_of(&rig), "slip.mount_translation_sigma_m");
+        let mut rig = Rig::default();
+        rig.slip.mount_rotation_sigma_rad = 1e300;
+        assert_eq!(field_of(&rig), "slip.mount_rotation_sigma_rad");
+        let mut rig = Rig::default();
+        rig.slip.pitch_rate_rad_per_m = -1e300;
+        assert_eq!(field_of(&rig), "slip.pitch_rate_rad_per_m");
+        Rig::default().validate().unwrap();
     }
 }
