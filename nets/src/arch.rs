@@ -134,6 +134,7 @@ impl SupernetConfig {
 /// One subnet: kernel and expansion per layer (20, stage-major), depth per stage, and the
 /// input-resolution scale in [0.3, 1].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Arch {
     /// Depthwise kernel size per layer, ∈ {3, 5, 7}.
     pub kernel: Vec<usize>,

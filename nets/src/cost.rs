@@ -5,8 +5,26 @@
 
 use crate::arch::{Arch, STAGES, STEM_CHANNELS, SupernetConfig, mid_channels, se_channels};
 use crate::conv::out_size;
-use crate::error::Result;
+use crate::error::{NetsError, Result};
 use serde::Serialize;
+
+/// Largest input side (px) the cost model accepts: beyond it MAC counts approach the range of
+/// u64 and no eye camera comes close.
+pub const MAX_RESOLUTION: usize = 1 << 16;
+/// Largest number of input channels the cost model accepts.
+pub const MAX_IN_CHANNELS: usize = 1 << 12;
+
+/// Checks an input size for the cost model: `h`, `w` in 1..=[`MAX_RESOLUTION`].
+pub fn check_resolution(h: usize, w: usize) -> Result<()> {
+    for v in [h, w] {
+        if v == 0 || v > MAX_RESOLUTION {
+            return Err(NetsError::Param(format!(
+                "resolution {v} px outside 1..={MAX_RESOLUTION}"
+            )));
+        }
+    }
+    Ok(())
+}
 
 /// MACs split by layer kind.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
@@ -216,6 +234,13 @@ pub fn mobilenet_v3_small(resolution: usize) -> Cost {
 pub fn subnet_cost(cfg: &SupernetConfig, arch: &Arch, h: usize, w: usize) -> Result<Cost> {
     cfg.validate()?;
     arch.validate()?;
+    check_resolution(h, w)?;
+    if cfg.in_channels > MAX_IN_CHANNELS {
+        return Err(NetsError::Param(format!(
+            "in_channels {} exceeds the maximum {MAX_IN_CHANNELS}",
+            cfg.in_channels
+        )));
+    }
     let mut c = Counter::new(cfg.in_channels, arch.scaled(h), arch.scaled(w));
     c.conv(STEM_CHANNELS, 3, 2, 1, false, true, Kind::Other);
     c.depthwise(3, 1);
@@ -265,4 +290,38 @@ fn add(a: &mut Cost, b: &Cost) {
     a.per_kind.depthwise += b.per_kind.depthwise;
     a.per_kind.se += b.per_kind.se;
     a.per_kind.other += b.per_kind.other;
+}
+
+#[cfg(test)]
+mod bad_input_tests {
+    use super::*;
+
+    #[test]
+    fn huge_inputs_are_refused_instead_of_wrapping() {
+        let cfg = SupernetConfig::default();
+        assert!(subnet_cost(&cfg, &Arch::max(), usize::MAX, usize::MAX).is_err());
+        let wide = SupernetConfig {
+            in_channels: usize::MAX,
+            ..SupernetConfig::default()
+        };
+        assert!(subnet_cost(&wide, &Arch::max(), 224, 224).is_err());
+        // At the limits the counts still fit u64 (no wrap-around: MACs grow with the input).
+        let big = subnet_cost(&cfg, &Arch::max(), MAX_RESOLUTION, MAX_RESOLUTION).unwrap();
+        let small = subnet_cost(&cfg, &Arch::max(), 224, 224).unwrap();
+        assert!(big.macs > small.macs * 1000);
+        let wide = SupernetConfig {
+            in_channels: MAX_IN_CHANNELS,
+            ..SupernetConfig::default()
+        };
+        subnet_cost(&wide, &Arch::max(), MAX_RESOLUTION, MAX_RESOLUTION).unwrap();
+        assert!(mobilenet_v3_large(MAX_RESOLUTION).macs > mobilenet_v3_large(224).macs);
+        assert!(check_resolution(MAX_RESOLUTION + 1, 1).is_err());
+    }
+
+    #[test]
+    fn arch_json_with_an_unknown_key_is_refused() {
+        let mut v = serde_json::to_value(Arch::min()).unwrap();
+        v["kernal"] = serde_json::json!([3]);
+        assert!(serde_json::from_value::<Arch>(v).is_err());
+    }
 }

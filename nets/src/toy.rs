@@ -20,7 +20,8 @@ use rand_distr::{Distribution, Normal};
 use serde::Serialize;
 use std::time::Instant;
 
-/// One synthetic sample: image (S·S), mask (S·S), slippage target.
+/// One synthetic sample: image (S·S), mask (S·S), slippage target. `size` must not exceed
+/// [`MAX_TOY_SIZE`] ([`toy_batch`] checks it).
 pub fn toy_sample(size: usize, seed: u64, index: u64) -> (Vec<f32>, Vec<f32>, [f32; 3]) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ index);
     let s = size as f32;
@@ -52,6 +53,13 @@ pub fn toy_sample(size: usize, seed: u64, index: u64) -> (Vec<f32>, Vec<f32>, [f
 
 /// A batch of samples `first..first+n` of a split: (images, masks, slippage targets).
 pub fn toy_batch(size: usize, seed: u64, first: u64, n: usize) -> Result<(Tensor, Tensor, Tensor)> {
+    if size == 0 || size > MAX_TOY_SIZE || n.checked_mul(size * size).is_none_or(|p| p > MAX_TOY_BATCH_PIXELS)
+    {
+        return Err(NetsError::Param(format!(
+            "toy batch of {n} images of {size}² px: side must lie in 1..={MAX_TOY_SIZE} and the \
+             batch hold at most {MAX_TOY_BATCH_PIXELS} pixels"
+        )));
+    }
     let (mut xs, mut ms, mut ts) = (Vec::new(), Vec::new(), Vec::new());
     for i in 0..n as u64 {
         let (x, m, t) = toy_sample(size, seed, first + i);
@@ -115,6 +123,59 @@ pub struct ToyResult {
     pub seconds: f64,
 }
 
+/// Largest image side of a toy fit.
+pub const MAX_TOY_SIZE: usize = 4096;
+/// Largest batch × side² of a toy fit: training the largest subnet takes ≈3.5 KiB per input
+/// pixel of a batch (measured), so this keeps a step below ≈8 GiB.
+pub const MAX_TOY_BATCH_PIXELS: usize = 1 << 21;
+/// Largest peak learning rate of a toy fit (Adam steps of order lr per weight).
+pub const MAX_TOY_LR: f64 = 1.0;
+
+impl ToyConfig {
+    /// Checks every field; the message starts with the field's name.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(NetsError::Param(m));
+        if self.steps == 0 || self.n_train == 0 || self.n_test == 0 {
+            return bad(format!(
+                "steps, n_train, n_test must be positive: {}, {}, {}",
+                self.steps, self.n_train, self.n_test
+            ));
+        }
+        if self.batch < 2 {
+            // The calibration head normalizes pooled (1×1) features over the batch: one image
+            // gives zero variance in training and a meaningless running variance.
+            return bad(format!(
+                "batch: need at least 2 images per step (batch norm of the pooled head), got {}",
+                self.batch
+            ));
+        }
+        if !(8..=MAX_TOY_SIZE).contains(&self.size) {
+            return bad(format!(
+                "size: must lie in 8..={MAX_TOY_SIZE} px, got {}",
+                self.size
+            ));
+        }
+        let pixels = self.batch.checked_mul(self.size * self.size);
+        if pixels.is_none_or(|p| p > MAX_TOY_BATCH_PIXELS) {
+            return bad(format!(
+                "batch: {} images of {}² px exceed the memory bound of {MAX_TOY_BATCH_PIXELS} \
+                 input pixels per step (≈8 GiB)",
+                self.batch, self.size
+            ));
+        }
+        if !(self.lr.is_finite() && self.lr > 0.0 && self.lr <= MAX_TOY_LR) {
+            return bad(format!("lr: must lie in (0, {MAX_TOY_LR}], got {}", self.lr));
+        }
+        if !(self.lambda_slip.is_finite() && self.lambda_slip >= 0.0) {
+            return bad(format!(
+                "lambda_slip: must be finite and >= 0, got {}",
+                self.lambda_slip
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// Trains subnet `arch` of a fresh supernet on the toy task, recalibrates BN, evaluates.
 pub fn fit_toy(arch: &Arch, cfg: &ToyConfig) -> Result<ToyResult> {
     fit_toy_with_progress(arch, cfg, &mut |_, _| {})
@@ -126,11 +187,7 @@ pub fn fit_toy_with_progress(
     cfg: &ToyConfig,
     progress: &mut dyn FnMut(usize, f64),
 ) -> Result<ToyResult> {
-    if cfg.steps == 0 || cfg.batch == 0 || cfg.n_train == 0 || cfg.n_test == 0 || cfg.size < 8 {
-        return Err(NetsError::Param(format!(
-            "toy config needs positive counts and size ≥ 8: {cfg:?}"
-        )));
-    }
+    cfg.validate()?;
     let t0 = Instant::now();
     let mut net = Supernet::new(SupernetConfig::default(), cfg.seed)?;
     let mut opt = Adam::default();
@@ -147,6 +204,13 @@ pub fn fit_toy_with_progress(
             .iter_mut()
             .for_each(|g| *g *= cfg.lambda_slip as f32);
         last = ls + cfg.lambda_slip * lc;
+        if !last.is_finite() {
+            return Err(NetsError::Param(format!(
+                "lr: training diverged at step {} (non-finite loss); lower the learning rate {}",
+                step + 1,
+                cfg.lr
+            )));
+        }
         net.zero_grad();
         net.backward(&dl, &ds)?;
         opt.step(&mut net, cosine_lr(cfg.lr, 0.01 * cfg.lr, step, cfg.steps))?;
@@ -165,10 +229,39 @@ pub fn fit_toy_with_progress(
         mse += slip_mse(&out.slip, &t)?.0 * n as f64;
         seen += n;
     }
+    if !(dice.is_finite() && mse.is_finite()) {
+        return Err(NetsError::Param(format!(
+            "lr: the trained subnet gives non-finite held-out metrics (dice {dice}, slip MSE \
+             {mse}); lower the learning rate {}",
+            cfg.lr
+        )));
+    }
     Ok(ToyResult {
         dice: dice / cfg.n_test as f64,
         slip_mse: mse / cfg.n_test as f64,
         train_loss: last,
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+#[cfg(test)]
+mod bad_input_tests {
+    use super::*;
+
+    fn refused(cfg: ToyConfig, field: &str) {
+        let e = fit_toy(&Arch::min(), &cfg).unwrap_err().to_string();
+        assert!(e.contains(field), "{field}: {e}");
+    }
+
+    #[test]
+    fn degenerate_or_huge_toy_configs_are_refused_without_allocating() {
+        let d = ToyConfig::default;
+        refused(ToyConfig { size: usize::MAX, batch: 2, ..d() }, "size");
+        refused(ToyConfig { size: 100_000_000, batch: 2, ..d() }, "size");
+        refused(ToyConfig { batch: 1_000_000_000_000, ..d() }, "batch");
+        refused(ToyConfig { batch: 1, ..d() }, "batch");
+        refused(ToyConfig { lr: 1e30, ..d() }, "lr");
+        refused(ToyConfig { lr: f64::NAN, ..d() }, "lr");
+        assert!(toy_batch(usize::MAX, 0, 0, 1).is_err());
+    }
 }
