@@ -6,8 +6,8 @@ pub mod state;
 pub mod truncnorm;
 
 pub use sets::{
-    AmbiguityPair, Capture, Protocol, StatesError, TableS2, Triplet, ambiguity, protocol,
-    variational,
+    AmbiguityPair, Capture, MAX_PROTOCOL_SUBJECTS, MAX_SET_ITEMS, Protocol, StatesError, TableS2,
+    Triplet, ambiguity, protocol, variational,
 };
 pub use state::{Mounting, State};
 pub use truncnorm::{TruncNormError, TruncNormal};

@@ -21,6 +21,16 @@ pub enum StatesError {
     /// The rig is invalid or a projection failed.
     #[error(transparent)]
     Geometry(#[from] GazeError),
+    /// More items were requested than the documented maximum (memory bound).
+    #[error("{what}: {n} requested, at most {max} (the set is held in memory)")]
+    TooMany {
+        /// What is counted (pairs, triplets, subjects).
+        what: &'static str,
+        /// Requested count.
+        n: usize,
+        /// Largest count accepted.
+        max: usize,
+    },
     /// No valid state was found within the attempt budget (the rig cannot see the pupil).
     #[error("item {index}: no valid state in {attempts} attempts: {why}")]
     Exhausted {
@@ -34,6 +44,21 @@ pub enum StatesError {
 }
 
 const MAX_ATTEMPTS: usize = 10_000;
+
+/// Most ambiguity pairs or variational triplets one call generates. A pair or triplet takes
+/// ≈0.3 KB in memory and ≈1 KB as JSON, so the cap keeps a set (and its JSONL text) far below
+/// 8 GiB.
+pub const MAX_SET_ITEMS: usize = 2_000_000;
+/// Most subjects of one protocol set (343 captures of ≈0.2 KB each per subject, ≈0.5 GB at
+/// the cap, ≈1.5 GB as JSON).
+pub const MAX_PROTOCOL_SUBJECTS: usize = 10_000;
+
+fn check_count(what: &'static str, n: usize, max: usize) -> Result<(), StatesError> {
+    if n > max {
+        return Err(StatesError::TooMany { what, n, max });
+    }
+    Ok(())
+}
 
 /// The per-item random stream for (`seed`, `set`, `index`).
 pub fn item_rng(seed: u64, set: u64, index: u64) -> ChaCha8Rng {
@@ -152,6 +177,7 @@ pub fn gaze_state_for_pixel(rig: &Rig, camera_state: &State, px: [f64; 2]) -> Op
 
 /// The ambiguity set: `n` pairs from `seed`.
 pub fn ambiguity(rig: &Rig, n: usize, seed: u64) -> Result<Vec<AmbiguityPair>, StatesError> {
+    check_count("ambiguity pairs", n, MAX_SET_ITEMS)?;
     rig.validate()?;
     let t = TableS2::paper();
     (0..n)
@@ -226,6 +252,7 @@ pub const GAZE_PLUS_TORSION_RAD: f64 = 0.1 * std::f64::consts::PI / 180.0;
 /// a uniformly random direction of the (φ, θ) plane, with δω ~ UNIFORM(−0.1°, 0.1°), so both
 /// finite differences sit equally far above the noise floor in the local linear regime.
 pub fn variational(rig: &Rig, n: usize, seed: u64) -> Result<Vec<Triplet>, StatesError> {
+    check_count("variational triplets", n, MAX_SET_ITEMS)?;
     rig.validate()?;
     let t = TableS2::paper();
     (0..n)
@@ -359,6 +386,7 @@ pub fn protocol(
     subjects: usize,
     seed: u64,
 ) -> Result<Vec<Capture>, StatesError> {
+    check_count("protocol subjects", subjects, MAX_PROTOCOL_SUBJECTS)?;
     rig.validate()?;
     let t = TableS2::paper();
     let per_subject: Result<Vec<Vec<Capture>>, StatesError> = (0..subjects)
@@ -402,4 +430,22 @@ pub fn protocol(
 /// Pixel of the pupil of `s` (convenience for callers that only hold a rig).
 pub fn pupil_px(rig: &Rig, s: &State) -> Result<[f64; 2], GazeError> {
     project(&rig.camera, &s.camera_pose(rig), s.pupil_center(rig))
+}
+
+#[cfg(test)]
+mod bad_input_tests {
+    use super::*;
+
+    #[test]
+    fn counts_beyond_the_memory_bound_are_refused_before_sampling() {
+        let rig = Rig::default();
+        let n = 1_000_000_000_000;
+        for e in [
+            ambiguity(&rig, n, 0).unwrap_err(),
+            variational(&rig, n, 0).unwrap_err(),
+            protocol(&rig, &Protocol::default(), n, 0).unwrap_err(),
+        ] {
+            assert!(matches!(e, StatesError::TooMany { n: 1_000_000_000_000, .. }), "{e}");
+        }
+    }
 }
