@@ -26,6 +26,14 @@ pub struct PtcResult {
     pub points: Vec<(f64, f64)>,
 }
 
+/// Most flat-field levels of one photon-transfer run.
+pub const MAX_PTC_LEVELS: usize = 4096;
+/// Largest side (px) of a photon-transfer flat field.
+pub const MAX_PTC_SIDE: usize = 4096;
+/// Most pixels simulated over all levels (levels × side²): a few seconds of work, and the
+/// bound that keeps a request from running for days.
+pub const MAX_PTC_PIXELS: usize = 1 << 30;
+
 /// Runs the photon-transfer measurement on `levels` flat fields of `side`×`side` pixels,
 /// from dark to 60 % of full well (quadratic spacing to pin the intercept), seeded by `seed`.
 pub fn photon_transfer(
@@ -46,6 +54,27 @@ pub fn photon_transfer(
             name: "side",
             value: side as f64,
             why: "need at least 8×8 pixels per flat field",
+        });
+    }
+    if levels > MAX_PTC_LEVELS {
+        return Err(SensorError::InvalidParameter {
+            name: "levels",
+            value: levels as f64,
+            why: "at most MAX_PTC_LEVELS (4096) flat-field levels",
+        });
+    }
+    if side > MAX_PTC_SIDE {
+        return Err(SensorError::InvalidParameter {
+            name: "side",
+            value: side as f64,
+            why: "at most MAX_PTC_SIDE (4096) pixels per side",
+        });
+    }
+    if levels * side * side > MAX_PTC_PIXELS {
+        return Err(SensorError::InvalidParameter {
+            name: "levels",
+            value: levels as f64,
+            why: "levels × side² exceeds MAX_PTC_PIXELS (2^30 simulated pixels)",
         });
     }
     let sensor = CmosSensor::new(cfg.clone())?;
@@ -100,13 +129,58 @@ pub fn photon_transfer(
     let slope = (sw * sxy - sx * sy) / det;
     let intercept = (sxx * sy - sx * sxy) / det;
     let q = if cfg.quantize { 1.0 / 12.0 } else { 0.0 };
+    let slope_se = (sw / det).sqrt();
+    let intercept_se = (sxx / det).sqrt();
+    if !(det > 0.0 && [slope, intercept, slope_se, intercept_se].iter().all(|v| v.is_finite())) {
+        // All flat fields read the same DN (the gain is too small for the ADC step to see any
+        // shot noise, or the signal is too weak): the line is not determined.
+        return Err(SensorError::InvalidParameter {
+            name: "gain_dn_per_e",
+            value: g,
+            why: "the flat fields show no measurable variance in DN, so the photon-transfer \
+                  line is undetermined (gain too small for the ADC step)",
+        });
+    }
     Ok(PtcResult {
         slope,
         slope_expected: g,
         intercept,
         intercept_expected: (g * cfg.read_noise_e).powi(2) + q,
-        slope_se: (sw / det).sqrt(),
-        intercept_se: (sxx / det).sqrt(),
+        slope_se,
+        intercept_se,
         points,
     })
+}
+
+#[cfg(test)]
+mod bad_input_tests {
+    use super::*;
+
+    fn name_of(e: SensorError) -> &'static str {
+        match e {
+            SensorError::InvalidParameter { name, .. } => name,
+            other => panic!("expected InvalidParameter, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn huge_counts_are_refused_before_allocating() {
+        let cfg = SensorConfig::default();
+        let e = photon_transfer(&cfg, usize::MAX, 8, 1).unwrap_err();
+        assert_eq!(name_of(e), "levels");
+        let e = photon_transfer(&cfg, 1_000_000_000_000, 8, 1).unwrap_err();
+        assert_eq!(name_of(e), "levels");
+        let e = photon_transfer(&cfg, 16, 1 << 20, 1).unwrap_err();
+        assert_eq!(name_of(e), "side");
+    }
+
+    #[test]
+    fn a_gain_too_small_to_measure_is_an_error_not_a_nan() {
+        let cfg = SensorConfig {
+            gain_dn_per_e: 1e-10,
+            ..SensorConfig::default()
+        };
+        let e = photon_transfer(&cfg, 8, 8, 1).unwrap_err();
+        assert_eq!(name_of(e), "gain_dn_per_e");
+    }
 }
