@@ -1,6 +1,6 @@
 //! Criterion benches: one PSF plane on the default rig (1 mm aperture, 64×64 window at 3 µm)
 //! against the bare FFTs the plane needs on the same grids (the floor): min(n, N_L) row and N_b column
-//! FFTs of the folded grid, and 2(N_b + W q) chirp-z FFTs of the window DFT.
+//! FFTs of the folded grid, and 2(N_b + W q + 2T) chirp-z FFTs of the window DFT.
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use nanoeye_optics::{ApertureGrid, AsmPsf, Hyperbolic, PhaseProfile, PsfConfig, PsfModel};
@@ -23,7 +23,7 @@ fn bench(c: &mut Criterion) {
         b.iter(|| pool.install(|| model.forward(&map, &depths, None).expect("psf")))
     });
     let (nl, nb) = model.sizes();
-    let wq = model.config().window_px * model.subpixels();
+    let wq = model.field_points();
     let lc = model.chirp_len();
     let mut planner = FftPlanner::<f64>::new();
     let fft = planner.plan_fft_forward(nl);

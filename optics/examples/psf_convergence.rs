@@ -105,7 +105,7 @@ fn main() {
     let grid = ApertureGrid::new(1e-3, 1.5e-6).unwrap();
     let model = AsmPsf::new(PsfConfig::default(), grid).unwrap();
     let (nl, nb) = model.sizes();
-    let wq = model.config().window_px * model.subpixels();
+    let wq = model.field_points();
     let lc = model.chirp_len();
     let map = Hyperbolic::default().phase_map(&grid).unwrap();
     // Per-plane cost inside a stack on one thread (aperture sampling and buffers amortized).

@@ -6,7 +6,9 @@
 //! a·e^{iφ} → spectrum sampled at spacing 1/L (the aperture field folded modulo the period L,
 //! then an N_L×N_L FFT; exact samples of its continuous spectrum) → × H(f) = e^{i2πs√(λ⁻²−f²)},
 //! zero outside the band of directions that can reach the window → separable window DFT onto
-//! q×q sub-pixel points of every sensor pixel, by chirp-z (`czt`) → |·|² summed per pixel →
+//! a uniform sub-pixel grid (q points per pixel side, at least the intensity's Nyquist rate,
+//! plus T points of margin), by chirp-z (`czt`) → |·|² → exact pixel integral of the
+//! band-limited intensity by a spectral quadrature (separable weights k, `pixel_kernel`) →
 //! ÷ power incident on the aperture. Sampling the spectrum at 1/L periodizes the sensor field with period L, so L must
 //! exceed the region of the sensor plane that holds light (see docs/optics.md).
 
@@ -17,7 +19,7 @@ use crate::profile::{PhaseMap, sag_phase};
 use faer::{Mat, c64};
 use rayon::prelude::*;
 use rustfft::{Fft, FftPlanner};
-use std::f64::consts::TAU;
+use std::f64::consts::{PI, TAU};
 use std::sync::Arc;
 
 /// Optical and sensor parameters of a PSF evaluation (SI units).
@@ -31,8 +33,10 @@ pub struct PsfConfig {
     pub pitch_m: f64,
     /// PSF window width W (pixels per side); the window is centred on `window_center_m`.
     pub window_px: usize,
-    /// Largest sub-pixel spacing (m) of the box integration; q = ⌈p / this⌉ points per pixel
-    /// side. `None`: 0.8·λs/(2D), i.e. finer than the intensity's Nyquist spacing.
+    /// Largest sub-pixel spacing (m) of the intensity samples the pixel integral is computed
+    /// from; q = ⌈p / δ_max⌉ points per pixel side. The spacing is always at most 0.8× the
+    /// intensity's Nyquist spacing 1/(4 f_b) (f_b the field's band limit), which this can only
+    /// tighten. `None`: 0.8/(4 f_b).
     pub max_subpixel_m: Option<f64>,
     /// Period L (m) of the spectral sampling (the padding). `None`: D + W·p.
     pub period_m: Option<f64>,
@@ -114,6 +118,18 @@ pub struct AsmPsf {
     weights: Mat<f64>,
     /// Sub-pixel points per pixel side.
     q: usize,
+    /// Margin (sub-pixel points) of the field grid beyond the window on every side: the
+    /// half-length of the sub-cell quadrature kernel.
+    taps: usize,
+    /// Field grid points per side: W q + 2T.
+    n_ext: usize,
+    /// Pixel-integral weights k_i (m), i < q + 2T: pixel r along an axis is
+    /// Σ_i k_i I[r q + i] over the field grid, and the plane is k ⊗ k applied to |V|².
+    kern: Vec<f64>,
+    /// Largest error of the sub-cell quadrature over the intensity's band, relative to δ.
+    quad_err: f64,
+    /// Band limit f_b (1/m) of the field per axis: the largest band frequency m_max / L.
+    f_band: f64,
     /// FFT size of the folded grid.
     n_fold: usize,
     /// Rows of the folded grid that hold aperture samples: min(n, N_L).
@@ -126,7 +142,8 @@ pub struct AsmPsf {
     /// |post_y[j]·post_x[k]|²: the window DFTs' post-multipliers are this modulus times a
     /// phase, which the intensity does not see, so they are left out of the field.
     post_gain: f64,
-    /// Window DFTs (Nb band samples → Wq sub-pixel points) for y and x, and their adjoints.
+    /// Window DFTs (Nb band samples → W q + 2T field grid points) for y and x, and their
+    /// adjoints.
     ey: ChirpOp,
     ex: ChirpOp,
     ey_adj: ChirpOp,
@@ -194,6 +211,86 @@ struct Workspace {
     m: Mat<c64>,
     t: Mat<c64>,
     v: Mat<c64>,
+    /// |V|² (or its upstream gradient), n_ext × n_ext.
+    iv: Mat<f64>,
+    /// Intensity integrated along x per field row, n_ext × W.
+    ix: Mat<f64>,
+}
+
+/// Oversampling of the intensity samples: spacing δ ≤ this / (2·intensity band).
+const OVERSAMPLE: f64 = 0.8;
+
+/// Target of the sub-cell quadrature's largest error over the intensity's band, relative to
+/// δ (the exact weight of a constant).
+const QUAD_TOL: f64 = 1e-10;
+
+fn sinc(x: f64) -> f64 {
+    if x == 0.0 {
+        1.0
+    } else {
+        (PI * x).sin() / (PI * x)
+    }
+}
+
+/// Sub-cell quadrature for band-limited functions sampled at spacing δ: weights c_n
+/// (n = −T..=T, c_{−n} = c_n, returned as c_0..=c_T in units of δ) with
+/// Σ_n c_n e^{i2πνnδ} = sinc(δν) for |δν| ≤ `xb`, so that Σ_n c_n f((j + n)δ) is the integral of
+/// f over [jδ − δ/2, jδ + δ/2] / δ for every f whose spectrum lies in |ν| ≤ xb/δ. Fitted by
+/// least squares (truncated SVD) on Chebyshev points of [0, xb]; returns the weights and the
+/// largest error of the fit on a grid of 4001 points.
+fn subcell_weights(xb: f64, t: usize) -> (Vec<f64>, f64) {
+    let m = 6 * (t + 1) + 64;
+    let xs: Vec<f64> = (0..m)
+        .map(|k| 0.5 * xb * (1.0 - (PI * (k as f64 + 0.5) / m as f64).cos()))
+        .collect();
+    let a = Mat::from_fn(m, t + 1, |k, n| {
+        let c = (TAU * xs[k] * n as f64).cos();
+        if n == 0 { c } else { 2.0 * c }
+    });
+    let mut c = vec![0.0; t + 1];
+    if let Ok(svd) = a.svd() {
+        let (u, sv, v) = (svd.U(), svd.S().column_vector(), svd.V());
+        let smax = sv[0];
+        for i in 0..=t {
+            if sv[i] < 1e-14 * smax {
+                continue;
+            }
+            let ub: f64 = (0..m).map(|k| u[(k, i)] * sinc(xs[k])).sum::<f64>() / sv[i];
+            for (n, cn) in c.iter_mut().enumerate() {
+                *cn += v[(n, i)] * ub;
+            }
+        }
+    }
+    let err = (0..=4000)
+        .map(|k| {
+            let x = xb * k as f64 / 4000.0;
+            let f = c[0]
+                + 2.0
+                    * (1..=t)
+                        .map(|n| c[n] * (TAU * x * n as f64).cos())
+                        .sum::<f64>();
+            (f - sinc(x)).abs()
+        })
+        .fold(0.0, f64::max);
+    (c, err)
+}
+
+/// The shortest sub-cell quadrature (T ≤ 160) whose error is ≤ [`QUAD_TOL`], or the best found.
+fn subcell_quadrature(xb: f64) -> (Vec<f64>, f64) {
+    let mut best: Option<(Vec<f64>, f64)> = None;
+    let mut t = 4usize;
+    while t <= 160 {
+        let (c, err) = subcell_weights(xb, t);
+        let done = err <= QUAD_TOL;
+        if best.as_ref().is_none_or(|b| err < b.1) {
+            best = Some((c, err));
+        }
+        if done {
+            break;
+        }
+        t += (t / 4).max(2);
+    }
+    best.unwrap_or_else(|| (vec![1.0], f64::INFINITY))
 }
 
 impl AsmPsf {
@@ -220,20 +317,16 @@ impl AsmPsf {
         let d = grid.diameter_m;
         let delta = grid.pitch_m;
         let w = cfg.window_px;
-        let sub_max = match cfg.max_subpixel_m {
-            Some(v) => positive("max_subpixel_m", v)?,
-            None => 0.8 * lam * s / (2.0 * d),
+        let user_sub = match cfg.max_subpixel_m {
+            Some(v) => Some(positive("max_subpixel_m", v)?),
+            None => None,
         };
-        let q = (p / sub_max - 1e-9).ceil().max(1.0) as usize;
-        if w * q > 8192 {
-            return Err(OpticsError::param(
-                "max_subpixel_m",
-                format!("{w}×{q} sub-pixel points per side is too many (max 8192)"),
-            ));
-        }
+        // Margin (m) beyond the window over which the band is tapered: 4√(λs), four Fresnel
+        // lengths, so the taper's own diffraction stays outside the window.
+        let margin = 4.0 * (lam * s).sqrt();
         let period = match cfg.period_m {
             Some(v) => positive("period_m", v)?,
-            None => d + w as f64 * p,
+            None => d + w as f64 * p + margin,
         };
         let n_fold = fast_fft_size(((period / delta) - 1e-9).ceil().max(2.0) as usize);
         if n_fold > 16384 {
@@ -244,8 +337,10 @@ impl AsmPsf {
         }
         let l_eff = n_fold as f64 * delta;
         let df = 1.0 / l_eff;
-        // Directions whose rays from the aperture can land in the window (per axis), capped
-        // below the grid's Nyquist frequency and the evanescent cut.
+        // Directions whose rays from the aperture can land in the window (per axis): H is 1
+        // there, and falls to 0 (raised cosine per axis) by the directions that land `margin`
+        // beyond the window; the band edge is capped below the grid's Nyquist frequency and the
+        // evanescent cut.
         let half_win = 0.5 * w as f64 * p;
         let reach = 0.5 * d
             + half_win
@@ -254,27 +349,68 @@ impl AsmPsf {
                 .max(cfg.window_center_m[1].abs());
         let t = reach / s;
         let f_reach = t / (lam * (1.0 + t * t).sqrt());
-        let f_b = f_reach.min(0.5 / delta * (1.0 - 1e-9)).min(1.0 / lam);
+        // Band edge: the taper runs from the directions that reach the window to those that land
+        // a Fresnel-scale margin beyond it.
+        let t_b = (reach + margin) / s;
+        let f_b = (t_b / (lam * (1.0 + t_b * t_b).sqrt()))
+            .min(0.5 / delta * (1.0 - 1e-9))
+            .min(1.0 / lam);
+        let f_1 = f_reach.min(f_b);
         let m_max = (f_b / df).floor() as i64;
         let band: Vec<i64> = (-m_max..=m_max).collect();
         let nb = band.len();
+        let f_band = m_max as f64 * df;
+        // |V|² is band-limited to 2 f_b per axis: sample it at δ ≤ 0.8/(4 f_b), and integrate
+        // each sub-cell exactly (to QUAD_TOL) from the 2T+1 nearest samples.
+        let nyq = OVERSAMPLE / (4.0 * f_band.max(1e-300));
+        let sub_max = user_sub.map_or(nyq, |v| v.min(nyq));
+        let q = (p / sub_max - 1e-9).ceil().max(1.0) as usize;
+        let sub = p / q as f64;
+        let (cw, quad_err) = subcell_quadrature(2.0 * f_band * sub);
+        let taps = cw.len() - 1;
+        let n_ext = w * q + 2 * taps;
+        if n_ext > 8192 {
+            return Err(OpticsError::param(
+                "max_subpixel_m",
+                format!("{w}×{q} (+{taps} margin) points per side is too many (max 8192)"),
+            ));
+        }
+        // Pixel weights: the q sub-cells of a pixel, each with the 2T+1 weights around it.
+        let mut kern = vec![0.0; q + 2 * taps];
+        for j in 0..q {
+            for (n, &c) in cw.iter().enumerate() {
+                kern[taps + j + n] += c * sub;
+                if n > 0 {
+                    kern[taps + j - n] += c * sub;
+                }
+            }
+        }
         let k_inv2 = 1.0 / (lam * lam);
         let h_raw = Mat::from_fn(nb, nb, |a, b| {
             let (fy, fx) = (band[a] as f64 * df, band[b] as f64 * df);
             let arg = k_inv2 - fx * fx - fy * fy;
+            let tau = |f: f64| {
+                let f = f.abs();
+                if f <= f_1 {
+                    1.0
+                } else if f >= f_b {
+                    0.0
+                } else {
+                    0.5 * (1.0 + (PI * (f - f_1) / (f_b - f_1)).cos())
+                }
+            };
             if arg <= 0.0 {
                 c64::new(0.0, 0.0)
             } else {
-                c64::from_polar(delta * delta, TAU * s * arg.sqrt())
+                c64::from_polar(delta * delta * tau(fx) * tau(fy), TAU * s * arg.sqrt())
             }
         });
         let c = (grid.n as f64 - 1.0) * 0.5 * delta;
-        let sub = p / q as f64;
         let mut planner = FftPlanner::<f64>::new();
-        // Sub-pixel j sits at y_j = centre − W p/2 + (j + ½)δ; the grid's origin is at −c.
+        // Field point j sits at y_j = centre − W p/2 + (j − T + ½)δ; the grid's origin is at −c.
         let mut make_e = |center: f64| {
-            let y0 = center - half_win + 0.5 * sub + c;
-            ChirpOp::window_dft(&mut planner, -m_max, nb, w * q, df, y0, sub)
+            let y0 = center - half_win + (0.5 - taps as f64) * sub + c;
+            ChirpOp::window_dft(&mut planner, -m_max, nb, n_ext, df, y0, sub)
         };
         let (ey, ey_adj) = make_e(cfg.window_center_m[1]);
         let (ex, ex_adj) = make_e(cfg.window_center_m[0]);
@@ -296,6 +432,11 @@ impl AsmPsf {
             grid,
             weights,
             q,
+            taps,
+            n_ext,
+            kern,
+            quad_err,
+            f_band,
             n_fold,
             fold_rows: grid.n.min(n_fold),
             band,
@@ -326,12 +467,33 @@ impl AsmPsf {
         self.q
     }
 
+    /// Margin T (field grid points beyond the window on each side) of the pixel integral.
+    pub fn quadrature_margin(&self) -> usize {
+        self.taps
+    }
+
+    /// Field grid points per side evaluated by the window DFT: W q + 2T.
+    pub fn field_points(&self) -> usize {
+        self.n_ext
+    }
+
+    /// Largest error of the sub-cell quadrature over the intensity's band, relative to the
+    /// exact weight (a bound on the pixel integral's error relative to ∫|Î|, per axis).
+    pub fn quadrature_error(&self) -> f64 {
+        self.quad_err
+    }
+
+    /// Band limit f_b (1/m) of the propagated field per axis.
+    pub fn band_limit(&self) -> f64 {
+        self.f_band
+    }
+
     /// FFT size N_L of the folded spectral grid and the number of band frequencies per axis.
     pub fn sizes(&self) -> (usize, usize) {
         (self.n_fold, self.band.len())
     }
 
-    /// FFT length of the chirp-z window DFT along y (≥ N_b + W q − 1).
+    /// FFT length of the chirp-z window DFT along y (≥ N_b + W q + 2T − 1).
     pub fn chirp_len(&self) -> usize {
         self.ey.len()
     }
@@ -441,7 +603,7 @@ impl AsmPsf {
     fn workspace(&self) -> Workspace {
         let nl = self.n_fold;
         let nb = self.band.len();
-        let wq = self.cfg.window_px * self.q;
+        let ne = self.n_ext;
         let ops = [&self.ey, &self.ex, &self.ey_adj, &self.ex_adj];
         let scratch_len = ops
             .iter()
@@ -455,8 +617,10 @@ impl AsmPsf {
             cols: vec![c64::new(0.0, 0.0); COL_CHUNK * nl],
             scratch: vec![c64::new(0.0, 0.0); scratch_len],
             m: Mat::zeros(nb, nb),
-            t: Mat::zeros(wq, nb),
-            v: Mat::zeros(wq, wq),
+            t: Mat::zeros(ne, nb),
+            v: Mat::zeros(ne, ne),
+            iv: Mat::zeros(ne, ne),
+            ix: Mat::zeros(ne, self.cfg.window_px),
         }
     }
 
@@ -465,7 +629,7 @@ impl AsmPsf {
         m.rem_euclid(self.n_fold as i64) as usize
     }
 
-    /// Sensor-window field V (Wq×Wq) for depth z, left in `ws.v`, up to the unit-modulus
+    /// Field V on the (W q + 2T)² grid for depth z, left in `ws.v`, up to the unit-modulus
     /// post-multipliers of the window DFTs (|V|² = `post_gain`·|ws.v|²).
     fn field(&self, samples: &Samples, z: f64, ws: &mut Workspace) {
         let nl = self.n_fold;
@@ -500,7 +664,7 @@ impl AsmPsf {
         }
         // T = E_y M (down the columns of M), V = T E_xᵀ (along the rows of T).
         let (m, t, v) = (&ws.m, &mut ws.t, &mut ws.v);
-        let wq = t.nrows();
+        let ne = t.nrows();
         self.ey.apply_conv(
             nb,
             &mut ws.cbuf,
@@ -509,7 +673,7 @@ impl AsmPsf {
             |b, j, y| t[(j, b)] = y,
         );
         self.ex.apply_conv(
-            wq,
+            ne,
             &mut ws.cbuf,
             &mut ws.scratch,
             |r, b| t[(r, b)],
@@ -517,23 +681,37 @@ impl AsmPsf {
         );
     }
 
-    fn plane_from_field(&self, v: &Mat<c64>) -> Mat<f64> {
-        let q = self.q;
-        let w = self.cfg.window_px;
-        let sub = self.cfg.pitch_m / q as f64;
-        let scale = sub * sub * self.post_gain / self.p_in;
-        let mut out = Mat::<f64>::zeros(w, w);
-        for c in 0..w * q {
-            for r in 0..w * q {
-                out[(r / q, c / q)] += v[(r, c)].norm_sqr();
+    /// Pixel integrals of |V|²: out = K (|V|²) Kᵀ with K[r, r q + i] = k_i (W × (W q + 2T)),
+    /// scaled by |post|²/P_in. Uses `ws.iv` and `ws.ix`.
+    fn plane_from_field(&self, ws: &mut Workspace) -> Mat<f64> {
+        let (q, w, ne) = (self.q, self.cfg.window_px, self.n_ext);
+        let scale = self.post_gain / self.p_in;
+        for c in 0..ne {
+            let vc = ws.v.col_as_slice(c);
+            for (i, v) in ws.iv.col_as_slice_mut(c).iter_mut().zip(vc) {
+                *i = v.norm_sqr();
             }
         }
+        // Along x: ix[:, c] = Σ_i k_i iv[:, c q + i] (contiguous columns).
         for c in 0..w {
-            for r in 0..w {
-                out[(r, c)] *= scale;
+            let acc = ws.ix.col_as_slice_mut(c);
+            acc.fill(0.0);
+            for (i, &k) in self.kern.iter().enumerate() {
+                for (a, &v) in acc.iter_mut().zip(ws.iv.col_as_slice(c * q + i)) {
+                    *a += k * v;
+                }
             }
         }
-        out
+        // Along y: out[r, c] = Σ_i k_i ix[r q + i, c].
+        Mat::from_fn(w, w, |r, c| {
+            let col = ws.ix.col_as_slice(c);
+            self.kern
+                .iter()
+                .enumerate()
+                .map(|(i, &k)| k * col[r * q + i])
+                .sum::<f64>()
+                * scale
+        })
     }
 
     /// PSF of one depth `depth_m` (m) in f64 (W×W, fraction of incident power per pixel).
@@ -543,7 +721,7 @@ impl AsmPsf {
         let samples = self.samples(map);
         let mut ws = self.workspace();
         self.field(&samples, depth_m, &mut ws);
-        Ok(self.plane_from_field(&ws.v))
+        Ok(self.plane_from_field(&mut ws))
     }
 
     /// PSF planes in f64 (zero where not active).
@@ -576,7 +754,7 @@ impl AsmPsf {
                     }
                     let ws = ws.get_or_insert_with(|| self.workspace());
                     self.field(&samples, z, ws);
-                    Some(self.plane_from_field(&ws.v))
+                    Some(self.plane_from_field(ws))
                 },
             )
             .collect())
@@ -737,15 +915,32 @@ impl AsmPsf {
         ga: &mut [f64],
     ) {
         self.field(samples, z, ws);
-        let q = self.q;
-        let sub = self.cfg.pitch_m / q as f64;
-        let scale = 2.0 * sub * sub * self.post_gain / self.p_in;
-        let wq = self.cfg.window_px * q;
-        // gV = 2 g δ² |post|²/P · V (Wirtinger gradient of |V|²), written over V in place.
-        for c in 0..wq {
-            for r in 0..wq {
-                let f = g[(r / q, c / q)] * scale;
-                ws.v[(r, c)] *= f;
+        let (q, w, ne) = (self.q, self.cfg.window_px, self.n_ext);
+        let scale = 2.0 * self.post_gain / self.p_in;
+        // ∂/∂|V|² = Kᵀ g K (the transpose of `plane_from_field`'s two passes), into ws.iv.
+        ws.ix.fill(0.0);
+        for c in 0..w {
+            let col = ws.ix.col_as_slice_mut(c);
+            for r in 0..w {
+                let gv = g[(r, c)];
+                for (i, &k) in self.kern.iter().enumerate() {
+                    col[r * q + i] += k * gv;
+                }
+            }
+        }
+        ws.iv.fill(0.0);
+        for c in 0..w {
+            for (i, &k) in self.kern.iter().enumerate() {
+                let (src, dst) = (ws.ix.col_as_slice(c), ws.iv.col_as_slice_mut(c * q + i));
+                for (d, &v) in dst.iter_mut().zip(src) {
+                    *d += k * v;
+                }
+            }
+        }
+        // gV = 2 (∂/∂|V|²) |post|²/P · V (Wirtinger gradient of |V|²), written over V in place.
+        for c in 0..ne {
+            for r in 0..ne {
+                ws.v[(r, c)] *= ws.iv[(r, c)] * scale;
             }
         }
         // V = K_y M K_xᵀ (bare convolutions, diagonals folded into H) ⇒ gT = gV·conj(K_x)
@@ -753,7 +948,7 @@ impl AsmPsf {
         let (m, t, v) = (&mut ws.m, &mut ws.t, &ws.v);
         let nb = self.band.len();
         self.ex_adj.apply_conv(
-            wq,
+            ne,
             &mut ws.cbuf,
             &mut ws.scratch,
             |r, j| v[(r, j)],

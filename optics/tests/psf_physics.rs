@@ -15,7 +15,7 @@ const LAMBDA: f64 = 940e-9;
 
 /// In-focus PSF of a hyperbolic lens of diameter `d` at lens–sensor distance `s` (object at
 /// 12.5 s), on pixels of `pitch` (2×2 sub-points each), aperture sampled at `dx`.
-fn airy_plane(d: f64, s: f64, dx: f64, pitch: f64, w: usize, period: f64) -> Mat<f64> {
+fn airy_plane(d: f64, s: f64, dx: f64, pitch: f64, w: usize, period: Option<f64>) -> Mat<f64> {
     let grid = ApertureGrid::new(d, dx).unwrap();
     let lens = Hyperbolic {
         wavelength_m: LAMBDA,
@@ -28,7 +28,7 @@ fn airy_plane(d: f64, s: f64, dx: f64, pitch: f64, w: usize, period: f64) -> Mat
         pitch_m: pitch,
         window_px: w,
         max_subpixel_m: Some(0.5 * pitch),
-        period_m: Some(period),
+        period_m: period,
         ..PsfConfig::default()
     };
     let model = AsmPsf::new(cfg, grid).unwrap();
@@ -102,7 +102,7 @@ fn parabolic_min(x1: f64, h: f64, y0: f64, y1: f64, y2: f64) -> f64 {
 #[test]
 fn in_focus_hyperbolic_is_airy() {
     let (d, s, pitch) = (750e-6, 7.5e-3, 0.25e-6);
-    let p = airy_plane(d, s, 3e-6, pitch, 128, 0.2e-3);
+    let p = airy_plane(d, s, 3e-6, pitch, 128, Some(0.2e-3));
     let airy = 1.2197 * LAMBDA * s / d;
     let (r0, ee) = first_zero_and_ee(&p, pitch, 0.5 * airy, airy);
     assert!(
@@ -153,11 +153,13 @@ fn nonparaxial_first_zero(na: f64) -> f64 {
 /// The default rig (D = 1 mm, s = 2 mm, F/2) is not paraxial: the marginal ray's sine is
 /// 0.2425, not D/2s = 0.25, and the pupil is weighted by 1/cos²θ, so the first dark ring sits
 /// at 2.344 µm, not at the paraxial 2.293 µm (2.2 % apart). Asserted against the
-/// non-paraxial zero to 0.5 %, with the Airy encircled energy inside it.
+/// non-paraxial zero to 0.5 % (the model, 0.1 µm pixels, W = 120, Δ = 1 µm, default period,
+/// gives 2.3516 µm by this profile-minimum estimate), with the non-paraxial encircled energy
+/// inside it, 82.8 % (the model: 82.79 %), not the paraxial Airy 83.8 %.
 #[test]
 fn in_focus_default_rig_first_ring() {
     let (d, s, pitch) = (1e-3, 2e-3, 0.1e-6);
-    let p = airy_plane(d, s, 1e-6, pitch, 120, 0.1e-3);
+    let p = airy_plane(d, s, 1e-6, pitch, 120, None);
     let paraxial = 1.2197 * LAMBDA * s / d;
     let na = (0.5 * d / s).atan().sin();
     let exact = nonparaxial_first_zero(na);
@@ -177,7 +179,7 @@ fn in_focus_default_rig_first_ring() {
         "first ring {r0:e} vs {exact:e}"
     );
     assert!(
-        (ee_r0 - 0.838).abs() < 0.005,
+        (ee_r0 - 0.828).abs() < 0.002,
         "encircled energy inside the first ring {ee_r0}"
     );
 }
