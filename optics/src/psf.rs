@@ -5,7 +5,7 @@
 //! Per depth z: point source → spherical wave e^{ik(r−z)} over the pupil → pupil weight ·
 //! a·e^{iφ} → spectrum sampled at spacing 1/L (the aperture field folded modulo the period L,
 //! then an N_L×N_L FFT; exact samples of its continuous spectrum) → × H(f) = e^{i2πs√(λ⁻²−f²)},
-//! zero outside the band of directions that can reach the window → separable window DFT onto
+//! tapered to zero beyond the directions that can reach the window → separable window DFT onto
 //! a uniform sub-pixel grid (q points per pixel side, at least the intensity's Nyquist rate,
 //! plus T points of margin), by chirp-z (`czt`) → |·|² → exact pixel integral of the
 //! band-limited intensity by a spectral quadrature (separable weights k, `pixel_kernel`) →
@@ -38,7 +38,7 @@ pub struct PsfConfig {
     /// intensity's Nyquist spacing 1/(4 f_b) (f_b the field's band limit), which this can only
     /// tighten. `None`: 0.8/(4 f_b).
     pub max_subpixel_m: Option<f64>,
-    /// Period L (m) of the spectral sampling (the padding). `None`: D + W·p.
+    /// Period L (m) of the spectral sampling (the padding). `None`: D + W·p + 4√(λs).
     pub period_m: Option<f64>,
     /// Lateral position (x, y) of the point source (m); (0, 0) is on axis.
     pub source_xy_m: [f64; 2],
