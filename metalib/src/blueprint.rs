@@ -52,6 +52,29 @@ pub struct Blueprint {
     pub max_phase_error_rad: f64,
 }
 
+/// Largest |phase| (rad) a phase-map site may hold: beyond it f64 rounding alone exceeds
+/// 1e-7 rad, so the wrapped target would be wrong (1e308 gave a 2.6 rad error).
+pub const MAX_ABS_PHASE_RAD: f64 = 1e9;
+
+impl BlueprintOptions {
+    /// Checks the options before any work: vertex count, diameter grid.
+    pub fn validate(&self) -> Result<(), MetalibError> {
+        if self.circle_vertices < 8 || self.circle_vertices > 8190 {
+            return Err(MetalibError::param(
+                "circle_vertices",
+                format!("must be in 8..=8190, got {}", self.circle_vertices),
+            ));
+        }
+        if !(self.diameter_step_m.is_finite() && self.diameter_step_m >= 0.0) {
+            return Err(MetalibError::param(
+                "diameter_step",
+                "must be finite and >= 0",
+            ));
+        }
+        Ok(())
+    }
+}
+
 fn wrap(x: f64) -> f64 {
     (x + PI).rem_euclid(2.0 * PI) - PI
 }
@@ -70,13 +93,33 @@ pub fn invert_phase_map(
             format!("map of {} values is not {rows}×{cols}", phase.len()),
         ));
     }
-    if !(opt.diameter_step_m.is_finite() && opt.diameter_step_m >= 0.0) {
+    opt.validate()?;
+    if let Some((k, v)) = phase
+        .iter()
+        .enumerate()
+        .find(|(_, v)| v.is_infinite() || v.abs() > MAX_ABS_PHASE_RAD)
+    {
         return Err(MetalibError::param(
-            "diameter_step",
-            "must be finite and >= 0",
+            "phase",
+            format!(
+                "site (row {}, col {}) holds {v}; phases must be finite with |φ| ≤ \
+                 {MAX_ABS_PHASE_RAD:e} rad (NaN marks a site without a pillar)",
+                k / cols,
+                k % cols
+            ),
         ));
     }
     let (dlo, dhi) = lib.diameter_range_m();
+    let pitch = lib.pitch_m();
+    if dhi > pitch {
+        return Err(MetalibError::param(
+            "library",
+            format!(
+                "largest diameter {dhi} m exceeds the lattice pitch {pitch} m: neighbouring \
+                 pillars would overlap"
+            ),
+        ));
+    }
     let (cy, cx) = ((rows as f64 - 1.0) / 2.0, (cols as f64 - 1.0) / 2.0);
     let rad = rows.min(cols) as f64 / 2.0;
     let mut diam = vec![f64::NAN; rows * cols];
@@ -179,14 +222,24 @@ pub fn gdsii(
     pitch_m: f64,
     opt: &BlueprintOptions,
 ) -> Result<Vec<u8>, MetalibError> {
-    if opt.circle_vertices < 8 || opt.circle_vertices > 8190 {
-        return Err(MetalibError::param(
-            "circle_vertices",
-            "must be in 8..=8190",
-        ));
-    }
+    opt.validate()?;
     if !(pitch_m.is_finite() && pitch_m > 0.0) {
         return Err(MetalibError::param("pitch", "must be finite and > 0"));
+    }
+    if let Some(d) = bp
+        .diameters_m
+        .iter()
+        .copied()
+        .filter(|d| d.is_finite())
+        .find(|&d| d > pitch_m)
+    {
+        return Err(MetalibError::param(
+            "pitch",
+            format!(
+                "pillar diameter {d} m exceeds the pitch {pitch_m} m: neighbouring pillars \
+                 would overlap"
+            ),
+        ));
     }
     let extent = pitch_m * bp.rows.max(bp.cols) as f64 / GDS_DB_UNIT_M;
     if extent > 2.0e9 {
@@ -256,4 +309,55 @@ pub fn preview_png(bp: &Blueprint, dmin: f64, dmax: f64) -> Result<Vec<u8>, Meta
         }
     }
     c.png()
+}
+
+#[cfg(test)]
+mod bad_input_tests {
+    use super::*;
+    use crate::library::TabulatedLibrary;
+
+    fn lib(pitch_m: f64, dmax_m: f64) -> TabulatedLibrary {
+        let n = 64;
+        let d: Vec<f64> = (0..n)
+            .map(|i| 100e-9 + (dmax_m - 100e-9) * i as f64 / (n - 1) as f64)
+            .collect();
+        let phase: Vec<f64> = (0..n)
+            .map(|i| 2.2 * PI * i as f64 / (n - 1) as f64)
+            .collect();
+        TabulatedLibrary::new(700e-9, pitch_m, 940e-9, d, &phase, vec![0.95; n], 1.45).unwrap()
+    }
+
+    #[test]
+    fn infinite_and_huge_phases_are_refused_nan_is_empty() {
+        let l = lib(500e-9, 400e-9);
+        let opt = BlueprintOptions {
+            circular_aperture: false,
+            ..BlueprintOptions::default()
+        };
+        for bad in [f64::INFINITY, f64::NEG_INFINITY, 1e308] {
+            let e = invert_phase_map(&l, &[0.0, bad, 1.0, f64::NAN], 2, 2, &opt).unwrap_err();
+            assert!(e.to_string().contains("row 0, col 1"), "{e}");
+        }
+        let bp = invert_phase_map(&l, &[0.0, 2.0, 1.0, f64::NAN], 2, 2, &opt).unwrap();
+        assert_eq!(bp.pillars, 3);
+    }
+
+    #[test]
+    fn pillars_wider_than_the_pitch_are_refused() {
+        let opt = BlueprintOptions {
+            circular_aperture: false,
+            ..BlueprintOptions::default()
+        };
+        let wide = lib(300e-9, 450e-9);
+        assert!(invert_phase_map(&wide, &[0.0, 6.0], 1, 2, &opt).is_err());
+        let l = lib(500e-9, 400e-9);
+        let bp = invert_phase_map(&l, &[0.0, 6.0], 1, 2, &opt).unwrap();
+        assert!(gdsii(&bp, 300e-9, &opt).is_err());
+        assert!(gdsii(&bp, 500e-9, &opt).is_ok());
+        let few = BlueprintOptions {
+            circle_vertices: 4,
+            ..opt
+        };
+        assert!(few.validate().is_err());
+    }
 }

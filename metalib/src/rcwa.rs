@@ -55,6 +55,14 @@ pub const DEFAULT_RULE: Rule = Rule::Nv;
 pub const DEFAULT_HARMONICS: usize = 10;
 /// Largest accepted truncation order (the dense eigenproblem grows as N⁶).
 pub const MAX_HARMONICS: usize = 40;
+/// Slack on energy conservation (R, T ∈ [0, 1], R + T ≤ 1) before a solve counts as failed.
+pub const ENERGY_TOLERANCE: f64 = 0.05;
+/// Wavelengths (m) the solver accepts: near-UV to far-IR. Far outside, the optical constants
+/// are meaningless and the eigenproblem ill-conditioned (1 km gave R = −98304).
+pub const WAVELENGTH_RANGE_M: (f64, f64) = (1e-7, 1e-4);
+/// Largest pitch / wavelength ratio: beyond it the retained orders cannot resolve the
+/// propagating ones (1e-3 nm at a 530 nm pitch gave R = 4.9e6).
+pub const MAX_PITCH_PER_WAVELENGTH: f64 = 20.0;
 /// Modes whose one-way amplitude factor |e^{iγk₀h}| is below this are dropped from the
 /// height-dependent multiple-reflection solve of [`LayerModes::at_height`] (their contribution
 /// is below this size; R + T = 1 holds to ~1e-12 for lossless pillars).
@@ -94,8 +102,27 @@ impl CellSpec {
         if !(self.wavelength_m.is_finite() && self.wavelength_m > 0.0) {
             return Err(MetalibError::param("wavelength", "must be finite and > 0"));
         }
+        let (lo, hi) = WAVELENGTH_RANGE_M;
+        if !(lo..=hi).contains(&self.wavelength_m) {
+            return Err(MetalibError::param(
+                "wavelength",
+                format!(
+                    "{} m lies outside the supported range [{lo:e}, {hi:e}] m",
+                    self.wavelength_m
+                ),
+            ));
+        }
         if !(self.pitch_m.is_finite() && self.pitch_m > 0.0) {
             return Err(MetalibError::param("pitch", "must be finite and > 0"));
+        }
+        if self.pitch_m > MAX_PITCH_PER_WAVELENGTH * self.wavelength_m {
+            return Err(MetalibError::param(
+                "pitch",
+                format!(
+                    "pitch {} m exceeds {MAX_PITCH_PER_WAVELENGTH} wavelengths ({} m)",
+                    self.pitch_m, self.wavelength_m
+                ),
+            ));
         }
         if !(self.diameter_m.is_finite() && self.diameter_m >= 0.0) {
             return Err(MetalibError::param("diameter", "must be finite and >= 0"));
@@ -874,6 +901,17 @@ impl LayerModes {
         if !(res.t.re.is_finite() && res.t.im.is_finite() && res.reflectance.is_finite()) {
             return Err(MetalibError::Numerical("non-finite cell response".into()));
         }
+        // Passive structure: powers lie in [0, 1] and R + T ≤ 1. A gross violation means the
+        // modal solution broke down numerically (e.g. a wavelength far from the pitch scale);
+        // such a cell is a failure, not a result.
+        let tol = ENERGY_TOLERANCE;
+        let (r, t) = (res.reflectance, res.transmitted_total);
+        if !(r >= -tol && t >= -tol && res.transmittance >= -tol && r + t <= 1.0 + tol) {
+            return Err(MetalibError::Numerical(format!(
+                "energy conservation violated (R = {r}, T = {t}): the solution is numerically \
+                 unreliable for this wavelength, pitch and harmonic count"
+            )));
+        }
         Ok(res)
     }
 }
@@ -885,6 +923,21 @@ pub fn solve_cell(spec: &CellSpec, height_m: f64) -> Result<CellResult, MetalibE
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn wavelengths_outside_the_safe_range_are_refused() {
+        for (wl, pitch) in [(1e3, 530e-9), (1e-12, 530e-9), (100e-9, 3e-6)] {
+            let spec = CellSpec {
+                wavelength_m: wl,
+                pitch_m: pitch,
+                diameter_m: 0.4 * pitch,
+                materials: Materials::default(),
+                harmonics: 2,
+                rule: DEFAULT_RULE,
+            };
+            assert!(spec.validate().is_err(), "{wl} {pitch}");
+        }
+    }
     use super::*;
     use crate::material::Materials;
 

@@ -2,7 +2,7 @@
 
 use crate::error::MetalibError;
 use crate::plot::{Canvas, Curve, colormap, curves_svg, heatmap_svg};
-use crate::sweep::{SweepData, write_atomic};
+use crate::sweep::{SweepData, check_output_target, write_atomic};
 use rayon::prelude::*;
 use std::f64::consts::PI;
 use std::path::Path;
@@ -249,6 +249,17 @@ pub fn write_figures(
     mark: Option<(f64, f64)>,
     curve_pitch_m: f64,
 ) -> Result<Vec<String>, MetalibError> {
+    for (name, v) in [
+        ("mark", mark.map_or(1.0, |m| m.0.min(m.1))),
+        ("curve_pitch_m", curve_pitch_m),
+    ] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(MetalibError::param(
+                name,
+                format!("must be finite and > 0, got {v}"),
+            ));
+        }
+    }
     std::fs::create_dir_all(dir).map_err(|e| MetalibError::Io {
         path: dir.display().to_string(),
         source: e,
@@ -262,7 +273,9 @@ pub fn write_figures(
             .unwrap_or(0)
     };
     let mark_idx = mark.map(|(h, s)| (nearest(&data.heights_m, h), nearest(&data.pitches_m, s)));
-    let mut written = Vec::new();
+    // Everything is rendered in memory first and written only when every figure succeeded,
+    // so a failure never leaves a half-updated figure directory.
+    let mut files: Vec<(std::path::PathBuf, Vec<u8>)> = Vec::new();
     let min_tau: Vec<f64> = sel.iter().map(|p| p.min_transmittance_2pi).collect();
     let aspect: Vec<f64> = sel.iter().map(|p| p.max_aspect_ratio).collect();
     let viable: Vec<f64> = sel
@@ -303,8 +316,7 @@ pub fn write_figures(
         ),
     ] {
         let p = dir.join(format!("{name}.png"));
-        write_atomic(&p, &heatmap(vals, nh, ns, lo, hi, mark_idx).png()?)?;
-        written.push(p.display().to_string());
+        files.push((p, heatmap(vals, nh, ns, lo, hi, mark_idx).png()?));
         let svg = heatmap_svg(
             title,
             bar,
@@ -314,9 +326,7 @@ pub fn write_figures(
             (lo, hi),
             mark_idx,
         )?;
-        let p = dir.join(format!("{name}.svg"));
-        write_atomic(&p, svg.as_bytes())?;
-        written.push(p.display().to_string());
+        files.push((dir.join(format!("{name}.svg")), svg.into_bytes()));
     }
     // Fig. S5: unwrapped phase vs diameter at the chosen pitch for every 100 nm of height.
     let is = nearest(&data.pitches_m, curve_pitch_m);
@@ -376,9 +386,7 @@ pub fn write_figures(
             }
         }
     }
-    let p = dir.join("figS5_phase_curves.png");
-    write_atomic(&p, &c.png()?)?;
-    written.push(p.display().to_string());
+    files.push((dir.join("figS5_phase_curves.png"), c.png()?));
     if !curves.is_empty() {
         let svg = curves_svg(
             &format!(
@@ -389,12 +397,16 @@ pub fn write_figures(
             "phase − phase at the smallest d (rad)",
             &curves,
         )?;
-        let p = dir.join("figS5_phase_curves.svg");
-        write_atomic(&p, svg.as_bytes())?;
+        files.push((dir.join("figS5_phase_curves.svg"), svg.into_bytes()));
+    }
+    files.push((dir.join("figS5_phase_curves.csv"), csv.into_bytes()));
+    for (p, _) in &files {
+        check_output_target(p)?;
+    }
+    let mut written = Vec::with_capacity(files.len());
+    for (p, bytes) in files {
+        write_atomic(&p, &bytes)?;
         written.push(p.display().to_string());
     }
-    let p = dir.join("figS5_phase_curves.csv");
-    write_atomic(&p, csv.as_bytes())?;
-    written.push(p.display().to_string());
     Ok(written)
 }

@@ -3,7 +3,8 @@
 //! Layout of an output directory: `manifest.json`, `phase.npy`, `transmittance.npy`, `t_re.npy`,
 //! `t_im.npy` (f64, C order, shape [n_heights, n_pitches, n_fractions]), and while running
 //! `partial/pitch_XXXX.bin` checkpoints (one per completed pitch), removed when the sweep
-//! completes. A restarted sweep with the same manifest reuses every completed pitch.
+//! completes. A restarted sweep with the same manifest reuses every completed pitch whose
+//! bytes match the FNV-1a 64-bit hash the manifest records for it (`block_fnv1a64`).
 
 use crate::error::MetalibError;
 use crate::material::Materials;
@@ -35,10 +36,20 @@ impl Range {
         if self.step <= 0.0 || self.stop < self.start {
             return Err(MetalibError::param(name, "need step > 0 and stop >= start"));
         }
-        let n = ((self.stop - self.start) / self.step + 1e-9).floor() as usize + 1;
-        if n > 100_000 {
-            return Err(MetalibError::param(name, "more than 100000 samples"));
+        // Count in f64: a tiny step makes the quotient overflow usize (or reach +inf), and a
+        // saturating cast plus one would wrap to an empty range.
+        let steps = ((self.stop - self.start) / self.step + 1e-9).floor();
+        if !(steps < 100_000.0) {
+            return Err(MetalibError::param(
+                name,
+                format!(
+                    "{:e} samples (step {:e}) is more than 100000",
+                    steps + 1.0,
+                    self.step
+                ),
+            ));
         }
+        let n = steps as usize + 1;
         Ok((0..n).map(|i| self.start + i as f64 * self.step).collect())
     }
 }
@@ -107,6 +118,21 @@ pub struct Manifest {
     pub failed_cells: usize,
     /// Whether every pitch is complete.
     pub complete: bool,
+    /// FNV-1a 64-bit hash (hex) of each completed `partial/pitch_XXXX.bin`, by pitch index.
+    /// A resumed sweep reuses a block only when its bytes hash to the recorded value.
+    #[serde(default)]
+    pub block_fnv1a64: std::collections::BTreeMap<usize, String>,
+}
+
+/// FNV-1a, 64-bit: the checksum of sweep checkpoint blocks (detects flipped bytes and
+/// truncation; not a cryptographic hash).
+pub fn fnv1a64(bytes: &[u8]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in bytes {
+        h ^= u64::from(b);
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
 }
 
 /// Sweep results in memory, each array flattened [h, s, f] (C order).
@@ -144,13 +170,34 @@ fn io_err(path: &Path, source: std::io::Error) -> MetalibError {
     }
 }
 
+/// Fails when `path` exists and is not a regular file: renaming over a symlink, pipe,
+/// device or directory would silently replace that node with a plain file.
+pub fn check_output_target(path: &Path) -> Result<(), MetalibError> {
+    match std::fs::symlink_metadata(path) {
+        Ok(m) if !m.file_type().is_file() => Err(MetalibError::Io {
+            path: path.display().to_string(),
+            source: std::io::Error::other(
+                "exists and is not a regular file (symlink, pipe, device or directory); \
+                 refusing to replace it",
+            ),
+        }),
+        _ => Ok(()),
+    }
+}
+
 /// Writes `bytes` to `path` atomically (temporary file in the same directory, then rename).
+/// Refuses to replace anything but a regular file (a symlink, pipe, device or directory would
+/// silently become a plain file).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MetalibError> {
     let dir = path
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(|e| io_err(path, e))?;
+    check_output_target(path)?;
+    let mut tmp = tempfile::Builder::new()
+        .prefix(".nanoeye-tmp-")
+        .tempfile_in(dir)
+        .map_err(|e| io_err(path, e))?;
     tmp.write_all(bytes).map_err(|e| io_err(path, e))?;
     // NamedTempFile is created 0600; outputs are ordinary data files.
     #[cfg(unix)]
@@ -309,6 +356,7 @@ pub fn run_sweep(
             .into(),
         failed_cells: 0,
         complete: false,
+        block_fnv1a64: Default::default(),
     };
     let mpath = dir.join("manifest.json");
     if mpath.exists() {
@@ -327,21 +375,27 @@ pub fn run_sweep(
                 ),
             ));
         }
+        manifest.block_fnv1a64 = old.block_fnv1a64;
     }
-    let json =
-        serde_json::to_vec_pretty(&manifest).map_err(|e| MetalibError::Numerical(e.to_string()))?;
-    write_atomic(&mpath, &json)?;
-
     let mut blocks: Vec<Option<Vec<[f64; 4]>>> = vec![None; ns];
     for (is, b) in blocks.iter_mut().enumerate() {
         let p = checkpoint_path(dir, is);
         if let Ok(bytes) = std::fs::read(&p) {
-            *b = decode_block(&bytes, nh * nf);
+            // A block is reused only if the manifest vouches for exactly these bytes; a
+            // corrupted or unrecorded block is solved again.
+            let want = manifest.block_fnv1a64.get(&is);
+            if want.is_some_and(|w| *w == format!("{:016x}", fnv1a64(&bytes))) {
+                *b = decode_block(&bytes, nh * nf);
+            }
             if b.is_some() {
                 progress((nh * nf) as u64, true);
             }
         }
     }
+    manifest.block_fnv1a64.retain(|is, _| blocks[*is].is_some());
+    let json =
+        serde_json::to_vec_pretty(&manifest).map_err(|e| MetalibError::Numerical(e.to_string()))?;
+    write_atomic(&mpath, &json)?;
     for (is, &s) in pitches.iter().enumerate() {
         if blocks[is].is_some() {
             continue;
@@ -366,7 +420,14 @@ pub fn run_sweep(
         for col in cols {
             block.extend(col);
         }
-        write_atomic(&checkpoint_path(dir, is), &encode_block(&block))?;
+        let bytes = encode_block(&block);
+        write_atomic(&checkpoint_path(dir, is), &bytes)?;
+        manifest
+            .block_fnv1a64
+            .insert(is, format!("{:016x}", fnv1a64(&bytes)));
+        let json = serde_json::to_vec_pretty(&manifest)
+            .map_err(|e| MetalibError::Numerical(e.to_string()))?;
+        write_atomic(&mpath, &json)?;
         blocks[is] = Some(block);
     }
     // Assemble [h, s, f] arrays from the per-pitch blocks (stored [f][h]).
@@ -395,6 +456,7 @@ pub fn run_sweep(
         write_atomic(&dir.join(format!("{name}.npy")), &npy_bytes(&shape, a)?)?;
     }
     manifest.complete = true;
+    manifest.block_fnv1a64.clear();
     let json =
         serde_json::to_vec_pretty(&manifest).map_err(|e| MetalibError::Numerical(e.to_string()))?;
     write_atomic(&mpath, &json)?;
@@ -466,6 +528,14 @@ pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manif
     out
 }
 
+/// Largest τ a loaded sweep may hold: energy conservation gives τ ≤ 1; the margin covers
+/// Fourier truncation error at low harmonic counts.
+pub const MAX_PLAUSIBLE_TRANSMITTANCE: f64 = 1.5;
+/// Largest |Re t|, |Im t| a loaded sweep may hold (|t|² n_sub/n_sup = τ).
+const MAX_PLAUSIBLE_T: f64 = 2.0;
+/// Phases are arg t in (−π, π] (a little slack for rounding).
+const PHASE_BOUND: f64 = std::f64::consts::PI + 1e-9;
+
 /// Loads a completed sweep directory.
 pub fn load_sweep(dir: &Path) -> Result<SweepData, MetalibError> {
     let mpath = dir.join("manifest.json");
@@ -500,6 +570,23 @@ pub fn load_sweep(dir: &Path) -> Result<SweepData, MetalibError> {
                 reason: format!("shape {shape:?} != manifest {expect:?}"),
             });
         }
+        // Failed cells are NaN; anything else must be a physically possible value, or the
+        // selection would call impossible pillars (τ = 1e308) usable.
+        let (lo, hi) = match name {
+            "transmittance" => (0.0, MAX_PLAUSIBLE_TRANSMITTANCE),
+            "phase" => (-PHASE_BOUND, PHASE_BOUND),
+            _ => (-MAX_PLAUSIBLE_T, MAX_PLAUSIBLE_T),
+        };
+        if let Some((k, v)) = data
+            .iter()
+            .enumerate()
+            .find(|(_, v)| !v.is_nan() && !(lo..=hi).contains(*v))
+        {
+            return Err(MetalibError::Format {
+                path: p.display().to_string(),
+                reason: format!("value {v:e} at flat index {k} lies outside [{lo}, {hi}]"),
+            });
+        }
         arrays.push(data);
     }
     let t_im = arrays.pop().unwrap_or_default();
@@ -516,4 +603,109 @@ pub fn load_sweep(dir: &Path) -> Result<SweepData, MetalibError> {
         t_re,
         t_im,
     })
+}
+
+#[cfg(test)]
+mod bad_input_tests {
+    use super::*;
+
+    fn tiny(dir: &Path) -> SweepConfig {
+        let _ = dir;
+        SweepConfig {
+            heights_m: Range {
+                start: 700e-9,
+                stop: 700e-9,
+                step: 10e-9,
+            },
+            pitches_m: Range {
+                start: 500e-9,
+                stop: 510e-9,
+                step: 10e-9,
+            },
+            fractions: Range {
+                start: 0.3,
+                stop: 0.4,
+                step: 0.1,
+            },
+            harmonics: 1,
+            ..SweepConfig::default()
+        }
+    }
+
+    #[test]
+    fn tiny_steps_are_refused_not_wrapped_to_zero_samples() {
+        for (start, stop, step) in [(0.1, 0.9, 1e-300), (0.0, 1e9, 1e-300), (0.0, 1.0, 1e-5)] {
+            let r = Range { start, stop, step };
+            assert!(r.values("fractions").is_err(), "{r:?}");
+        }
+        let cfg = SweepConfig {
+            fractions: Range {
+                start: 0.1,
+                stop: 0.9,
+                step: 1e-300,
+            },
+            ..tiny(Path::new("."))
+        };
+        let dir = tempfile::tempdir().unwrap();
+        assert!(run_sweep(&cfg, dir.path(), &|_, _| {}).is_err());
+    }
+
+    #[test]
+    fn a_corrupted_checkpoint_block_is_recomputed_not_reused() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = tiny(dir.path());
+        let done = run_sweep(&cfg, dir.path(), &|_, _| {}).unwrap();
+        let real = load_sweep(dir.path()).unwrap();
+        // Fake an interrupted run whose pitch-0 block holds marker values.
+        let fake = vec![[0.5, 0.25, 0.5, 0.0]; 2];
+        let bytes = encode_block(&fake);
+        let mut m = done.clone();
+        m.complete = false;
+        m.block_fnv1a64
+            .insert(0, format!("{:016x}", fnv1a64(&bytes)));
+        let write_state = |block: &[u8]| {
+            std::fs::create_dir_all(dir.path().join("partial")).unwrap();
+            write_atomic(&checkpoint_path(dir.path(), 0), block).unwrap();
+            let json = serde_json::to_vec_pretty(&m).unwrap();
+            write_atomic(&dir.path().join("manifest.json"), &json).unwrap();
+        };
+        write_state(&bytes);
+        run_sweep(&cfg, dir.path(), &|_, _| {}).unwrap();
+        let resumed = load_sweep(dir.path()).unwrap();
+        assert_eq!(resumed.transmittance[0], 0.25, "intact block is reused");
+        let mut flipped = bytes.clone();
+        flipped[9] ^= 0x40;
+        write_state(&flipped);
+        run_sweep(&cfg, dir.path(), &|_, _| {}).unwrap();
+        let redone = load_sweep(dir.path()).unwrap();
+        assert_eq!(redone.transmittance, real.transmittance, "corrupt block is recomputed");
+    }
+
+    #[test]
+    fn impossible_values_in_a_sweep_are_refused_on_load() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = tiny(dir.path());
+        run_sweep(&cfg, dir.path(), &|_, _| {}).unwrap();
+        let (shape, mut tau) = read_npy(&dir.path().join("transmittance.npy")).unwrap();
+        tau[0] = 1e308;
+        write_atomic(
+            &dir.path().join("transmittance.npy"),
+            &npy_bytes(&shape, &tau).unwrap(),
+        )
+        .unwrap();
+        let e = load_sweep(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("1e308"), "{e}");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn write_atomic_refuses_a_symlink_target() {
+        let dir = tempfile::tempdir().unwrap();
+        let real = dir.path().join("real");
+        std::fs::write(&real, b"keep").unwrap();
+        let link = dir.path().join("link");
+        std::os::unix::fs::symlink(&real, &link).unwrap();
+        assert!(write_atomic(&link, b"x").is_err());
+        assert_eq!(std::fs::read(&real).unwrap(), b"keep");
+    }
 }
