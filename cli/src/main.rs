@@ -13,6 +13,7 @@ mod optics;
 mod rig;
 mod run;
 mod sensor;
+mod sim;
 mod util;
 
 use clap::{Parser, Subcommand};
@@ -55,6 +56,11 @@ enum Command {
     /// Fisher-information design losses, initialization loop, PSF analysis (S3–S6, S25, A.2, E).
     #[command(subcommand)]
     Fisher(fisher::Cmd),
+    /// A rendered dataset through the simulated camera: lens → S1 → sensor at p̂ (S1, S2).
+    Sim(sim::SimArgs),
+    /// Co-design: task loss and gradients through the camera chain (S7, S8, S16–S22).
+    #[command(subcommand)]
+    Search(sim::SearchCmd),
 }
 
 fn dispatch(command: Command) -> anyhow::Result<()> {
@@ -68,6 +74,8 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         Command::Sensor(c) => sensor::run(c),
         Command::Fisher(c) => fisher::run(c),
         Command::Nets(c) => nets::run(c),
+        Command::Sim(a) => sim::sim(a),
+        Command::Search(c) => sim::search(c),
     }
 }
 

@@ -16,6 +16,6 @@ pub mod stats;
 
 pub use error::GazeError;
 pub use geom::{Mat3, Vec3};
-pub use rig::{Camera, Pose, Rig, SlipModel};
+pub use rig::{Camera, Pose, Rig, SlipModel, effective_pixels};
 pub use solver::{GazeSolution, GazeSolver, GazeVjp, SphereSolver, back_project, project};
 pub use stats::{Summary, angular_error};

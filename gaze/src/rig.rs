@@ -100,6 +100,18 @@ pub struct Pose {
     pub rotation: Mat3,
 }
 
+/// Whole pixels of a resampled grid: ⌊n·k⌋ for n pixels scaled by k = old pitch / new pitch,
+/// with a 1e-9 tolerance so that exact ratios (1280 px at 3 µm → 9 µm: 426) do not lose a
+/// pixel to rounding. The sensor's box integrator counts its output pixels the same way.
+pub fn effective_pixels(n: usize, k: f64) -> usize {
+    let v = (n as f64 * k + 1e-9).floor();
+    if (0.0..1e12).contains(&v) {
+        v as usize
+    } else {
+        0
+    }
+}
+
 impl Camera {
     /// A camera with image distance `focal_length_m`, pitch `pixel_pitch_m`, a centred
     /// principal point, at `position_m` aimed at `target_m` with world +y as image up.
@@ -149,8 +161,9 @@ impl Camera {
         Ok(cam)
     }
 
-    /// The same camera resampled to effective pitch `pixel_pitch_m` over the same sensor area
-    /// (focal length in px, principal point and image size scale by old/new pitch).
+    /// The same camera resampled to effective pitch `pixel_pitch_m` over the same sensor area:
+    /// focal length in px scales by k = old/new pitch, the image keeps ⌊n·k⌋ whole pixels
+    /// ([`effective_pixels`]) centred on the old grid, and the principal point follows.
     pub fn with_pitch(&self, pixel_pitch_m: f64) -> Result<Self, GazeError> {
         if !(pixel_pitch_m.is_finite() && pixel_pitch_m > 0.0) {
             return Err(GazeError::InvalidRig {
@@ -159,14 +172,29 @@ impl Camera {
             });
         }
         let k = self.pixel_pitch_m / pixel_pitch_m;
+        let (w, h) = (
+            effective_pixels(self.width_px, k),
+            effective_pixels(self.height_px, k),
+        );
+        if w == 0 || h == 0 {
+            return Err(GazeError::InvalidRig {
+                field: "camera.pixel_pitch_m",
+                reason: format!(
+                    "{pixel_pitch_m} m pixels do not fit the {}×{} px sensor",
+                    self.width_px, self.height_px
+                ),
+            });
+        }
+        // The new grid is centred on the old one: its origin moves by half the part of the
+        // sensor that no whole new pixel covers (sensor's `BoxIntegrator` convention).
         let cam = Camera {
             pixel_pitch_m,
             fx_px: self.fx_px * k,
             fy_px: self.fy_px * k,
-            cx_px: self.cx_px * k,
-            cy_px: self.cy_px * k,
-            width_px: ((self.width_px as f64) * k).round().max(1.0) as usize,
-            height_px: ((self.height_px as f64) * k).round().max(1.0) as usize,
+            cx_px: self.cx_px * k - 0.5 * (self.width_px as f64 * k - w as f64),
+            cy_px: self.cy_px * k - 0.5 * (self.height_px as f64 * k - h as f64),
+            width_px: w,
+            height_px: h,
             ..self.clone()
         };
         cam.validate()?;

@@ -1,2 +1,20 @@
-//! Co-design search: sandwich-rule supernet training (S22), the inner loop (S16, S18) and the
-//! regularized evolutionary algorithm (S17, S19–S21) under a MAC budget; Pareto benchmark (B.6).
+//! Co-design composition: the simulated camera chain (rendered depth layers → metasurface PSFs
+//! → S1 → sensor S2 → network input, and its gradients back to the phase map and the pixel
+//! pitch), the task loss through the supernet (S7, S8), and — in later modules — sandwich
+//! training (S22) and the evolutionary search (S16–S21). Crates compose here; the CLI wires it.
+
+pub mod chain;
+pub mod error;
+pub mod geometry;
+pub mod lens;
+pub mod radiometry;
+pub mod task;
+
+pub use chain::{
+    CameraChain, ChainConfig, ChainForward, ChainFrame, ChainGrad, PsfGradAccumulator, StepPsfs,
+};
+pub use error::{Result, SearchError};
+pub use geometry::{NativeGrid, PitchGrid};
+pub use lens::LensSpec;
+pub use radiometry::Radiometry;
+pub use task::{TaskLoss, task_loss};

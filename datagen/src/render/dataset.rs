@@ -59,7 +59,7 @@ pub struct DatasetOptions {
     pub source: SceneSource,
     /// Draw a progress bar on stderr.
     pub progress: bool,
-    /// Depth layers (not written to disk; kept for API symmetry with [`render`]).
+    /// Depth layers (the non-empty ones are written per frame).
     pub layers: LayerSpec,
 }
 
@@ -76,17 +76,67 @@ pub struct FrameFiles {
     pub mask_visible_pupil: String,
     /// 8-bit unoccluded-pupil coverage PNG.
     pub mask_pupil: String,
+    /// f32 NPY [K', 2, H, W]: premultiplied radiance (W/(m²·sr)) and coverage of each
+    /// non-empty depth layer, in the order of the record's `layers` (absent in datasets written
+    /// before layers were stored).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layers: Option<String>,
+    /// f32 NPY [2, H, W]: exact visible-pupil and unoccluded-pupil coverage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub masks: Option<String>,
+}
+
+/// One non-empty depth layer of a frame, as stored: its index among the K slabs and its bounds.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LayerInfo {
+    /// Slab index k (0 = nearest).
+    pub index: usize,
+    /// Near bound of the slab (m of ray distance).
+    pub near_m: f64,
+    /// Far bound of the slab (m of ray distance).
+    pub far_m: f64,
+}
+
+/// Version of the dataset layout written by [`write_dataset`] (dataset.json).
+pub const DATASET_FORMAT: u32 = 2;
+
+/// DIR/dataset.json: everything that determines the dataset's bytes, so a resume with other
+/// parameters is refused and a reader knows the native grid and the illuminator.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetManifest {
+    /// Layout version ([`DATASET_FORMAT`]).
+    pub format: u32,
+    /// The set.
+    pub set: RenderSet,
+    /// Items.
+    pub n: usize,
+    /// Seed.
+    pub seed: u64,
+    /// Samples per pixel.
+    pub spp: usize,
+    /// Depth-layer slabs.
+    pub layers: LayerSpec,
+    /// Geometry source: "procedural" or "mesh:<path>".
+    pub source: String,
+    /// The rig at the rendered size: its camera is the native grid (pixel pitch, size,
+    /// intrinsics) of every image in the dataset.
+    pub rig: Rig,
+    /// Radiant intensity of the renderer's illuminator (W/sr); radiance scales linearly in it.
+    pub light_intensity_w_per_sr: f64,
+    /// Frames in the dataset.
+    pub frames: usize,
 }
 
 /// One line of frames.jsonl.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct FrameRecord {
     /// Frame index.
     pub frame: usize,
     /// Item index in the set (pair, triplet or protocol capture).
     pub item: usize,
     /// Role in the item: anchor/slip/gaze, anchor/slip_plus/gaze_plus, or capture.
-    pub role: &'static str,
+    pub role: String,
     /// Subject seed (procedural appearance).
     pub subject: u64,
     /// The state.
@@ -101,6 +151,9 @@ pub struct FrameRecord {
     pub landmarks: Landmarks,
     /// Files.
     pub files: FrameFiles,
+    /// The non-empty depth layers stored in `files.layers`, near to far.
+    #[serde(default)]
+    pub layers: Vec<LayerInfo>,
 }
 
 /// What `write_dataset` did.
@@ -200,6 +253,8 @@ pub fn rig_at_size(rig: &Rig, width_px: usize, height_px: usize) -> Result<Rig, 
     }
     let pitch = rig.camera.pixel_pitch_m * rig.camera.width_px as f64 / width_px as f64;
     let mut cam = rig.camera.with_pitch(pitch)?;
+    // Keep the principal point centred when the requested size differs by a rounding pixel.
+    cam.cx_px += 0.5 * (width_px as f64 - cam.width_px as f64);
     cam.width_px = width_px;
     if cam.height_px.abs_diff(height_px) > 1 {
         return Err(RenderError::Invalid {
@@ -210,6 +265,7 @@ pub fn rig_at_size(rig: &Rig, width_px: usize, height_px: usize) -> Result<Rig, 
             ),
         });
     }
+    cam.cy_px += 0.5 * (height_px as f64 - cam.height_px as f64);
     cam.height_px = height_px;
     Ok(Rig {
         camera: cam,
@@ -330,9 +386,140 @@ pub fn render_planned(
     Ok((frame, landmarks(rig, &f.state, &subject)?))
 }
 
-/// Renders the set into `opts.out_dir`; frames whose record file exists are skipped.
-pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderError> {
+/// The manifest `write_dataset` writes for `opts` (rig resampled to the rendered size).
+pub fn manifest_for(opts: &DatasetOptions) -> Result<DatasetManifest, RenderError> {
     let rig = rig_at_size(&opts.rig, opts.width_px, opts.height_px)?;
+    let frames = match opts.set {
+        RenderSet::Ambiguity | RenderSet::Variational => opts.n.saturating_mul(3),
+        RenderSet::Protocol => opts.n.saturating_mul(7 * 49),
+    };
+    Ok(DatasetManifest {
+        format: DATASET_FORMAT,
+        set: opts.set,
+        n: opts.n,
+        seed: opts.seed,
+        spp: opts.spp,
+        layers: opts.layers,
+        source: match &opts.source {
+            SceneSource::Procedural => "procedural".into(),
+            SceneSource::Mesh(m) => format!("mesh:{}:{:016x}", m.triangles.len(), mesh_hash(m)),
+        },
+        light_intensity_w_per_sr: Light::near_camera(&rig.camera.nominal_pose()).intensity_w_per_sr,
+        rig,
+        frames,
+    })
+}
+
+/// FNV-1a over the mesh's vertex bits and classes: identifies the geometry a dataset used.
+fn mesh_hash(m: &Mesh) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut eat = |x: u64| {
+        for b in x.to_le_bytes() {
+            h ^= b as u64;
+            h = h.wrapping_mul(0x0100_0000_01b3);
+        }
+    };
+    for (t, k) in m.triangles.iter().zip(&m.kinds) {
+        for v in t.iter().flatten() {
+            eat(v.to_bits());
+        }
+        eat(*k as u64);
+    }
+    h
+}
+
+/// Refuses to add frames to a directory rendered with other parameters: returns which field
+/// differs. A directory without dataset.json but with frames is refused too (unknown origin).
+fn check_existing(dir: &Path, manifest: &DatasetManifest) -> Result<(), RenderError> {
+    let path = dir.join("dataset.json");
+    match std::fs::read_to_string(&path) {
+        Ok(text) => {
+            let old: DatasetManifest =
+                serde_json::from_str(&text).map_err(|e| RenderError::Invalid {
+                    what: "out",
+                    reason: format!(
+                        "{} is not a dataset manifest of this version ({e}); render into a new directory",
+                        path.display()
+                    ),
+                })?;
+            let a = serde_json::to_value(&old).unwrap_or_default();
+            let b = serde_json::to_value(manifest).unwrap_or_default();
+            if a != b {
+                let field = match (a.as_object(), b.as_object()) {
+                    (Some(x), Some(y)) => x
+                        .keys()
+                        .find(|k| x.get(*k) != y.get(*k))
+                        .cloned()
+                        .unwrap_or_else(|| "?".into()),
+                    _ => "?".into(),
+                };
+                return Err(RenderError::Invalid {
+                    what: "out",
+                    reason: format!(
+                        "{} holds a dataset rendered with a different `{field}`; resuming would mix two runs: use a new --out directory",
+                        dir.display()
+                    ),
+                });
+            }
+            Ok(())
+        }
+        Err(_) => {
+            let frames = dir.join("frames");
+            let has_frames = std::fs::read_dir(&frames)
+                .map(|mut d| d.next().is_some())
+                .unwrap_or(false);
+            if has_frames {
+                return Err(RenderError::Invalid {
+                    what: "out",
+                    reason: format!(
+                        "{} holds frames but no dataset.json (an older or foreign dataset); use a new --out directory",
+                        dir.display()
+                    ),
+                });
+            }
+            Ok(())
+        }
+    }
+}
+
+/// NPY bytes (little-endian f32, C order) of `planes` stacked along a leading axis of
+/// `groups` × (planes per group): shape [groups, per, H, W] or [per, H, W] when `groups` is None.
+fn npy_stack(planes: &[&Mat<f32>], groups: Option<usize>) -> Result<Vec<u8>, RenderError> {
+    use npyz::WriterBuilder;
+    let (h, w) = planes
+        .first()
+        .map_or((0, 0), |m| (m.nrows() as u64, m.ncols() as u64));
+    let shape: Vec<u64> = match groups {
+        Some(g) => vec![g as u64, (planes.len() / g.max(1)) as u64, h, w],
+        None => vec![planes.len() as u64, h, w],
+    };
+    let enc = |e: std::io::Error| RenderError::Encode {
+        path: "(npy)".into(),
+        reason: e.to_string(),
+    };
+    let mut buf = Vec::with_capacity(planes.len() * (h * w) as usize * 4 + 128);
+    let mut wr = npyz::WriteOptions::<f32>::new()
+        .default_dtype()
+        .shape(&shape)
+        .writer(&mut buf)
+        .begin_nd()
+        .map_err(enc)?;
+    for m in planes {
+        for i in 0..m.nrows() {
+            for j in 0..m.ncols() {
+                wr.push(&m[(i, j)]).map_err(enc)?;
+            }
+        }
+    }
+    wr.finish().map_err(enc)?;
+    Ok(buf)
+}
+
+/// Renders the set into `opts.out_dir`; frames whose record file exists are skipped. A
+/// directory holding a dataset rendered with other parameters is refused.
+pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderError> {
+    let manifest = manifest_for(opts)?;
+    let rig = manifest.rig.clone();
     if opts.spp == 0 {
         return Err(RenderError::Invalid {
             what: "spp",
@@ -340,8 +527,18 @@ pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderErro
         });
     }
     let planned = plan(opts.set, &rig, &opts.source, opts.n, opts.seed)?;
+    let manifest = DatasetManifest {
+        frames: planned.len(),
+        ..manifest
+    };
+    check_existing(&opts.out_dir, &manifest)?;
     let fdir = opts.out_dir.join("frames");
     std::fs::create_dir_all(&fdir).map_err(|e| io_err(&fdir, e))?;
+    let mtext = serde_json::to_string_pretty(&manifest).map_err(|e| RenderError::Encode {
+        path: "dataset.json".into(),
+        reason: e.to_string(),
+    })?;
+    write_atomic(&opts.out_dir.join("dataset.json"), mtext.as_bytes())?;
     let bar = if opts.progress {
         indicatif::ProgressBar::new(planned.len() as u64)
     } else {
@@ -354,7 +551,7 @@ pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderErro
         let record_path = opts.out_dir.join(format!("{stem}.json"));
         let done = std::fs::read_to_string(&record_path)
             .ok()
-            .filter(|t| serde_json::from_str::<serde_json::Value>(t).is_ok());
+            .filter(|t| serde_json::from_str::<FrameRecord>(t).is_ok());
         if let Some(text) = done {
             lines.push_str(text.trim_end());
             lines.push('\n');
@@ -370,6 +567,8 @@ pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderErro
             depth: format!("{stem}_depth.npy"),
             mask_visible_pupil: format!("{stem}_mask_visible_pupil.png"),
             mask_pupil: format!("{stem}_mask_pupil.png"),
+            layers: Some(format!("{stem}_layers.npy")),
+            masks: Some(format!("{stem}_masks.npy")),
         };
         let (w, h) = (rig.camera.width_px, rig.camera.height_px);
         let put = |rel: &str, bytes: Vec<u8>| write_atomic(&opts.out_dir.join(rel), &bytes);
@@ -381,10 +580,30 @@ pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderErro
             mask_png(&frame.mask_visible_pupil)?,
         )?;
         put(&files.mask_pupil, mask_png(&frame.mask_pupil)?)?;
+        let kept: Vec<(usize, &super::trace::DepthLayer)> = frame
+            .layers
+            .layers
+            .iter()
+            .enumerate()
+            .filter(|(_, l)| !l.empty)
+            .collect();
+        let planes: Vec<&Mat<f32>> = kept
+            .iter()
+            .flat_map(|(_, l)| [&l.radiance, &l.alpha])
+            .collect();
+        if let Some(p) = &files.layers {
+            put(p, npy_stack(&planes, Some(kept.len()))?)?;
+        }
+        if let Some(p) = &files.masks {
+            put(
+                p,
+                npy_stack(&[&frame.mask_visible_pupil, &frame.mask_pupil], None)?,
+            )?;
+        }
         let rec = FrameRecord {
             frame: i,
             item: f.item,
-            role: f.role,
+            role: f.role.to_string(),
             subject: f.subject,
             state: f.state,
             gaze: f.state.gaze(),
@@ -392,6 +611,14 @@ pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderErro
             pupil_center_refracted_px: lm.pupil_center_refracted_px,
             landmarks: lm,
             files,
+            layers: kept
+                .iter()
+                .map(|(k, l)| LayerInfo {
+                    index: *k,
+                    near_m: l.near_m,
+                    far_m: l.far_m,
+                })
+                .collect(),
         };
         let line = serde_json::to_string(&rec).map_err(|e| RenderError::Encode {
             path: record_path.display().to_string(),

@@ -9,10 +9,10 @@ use super::scene::{EyeGeometry, Subject};
 use super::trace::pixel_dir;
 use crate::states::State;
 use nanoeye_gaze::{Camera, Pose, Rig, Vec3, geom, project};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// A 3D landmark and its pinhole projection.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Landmark {
     /// World position (m).
     pub world_m: Vec3,
@@ -21,7 +21,7 @@ pub struct Landmark {
 }
 
 /// The landmarks of one frame.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Landmarks {
     /// Eye rotation centre.
     pub eye_center: Landmark,

@@ -10,15 +10,18 @@ pub mod landmarks;
 pub mod material;
 pub mod mesh;
 pub mod prim;
+pub mod read;
 pub mod scene;
 pub mod trace;
 
 pub use dataset::{
-    DatasetOptions, DatasetSummary, FrameFiles, FrameRecord, RenderSet, SceneSource, write_dataset,
+    DATASET_FORMAT, DatasetManifest, DatasetOptions, DatasetSummary, FrameFiles, FrameRecord,
+    LayerInfo, RenderSet, SceneSource, manifest_for, write_dataset,
 };
 pub use landmarks::{Landmark, Landmarks, aim_refracted_pupil, landmarks, refracted_pupil_px};
 pub use material::{Material, MaterialKind};
 pub use mesh::{Mesh, MeshUnits};
+pub use read::{Batcher, Dataset, FrameRef, StoredFrame, StoredLayer, read_npy_f32};
 pub use scene::{EyeGeometry, Light, Scene, Subject, procedural_scene};
 pub use trace::{DepthLayer, DepthLayers, Frame, LayerSpec, RenderOptions, render};
 

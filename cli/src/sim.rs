@@ -1,0 +1,391 @@
+//! `nanoeye sim`: a rendered dataset through the simulated camera (lens → S1 → sensor at p̂),
+//! and `nanoeye search loss`: the task loss of a subnet on the chain's output with ∂L/∂φ and
+//! ∂L/∂p̂ (docs/chain.md).
+
+use crate::util;
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use faer::Mat;
+use nanoeye_datagen::render::Dataset;
+use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig};
+use nanoeye_search::{CameraChain, ChainConfig, LensSpec, task_loss};
+use nanoeye_sensor::NoiseMode;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Largest number of frames one `sim` or `search loss` call processes (memory bound).
+const MAX_FRAMES: usize = 100_000;
+
+/// Noise switch.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum OnOff {
+    /// Poisson shot noise, read noise and integer DN.
+    On,
+    /// Mean signal, no noise.
+    Off,
+}
+
+/// Options shared by `sim` and `search loss`.
+#[derive(Debug, Args)]
+pub struct ChainArgs {
+    /// Dataset directory written by `nanoeye datagen render`.
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Effective pixel pitch p̂ (µm), between the dataset's pitch and the sensor size.
+    #[arg(long, default_value_t = 9.0)]
+    pub pitch_um: f64,
+    /// Metasurface sampling step (µm); a phase-map file must be sampled on this grid.
+    #[arg(long, default_value_t = 1.5)]
+    pub aperture_step_um: f64,
+    /// Exposure time (ms).
+    #[arg(long, default_value_t = 0.1)]
+    pub exposure_ms: f64,
+    /// Sensor base pitch (µm): κ = (p̂/base)²; the dataset's pitch must be at least this.
+    #[arg(long)]
+    pub base_pitch_um: Option<f64>,
+}
+
+impl ChainArgs {
+    fn build(&self) -> Result<(Dataset, CameraChain)> {
+        let ds = Dataset::open(&self.dataset)
+            .with_context(|| format!("--dataset {}", self.dataset.display()))?;
+        let mut cfg = ChainConfig::default();
+        if !(self.aperture_step_um.is_finite() && self.aperture_step_um > 0.0) {
+            bail!(
+                "--aperture-step-um: must be positive, got {}",
+                self.aperture_step_um
+            );
+        }
+        cfg.aperture_step_m = self.aperture_step_um * 1e-6;
+        if !(self.exposure_ms.is_finite() && self.exposure_ms > 0.0 && self.exposure_ms <= 1000.0) {
+            bail!(
+                "--exposure-ms: must lie in (0, 1000], got {}",
+                self.exposure_ms
+            );
+        }
+        cfg.radiometry.exposure_s = self.exposure_ms * 1e-3;
+        let native = ds.manifest.rig.camera.pixel_pitch_m;
+        cfg.sensor.base_pitch = match self.base_pitch_um {
+            Some(b) if b.is_finite() && b > 0.0 => b * 1e-6,
+            Some(b) => bail!("--base-pitch-um: must be positive, got {b}"),
+            // The physical sensor's 3 µm, unless the dataset was rendered finer.
+            None => cfg.sensor.base_pitch.min(native),
+        };
+        if !(self.pitch_um.is_finite() && self.pitch_um > 0.0) {
+            bail!("--pitch-um: must be positive, got {}", self.pitch_um);
+        }
+        let chain = CameraChain::for_dataset(&ds, cfg).context("--dataset / chain parameters")?;
+        Ok((ds, chain))
+    }
+}
+
+/// `nanoeye sim` options.
+#[derive(Debug, Args)]
+pub struct SimArgs {
+    #[command(flatten)]
+    chain: ChainArgs,
+    /// Lens: hyperbolic, double-helix or file:PHASE.npy.
+    #[arg(long, default_value = "hyperbolic")]
+    lens: LensSpec,
+    /// Sensor noise (on: Poisson + read noise, output in DN; off: mean photo-electrons).
+    #[arg(long, value_enum, default_value = "on")]
+    noise: OnOff,
+    /// Noise seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Frames A:B (end exclusive); default all.
+    #[arg(long)]
+    frames: Option<String>,
+    /// Output directory (sensor.npy, mask.npy, targets.jsonl, sim.json).
+    #[arg(long)]
+    out: PathBuf,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `nanoeye search` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum SearchCmd {
+    /// Task loss of one subnet on the chain's output, with ∂L/∂φ and ∂L/∂p̂.
+    Loss(LossArgs),
+}
+
+/// `nanoeye search loss` options.
+#[derive(Debug, Args)]
+pub struct LossArgs {
+    #[command(flatten)]
+    chain: ChainArgs,
+    /// Frames A:B (end exclusive).
+    #[arg(long, default_value = "0:2")]
+    frames: String,
+    /// Phase map (rad) NPY on the aperture grid, or hyperbolic / double-helix.
+    #[arg(long, default_value = "hyperbolic")]
+    phase: String,
+    /// Subnet: min, max or file:ARCH.json.
+    #[arg(long, default_value = "min")]
+    subnet: String,
+    /// Seed of the supernet's initial weights.
+    #[arg(long, default_value_t = 0)]
+    weights_seed: u64,
+    /// Seed of the (Gaussian, pathwise) sensor noise; `--noise off` for the mean signal.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Sensor noise in the loss (on: Gaussian reparameterized shot noise + read noise).
+    #[arg(long, value_enum, default_value = "on")]
+    noise: OnOff,
+    /// Weight λ_slip of the slippage MSE (per mm²).
+    #[arg(long, default_value_t = 0.1)]
+    lambda_slip: f64,
+    /// Write ∂L/∂φ (rad⁻¹, the phase map's shape) to this NPY file.
+    #[arg(long)]
+    grad_out: Option<PathBuf>,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+fn parse_frames(flag: &str, text: &str, n: usize) -> Result<Vec<usize>> {
+    let (a, b) = text
+        .split_once(':')
+        .with_context(|| format!("{flag}: expected A:B, got '{text}'"))?;
+    let a: usize = a
+        .trim()
+        .parse()
+        .with_context(|| format!("{flag}: bad start '{a}'"))?;
+    let b: usize = b
+        .trim()
+        .parse()
+        .with_context(|| format!("{flag}: bad end '{b}'"))?;
+    if a >= b || b > n {
+        bail!("{flag}: {a}:{b} must satisfy A < B ≤ {n} (frames in the dataset)");
+    }
+    if b - a > MAX_FRAMES {
+        bail!("{flag}: at most {MAX_FRAMES} frames per call");
+    }
+    Ok((a..b).collect())
+}
+
+fn npy_stack(planes: &[Mat<f32>]) -> Result<Vec<u8>> {
+    use npyz::WriterBuilder;
+    let (h, w) = planes
+        .first()
+        .map_or((0, 0), |m| (m.nrows() as u64, m.ncols() as u64));
+    let mut buf = Vec::new();
+    let mut wr = npyz::WriteOptions::<f32>::new()
+        .default_dtype()
+        .shape(&[planes.len() as u64, h, w])
+        .writer(&mut buf)
+        .begin_nd()?;
+    for m in planes {
+        for i in 0..m.nrows() {
+            for j in 0..m.ncols() {
+                wr.push(&m[(i, j)])?;
+            }
+        }
+    }
+    wr.finish()?;
+    Ok(buf)
+}
+
+fn npy_mat64(m: &Mat<f64>) -> Result<Vec<u8>> {
+    use npyz::WriterBuilder;
+    let mut buf = Vec::new();
+    let mut wr = npyz::WriteOptions::<f64>::new()
+        .default_dtype()
+        .shape(&[m.nrows() as u64, m.ncols() as u64])
+        .writer(&mut buf)
+        .begin_nd()?;
+    for i in 0..m.nrows() {
+        for j in 0..m.ncols() {
+            wr.push(&m[(i, j)])?;
+        }
+    }
+    wr.finish()?;
+    Ok(buf)
+}
+
+/// Runs `nanoeye sim`.
+pub fn sim(a: SimArgs) -> Result<()> {
+    let t0 = Instant::now();
+    let (ds, chain) = a.chain.build()?;
+    let ids = match &a.frames {
+        Some(t) => parse_frames("--frames", t, ds.len())?,
+        None => (0..ds.len().min(MAX_FRAMES)).collect(),
+    };
+    let r = &chain.config().radiometry;
+    let map = a
+        .lens
+        .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)
+        .context("--lens")?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+    let noise = match a.noise {
+        OnOff::On => NoiseMode::Poisson,
+        OnOff::Off => NoiseMode::None,
+    };
+    let p_hat = a.chain.pitch_um * 1e-6;
+    // Validate the pitch before any work.
+    chain.native().at(p_hat).context("--pitch-um")?;
+    let (mut sensor, mut masks, mut lines) = (Vec::new(), Vec::new(), String::new());
+    let mut shape = (0, 0);
+    // Chunks bound memory; the PSF stack is recomputed only when the active slabs change.
+    let mut cached: Option<(Vec<bool>, nanoeye_search::StepPsfs)> = None;
+    for chunk in ids.chunks(16) {
+        let frames = chain.load(&ds, chunk)?;
+        let active = chain.active(&frames);
+        let need: Vec<bool> = match &cached {
+            Some((have, _)) => active.iter().zip(have).map(|(&x, &y)| x || y).collect(),
+            None => active.clone(),
+        };
+        if cached.as_ref().is_none_or(|(have, _)| *have != need) {
+            cached = Some((need.clone(), chain.psfs(&map, &need).context("--lens")?));
+        }
+        let psfs = &cached.as_ref().expect("set above").1;
+        let fwd = chain.forward(&frames, psfs, p_hat, noise, a.seed)?;
+        shape = fwd.grid.shape();
+        for (b, f) in frames.iter().enumerate() {
+            sensor.push(match noise {
+                NoiseMode::None => fwd.electrons[b].clone(),
+                _ => fwd.dn[b].clone(),
+            });
+            let (h, w) = shape;
+            masks.push(Mat::from_fn(h, w, |i, j| fwd.mask.image(b)[i * w + j]));
+            let line = serde_json::json!({
+                "frame": f.record.frame,
+                "slip_m": f.record.state.slip_m,
+                "gaze": f.record.gaze,
+                "pupil_center_px": fwd.pupil_center_px[b],
+            });
+            lines.push_str(&line.to_string());
+            lines.push('\n');
+        }
+    }
+    util::write_atomic(&a.out.join("sensor.npy"), &npy_stack(&sensor)?)?;
+    util::write_atomic(&a.out.join("mask.npy"), &npy_stack(&masks)?)?;
+    util::write_atomic(&a.out.join("targets.jsonl"), lines.as_bytes())?;
+    let summary = serde_json::json!({
+        "frames": sensor.len(),
+        "height": shape.0,
+        "width": shape.1,
+        "pitch_m": p_hat,
+        "unit": if matches!(noise, NoiseMode::None) { "mean photo-electrons" } else { "DN" },
+        "seconds": t0.elapsed().as_secs_f64(),
+    });
+    util::write_atomic(
+        &a.out.join("sim.json"),
+        serde_json::to_string_pretty(&summary)?.as_bytes(),
+    )?;
+    if a.json {
+        println!("{summary}");
+    } else {
+        println!(
+            "{} frames → {}×{} at {} µm in {:.2} s; wrote {}",
+            summary["frames"],
+            shape.0,
+            shape.1,
+            a.chain.pitch_um,
+            summary["seconds"].as_f64().unwrap_or(0.0),
+            a.out.display()
+        );
+    }
+    Ok(())
+}
+
+fn parse_subnet(text: &str) -> Result<Arch> {
+    match text {
+        "min" => Ok(Arch::min()),
+        "max" => Ok(Arch::max()),
+        _ => {
+            let Some(p) = text.strip_prefix("file:") else {
+                bail!("--subnet: '{text}' is not min, max or file:ARCH.json");
+            };
+            let s =
+                std::fs::read_to_string(Path::new(p)).with_context(|| format!("--subnet {p}"))?;
+            let a: Arch = serde_json::from_str(s.trim_start_matches('\u{feff}'))
+                .with_context(|| format!("--subnet {p}"))?;
+            a.validate().with_context(|| format!("--subnet {p}"))?;
+            Ok(a)
+        }
+    }
+}
+
+/// Runs `nanoeye search …`.
+pub fn search(cmd: SearchCmd) -> Result<()> {
+    match cmd {
+        SearchCmd::Loss(a) => loss(a),
+    }
+}
+
+fn loss(a: LossArgs) -> Result<()> {
+    let t0 = Instant::now();
+    let (ds, chain) = a.chain.build()?;
+    let ids = parse_frames("--frames", &a.frames, ds.len())?;
+    let arch = parse_subnet(&a.subnet)?;
+    if !(a.lambda_slip.is_finite() && a.lambda_slip >= 0.0) {
+        bail!(
+            "--lambda-slip: must be finite and ≥ 0, got {}",
+            a.lambda_slip
+        );
+    }
+    let lens: LensSpec = match a.phase.as_str() {
+        "hyperbolic" | "double-helix" => a.phase.parse().map_err(anyhow::Error::msg)?,
+        p => LensSpec::File(PathBuf::from(p.strip_prefix("file:").unwrap_or(p))),
+    };
+    let r = &chain.config().radiometry;
+    let map = lens
+        .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)
+        .context("--phase")?;
+    let p_hat = a.chain.pitch_um * 1e-6;
+    chain.native().at(p_hat).context("--pitch-um")?;
+    let noise = match a.noise {
+        OnOff::On => NoiseMode::Gaussian,
+        OnOff::Off => NoiseMode::None,
+    };
+    let frames = chain.load(&ds, &ids)?;
+    let psfs = chain
+        .psfs(&map, &chain.active(&frames))
+        .context("--phase")?;
+    let fwd = chain.forward(&frames, &psfs, p_hat, noise, a.seed)?;
+    let mut net = Supernet::new(SupernetConfig::default(), a.weights_seed)?;
+    net.zero_grad();
+    let (l, dx) = task_loss(
+        &mut net,
+        std::slice::from_ref(&arch),
+        &fwd.input,
+        &fwd.mask,
+        &fwd.slip_mm,
+        a.lambda_slip,
+        BnMode::Train,
+    )?;
+    let mut acc = chain.accumulator();
+    chain.backward(&frames, &psfs, &fwd, &dx, &mut acc)?;
+    let g = chain.finish(&map, &psfs, &acc)?;
+    if let Some(p) = &a.grad_out {
+        util::write_atomic(p, &npy_mat64(&g.phase_rad)?)
+            .with_context(|| format!("--grad-out {}", p.display()))?;
+    }
+    for (name, v) in [("loss", l.total), ("d_pitch", g.p_hat)] {
+        if !v.is_finite() {
+            bail!("{name} is not finite ({v}); check --exposure-ms and --pitch-um");
+        }
+    }
+    let out = serde_json::json!({
+        "loss": l.total,
+        "seg": l.seg,
+        "calib": l.calib,
+        "d_pitch": g.p_hat,
+        "frames": ids.len(),
+        "height": fwd.grid.shape().0,
+        "width": fwd.grid.shape().1,
+        "seconds": t0.elapsed().as_secs_f64(),
+    });
+    if a.json {
+        println!("{out}");
+    } else {
+        println!(
+            "loss {:.6} (seg {:.6}, calib {:.6} mm²), dL/dp̂ {:.6e} /m",
+            l.total, l.seg, l.calib, g.p_hat
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,568 @@
+//! The simulated camera, end to end: stored depth layers → radiometry → per-layer PSFs (optics)
+//! → occlusion-aware S1 on the native grid → sensor at p̂ (S2) → normalised network input, and
+//! the reverse: ∂L/∂input → ∂L/∂p̂ and ∂L/∂PSF, accumulated over a batch (and over the subnets
+//! of a sandwich step) before one PSF VJP to ∂L/∂φ.
+//!
+//! Conventions fixed here, in one place:
+//! - Layers: stored near to far with premultiplied radiance; S1 runs back to front.
+//! - Depth: slab k of ray distance [near, far) gets the on-axis PSF of the axial depth
+//!   z_k = (near + far)/2 (docs/chain.md gives the error this carries off axis).
+//! - PSF normalisation: the PSF model returns fractions of the aperture power per native pixel,
+//!   summing to η_k < 1 where light leaves the window. The radiance term uses P_k (light
+//!   outside the window is lost), the occlusion term uses P̂_k = P_k/η_k, so an opaque layer
+//!   (α ≡ 1 over more than the PSF's support) hides everything behind it exactly.
+//!   Implemented as S1 with kernel P̂_k and radiance η_k·L_k.
+//! - Units: the S1 image is photons per base-pixel area (sensor convention); the network input
+//!   is x = (DN − black level)/(max DN − black level), ≈ [0, 1].
+
+use crate::error::{Result, param, positive};
+use crate::geometry::{NativeGrid, PitchGrid};
+use crate::radiometry::Radiometry;
+use faer::Mat;
+use nanoeye_datagen::render::{Dataset, FrameRecord, LayerSpec, Light, StoredFrame, Subject};
+use nanoeye_datagen::states::State;
+use nanoeye_nets::Tensor;
+use nanoeye_optics::{
+    ApertureGrid, AsmPsf, Layer, LayeredImager, PhaseMap, PsfConfig, PsfModel, PsfStack,
+};
+use nanoeye_sensor::{CmosSensor, NoiseMode, Sensor, SensorConfig, SensorTape};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Parameters of the camera chain beyond the dataset's geometry.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ChainConfig {
+    /// Radiometry (aperture, exposure, illuminator).
+    pub radiometry: Radiometry,
+    /// Sensor (base pitch, QE, noise, ADC); `noise` and `quantize` apply to the forward pass.
+    pub sensor: SensorConfig,
+    /// Metasurface sampling step Δ (m) of the phase map.
+    pub aperture_step_m: f64,
+    /// PSF window side (m); rounded to an odd number of native pixels so the kernel has a
+    /// centre pixel.
+    pub psf_window_m: f64,
+}
+
+impl Default for ChainConfig {
+    /// Default radiometry and sensor; Δ = 1.5 µm (PSF converged to ~2e-4 of the peak,
+    /// docs/bench/optics.md); a 192 µm window (5× the 17 mm defocus blur of the hyperbolic
+    /// lens).
+    fn default() -> Self {
+        ChainConfig {
+            radiometry: Radiometry::default(),
+            sensor: SensorConfig::default(),
+            aperture_step_m: 1.5e-6,
+            psf_window_m: 192e-6,
+        }
+    }
+}
+
+/// The camera chain for one native grid and one set of depth slabs.
+pub struct CameraChain {
+    cfg: ChainConfig,
+    native: NativeGrid,
+    spec: LayerSpec,
+    depths_m: Vec<f64>,
+    psf: AsmPsf,
+    imager: LayeredImager,
+    /// Photons per base-pixel area per unit rendered radiance, per native pixel.
+    scale: Mat<f32>,
+}
+
+/// The PSFs of one step, normalised as the chain uses them.
+#[derive(Clone, Debug)]
+pub struct StepPsfs {
+    /// The model's stack (fractions of aperture power; zero planes where inactive).
+    pub stack: PsfStack,
+    /// P̂_k = P_k / η_k (f32, zero where inactive).
+    pub unit: Vec<Mat<f32>>,
+    /// η_k = Σ P_k (0 where inactive).
+    pub eta: Vec<f64>,
+}
+
+/// A loaded frame and its targets on the p̂ grid.
+#[derive(Clone, Debug)]
+pub struct ChainFrame {
+    /// Global frame id: seeds its noise stream.
+    pub id: u64,
+    /// Stored layers and masks (native grid).
+    pub data: StoredFrame,
+    /// Its record (state, gaze, landmarks).
+    pub record: FrameRecord,
+}
+
+/// Forward results of a batch.
+pub struct ChainForward {
+    /// Network input (N, 1, H, W) on the p̂ grid.
+    pub input: Tensor,
+    /// Mean photo-electrons per output pixel before noise (N images, p̂ grid).
+    pub electrons: Vec<Mat<f32>>,
+    /// Digital numbers per output pixel (N images).
+    pub dn: Vec<Mat<f32>>,
+    /// Visible-pupil coverage on the p̂ grid (N, 1, H, W), the segmentation target.
+    pub mask: Tensor,
+    /// Slippage targets Δt* in mm (N, 3, 1, 1).
+    pub slip_mm: Tensor,
+    /// True pupil centre in p̂ pixels (None where it projects behind the camera).
+    pub pupil_center_px: Vec<Option<[f64; 2]>>,
+    /// The p̂ grid.
+    pub grid: PitchGrid,
+    tapes: Vec<SensorTape>,
+}
+
+/// Gradients of a scalar loss w.r.t. the optical and sensor parameters.
+#[derive(Clone, Debug)]
+pub struct ChainGrad {
+    /// ∂L/∂φ (per radian), aperture grid n×n.
+    pub phase_rad: Mat<f64>,
+    /// ∂L/∂p̂ (per metre).
+    pub p_hat: f64,
+}
+
+/// ∂L/∂PSF accumulated over frames (and subnets) before the one PSF VJP of a step.
+#[derive(Clone, Debug)]
+pub struct PsfGradAccumulator {
+    /// ∂L/∂P̂_k.
+    unit: Vec<Mat<f64>>,
+    /// ∂L/∂η_k.
+    eta: Vec<f64>,
+    /// ∂L/∂p̂ (per metre).
+    p_hat: f64,
+}
+
+impl CameraChain {
+    /// A chain for `native` (the dataset's camera) with depth slabs `spec`, for radiance
+    /// rendered with an illuminator of `render_w_per_sr` at `render_distance_m` from the cornea.
+    pub fn new(
+        native: NativeGrid,
+        spec: LayerSpec,
+        render_w_per_sr: f64,
+        render_distance_m: f64,
+        cfg: ChainConfig,
+    ) -> Result<CameraChain> {
+        cfg.radiometry.validate()?;
+        CmosSensor::new(cfg.sensor.clone())?;
+        positive("aperture_step_m", cfg.aperture_step_m)?;
+        positive("psf_window_m", cfg.psf_window_m)?;
+        if spec.count == 0 || !(spec.near_m > 0.0 && spec.near_m < spec.far_m) {
+            return Err(param(
+                "layers",
+                format!("{spec:?}: need count ≥ 1, 0 < near < far"),
+            ));
+        }
+        let p = native.pitch_m();
+        let base = cfg.sensor.base_pitch;
+        if p < base * (1.0 - 1e-9) {
+            return Err(param(
+                "base_pitch",
+                format!(
+                    "the dataset's {:.3} µm pixels are finer than the sensor's {:.3} µm base pitch",
+                    p * 1e6,
+                    base * 1e6
+                ),
+            ));
+        }
+        let half = (0.5 * cfg.psf_window_m / p).round().max(1.0) as usize;
+        let wp = 2 * half + 1;
+        let r = &cfg.radiometry;
+        let grid = ApertureGrid::new(r.aperture_m, cfg.aperture_step_m)?;
+        let psf = AsmPsf::new(
+            PsfConfig {
+                wavelength_m: r.wavelength_m,
+                sensor_distance_m: r.sensor_distance_m,
+                pitch_m: p,
+                window_px: wp,
+                ..PsfConfig::default()
+            },
+            grid,
+        )?;
+        let (h, w) = native.shape();
+        let imager = LayeredImager::new(h, w, wp)?;
+        let dz = (spec.far_m - spec.near_m) / spec.count as f64;
+        let depths_m = (0..spec.count)
+            .map(|k| spec.near_m + dz * (k as f64 + 0.5))
+            .collect();
+        // Radiometry per base-pixel area: the sensor's input unit.
+        let mut cam = native.camera.clone();
+        cam.pixel_pitch_m = base;
+        let scale = cfg
+            .radiometry
+            .scale_map(&cam, render_w_per_sr, render_distance_m)?;
+        Ok(CameraChain {
+            cfg,
+            native,
+            spec,
+            depths_m,
+            psf,
+            imager,
+            scale,
+        })
+    }
+
+    /// A chain for a dataset's native grid, slabs and illuminator.
+    pub fn for_dataset(ds: &Dataset, cfg: ChainConfig) -> Result<CameraChain> {
+        let cam = &ds.manifest.rig.camera;
+        let light = Light::near_camera(&cam.nominal_pose());
+        let apex = [0.0, 0.0, Subject::default().cornea_apex_m];
+        let d = nanoeye_gaze::geom::norm(nanoeye_gaze::geom::sub(light.position_m, apex));
+        CameraChain::new(
+            NativeGrid::new(cam.clone())?,
+            ds.layer_spec(),
+            ds.manifest.light_intensity_w_per_sr,
+            d,
+            cfg,
+        )
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &ChainConfig {
+        &self.cfg
+    }
+
+    /// The native grid.
+    pub fn native(&self) -> &NativeGrid {
+        &self.native
+    }
+
+    /// Axial depth z_k (m) whose PSF slab k uses.
+    pub fn depths_m(&self) -> &[f64] {
+        &self.depths_m
+    }
+
+    /// The aperture grid the phase map must be sampled on.
+    pub fn aperture_grid(&self) -> &ApertureGrid {
+        self.psf.grid()
+    }
+
+    /// PSF window side in native pixels (odd).
+    pub fn psf_px(&self) -> usize {
+        self.psf.config().window_px
+    }
+
+    /// The PSF model.
+    pub fn psf_model(&self) -> &AsmPsf {
+        &self.psf
+    }
+
+    /// Loads frames `ids` of `ds` (checks they fit this chain's grid and slabs).
+    pub fn load(&self, ds: &Dataset, ids: &[usize]) -> Result<Vec<ChainFrame>> {
+        if ds.shape() != self.native.shape() || ds.layer_spec() != self.spec {
+            return Err(param(
+                "dataset",
+                format!(
+                    "{}: grid {:?} / slabs {:?} differ from the chain's {:?} / {:?}",
+                    ds.dir.display(),
+                    ds.shape(),
+                    ds.layer_spec(),
+                    self.native.shape(),
+                    self.spec
+                ),
+            ));
+        }
+        ids.par_iter()
+            .map(|&i| {
+                Ok(ChainFrame {
+                    id: i as u64,
+                    data: ds.load(i)?,
+                    record: ds.records[i].clone(),
+                })
+            })
+            .collect()
+    }
+
+    /// Which slabs hold content in any of `frames`.
+    pub fn active(&self, frames: &[ChainFrame]) -> Vec<bool> {
+        let mut a = vec![false; self.spec.count];
+        for f in frames {
+            for l in &f.data.layers {
+                if l.info.index < a.len() {
+                    a[l.info.index] = true;
+                }
+            }
+        }
+        a
+    }
+
+    /// PSFs of the slabs `active` for phase map `map`, normalised (one stack per step).
+    pub fn psfs(&self, map: &PhaseMap, active: &[bool]) -> Result<StepPsfs> {
+        let stack = self.psf.forward(map, &self.depths_m, Some(active))?;
+        let mut eta = vec![0.0; stack.planes.len()];
+        let mut unit = Vec::with_capacity(stack.planes.len());
+        for (k, p) in stack.planes.iter().enumerate() {
+            let s: f64 = p
+                .col_iter()
+                .map(|c| c.iter().map(|&v| v as f64).sum::<f64>())
+                .sum();
+            if active[k] && s <= 1e-9 {
+                return Err(param(
+                    "phase",
+                    format!(
+                        "the lens sends {s:e} of the aperture power into the PSF window at depth {:.2} mm",
+                        self.depths_m[k] * 1e3
+                    ),
+                ));
+            }
+            eta[k] = if active[k] { s } else { 0.0 };
+            let inv = if active[k] { 1.0 / s } else { 0.0 };
+            unit.push(Mat::from_fn(p.nrows(), p.ncols(), |i, j| {
+                (p[(i, j)] as f64 * inv) as f32
+            }));
+        }
+        Ok(StepPsfs { stack, unit, eta })
+    }
+
+    /// S1 inputs of a frame, back to front: radiance η_k·scale·L_k and the layer's α.
+    fn layer_inputs(&self, f: &ChainFrame, psfs: &StepPsfs) -> Vec<(usize, Mat<f32>)> {
+        f.data
+            .layers
+            .iter()
+            .rev()
+            .map(|l| {
+                let k = l.info.index;
+                let e = psfs.eta[k] as f32;
+                let rad = Mat::from_fn(l.radiance.nrows(), l.radiance.ncols(), |i, j| {
+                    e * self.scale[(i, j)] * l.radiance[(i, j)]
+                });
+                (k, rad)
+            })
+            .collect()
+    }
+
+    /// Sensor-plane image of one frame (photons per base-pixel area, native grid): S1.
+    pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<Mat<f32>> {
+        let inputs = self.layer_inputs(f, psfs);
+        let alphas: Vec<&Mat<f32>> = f.data.layers.iter().rev().map(|l| &l.alpha).collect();
+        let layers: Vec<Layer> = inputs
+            .iter()
+            .zip(&alphas)
+            .map(|((k, rad), a)| Layer {
+                radiance: rad,
+                alpha: a,
+                psf: &psfs.unit[*k],
+            })
+            .collect();
+        let mut img = self.imager.forward(&layers)?;
+        // FFT round-off leaves values of order 1e-16 of the peak below zero where there is no
+        // light; intensity is non-negative, so they are cut (the VJP treats the cut as identity:
+        // it moves nothing larger than round-off).
+        for j in 0..img.ncols() {
+            for v in img.col_mut(j).iter_mut() {
+                *v = v.max(0.0);
+            }
+        }
+        Ok(img)
+    }
+
+    /// Runs the batch forward at effective pitch `p_hat_m` with noise mode `noise` drawn from
+    /// `seed` (frame `id` selects the stream, so a frame's noise does not depend on its batch).
+    pub fn forward(
+        &self,
+        frames: &[ChainFrame],
+        psfs: &StepPsfs,
+        p_hat_m: f64,
+        noise: NoiseMode,
+        seed: u64,
+    ) -> Result<ChainForward> {
+        if frames.is_empty() {
+            return Err(param("frames", "empty batch"));
+        }
+        let grid = self.native.at(p_hat_m)?;
+        let mut scfg = self.cfg.sensor.clone();
+        scfg.noise = noise;
+        if noise != NoiseMode::Poisson {
+            // Rounding to DN has no useful derivative; the differentiable modes skip it.
+            scfg.quantize = false;
+        }
+        let sensor = CmosSensor::new(scfg)?;
+        let base = self.native.pitch_m();
+        let qe = self.cfg.sensor.quantum_efficiency as f32;
+        let per: Vec<Result<_>> = frames
+            .par_iter()
+            .map(|f| {
+                let img = self.optical_image(f, psfs)?;
+                let (dn, tape) = sensor.forward(&img, base, p_hat_m, seed, f.id)?;
+                let integ = nanoeye_sensor::BoxIntegrator::new(
+                    img.nrows(),
+                    img.ncols(),
+                    base,
+                    p_hat_m,
+                    self.cfg.sensor.base_pitch,
+                )?;
+                let ph = integ.forward(&img)?;
+                let el = Mat::from_fn(ph.nrows(), ph.ncols(), |i, j| qe * ph[(i, j)]);
+                let mask = grid.downsample_mask(&f.data.mask_visible_pupil)?;
+                let state: State = f.record.state;
+                let pose = grid.camera.slipped_pose(state.slip_m, state.cam_rot_rad);
+                let pc = grid
+                    .project(&pose, f.record.landmarks.pupil_center.world_m)
+                    .ok();
+                Ok((dn, tape, el, mask, pc))
+            })
+            .collect();
+        let (h, w) = grid.shape();
+        let n = frames.len();
+        let c = &self.cfg.sensor;
+        let span = (c.max_dn() - c.black_level_dn) as f32;
+        let black = c.black_level_dn as f32;
+        let mut input = Tensor::zeros(n, 1, h, w);
+        let mut mask = Tensor::zeros(n, 1, h, w);
+        let mut slip = Tensor::zeros(n, 3, 1, 1);
+        let (mut dns, mut els, mut tapes, mut pcs) = (vec![], vec![], vec![], vec![]);
+        for (b, r) in per.into_iter().enumerate() {
+            let (dn, tape, el, m, pc) = r?;
+            let xi = input.image_mut(b);
+            let mi = &mut mask.data[b * h * w..(b + 1) * h * w];
+            for i in 0..h {
+                for j in 0..w {
+                    xi[i * w + j] = (dn[(i, j)] - black) / span;
+                    mi[i * w + j] = m[(i, j)];
+                }
+            }
+            for (a, v) in frames[b].record.state.slip_m.iter().enumerate() {
+                slip.data[b * 3 + a] = (*v * 1e3) as f32;
+            }
+            dns.push(dn);
+            els.push(el);
+            tapes.push(tape);
+            pcs.push(pc);
+        }
+        Ok(ChainForward {
+            input,
+            electrons: els,
+            dn: dns,
+            mask,
+            slip_mm: slip,
+            pupil_center_px: pcs,
+            grid,
+            tapes,
+        })
+    }
+
+    /// A zeroed accumulator for this chain's slabs.
+    pub fn accumulator(&self) -> PsfGradAccumulator {
+        let wp = self.psf_px();
+        PsfGradAccumulator {
+            unit: vec![Mat::zeros(wp, wp); self.spec.count],
+            eta: vec![0.0; self.spec.count],
+            p_hat: 0.0,
+        }
+    }
+
+    /// Backward of [`Self::forward`] for ∂L/∂input `d_input` (N, 1, H, W): adds ∂L/∂p̂ and
+    /// ∂L/∂PSF of the batch into `acc` (call once per subnet's gradient, or once with their sum).
+    pub fn backward(
+        &self,
+        frames: &[ChainFrame],
+        psfs: &StepPsfs,
+        fwd: &ChainForward,
+        d_input: &Tensor,
+        acc: &mut PsfGradAccumulator,
+    ) -> Result<()> {
+        let (h, w) = fwd.grid.shape();
+        if d_input.shape() != [frames.len(), 1, h, w] {
+            return Err(param(
+                "d_input",
+                format!(
+                    "shape {:?}, expected [{}, 1, {h}, {w}]",
+                    d_input.shape(),
+                    frames.len()
+                ),
+            ));
+        }
+        let c = &self.cfg.sensor;
+        let inv_span = 1.0 / (c.max_dn() - c.black_level_dn) as f32;
+        let mut scfg = c.clone();
+        scfg.noise = NoiseMode::None;
+        let sensor = CmosSensor::new(scfg)?;
+        let per: Vec<Result<_>> = frames
+            .par_iter()
+            .enumerate()
+            .map(|(b, f)| {
+                let gi = d_input.image(b);
+                let g_dn = Mat::from_fn(h, w, |i, j| gi[i * w + j] * inv_span);
+                let sg = sensor.vjp(&fwd.tapes[b], &g_dn)?;
+                let inputs = self.layer_inputs(f, psfs);
+                let alphas: Vec<&Mat<f32>> = f.data.layers.iter().rev().map(|l| &l.alpha).collect();
+                let layers: Vec<Layer> = inputs
+                    .iter()
+                    .zip(&alphas)
+                    .map(|((k, rad), a)| Layer {
+                        radiance: rad,
+                        alpha: a,
+                        psf: &psfs.unit[*k],
+                    })
+                    .collect();
+                let gimg = Mat::from_fn(sg.d_image.nrows(), sg.d_image.ncols(), |i, j| {
+                    sg.d_image[(i, j)] as f64
+                });
+                let lg = self.imager.vjp(&layers, &gimg)?;
+                // ∂/∂η_k = Σ ∂L/∂(η L')·L' with L' = scale·L_k.
+                let mut out = Vec::with_capacity(layers.len());
+                for (j, (k, rad)) in inputs.iter().enumerate() {
+                    let e = psfs.eta[*k];
+                    let mut ge = 0.0f64;
+                    if e > 0.0 {
+                        let g = &lg.radiance[j];
+                        for cc in 0..rad.ncols() {
+                            for r in 0..rad.nrows() {
+                                ge += g[(r, cc)] * rad[(r, cc)] as f64;
+                            }
+                        }
+                        ge /= e;
+                    }
+                    out.push((*k, lg.psf[j].clone(), ge));
+                }
+                Ok((sg.d_p_hat, out))
+            })
+            .collect();
+        // Summed in frame order: the result does not depend on the thread count.
+        for r in per {
+            let (dp, layers) = r?;
+            acc.p_hat += dp;
+            for (k, gp, ge) in layers {
+                acc.eta[k] += ge;
+                let u = &mut acc.unit[k];
+                for cc in 0..u.ncols() {
+                    for rr in 0..u.nrows() {
+                        u[(rr, cc)] += gp[(rr, cc)];
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The one PSF VJP of a step: ∂L/∂φ from the accumulated ∂L/∂P̂, ∂L/∂η
+    /// (∂P̂/∂P = (I − P̂·1ᵀ)/η, ∂η/∂P = 1).
+    pub fn finish(
+        &self,
+        map: &PhaseMap,
+        psfs: &StepPsfs,
+        acc: &PsfGradAccumulator,
+    ) -> Result<ChainGrad> {
+        let wp = self.psf_px();
+        let grads: Vec<Mat<f64>> = (0..self.spec.count)
+            .map(|k| {
+                let e = psfs.eta[k];
+                if e <= 0.0 {
+                    return Mat::zeros(wp, wp);
+                }
+                let g = &acc.unit[k];
+                let u = &psfs.unit[k];
+                let mut dot = 0.0;
+                for c in 0..wp {
+                    for r in 0..wp {
+                        dot += g[(r, c)] * u[(r, c)] as f64;
+                    }
+                }
+                Mat::from_fn(wp, wp, |r, c| (g[(r, c)] - dot) / e + acc.eta[k])
+            })
+            .collect();
+        let pg = self.psf.vjp(map, &self.depths_m, &grads, None)?;
+        Ok(ChainGrad {
+            phase_rad: pg.phase_rad,
+            p_hat: acc.p_hat,
+        })
+    }
+}

@@ -1,0 +1,80 @@
+//! Which lens a run uses: the hyperbolic and double-helix baselines or a phase map from an NPY
+//! file, realised on the chain's aperture grid.
+
+use crate::error::{Result, param};
+use nanoeye_optics::{ApertureGrid, DoubleHelix, Hyperbolic, PhaseMap, PhaseProfile};
+use std::path::PathBuf;
+
+/// A lens choice, parsed from `hyperbolic`, `double-helix` or `file:PATH.npy`.
+#[derive(Clone, Debug, PartialEq)]
+pub enum LensSpec {
+    /// Hyperbolic lens focused at 25 mm (the default rig).
+    Hyperbolic,
+    /// Double-helix (rotating two-lobe) lens over 17–26 mm.
+    DoubleHelix,
+    /// A phase map (rad, n×n on the aperture grid) from an NPY file.
+    File(PathBuf),
+}
+
+impl std::str::FromStr for LensSpec {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "hyperbolic" => Ok(LensSpec::Hyperbolic),
+            "double-helix" => Ok(LensSpec::DoubleHelix),
+            _ => match s.strip_prefix("file:") {
+                Some(p) if !p.is_empty() => Ok(LensSpec::File(PathBuf::from(p))),
+                _ => Err(format!(
+                    "'{s}' is not a lens: use hyperbolic, double-helix or file:PATH.npy"
+                )),
+            },
+        }
+    }
+}
+
+impl LensSpec {
+    /// The phase map on `grid` (λ and s from the caller for the built-in lenses).
+    pub fn phase_map(
+        &self,
+        grid: &ApertureGrid,
+        wavelength_m: f64,
+        sensor_distance_m: f64,
+    ) -> Result<PhaseMap> {
+        let hyp = Hyperbolic {
+            wavelength_m,
+            image_distance_m: sensor_distance_m,
+            ..Hyperbolic::default()
+        };
+        match self {
+            LensSpec::Hyperbolic => Ok(hyp.phase_map(grid)?),
+            LensSpec::DoubleHelix => Ok(DoubleHelix {
+                lens: Hyperbolic {
+                    wavelength_m,
+                    image_distance_m: sensor_distance_m,
+                    ..DoubleHelix::default().lens
+                },
+                ..DoubleHelix::default()
+            }
+            .phase_map(grid)?),
+            LensSpec::File(p) => {
+                let phi = nanoeye_optics::io::read_phase_npy(p)?;
+                if phi.nrows() != grid.n {
+                    return Err(param(
+                        "lens",
+                        format!(
+                            "{} is {}×{} but the aperture grid is {}×{} (Δ = {} µm over {} mm)",
+                            p.display(),
+                            phi.nrows(),
+                            phi.ncols(),
+                            grid.n,
+                            grid.n,
+                            grid.pitch_m * 1e6,
+                            grid.diameter_m * 1e3
+                        ),
+                    ));
+                }
+                Ok(PhaseMap::phase_only(*grid, phi)?)
+            }
+        }
+    }
+}
