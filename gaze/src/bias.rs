@@ -125,8 +125,15 @@ mod bad_input_tests {
 
     #[test]
     fn grid_beyond_the_step_limit_is_refused_before_any_work() {
-        let e = pupil_sphere_bias(&Rig::default(), 12e-3, &GazeGrid::table_s2(1_000_000_000_000))
-            .unwrap_err();
-        assert!(matches!(e, GazeError::InvalidParameter { name: "steps", .. }), "{e}");
+        let e = pupil_sphere_bias(
+            &Rig::default(),
+            12e-3,
+            &GazeGrid::table_s2(1_000_000_000_000),
+        )
+        .unwrap_err();
+        assert!(
+            matches!(e, GazeError::InvalidParameter { name: "steps", .. }),
+            "{e}"
+        );
     }
 }

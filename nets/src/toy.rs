@@ -53,7 +53,10 @@ pub fn toy_sample(size: usize, seed: u64, index: u64) -> (Vec<f32>, Vec<f32>, [f
 
 /// A batch of samples `first..first+n` of a split: (images, masks, slippage targets).
 pub fn toy_batch(size: usize, seed: u64, first: u64, n: usize) -> Result<(Tensor, Tensor, Tensor)> {
-    if size == 0 || size > MAX_TOY_SIZE || n.checked_mul(size * size).is_none_or(|p| p > MAX_TOY_BATCH_PIXELS)
+    if size == 0
+        || size > MAX_TOY_SIZE
+        || n.checked_mul(size * size)
+            .is_none_or(|p| p > MAX_TOY_BATCH_PIXELS)
     {
         return Err(NetsError::Param(format!(
             "toy batch of {n} images of {size}² px: side must lie in 1..={MAX_TOY_SIZE} and the \
@@ -164,7 +167,10 @@ impl ToyConfig {
             ));
         }
         if !(self.lr.is_finite() && self.lr > 0.0 && self.lr <= MAX_TOY_LR) {
-            return bad(format!("lr: must lie in (0, {MAX_TOY_LR}], got {}", self.lr));
+            return bad(format!(
+                "lr: must lie in (0, {MAX_TOY_LR}], got {}",
+                self.lr
+            ));
         }
         if !(self.lambda_slip.is_finite() && self.lambda_slip >= 0.0) {
             return bad(format!(
@@ -256,12 +262,38 @@ mod bad_input_tests {
     #[test]
     fn degenerate_or_huge_toy_configs_are_refused_without_allocating() {
         let d = ToyConfig::default;
-        refused(ToyConfig { size: usize::MAX, batch: 2, ..d() }, "size");
-        refused(ToyConfig { size: 100_000_000, batch: 2, ..d() }, "size");
-        refused(ToyConfig { batch: 1_000_000_000_000, ..d() }, "batch");
+        refused(
+            ToyConfig {
+                size: usize::MAX,
+                batch: 2,
+                ..d()
+            },
+            "size",
+        );
+        refused(
+            ToyConfig {
+                size: 100_000_000,
+                batch: 2,
+                ..d()
+            },
+            "size",
+        );
+        refused(
+            ToyConfig {
+                batch: 1_000_000_000_000,
+                ..d()
+            },
+            "batch",
+        );
         refused(ToyConfig { batch: 1, ..d() }, "batch");
         refused(ToyConfig { lr: 1e30, ..d() }, "lr");
-        refused(ToyConfig { lr: f64::NAN, ..d() }, "lr");
+        refused(
+            ToyConfig {
+                lr: f64::NAN,
+                ..d()
+            },
+            "lr",
+        );
         assert!(toy_batch(usize::MAX, 0, 0, 1).is_err());
     }
 }

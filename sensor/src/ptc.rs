@@ -131,7 +131,11 @@ pub fn photon_transfer(
     let q = if cfg.quantize { 1.0 / 12.0 } else { 0.0 };
     let slope_se = (sw / det).sqrt();
     let intercept_se = (sxx / det).sqrt();
-    if !(det > 0.0 && [slope, intercept, slope_se, intercept_se].iter().all(|v| v.is_finite())) {
+    if !(det > 0.0
+        && [slope, intercept, slope_se, intercept_se]
+            .iter()
+            .all(|v| v.is_finite()))
+    {
         // All flat fields read the same DN (the gain is too small for the ADC step to see any
         // shot noise, or the signal is too weak): the line is not determined.
         return Err(SensorError::InvalidParameter {

@@ -445,7 +445,16 @@ mod bad_input_tests {
             variational(&rig, n, 0).unwrap_err(),
             protocol(&rig, &Protocol::default(), n, 0).unwrap_err(),
         ] {
-            assert!(matches!(e, StatesError::TooMany { n: 1_000_000_000_000, .. }), "{e}");
+            assert!(
+                matches!(
+                    e,
+                    StatesError::TooMany {
+                        n: 1_000_000_000_000,
+                        ..
+                    }
+                ),
+                "{e}"
+            );
         }
     }
 }
