@@ -678,7 +678,10 @@ mod bad_input_tests {
         write_state(&flipped);
         run_sweep(&cfg, dir.path(), &|_, _| {}).unwrap();
         let redone = load_sweep(dir.path()).unwrap();
-        assert_eq!(redone.transmittance, real.transmittance, "corrupt block is recomputed");
+        assert_eq!(
+            redone.transmittance, real.transmittance,
+            "corrupt block is recomputed"
+        );
     }
 
     #[test]
