@@ -58,8 +58,8 @@ fn dataset_is_deterministic_resumable_and_follows_the_schema() {
     let (fa, fb) = (files(a.path()), files(b.path()));
     assert_eq!(
         fa.len(),
-        1 + 1 + 3 * 6,
-        "frames.jsonl, contact sheet, 3 frames × 6 files"
+        1 + 1 + 1 + 3 * 8,
+        "dataset.json, frames.jsonl, contact sheet, 3 frames × 8 files"
     );
     assert_eq!(fa, fb, "same seed must give identical files");
 
@@ -98,6 +98,8 @@ fn dataset_is_deterministic_resumable_and_follows_the_schema() {
             "depth",
             "mask_visible_pupil",
             "mask_pupil",
+            "layers",
+            "masks",
         ] {
             assert!(a.path().join(l["files"][f].as_str().unwrap()).exists());
         }

@@ -39,7 +39,7 @@ impl Range {
         // Count in f64: a tiny step makes the quotient overflow usize (or reach +inf), and a
         // saturating cast plus one would wrap to an empty range.
         let steps = ((self.stop - self.start) / self.step + 1e-9).floor();
-        if !(steps < 100_000.0) {
+        if steps.is_nan() || steps >= 100_000.0 {
             return Err(MetalibError::param(
                 name,
                 format!(
