@@ -109,46 +109,98 @@ impl InitState {
         }
     }
 
-    /// Writes the checkpoint (state.json, phase.npy, adam_m.npy, adam_v.npy) into `dir`,
-    /// each file atomically; phase.npy is float64 [y, x] in radians.
+    /// Writes the whole state and `cfg` as ONE file, `dir/checkpoint.bin`, atomically (temp
+    /// file + rename): a kill at any moment leaves either the previous checkpoint or the new
+    /// one, never a mix. Layout: [`CHECKPOINT_MAGIC`], u64 LE length of the JSON metadata, the
+    /// metadata, then phase, Adam m and Adam v as n·n f64 LE each (row-major), then the u64 LE
+    /// FNV-1a hash of all preceding bytes.
     pub fn save(&self, dir: &Path, cfg: &InitConfig) -> Result<(), FisherError> {
         std::fs::create_dir_all(dir).map_err(|e| io("checkpoint dir", dir, e))?;
-        write_npy(&dir.join("phase.npy"), &self.phase)?;
-        write_npy(&dir.join("adam_m.npy"), &self.m)?;
-        write_npy(&dir.join("adam_v.npy"), &self.v)?;
+        let n = self.phase.nrows();
         let meta = Meta {
             iteration: self.iteration,
-            n: self.phase.nrows(),
+            n,
             log_vars: self.log_vars,
             s_m: self.s_m,
             s_v: self.s_v,
             config: cfg.clone(),
             history: self.history.clone(),
         };
-        let text = serde_json::to_vec_pretty(&meta).map_err(|e| FisherError::Shape {
+        let json = serde_json::to_vec(&meta).map_err(|e| FisherError::Shape {
             name: "checkpoint",
             why: e.to_string(),
         })?;
-        write_file(&dir.join("state.json"), &text)
+        let mut out = Vec::with_capacity(CHECKPOINT_MAGIC.len() + 16 + json.len() + 24 * n * n);
+        out.extend_from_slice(CHECKPOINT_MAGIC);
+        out.extend_from_slice(&(json.len() as u64).to_le_bytes());
+        out.extend_from_slice(&json);
+        for m in [&self.phase, &self.m, &self.v] {
+            for i in 0..n {
+                for j in 0..n {
+                    out.extend_from_slice(&m[(i, j)].to_le_bytes());
+                }
+            }
+        }
+        let h = fnv1a64(&out);
+        out.extend_from_slice(&h.to_le_bytes());
+        write_file(&dir.join(CHECKPOINT_FILE), &out)
+    }
+
+    /// Whether `dir` holds a checkpoint (current single-file or legacy multi-file layout).
+    pub fn checkpoint_exists(dir: &Path) -> bool {
+        dir.join(CHECKPOINT_FILE).exists() || dir.join("state.json").exists()
     }
 
     /// Loads a checkpoint written by [`InitState::save`]; returns the state and its config.
+    /// Fails on a truncated or corrupted file (hash mismatch) and on the legacy four-file
+    /// layout, which a kill between its files could leave inconsistent.
     pub fn load(dir: &Path) -> Result<(InitState, InitConfig), FisherError> {
-        let p = dir.join("state.json");
+        let p = dir.join(CHECKPOINT_FILE);
+        if !p.exists() && dir.join("state.json").exists() {
+            return Err(io(
+                "checkpoint",
+                dir,
+                "legacy multi-file checkpoint (state.json + .npy files) cannot be trusted to be \
+                 consistent; remove the directory to start over",
+            ));
+        }
         let bytes = std::fs::read(&p).map_err(|e| io("checkpoint", &p, e))?;
-        let meta: Meta = serde_json::from_slice(&bytes).map_err(|e| FisherError::Shape {
-            name: "checkpoint",
-            why: format!("{}: {e}", p.display()),
-        })?;
-        let phase = read_npy(&dir.join("phase.npy"), meta.n)?;
-        let m = read_npy(&dir.join("adam_m.npy"), meta.n)?;
-        let v = read_npy(&dir.join("adam_v.npy"), meta.n)?;
+        let bad = |why: &str| io("checkpoint", &p, why);
+        let hm = CHECKPOINT_MAGIC.len();
+        if bytes.len() < hm + 16 || &bytes[..hm] != CHECKPOINT_MAGIC {
+            return Err(bad("not a nanoeye init checkpoint"));
+        }
+        let (body, tail) = bytes.split_at(bytes.len() - 8);
+        let stored = u64::from_le_bytes(tail.try_into().map_err(|_| bad("truncated"))?);
+        if stored != fnv1a64(body) {
+            return Err(bad("checksum mismatch: the file is corrupted or truncated"));
+        }
+        let len = u64::from_le_bytes(body[hm..hm + 8].try_into().map_err(|_| bad("truncated"))?);
+        let start = hm + 8;
+        let end = usize::try_from(len)
+            .ok()
+            .and_then(|l| start.checked_add(l))
+            .filter(|&e| e <= body.len())
+            .ok_or_else(|| bad("metadata length beyond the file"))?;
+        let meta: Meta = serde_json::from_slice(&body[start..end])
+            .map_err(|e| bad(&format!("metadata: {e}")))?;
+        let n = meta.n;
+        let floats = &body[end..];
+        if n.checked_mul(n).and_then(|v| v.checked_mul(24)) != Some(floats.len()) {
+            return Err(bad(&format!("expected three {n}x{n} arrays")));
+        }
+        let mat = |k: usize| {
+            Mat::from_fn(n, n, |i, j| {
+                let o = 8 * (k * n * n + i * n + j);
+                f64::from_le_bytes(floats[o..o + 8].try_into().unwrap_or([0; 8]))
+            })
+        };
         Ok((
             InitState {
                 iteration: meta.iteration,
-                phase,
-                m,
-                v,
+                phase: mat(0),
+                m: mat(1),
+                v: mat(2),
                 log_vars: meta.log_vars,
                 s_m: meta.s_m,
                 s_v: meta.s_v,
@@ -157,6 +209,21 @@ impl InitState {
             meta.config,
         ))
     }
+}
+
+/// Name of the single checkpoint file inside the checkpoint directory.
+pub const CHECKPOINT_FILE: &str = "checkpoint.bin";
+/// First bytes of a checkpoint file (format version 1).
+pub const CHECKPOINT_MAGIC: &[u8] = b"NANOEYE-INIT-CKPT-1\n";
+
+/// FNV-1a, 64-bit (checkpoint integrity; not cryptographic).
+fn fnv1a64(bytes: &[u8]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in bytes {
+        h ^= u64::from(b);
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
 }
 
 fn io(name: &'static str, path: &Path, e: impl std::fmt::Display) -> FisherError {
@@ -168,8 +235,22 @@ fn io(name: &'static str, path: &Path, e: impl std::fmt::Display) -> FisherError
 
 fn write_file(path: &Path, bytes: &[u8]) -> Result<(), FisherError> {
     use std::io::Write;
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(|e| io("output", path, e))?;
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    if std::fs::symlink_metadata(path).is_ok_and(|m| !m.file_type().is_file()) {
+        return Err(io(
+            "output",
+            path,
+            "exists and is not a regular file (symlink, pipe, device or directory); refusing \
+             to replace it",
+        ));
+    }
+    let mut tmp = tempfile::Builder::new()
+        .prefix(".nanoeye-tmp-")
+        .tempfile_in(dir)
+        .map_err(|e| io("output", path, e))?;
     tmp.write_all(bytes).map_err(|e| io("output", path, e))?;
     tmp.persist(path).map_err(|e| io("output", path, e.error))?;
     Ok(())
@@ -194,22 +275,6 @@ pub fn write_npy(path: &Path, m: &Mat<f64>) -> Result<(), FisherError> {
         w.finish().map_err(|e| io("npy", path, e))?;
     }
     write_file(path, &buf)
-}
-
-fn read_npy(path: &Path, n: usize) -> Result<Mat<f64>, FisherError> {
-    let bytes = std::fs::read(path).map_err(|e| io("checkpoint", path, e))?;
-    let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| io("checkpoint", path, e))?;
-    if npy.shape() != [n as u64, n as u64] || npy.order() != npyz::Order::C {
-        return Err(io(
-            "checkpoint",
-            path,
-            format!("expected a C-order {n}x{n} array"),
-        ));
-    }
-    let data: Vec<f64> = npy
-        .into_vec::<f64>()
-        .map_err(|e| io("checkpoint", path, e))?;
-    Ok(Mat::from_fn(n, n, |i, j| data[i * n + j]))
 }
 
 /// Bins each f32 plane to pitch `p_hat` (sums over the effective pixel; identity when p̂
