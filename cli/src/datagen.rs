@@ -96,6 +96,13 @@ pub fn run(cmd: Cmd) -> Result<()> {
             if n == 0 {
                 bail!("--n: must be at least 1");
             }
+            let max = match set {
+                Set::Protocol => states::MAX_PROTOCOL_SUBJECTS,
+                Set::Ambiguity | Set::Variational => states::MAX_SET_ITEMS,
+            };
+            if n > max {
+                bail!("--n: at most {max} for --set {set:?} (the set is held in memory), got {n}");
+            }
             let rig = rig::load(rig.as_deref())?;
             let text = set_jsonl(&rig, set, n, seed)?;
             util::write_atomic(&out, text.as_bytes())?;

@@ -108,6 +108,10 @@ fn depths(flag: &str, text: &str) -> Result<Vec<f64>> {
     Ok(d.into_iter().map(|z| z * 1e-3).collect())
 }
 
+/// Largest photon budget: Fisher information scales with it, and far beyond any exposure
+/// (10^20 photons) the sums overflow to inf (1e308 gave a null fisher_z).
+const MAX_PHOTONS: f64 = 1e20;
+
 fn model(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, AsmPsf)> {
     if !(o.aperture_step_um.is_finite() && o.aperture_step_um > 0.0) {
         bail!(
@@ -118,8 +122,11 @@ fn model(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, AsmPsf)> 
     if o.window_px < 3 || o.window_px > 1024 {
         bail!("--window-px: must lie in 3..=1024, got {}", o.window_px);
     }
-    if !(o.photons.is_finite() && o.photons > 0.0) {
-        bail!("--photons: must be positive, got {}", o.photons);
+    if !(o.photons.is_finite() && o.photons > 0.0 && o.photons <= MAX_PHOTONS) {
+        bail!(
+            "--photons: must lie in (0, {MAX_PHOTONS:e}], got {:e}",
+            o.photons
+        );
     }
     let grid = ApertureGrid::new(1e-3, o.aperture_step_um * 1e-6).context("--aperture-step-um")?;
     let cfg = PsfConfig {
@@ -204,9 +211,30 @@ fn init(a: InitArgs) -> Result<()> {
     let depths_m = depths("--depths-mm", &a.depths_mm)?;
     let (grid, model) = model(&a.optics, 3e-6)?;
     let ckpt = a.out.join("checkpoint");
-    let (mut state, cfg) = if ckpt.join("state.json").exists() {
+    let requested = InitConfig {
+        depths_m: depths_m.clone(),
+        sensor_pitch_m: a.pitch_um * 1e-6,
+        lr_phase: a.lr_rad,
+        noise: sensor_noise(a.optics.photons),
+        ..InitConfig::default()
+    };
+    let (mut state, cfg) = if InitState::checkpoint_exists(&ckpt) {
         let (s, c) = InitState::load(&ckpt)
             .with_context(|| format!("--out: cannot resume from '{}'", ckpt.display()))?;
+        // A resumed run must continue the same problem: refuse changed parameters by name.
+        let changed = [
+            ("--depths-mm", c.depths_m != requested.depths_m),
+            ("--pitch-um", c.sensor_pitch_m != requested.sensor_pitch_m),
+            ("--lr-rad", c.lr_phase != requested.lr_phase),
+            ("--photons", c.noise != requested.noise),
+        ];
+        if let Some((flag, _)) = changed.iter().find(|(_, d)| *d) {
+            bail!(
+                "{flag}: differs from the checkpoint in '{}' (it was written with other \
+                 parameters); use the original value or another --out",
+                ckpt.display()
+            );
+        }
         if s.phase.nrows() != grid.n {
             bail!(
                 "--aperture-step-um: checkpoint grid is {} samples, this run's is {}",
@@ -222,14 +250,7 @@ fn init(a: InitArgs) -> Result<()> {
         (s, c)
     } else {
         let phase = Hyperbolic::default().phase_map(&grid)?.phase_rad;
-        let cfg = InitConfig {
-            depths_m: depths_m.clone(),
-            sensor_pitch_m: a.pitch_um * 1e-6,
-            lr_phase: a.lr_rad,
-            noise: sensor_noise(a.optics.photons),
-            ..InitConfig::default()
-        };
-        (InitState::new(phase), cfg)
+        (InitState::new(phase), requested)
     };
     let t0 = Instant::now();
     let start = state.iteration;
@@ -331,6 +352,17 @@ fn lens_map(spec: &str, grid: &ApertureGrid) -> Result<PhaseMap> {
 }
 
 fn compare(a: CompareArgs) -> Result<()> {
+    if !a
+        .montage
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"))
+    {
+        bail!(
+            "--montage: '{}' must end in .png (the montage is written as PNG)",
+            a.montage.display()
+        );
+    }
+    crate::util::check_output_target(&a.montage).context("--montage")?;
     let depths_m = depths("--depths-mm", &a.depths_mm)?;
     let pitches_um = parse_list("--pitch-um", &a.pitch_um)?;
     if pitches_um.is_empty() || pitches_um.iter().any(|&p| p <= 0.0) {
@@ -354,6 +386,15 @@ fn compare(a: CompareArgs) -> Result<()> {
     let pitches_m: Vec<f64> = pitches_um.iter().map(|p| p * 1e-6).collect();
     let noise = sensor_noise(a.optics.photons);
     let (rows, planes) = compare_lenses(&model, &lenses, &depths_m, &pitches_m, &noise)?;
+    if let Some(r) = rows.iter().find(|r| !r.fisher_z.is_finite()) {
+        bail!(
+            "--photons: the Fisher information of {} at {} µm is not finite ({}); lower the \
+             photon budget",
+            r.lens,
+            r.pitch_um,
+            r.fisher_z
+        );
+    }
     let coarse = pitches_um.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     let mut retained = BTreeMap::new();
     for s in &specs {

@@ -4,7 +4,7 @@ use crate::{rig, util};
 use anyhow::{Context, Result, bail};
 use clap::Subcommand;
 use faer::Mat;
-use nanoeye_gaze::bias::{GazeGrid, pupil_sphere_bias};
+use nanoeye_gaze::bias::{GazeGrid, MAX_GRID_STEPS, pupil_sphere_bias};
 use nanoeye_gaze::{GazeSolver, SphereSolver};
 use serde::Deserialize;
 use serde_json::json;
@@ -101,15 +101,25 @@ pub fn run(cmd: Cmd) -> Result<()> {
             // Mask paths are relative to the query file's directory.
             let base = input.parent().unwrap_or(Path::new(".")).to_path_buf();
             let mut lines = Vec::new();
-            for (n, line) in std::io::BufReader::new(file).lines().enumerate() {
-                let line =
-                    line.with_context(|| format!("--input: read error at line {}", n + 1))?;
-                if line.trim().is_empty() {
-                    continue;
+            let mut reader = std::io::BufReader::new(file);
+            let mut raw = Vec::new();
+            let mut n = 0usize;
+            loop {
+                raw.clear();
+                let read = reader
+                    .read_until(b'\n', &mut raw)
+                    .with_context(|| format!("--input: read error at line {}", n + 1))?;
+                if read == 0 {
+                    break;
                 }
+                n += 1;
                 // A bad line answers with an error object and never stops the batch.
-                let v = solve_line(&solver, &line, &base)
-                    .unwrap_or_else(|e| json!({"error": format!("line {}: {e:#}", n + 1)}));
+                let v = match util::jsonl_line(&raw, n) {
+                    Ok(line) if line.trim().is_empty() => continue,
+                    Ok(line) => solve_line(&solver, line, &base),
+                    Err(e) => Err(e),
+                }
+                .unwrap_or_else(|e| json!({"error": format!("line {n}: {e:#}")}));
                 lines.push(serde_json::to_string(&v)?);
             }
             let mut text = lines.join("\n");
@@ -131,6 +141,9 @@ pub fn run(cmd: Cmd) -> Result<()> {
             let rig = rig::load(rig.as_deref())?;
             if steps < 2 {
                 bail!("--steps: need at least 2 samples per axis, got {steps}");
+            }
+            if steps > MAX_GRID_STEPS {
+                bail!("--steps: at most {MAX_GRID_STEPS} samples per axis, got {steps}");
             }
             let mut radii = util::parse_list("--solver-radii-mm", &solver_radii_mm)?;
             // The rig's true pupil radius is always a row: the zero-bias reference.

@@ -5,7 +5,9 @@ use clap::{Args, Subcommand};
 use nanoeye_metalib::blueprint::{self, BlueprintOptions};
 use nanoeye_metalib::library::{PillarLibrary, TabulatedLibrary};
 use nanoeye_metalib::material::{DEFAULT_WAVELENGTH_M, Materials};
-use nanoeye_metalib::rcwa::{CellSpec, DEFAULT_HARMONICS, DEFAULT_RULE, LayerModes, Rule};
+use nanoeye_metalib::rcwa::{
+    CellSpec, DEFAULT_HARMONICS, DEFAULT_RULE, LayerModes, Rule, WAVELENGTH_RANGE_M,
+};
 use nanoeye_metalib::select::{self, Criteria};
 use nanoeye_metalib::sweep::{self, Range, SweepConfig};
 use std::path::PathBuf;
@@ -72,10 +74,17 @@ impl SolverArgs {
         self.rule.parse().map_err(|e| anyhow!("--rule: {e}"))
     }
     fn wavelength_m(&self) -> Result<f64> {
-        if !(self.wavelength_nm.is_finite() && self.wavelength_nm > 0.0) {
-            bail!("--wavelength-nm must be finite and > 0");
+        let (lo, hi) = WAVELENGTH_RANGE_M;
+        let m = self.wavelength_nm * 1e-9;
+        if !(self.wavelength_nm.is_finite() && (lo..=hi).contains(&m)) {
+            bail!(
+                "--wavelength-nm: must lie in [{}, {}] nm (the solver's valid range), got {}",
+                lo * 1e9,
+                hi * 1e9,
+                self.wavelength_nm
+            );
         }
-        Ok(self.wavelength_nm * 1e-9)
+        Ok(m)
     }
 }
 
@@ -159,7 +168,7 @@ pub struct BlueprintArgs {
     #[arg(long)]
     out: PathBuf,
     /// Sweep directory holding (height, pitch); if absent, the library is computed directly.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "library_csv")]
     sweep: Option<PathBuf>,
     /// User library CSV `diameter_nm,phase_rad,transmittance` instead of a sweep.
     #[arg(long)]
@@ -287,10 +296,20 @@ fn sweep_cmd(a: SweepArgs) -> Result<()> {
 }
 
 fn select_cmd(a: SelectArgs) -> Result<()> {
+    for (flag, v) in [
+        ("--mark-height-nm", a.mark_height_nm),
+        ("--mark-pitch-nm", a.mark_pitch_nm),
+    ] {
+        if !(v.is_finite() && v > 0.0) {
+            bail!("{flag}: must be finite and > 0, got {v}");
+        }
+    }
     let data =
         sweep::load_sweep(&a.sweep).with_context(|| format!("--sweep {}", a.sweep.display()))?;
     let sel = select::select_sweep(&data, &Criteria::default());
     let figdir = a.figures.clone().unwrap_or_else(|| a.sweep.join("figures"));
+    let viable_path = figdir.join("viable.npy");
+    sweep::check_output_target(&viable_path).context("--figures")?;
     let files = select::write_figures(
         &figdir,
         &data,
@@ -361,6 +380,18 @@ fn select_cmd(a: SelectArgs) -> Result<()> {
 fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
     let h = nm("--height-nm", a.height_nm)?;
     let s = nm("--pitch-nm", a.pitch_nm)?;
+    if !(h > 0.0 && s > 0.0) {
+        bail!("--height-nm/--pitch-nm: must be > 0");
+    }
+    let opt = BlueprintOptions {
+        diameter_step_m: nm("--diameter-step-nm", a.diameter_step_nm)?,
+        circle_vertices: a.circle_vertices,
+        layer: 1,
+        circular_aperture: !a.square_aperture,
+    };
+    opt.validate()
+        .map_err(|e| anyhow!("--{}", flagify(&e.to_string())))?;
+    a.solver.wavelength_m()?;
     let (shape, phase) =
         sweep::read_npy(&a.phase).with_context(|| format!("--phase {}", a.phase.display()))?;
     if shape.len() != 2 {
@@ -414,28 +445,36 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
         .map_err(|e| anyhow!("--height-nm/--pitch-nm: {e}"))?
         .0
     };
-    let opt = BlueprintOptions {
-        diameter_step_m: nm("--diameter-step-nm", a.diameter_step_nm)?,
-        circle_vertices: a.circle_vertices,
-        layer: 1,
-        circular_aperture: !a.square_aperture,
-    };
+    if (lib.pitch_m() - s).abs() > 1e-6 * s {
+        bail!(
+            "--pitch-nm: {} nm differs from the library's pitch {} nm",
+            a.pitch_nm,
+            lib.pitch_m() * 1e9
+        );
+    }
     let bp = blueprint::invert_phase_map(&lib, &phase, rows, cols, &opt)
         .map_err(|e| anyhow!("--phase: {e}"))?;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
-    sweep::write_atomic(
-        &a.out.join("diameters.npy"),
-        &sweep::npy_bytes(&[rows as u64, cols as u64], &bp.diameters_m)?,
-    )?;
-    sweep::write_atomic(
-        &a.out.join("layout.gds"),
-        &blueprint::gdsii(&bp, s, &opt).map_err(|e| anyhow!("--circle-vertices: {e}"))?,
-    )?;
+    // Every output is produced in memory and every target checked before the first write,
+    // so a failure never leaves new files next to old ones.
     let (dmin, dmax) = lib.diameter_range_m();
-    sweep::write_atomic(
-        &a.out.join("preview.png"),
-        &blueprint::preview_png(&bp, dmin, dmax)?,
-    )?;
+    let outputs = [
+        (
+            "diameters.npy",
+            sweep::npy_bytes(&[rows as u64, cols as u64], &bp.diameters_m)?,
+        ),
+        (
+            "layout.gds",
+            blueprint::gdsii(&bp, s, &opt).map_err(|e| anyhow!("--pitch-nm: {e}"))?,
+        ),
+        ("preview.png", blueprint::preview_png(&bp, dmin, dmax)?),
+    ];
+    for (name, _) in &outputs {
+        sweep::check_output_target(&a.out.join(name)).context("--out")?;
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+    for (name, bytes) in &outputs {
+        sweep::write_atomic(&a.out.join(name), bytes)?;
+    }
     let v = serde_json::json!({
         "pillars": bp.pillars, "rows": rows, "cols": cols,
         "diameter_min_nm": dmin * 1e9, "diameter_max_nm": dmax * 1e9,

@@ -4,8 +4,12 @@ use crate::util::print_json;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use nanoeye_nets::arch::{Arch, SupernetConfig};
-use nanoeye_nets::cost::{Cost, mobilenet_v3_large, mobilenet_v3_small, subnet_cost};
-use nanoeye_nets::toy::{ToyConfig, fit_toy_with_progress};
+use nanoeye_nets::cost::{
+    Cost, MAX_IN_CHANNELS, MAX_RESOLUTION, mobilenet_v3_large, mobilenet_v3_small, subnet_cost,
+};
+use nanoeye_nets::toy::{
+    MAX_TOY_BATCH_PIXELS, MAX_TOY_LR, MAX_TOY_SIZE, ToyConfig, fit_toy_with_progress,
+};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -71,8 +75,17 @@ pub fn run(cmd: NetsCmd) -> Result<()> {
 }
 
 fn macs(a: MacsArgs) -> Result<()> {
-    if a.resolution == 0 {
-        bail!("--resolution must be positive");
+    if a.resolution == 0 || a.resolution > MAX_RESOLUTION {
+        bail!(
+            "--resolution: must lie in 1..={MAX_RESOLUTION}, got {}",
+            a.resolution
+        );
+    }
+    if a.in_channels == 0 || a.in_channels > MAX_IN_CHANNELS {
+        bail!(
+            "--in-channels: must lie in 1..={MAX_IN_CHANNELS}, got {}",
+            a.in_channels
+        );
     }
     let cfg = SupernetConfig {
         in_channels: a.in_channels,
@@ -135,14 +148,28 @@ fn fit(a: FitToyArgs) -> Result<()> {
     if a.steps == 0 {
         bail!("--steps must be positive");
     }
-    if a.batch == 0 {
-        bail!("--batch must be positive");
+    if a.batch < 2 {
+        bail!(
+            "--batch: need at least 2 images per step (the head's batch norm), got {}",
+            a.batch
+        );
     }
-    if a.size_px < 8 {
-        bail!("--size-px must be at least 8");
+    if !(8..=MAX_TOY_SIZE).contains(&a.size_px) {
+        bail!(
+            "--size-px: must lie in 8..={MAX_TOY_SIZE}, got {}",
+            a.size_px
+        );
     }
-    if !(a.lr.is_finite() && a.lr > 0.0) {
-        bail!("--lr must be positive");
+    if a.batch.saturating_mul(a.size_px * a.size_px) > MAX_TOY_BATCH_PIXELS {
+        bail!(
+            "--batch/--size-px: {} images of {}² px exceed {MAX_TOY_BATCH_PIXELS} input pixels \
+             per step (≈8 GiB of training memory)",
+            a.batch,
+            a.size_px
+        );
+    }
+    if !(a.lr.is_finite() && a.lr > 0.0 && a.lr <= MAX_TOY_LR) {
+        bail!("--lr: must lie in (0, {MAX_TOY_LR}], got {}", a.lr);
     }
     let cfg = ToyConfig {
         size: a.size_px,
@@ -162,6 +189,10 @@ fn fit(a: FitToyArgs) -> Result<()> {
                 cfg.steps,
                 per * (cfg.steps - done) as f64
             );
+        })
+        .map_err(|e| match e.to_string() {
+            m if m.contains("lr:") => anyhow::anyhow!("--lr: {e}"),
+            _ => anyhow::anyhow!(e),
         })?;
         eprintln!();
         Ok(Metrics {

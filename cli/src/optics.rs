@@ -69,6 +69,17 @@ pub fn run(cmd: Cmd) -> Result<()> {
     }
 }
 
+/// Largest metasurface-to-sensor distance (m).
+const MAX_SENSOR_DISTANCE_M: f64 = 1.0;
+/// Largest object distance (m).
+const MAX_DISTANCE_M: f64 = 1e3;
+/// Fewest aperture samples across the diameter.
+const MIN_APERTURE_SAMPLES: usize = 4;
+/// Largest folded grid (samples per period) the PSF model accepts.
+const MAX_FOLD: f64 = 16384.0;
+/// Largest sub-pixel points per window side the PSF model accepts.
+const MAX_SUBPIXEL_POINTS: f64 = 8192.0;
+
 fn positive(flag: &str, v: f64) -> Result<f64> {
     if v.is_finite() && v > 0.0 {
         Ok(v)
@@ -98,6 +109,60 @@ fn psf(a: PsfArgs) -> Result<()> {
         .period_mm
         .map(|p| positive("--period-mm", p).map(|p| p * 1e-3))
         .transpose()?;
+    if s > MAX_SENSOR_DISTANCE_M {
+        bail!(
+            "--sensor-mm: at most {} mm, got {:e}",
+            MAX_SENSOR_DISTANCE_M * 1e3,
+            a.sensor_mm
+        );
+    }
+    if zf > MAX_DISTANCE_M || depths.iter().any(|&z| z > MAX_DISTANCE_M) {
+        bail!(
+            "--focus-mm/--depths-mm: object distances must be at most {} mm",
+            MAX_DISTANCE_M * 1e3
+        );
+    }
+    if !(1e-7..=1e-4).contains(&lam) {
+        bail!(
+            "--wavelength-nm: must lie in [100, 100000] nm, got {}",
+            a.wavelength_nm
+        );
+    }
+    let samples = d / dx;
+    if samples.is_nan() || samples < MIN_APERTURE_SAMPLES as f64 {
+        bail!(
+            "--aperture-mm/--sample-um: the aperture must span at least {MIN_APERTURE_SAMPLES} \
+             samples, got {samples:e}"
+        );
+    }
+    if let Some(p) = period {
+        if p < d {
+            bail!(
+                "--period-mm: the period {} mm is smaller than the aperture {} mm (the folded \
+                 field would overlap itself)",
+                p * 1e3,
+                d * 1e3
+            );
+        }
+        // Checked here in f64: the model's own size check works on a saturated integer.
+        if (p / dx).is_nan() || p / dx > MAX_FOLD {
+            bail!(
+                "--period-mm: {:e} samples per period at --sample-um {} is more than {MAX_FOLD}",
+                p / dx,
+                a.sample_um
+            );
+        }
+    }
+    // Sub-pixel points per side the model will use (its default sub-pixel ≤ 0.8 λ s / 2D).
+    let sub = pitch / (0.8 * lam * s / (2.0 * d));
+    let points = sub * a.window_px as f64;
+    if points.is_nan() || points > MAX_SUBPIXEL_POINTS {
+        bail!(
+            "--pitch-um/--window-px: {:e} sub-pixel points per side is more than \
+             {MAX_SUBPIXEL_POINTS}",
+            sub.ceil() * a.window_px as f64
+        );
+    }
     let grid = ApertureGrid::new(d, dx).context("--aperture-mm/--sample-um")?;
     let lens = Hyperbolic {
         wavelength_m: lam,
@@ -152,12 +217,27 @@ fn psf(a: PsfArgs) -> Result<()> {
     };
     let model = AsmPsf::new(cfg, grid).context("--pitch-um/--window-px/--period-mm")?;
     let stack = model.forward(&map, &depths, None)?;
+    if let Some(k) = stack
+        .planes
+        .iter()
+        .position(|p| p.col_iter().any(|c| c.iter().any(|v| !v.is_finite())))
+    {
+        bail!(
+            "the PSF at depth {} mm is not finite: --aperture-mm/--sample-um/--sensor-mm/\
+             --pitch-um lie outside the model's numerically valid range",
+            stack.depths_m[k] * 1e3
+        );
+    }
+    let montage_png = montage(&stack.planes)?;
+    for name in ["psf.npy", "montage.png"] {
+        crate::util::check_output_target(&a.out.join(name)).context("--out")?;
+    }
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("--out: cannot create '{}'", a.out.display()))?;
     write_atomic_with(&a.out.join("psf.npy"), |w| {
         nanoeye_optics::io::write_stack_npy(&stack, w).map_err(Into::into)
     })?;
-    write_atomic(&a.out.join("montage.png"), &montage(&stack.planes)?)?;
+    write_atomic(&a.out.join("montage.png"), &montage_png)?;
     if a.json {
         let planes: Vec<serde_json::Value> = stack
             .planes

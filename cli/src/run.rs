@@ -69,6 +69,13 @@ pub fn run(a: RunArgs) -> Result<()> {
     if a.subjects == 0 {
         bail!("--subjects: must be at least 1");
     }
+    if a.subjects > states::MAX_PROTOCOL_SUBJECTS {
+        bail!(
+            "--subjects: at most {} (the protocol set is held in memory), got {}",
+            states::MAX_PROTOCOL_SUBJECTS,
+            a.subjects
+        );
+    }
     let rig = rig::load(a.rig.as_deref())?;
     let t0 = std::time::Instant::now();
     let caps = states::protocol(&rig, &Protocol::default(), a.subjects, a.seed)?;

@@ -3,7 +3,7 @@
 use crate::util::print_json;
 use anyhow::{Result, bail};
 use clap::{Args, Subcommand};
-use nanoeye_sensor::{SensorConfig, photon_transfer};
+use nanoeye_sensor::{MAX_PTC_LEVELS, SensorConfig, SensorError, photon_transfer};
 
 /// Sensor commands.
 #[derive(Subcommand)]
@@ -69,7 +69,22 @@ fn ptc(a: PtcArgs) -> Result<()> {
     if a.side_px < 8 || a.side_px > 4096 {
         bail!("--side-px: must lie in 8..=4096, got {}", a.side_px);
     }
-    let r = photon_transfer(&cfg, a.levels, a.side_px, a.seed)?;
+    if a.levels > MAX_PTC_LEVELS {
+        bail!("--levels: at most {MAX_PTC_LEVELS}, got {}", a.levels);
+    }
+    let r = photon_transfer(&cfg, a.levels, a.side_px, a.seed).map_err(|e| {
+        let flag = match &e {
+            SensorError::InvalidParameter { name, .. } => match *name {
+                "levels" => "--levels",
+                "side" => "--side-px",
+                "gain_dn_per_e" => "--gain-dn-per-e",
+                "read_noise_e" => "--read-noise-e",
+                _ => "sensor",
+            },
+            _ => "sensor",
+        };
+        anyhow::anyhow!("{flag}: {e}")
+    })?;
     if a.json {
         print_json(&serde_json::json!({
             "slope": r.slope,

@@ -4,10 +4,71 @@ use anyhow::{Context, Result, bail};
 use std::io::Write;
 use std::path::Path;
 
+/// Prefix of every temporary file the atomic writers create: `.nanoeye-tmp-<pid>-XXXXXX`.
+/// A run killed between create and rename leaves one behind; the next write into the same
+/// directory removes those whose process is gone ([`remove_stale_temps`]).
+pub const TMP_PREFIX: &str = ".nanoeye-tmp-";
+
 /// Writes `bytes` to `path` atomically: a temporary file in the same directory, then a rename,
 /// so an interrupted run never leaves a half-written file behind.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     write_atomic_with(path, |w| w.write_all(bytes).map_err(Into::into))
+}
+
+/// Fails unless `path` is absent or a regular file: renaming over a symlink, pipe, device or
+/// directory would silently replace that node with a plain file.
+pub fn check_output_target(path: &Path) -> Result<()> {
+    match std::fs::symlink_metadata(path) {
+        Ok(m) if m.file_type().is_file() => Ok(()),
+        Ok(m) => {
+            let ft = m.file_type();
+            let what = if ft.is_symlink() {
+                "a symbolic link"
+            } else if ft.is_dir() {
+                "a directory"
+            } else {
+                "a pipe, socket or device"
+            };
+            bail!(
+                "'{}' exists and is {what}, not a regular file; refusing to replace it",
+                path.display()
+            )
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        Err(e) => Err(e).with_context(|| format!("cannot inspect '{}'", path.display())),
+    }
+}
+
+/// Removes `TMP_PREFIX` files in `dir` left by processes that no longer run (on systems
+/// without /proc: those older than a day). Errors are ignored: cleaning is best effort.
+pub fn remove_stale_temps(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    let proc = Path::new("/proc");
+    let have_proc = proc.join("self").exists();
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let Some(rest) = name.to_str().and_then(|n| n.strip_prefix(TMP_PREFIX)) else {
+            continue;
+        };
+        let Ok(meta) = e.metadata() else { continue };
+        if !meta.is_file() {
+            continue;
+        }
+        let pid = rest.split('-').next().unwrap_or("");
+        let stale = if have_proc && !pid.is_empty() && pid.bytes().all(|b| b.is_ascii_digit()) {
+            pid != std::process::id().to_string() && !proc.join(pid).exists()
+        } else {
+            meta.modified()
+                .ok()
+                .and_then(|t| t.elapsed().ok())
+                .is_some_and(|age| age.as_secs() > 86_400)
+        };
+        if stale {
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
 }
 
 /// Like [`write_atomic`], streaming through a writer callback.
@@ -19,9 +80,13 @@ pub fn write_atomic_with(
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
     };
+    check_output_target(path)?;
     std::fs::create_dir_all(dir)
         .with_context(|| format!("cannot create directory '{}'", dir.display()))?;
-    let mut tmp = tempfile::NamedTempFile::new_in(dir)
+    remove_stale_temps(dir);
+    let mut tmp = tempfile::Builder::new()
+        .prefix(&format!("{TMP_PREFIX}{}-", std::process::id()))
+        .tempfile_in(dir)
         .with_context(|| format!("cannot create a temporary file in '{}'", dir.display()))?;
     {
         let mut w = std::io::BufWriter::new(tmp.as_file_mut());
@@ -31,6 +96,23 @@ pub fn write_atomic_with(
     tmp.persist(path)
         .with_context(|| format!("cannot write '{}'", path.display()))?;
     Ok(())
+}
+
+/// One line of JSONL input as text: `raw` without its line ending; line 1 loses a leading
+/// UTF-8 byte-order mark. Fails (naming the byte offset) when the line is not UTF-8, so the
+/// caller can report that one line and go on.
+pub fn jsonl_line(raw: &[u8], line_no: usize) -> Result<&str> {
+    let mut b = raw.strip_suffix(b"\n").unwrap_or(raw);
+    b = b.strip_suffix(b"\r").unwrap_or(b);
+    if line_no == 1 {
+        b = b.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(b);
+    }
+    std::str::from_utf8(b).map_err(|e| {
+        anyhow::anyhow!(
+            "not valid UTF-8 (invalid byte at offset {})",
+            e.valid_up_to()
+        )
+    })
 }
 
 /// Prints a serializable value as one line of JSON on stdout.
@@ -101,6 +183,38 @@ mod tests {
         assert!(parse_range("--x", "1:0:1").is_err());
         assert!(parse_range("--x", "1:2:0").is_err());
         assert!(parse_range("--x", "a").is_err());
+    }
+
+    #[test]
+    fn jsonl_line_strips_bom_and_endings_and_rejects_bad_utf8() {
+        assert_eq!(jsonl_line(b"\xEF\xBB\xBF{}\r\n", 1).unwrap(), "{}");
+        assert_eq!(jsonl_line(b"{}\n", 2).unwrap(), "{}");
+        let e = jsonl_line(b"{\xFF}\n", 3).unwrap_err().to_string();
+        assert!(e.contains("UTF-8"), "{e}");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn atomic_write_refuses_symlinks_and_removes_dead_temps() {
+        let dir = tempfile::tempdir().unwrap();
+        let real = dir.path().join("real.txt");
+        std::fs::write(&real, b"keep").unwrap();
+        let link = dir.path().join("link.txt");
+        std::os::unix::fs::symlink(&real, &link).unwrap();
+        let e = write_atomic(&link, b"x").unwrap_err().to_string();
+        assert!(e.contains("symbolic link"), "{e}");
+        assert!(
+            std::fs::symlink_metadata(&link)
+                .unwrap()
+                .file_type()
+                .is_symlink()
+        );
+        assert_eq!(std::fs::read(&real).unwrap(), b"keep");
+        // A temp file of a process that no longer exists (pid beyond any real one).
+        let dead = dir.path().join(format!("{TMP_PREFIX}4294967295-abc"));
+        std::fs::write(&dead, b"partial").unwrap();
+        write_atomic(&dir.path().join("out.txt"), b"ok").unwrap();
+        assert!(!dead.exists());
     }
 
     #[test]

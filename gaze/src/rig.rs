@@ -497,11 +497,15 @@ mod bad_input_tests {
 
     #[test]
     fn impossible_rigs_are_refused() {
-        let mut rig = Rig::default();
-        rig.eye_radius_m = 1e-300;
+        let rig = Rig {
+            eye_radius_m: 1e-300,
+            ..Rig::default()
+        };
         assert_eq!(field_of(&rig), "eye_radius_m");
-        let mut rig = Rig::default();
-        rig.pupil_sphere_radius_m = 1e300;
+        let rig = Rig {
+            pupil_sphere_radius_m: 1e300,
+            ..Rig::default()
+        };
         assert_eq!(field_of(&rig), "pupil_sphere_radius_m");
         let mut rig = Rig::default();
         rig.camera.position_m = [0.0, 0.0, 5e-3];

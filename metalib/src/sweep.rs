@@ -712,3 +712,35 @@ mod bad_input_tests {
         assert_eq!(std::fs::read(&real).unwrap(), b"keep");
     }
 }
+
+#[cfg(test)]
+mod range_proptests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn extreme() -> impl Strategy<Value = f64> {
+        prop_oneof![
+            -10.0f64..10.0,
+            any::<f64>(),
+            Just(f64::NAN),
+            Just(f64::INFINITY),
+            Just(1e-300),
+            Just(f64::MIN_POSITIVE),
+            Just(1e308),
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+        /// Any (start, stop, step) is refused or gives 1..=100000 finite, non-decreasing samples.
+        #[test]
+        fn ranges_are_refused_or_sane(start in extreme(), stop in extreme(), step in extreme()) {
+            let r = Range { start, stop, step };
+            if let Ok(v) = r.values("range") {
+                prop_assert!(!v.is_empty() && v.len() <= 100_000);
+                prop_assert!(v.iter().all(|x| x.is_finite()));
+                prop_assert!(v.windows(2).all(|w| w[1] >= w[0]));
+            }
+        }
+    }
+}

@@ -325,3 +325,32 @@ mod bad_input_tests {
         assert!(serde_json::from_value::<Arch>(v).is_err());
     }
 }
+
+#[cfg(test)]
+mod bad_input_proptests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        /// Any resolution and channel count either is refused or gives a cost that grows
+        /// with the input (debug builds would panic on an overflow).
+        #[test]
+        fn extreme_sizes_are_refused_or_counted_without_overflow(
+            res in prop_oneof![0usize..=4096, any::<usize>(), Just(usize::MAX), Just(MAX_RESOLUTION)],
+            ch in prop_oneof![0usize..=8, any::<usize>(), Just(MAX_IN_CHANNELS)],
+        ) {
+            let cfg = SupernetConfig { in_channels: ch, ..SupernetConfig::default() };
+            match subnet_cost(&cfg, &Arch::max(), res, res) {
+                Ok(c) => {
+                    prop_assert!((1..=MAX_RESOLUTION).contains(&res));
+                    prop_assert!((1..=MAX_IN_CHANNELS).contains(&ch));
+                    prop_assert!(c.macs > 0 && c.macs >= c.per_kind.pointwise);
+                }
+                Err(_) => prop_assert!(
+                    !(1..=MAX_RESOLUTION).contains(&res) || !(1..=MAX_IN_CHANNELS).contains(&ch)
+                ),
+            }
+        }
+    }
+}

@@ -1,0 +1,526 @@
+//! Bad-input regressions (issue 19, section 3): every refused request exits non-zero with a
+//! message naming the flag, never panics, and leaves no partial output behind.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn nanoeye(args: &[&str], cwd: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_nanoeye"))
+        .args(args)
+        .current_dir(cwd)
+        .output()
+        .expect("run nanoeye")
+}
+
+/// Runs `args`, expects a clean refusal that names `flag`.
+fn refused(args: &[&str], flag: &str, cwd: &Path) -> String {
+    let out = nanoeye(args, cwd);
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(!out.status.success(), "{args:?} succeeded: {err}");
+    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+    assert!(
+        err.contains(flag),
+        "{args:?}: error does not name {flag}: {err}"
+    );
+    err
+}
+
+fn entries(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .map(|r| {
+            r.flatten()
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v
+}
+
+#[test]
+fn huge_counts_are_refused_naming_the_flag() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let max = "18446744073709551615";
+    let tera = "1000000000000";
+    for (args, flag) in [
+        (
+            vec![
+                "nets",
+                "fit-toy",
+                "--steps",
+                "1",
+                "--batch",
+                "2",
+                "--size-px",
+                max,
+                "--min-only",
+            ],
+            "--size-px",
+        ),
+        (
+            vec!["nets", "fit-toy", "--batch", tera, "--min-only"],
+            "--batch",
+        ),
+        (
+            vec!["nets", "fit-toy", "--size-px", "100000000", "--min-only"],
+            "--size-px",
+        ),
+        (
+            vec!["nets", "fit-toy", "--batch", "1", "--size-px", "16"],
+            "--batch",
+        ),
+        (vec!["nets", "fit-toy", "--lr", "1e30"], "--lr"),
+        (
+            vec!["nets", "macs", "--arch", "max", "--resolution", max],
+            "--resolution",
+        ),
+        (
+            vec!["nets", "macs", "--arch", "large", "--resolution", max],
+            "--resolution",
+        ),
+        (
+            vec!["nets", "macs", "--arch", "max", "--in-channels", max],
+            "--in-channels",
+        ),
+        (
+            vec!["sensor", "ptc", "--levels", max, "--side-px", "8"],
+            "--levels",
+        ),
+        (vec!["sensor", "ptc", "--levels", tera], "--levels"),
+        (
+            vec![
+                "sensor",
+                "ptc",
+                "--gain-dn-per-e",
+                "1e-10",
+                "--side-px",
+                "8",
+                "--json",
+            ],
+            "--gain-dn-per-e",
+        ),
+        (
+            vec![
+                "datagen",
+                "states",
+                "--set",
+                "ambiguity",
+                "--n",
+                tera,
+                "--out",
+                "s.jsonl",
+            ],
+            "--n",
+        ),
+        (
+            vec![
+                "datagen", "states", "--set", "protocol", "--n", tera, "--out", "s.jsonl",
+            ],
+            "--n",
+        ),
+        (vec!["run", "--subjects", tera], "--subjects"),
+        (vec!["gaze", "bias", "--steps", tera], "--steps"),
+        (
+            vec![
+                "metalib",
+                "sweep",
+                "--harmonics",
+                "2",
+                "--out",
+                "sw",
+                "--heights-nm",
+                "700:700:10",
+                "--pitches-nm",
+                "530:530:10",
+                "--fractions",
+                "0.1:0.9:1e-300",
+            ],
+            "--fractions",
+        ),
+        (
+            vec![
+                "metalib",
+                "sweep",
+                "--harmonics",
+                "2",
+                "--out",
+                "sw",
+                "--heights-nm",
+                "0:1e9:1e-300",
+                "--pitches-nm",
+                "530:530:10",
+                "--fractions",
+                "0.1:0.9:0.4",
+            ],
+            "--heights-nm",
+        ),
+        (
+            vec![
+                "metalib",
+                "cell",
+                "--wavelength-nm",
+                "1e12",
+                "--height-nm",
+                "700",
+                "--pitch-nm",
+                "530",
+                "--diameter-nm",
+                "200",
+            ],
+            "--wavelength-nm",
+        ),
+        (
+            vec![
+                "metalib",
+                "cell",
+                "--wavelength-nm",
+                "0.001",
+                "--height-nm",
+                "700",
+                "--pitch-nm",
+                "530",
+                "--diameter-nm",
+                "200",
+            ],
+            "--wavelength-nm",
+        ),
+        (
+            vec![
+                "metalib",
+                "select",
+                "--sweep",
+                "none",
+                "--mark-pitch-nm",
+                "NaN",
+            ],
+            "--mark-pitch-nm",
+        ),
+        (
+            vec![
+                "fisher",
+                "compare",
+                "--photons",
+                "1e308",
+                "--montage",
+                "m.png",
+            ],
+            "--photons",
+        ),
+        (vec!["fisher", "compare", "--montage", "m.jpg"], "--montage"),
+    ] {
+        refused(&args, flag, p);
+    }
+    assert!(entries(p).is_empty(), "partial outputs: {:?}", entries(p));
+}
+
+#[test]
+fn impossible_psf_requests_are_refused_without_writing() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let base = [
+        "optics",
+        "psf",
+        "--depths-mm",
+        "20:22:1",
+        "--window-px",
+        "16",
+        "--out",
+        "o",
+    ];
+    for (extra, flag) in [
+        (
+            vec![
+                "--aperture-mm",
+                "0.1",
+                "--sample-um",
+                "2",
+                "--period-mm",
+                "1e17",
+            ],
+            "--period-mm",
+        ),
+        (
+            vec![
+                "--aperture-mm",
+                "0.1",
+                "--sample-um",
+                "2",
+                "--period-mm",
+                "1e16",
+            ],
+            "--period-mm",
+        ),
+        (
+            vec![
+                "--aperture-mm",
+                "0.1",
+                "--sample-um",
+                "2",
+                "--pitch-um",
+                "6.9359757717147935e+19",
+            ],
+            "--pitch-um",
+        ),
+        (vec!["--aperture-mm", "1e-300"], "--aperture-mm"),
+        (vec!["--sample-um", "1e308"], "--sample-um"),
+        (vec!["--sensor-mm", "1e308"], "--sensor-mm"),
+        (
+            vec!["--aperture-mm", "0.1", "--period-mm", "0.01"],
+            "--period-mm",
+        ),
+    ] {
+        let args: Vec<&str> = base.iter().copied().chain(extra).collect();
+        refused(&args, flag, p);
+    }
+    assert!(!p.join("o/psf.npy").exists());
+}
+
+#[test]
+fn a_rig_with_a_wrong_fy_or_the_camera_inside_the_eye_is_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let out = nanoeye(&["rig", "show", "--json"], p);
+    assert!(out.status.success());
+    let rig: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let mut bad = rig.clone();
+    bad["camera"]["fy_px"] = serde_json::json!(200.0);
+    std::fs::write(p.join("fy.json"), bad.to_string()).unwrap();
+    refused(
+        &["gaze", "bias", "--rig", "fy.json", "--steps", "3"],
+        "fy_px",
+        p,
+    );
+    let mut bad = rig.clone();
+    bad["camera"]["position_m"] = serde_json::json!([0.0, 0.0, 0.001]);
+    std::fs::write(p.join("in.json"), bad.to_string()).unwrap();
+    refused(&["run", "--rig", "in.json"], "position_m", p);
+    let mut bad = rig;
+    bad["eye_radius_m"] = serde_json::json!(1e-300);
+    std::fs::write(p.join("tiny.json"), bad.to_string()).unwrap();
+    refused(&["rig", "show", "--rig", "tiny.json"], "eye_radius_m", p);
+}
+
+#[test]
+fn gaze_solve_reports_a_non_utf8_line_and_goes_on_and_strips_a_bom() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    std::fs::write(
+        p.join("q.jsonl"),
+        b"\xEF\xBB\xBF{\"pupil_px\":[160,100]}\n{\"pupil_px\":[1\xff0,100]}\r\n{\"pupil_px\":[150,100]}\n",
+    )
+    .unwrap();
+    let out = nanoeye(&["gaze", "solve", "--input", "q.jsonl"], p);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8(out.stdout).unwrap();
+    let lines: Vec<serde_json::Value> = text
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 3, "{text}");
+    assert!(lines[0]["gaze"].is_array(), "{text}");
+    assert!(
+        lines[1]["error"].as_str().unwrap().contains("line 2"),
+        "{text}"
+    );
+    assert!(lines[2]["gaze"].is_array(), "{text}");
+}
+
+#[cfg(unix)]
+#[test]
+fn out_at_a_symlink_is_refused_and_dead_temp_files_are_removed() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    std::fs::write(p.join("real.jsonl"), b"keep").unwrap();
+    std::os::unix::fs::symlink("real.jsonl", p.join("link.jsonl")).unwrap();
+    refused(
+        &[
+            "datagen",
+            "states",
+            "--set",
+            "variational",
+            "--n",
+            "1",
+            "--out",
+            "link.jsonl",
+        ],
+        "symbolic link",
+        p,
+    );
+    assert_eq!(std::fs::read(p.join("real.jsonl")).unwrap(), b"keep");
+    assert!(
+        std::fs::symlink_metadata(p.join("link.jsonl"))
+            .unwrap()
+            .file_type()
+            .is_symlink()
+    );
+    // A temp file left by a killed run (its process id no longer exists).
+    let stale = p.join(".nanoeye-tmp-4294967295-abcdef");
+    std::fs::write(&stale, b"partial").unwrap();
+    let out = nanoeye(
+        &[
+            "datagen",
+            "states",
+            "--set",
+            "variational",
+            "--n",
+            "1",
+            "--out",
+            "s.jsonl",
+        ],
+        p,
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(!stale.exists());
+    assert!(
+        entries(p).iter().all(|n| !n.starts_with(".nanoeye-tmp-")),
+        "{:?}",
+        entries(p)
+    );
+}
+
+/// A 2-D float64 C-order NPY file.
+fn npy(rows: usize, cols: usize, data: &[f64]) -> Vec<u8> {
+    let mut header =
+        format!("{{'descr': '<f8', 'fortran_order': False, 'shape': ({rows}, {cols}), }}");
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for v in data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+#[test]
+fn blueprint_validates_everything_before_writing() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    std::fs::write(p.join("phase.npy"), npy(2, 2, &[0.0, 1.0, 2.0, f64::NAN])).unwrap();
+    let csv: String = (0..32)
+        .map(|i| format!("{},{},0.95\n", 100.0 + 10.0 * i as f64, 0.2 * i as f64))
+        .collect();
+    std::fs::write(p.join("lib.csv"), csv).unwrap();
+    let base = [
+        "metalib",
+        "blueprint",
+        "--phase",
+        "phase.npy",
+        "--height-nm",
+        "700",
+        "--pitch-nm",
+        "500",
+        "--out",
+        "bp",
+        "--library-csv",
+        "lib.csv",
+        "--square-aperture",
+    ];
+    let with =
+        |extra: &[&'static str]| -> Vec<&str> { base.iter().chain(extra).copied().collect() };
+    refused(&with(&["--circle-vertices", "4"]), "--circle-vertices", p);
+    assert!(!p.join("bp").exists());
+    // Library diameters up to 410 nm on a 300 nm pitch: pillars would overlap.
+    let mut narrow = base.to_vec();
+    narrow[6] = "300";
+    refused(&narrow, "pitch", p);
+    assert!(!p.join("bp").exists());
+    // --sweep and --library-csv conflict (clap usage error).
+    refused(&with(&["--sweep", "sw"]), "--sweep", p);
+    std::fs::write(
+        p.join("inf.npy"),
+        npy(2, 2, &[0.0, f64::INFINITY, 2.0, 1.0]),
+    )
+    .unwrap();
+    let mut inf = base.to_vec();
+    inf[3] = "inf.npy";
+    refused(&inf, "--phase", p);
+    let ok = nanoeye(&base, p);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    assert_eq!(
+        entries(&p.join("bp")),
+        ["diameters.npy", "layout.gds", "preview.png"]
+    );
+}
+
+#[test]
+fn arch_json_with_an_unknown_key_is_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let arch = serde_json::json!({
+        "kernel": vec![3; 20], "expand": vec![3; 20], "depth": vec![2; 5],
+        "resolution_scale": 0.5, "kernal": [3],
+    });
+    std::fs::write(p.join("a.json"), arch.to_string()).unwrap();
+    refused(&["nets", "macs", "--arch", "file:a.json"], "--arch", p);
+}
+
+#[test]
+fn fisher_init_resume_refuses_changed_parameters_and_keeps_one_checkpoint_file() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let base = [
+        "fisher",
+        "init",
+        "--out",
+        "fi",
+        "--aperture-step-um",
+        "50",
+        "--window-px",
+        "3",
+    ];
+    let run =
+        |extra: &[&'static str]| nanoeye(&base.iter().chain(extra).copied().collect::<Vec<_>>(), p);
+    let out = run(&["--iterations", "1"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(entries(&p.join("fi/checkpoint")), ["checkpoint.bin"]);
+    for (extra, flag) in [
+        (["--lr-rad", "0.1"], "--lr-rad"),
+        (["--pitch-um", "6"], "--pitch-um"),
+        (["--photons", "1e6"], "--photons"),
+        (["--depths-mm", "17:20:1.5"], "--depths-mm"),
+    ] {
+        let args: Vec<&str> = base
+            .iter()
+            .copied()
+            .chain(["--iterations", "2"])
+            .chain(extra)
+            .collect();
+        refused(&args, flag, p);
+    }
+    // A corrupted checkpoint is refused, not resumed.
+    let ck = p.join("fi/checkpoint/checkpoint.bin");
+    let mut bytes = std::fs::read(&ck).unwrap();
+    let k = bytes.len() / 2;
+    bytes[k] ^= 0x10;
+    std::fs::write(&ck, bytes).unwrap();
+    refused(
+        &base
+            .iter()
+            .copied()
+            .chain(["--iterations", "2"])
+            .collect::<Vec<_>>(),
+        "checksum",
+        p,
+    );
+}
