@@ -341,11 +341,20 @@ fn loss(a: LossArgs) -> Result<()> {
         OnOff::On => NoiseMode::Gaussian,
         OnOff::Off => NoiseMode::None,
     };
+    let mut t = Instant::now();
+    let mut lap = || {
+        let s = t.elapsed().as_secs_f64();
+        t = Instant::now();
+        s
+    };
     let frames = chain.load(&ds, &ids)?;
+    let t_load = lap();
     let psfs = chain
         .psfs(&map, &chain.active(&frames))
         .context("--phase")?;
+    let t_psf = lap();
     let fwd = chain.forward(&frames, &psfs, p_hat, noise, a.seed)?;
+    let t_fwd = lap();
     let mut net = Supernet::new(SupernetConfig::default(), a.weights_seed)?;
     net.zero_grad();
     let (l, dx) = task_loss(
@@ -357,9 +366,12 @@ fn loss(a: LossArgs) -> Result<()> {
         a.lambda_slip,
         BnMode::Train,
     )?;
+    let t_net = lap();
     let mut acc = chain.accumulator();
     chain.backward(&frames, &psfs, &fwd, &dx, &mut acc)?;
-    let g = chain.finish(&map, &psfs, &acc)?;
+    let t_bwd = lap();
+    let g = chain.finish(&map, &psfs, acc)?;
+    let t_vjp = lap();
     if let Some(p) = &a.grad_out {
         util::write_atomic(p, &npy_mat64(&g.phase_rad)?)
             .with_context(|| format!("--grad-out {}", p.display()))?;
@@ -378,6 +390,10 @@ fn loss(a: LossArgs) -> Result<()> {
         "height": fwd.grid.shape().0,
         "width": fwd.grid.shape().1,
         "seconds": t0.elapsed().as_secs_f64(),
+        "timing_s": {
+            "load": t_load, "psf_stack": t_psf, "chain_forward": t_fwd,
+            "network_forward_backward": t_net, "chain_backward": t_bwd, "psf_vjp": t_vjp,
+        },
     });
     if a.json {
         println!("{out}");

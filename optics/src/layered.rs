@@ -300,3 +300,245 @@ impl LayeredImager {
         Ok(out)
     }
 }
+
+/// Kernel spectra P̂ on a [`LayeredImager`]'s padded grid, computed once and shared by every
+/// frame of a batch (a batch's layers at one depth all use the same PSF).
+pub struct KernelSpectra {
+    spec: Vec<Option<Vec<c64>>>,
+}
+
+/// One layer for the spectral path: radiance, alpha and the index of its kernel.
+#[derive(Clone, Copy, Debug)]
+pub struct SpectralLayer<'a> {
+    /// Radiance L_k.
+    pub radiance: &'a Mat<f32>,
+    /// Coverage α_k.
+    pub alpha: &'a Mat<f32>,
+    /// Index into the [`KernelSpectra`].
+    pub kernel: usize,
+}
+
+/// What a spectral forward pass keeps for the PSF VJP: per layer the image below it and its
+/// occlusion α∗P, in f32 (the adjoint needs them to round-off precision only).
+pub struct S1Tape {
+    saved: Vec<Option<(Mat<f32>, Mat<f32>)>>,
+    image: Mat<f32>,
+}
+
+/// ∂loss/∂P accumulated in the frequency domain over frames: one inverse FFT per kernel at
+/// the end instead of one per layer and frame.
+pub struct KernelGradAccumulator {
+    spec: Vec<Option<Vec<c64>>>,
+    /// Σ over layers using kernel j of ⟨∂loss/∂I⁽ᵏ⁾, (α_k L_k) ∗ P_j⟩: the gradient w.r.t. a
+    /// scalar factor on the layer's radiance.
+    pub radiance_scale: Vec<f64>,
+}
+
+impl LayeredImager {
+    /// FFTs of the kernels (`None`: unused, skipped).
+    pub fn kernel_spectra(&self, kernels: &[Option<&Mat<f32>>]) -> Result<KernelSpectra> {
+        let mut b = self.buffers();
+        let mut spec = Vec::with_capacity(kernels.len());
+        for (j, k) in kernels.iter().enumerate() {
+            match k {
+                None => spec.push(None),
+                Some(m) => {
+                    if m.nrows() != self.wp || m.ncols() != self.wp {
+                        return Err(OpticsError::Shape(format!(
+                            "kernel {j} is {}×{}, expected {}×{}",
+                            m.nrows(),
+                            m.ncols(),
+                            self.wp,
+                            self.wp
+                        )));
+                    }
+                    let l = Layer {
+                        radiance: m,
+                        alpha: m,
+                        psf: m,
+                    };
+                    self.psf_spectrum(&l, &mut b);
+                    spec.push(Some(b.p.clone()));
+                }
+            }
+        }
+        Ok(KernelSpectra { spec })
+    }
+
+    /// A zeroed accumulator for `n` kernels.
+    pub fn kernel_grad_accumulator(&self, n: usize) -> KernelGradAccumulator {
+        KernelGradAccumulator {
+            spec: vec![None; n],
+            radiance_scale: vec![0.0; n],
+        }
+    }
+
+    fn check_spectral(&self, layers: &[SpectralLayer], ks: &KernelSpectra) -> Result<()> {
+        for (k, l) in layers.iter().enumerate() {
+            for (name, m) in [("radiance", l.radiance), ("alpha", l.alpha)] {
+                if m.nrows() != self.h || m.ncols() != self.w {
+                    return Err(OpticsError::Shape(format!(
+                        "layer {k}: {name} is {}×{}, expected {}×{}",
+                        m.nrows(),
+                        m.ncols(),
+                        self.h,
+                        self.w
+                    )));
+                }
+                if m.col_iter().any(|c| c.iter().any(|v| !v.is_finite())) {
+                    return Err(OpticsError::param(
+                        "layers",
+                        format!("layer {k} holds non-finite values"),
+                    ));
+                }
+            }
+            if ks.spec.get(l.kernel).is_none_or(Option::is_none) {
+                return Err(OpticsError::param(
+                    "kernel",
+                    format!("layer {k} uses kernel {} which was not computed", l.kernel),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Packs αL + iα of a layer into `b.a` and transforms it.
+    fn layer_spectrum(&self, l: &SpectralLayer, b: &mut Buffers) {
+        b.a.fill(c64::new(0.0, 0.0));
+        for r in 0..self.h {
+            for c in 0..self.w {
+                let al = l.alpha[(r, c)] as f64;
+                b.a[r * self.nx + c] = c64::new(al * l.radiance[(r, c)] as f64, al);
+            }
+        }
+        self.fft2(&mut b.a, &mut b.col, &mut b.scratch, false);
+    }
+
+    /// S1 with precomputed kernel spectra (two FFTs per non-empty layer); keeps the tape the
+    /// PSF VJP needs.
+    pub fn forward_spectral(
+        &self,
+        layers: &[SpectralLayer],
+        ks: &KernelSpectra,
+    ) -> Result<(Mat<f32>, S1Tape)> {
+        self.check_spectral(layers, ks)?;
+        let (cy, cx) = (self.wp / 2, self.wp / 2);
+        let mut img = Mat::<f64>::zeros(self.h, self.w);
+        let mut saved = Vec::with_capacity(layers.len());
+        let mut b = self.buffers();
+        let norm = 1.0 / (self.ny * self.nx) as f64;
+        for l in layers {
+            if l.alpha.col_iter().all(|c| c.iter().all(|&v| v == 0.0)) {
+                saved.push(None);
+                continue;
+            }
+            self.layer_spectrum(l, &mut b);
+            let p = ks.spec[l.kernel].as_ref().expect("checked");
+            b.a.iter_mut().zip(p).for_each(|(a, p)| *a *= p * norm);
+            self.fft2(&mut b.a, &mut b.col, &mut b.scratch, true);
+            let prev = Mat::from_fn(self.h, self.w, |r, c| img[(r, c)] as f32);
+            let o = Mat::from_fn(self.h, self.w, |r, c| {
+                b.a[(r + cy) * self.nx + c + cx].im as f32
+            });
+            for c in 0..self.w {
+                for r in 0..self.h {
+                    let v = b.a[(r + cy) * self.nx + c + cx];
+                    img[(r, c)] = v.re + (1.0 - v.im) * img[(r, c)];
+                }
+            }
+            saved.push(Some((prev, o)));
+        }
+        let image = Mat::from_fn(self.h, self.w, |r, c| img[(r, c)] as f32);
+        Ok((image.clone(), S1Tape { saved, image }))
+    }
+
+    /// Adds ∂loss/∂P (in the frequency domain) and ∂loss/∂(radiance scale) of one frame into
+    /// `acc`, for ∂loss/∂I = `grad`. Two FFTs per non-empty layer; no input gradients.
+    pub fn vjp_kernels(
+        &self,
+        layers: &[SpectralLayer],
+        tape: &S1Tape,
+        grad: &Mat<f64>,
+        acc: &mut KernelGradAccumulator,
+    ) -> Result<()> {
+        if grad.nrows() != self.h || grad.ncols() != self.w || tape.saved.len() != layers.len() {
+            return Err(OpticsError::Shape(format!(
+                "grad is {}×{} for {} layers; forward was {}×{} with {} layers",
+                grad.nrows(),
+                grad.ncols(),
+                layers.len(),
+                self.h,
+                self.w,
+                tape.saved.len()
+            )));
+        }
+        let (cy, cx) = (self.wp / 2, self.wp / 2);
+        let mut gi = grad.clone();
+        let mut b = self.buffers();
+        let mut g = vec![c64::new(0.0, 0.0); self.ny * self.nx];
+        let norm = 1.0 / (self.ny * self.nx) as f64;
+        let n = layers.len();
+        // I⁽ᵏ⁾ of each layer: the next non-empty layer's `prev`, or the final image.
+        let mut above: &Mat<f32> = &tape.image;
+        for k in (0..n).rev() {
+            let Some((prev, o)) = &tape.saved[k] else {
+                continue;
+            };
+            let l = &layers[k];
+            // ⟨gI, conv⟩ with conv = I⁽ᵏ⁾ − (1 − o)·I⁽ᵏ⁻¹⁾.
+            let mut dot = 0.0;
+            g.fill(c64::new(0.0, 0.0));
+            for r in 0..self.h {
+                for c in 0..self.w {
+                    let (p, oo) = (prev[(r, c)] as f64, o[(r, c)] as f64);
+                    let conv = above[(r, c)] as f64 - (1.0 - oo) * p;
+                    dot += gi[(r, c)] * conv;
+                    g[(r + cy) * self.nx + c + cx] = c64::new(gi[(r, c)], -gi[(r, c)] * p);
+                }
+            }
+            for c in 0..self.w {
+                for r in 0..self.h {
+                    gi[(r, c)] *= 1.0 - o[(r, c)] as f64;
+                }
+            }
+            self.fft2(&mut g, &mut b.col, &mut b.scratch, false);
+            self.layer_spectrum(l, &mut b);
+            let slot = acc.spec[l.kernel].get_or_insert_with(|| vec![c64::new(0.0, 0.0); g.len()]);
+            slot.iter_mut()
+                .zip(g.iter().zip(&b.a))
+                .for_each(|(s, (gg, a))| *s += gg * a.conj() * norm);
+            acc.radiance_scale[l.kernel] += dot;
+            above = prev;
+        }
+        Ok(())
+    }
+
+    /// Sums `other` into `acc` (per-thread accumulators of a batch).
+    pub fn merge_kernel_grads(acc: &mut KernelGradAccumulator, other: KernelGradAccumulator) {
+        for (a, o) in acc.spec.iter_mut().zip(other.spec) {
+            match (a.as_mut(), o) {
+                (Some(x), Some(y)) => x.iter_mut().zip(&y).for_each(|(p, q)| *p += q),
+                (None, Some(y)) => *a = Some(y),
+                _ => {}
+            }
+        }
+        for (a, o) in acc.radiance_scale.iter_mut().zip(other.radiance_scale) {
+            *a += o;
+        }
+    }
+
+    /// ∂loss/∂P_j (W_p×W_p) from an accumulator: one inverse FFT per kernel that got gradient.
+    pub fn kernel_grads(&self, acc: KernelGradAccumulator) -> Vec<Mat<f64>> {
+        let mut b = self.buffers();
+        acc.spec
+            .into_iter()
+            .map(|s| match s {
+                None => Mat::zeros(self.wp, self.wp),
+                Some(mut v) => {
+                    self.fft2(&mut v, &mut b.col, &mut b.scratch, true);
+                    Mat::from_fn(self.wp, self.wp, |r, c| v[r * self.nx + c].re)
+                }
+            })
+            .collect()
+    }
+}

@@ -23,7 +23,8 @@ use nanoeye_datagen::render::{Dataset, FrameRecord, LayerSpec, Light, StoredFram
 use nanoeye_datagen::states::State;
 use nanoeye_nets::Tensor;
 use nanoeye_optics::{
-    ApertureGrid, AsmPsf, Layer, LayeredImager, PhaseMap, PsfConfig, PsfModel, PsfStack,
+    ApertureGrid, AsmPsf, KernelGradAccumulator, KernelSpectra, LayeredImager, PhaseMap, PsfConfig,
+    PsfModel, PsfStack, S1Tape, SpectralLayer,
 };
 use nanoeye_sensor::{CmosSensor, NoiseMode, Sensor, SensorConfig, SensorTape};
 use rayon::prelude::*;
@@ -70,8 +71,7 @@ pub struct CameraChain {
     scale: Mat<f32>,
 }
 
-/// The PSFs of one step, normalised as the chain uses them.
-#[derive(Clone, Debug)]
+/// The PSFs of one step, normalised as the chain uses them, with their spectra on S1's grid.
 pub struct StepPsfs {
     /// The model's stack (fractions of aperture power; zero planes where inactive).
     pub stack: PsfStack,
@@ -79,6 +79,8 @@ pub struct StepPsfs {
     pub unit: Vec<Mat<f32>>,
     /// η_k = Σ P_k (0 where inactive).
     pub eta: Vec<f64>,
+    /// FFTs of P̂_k for S1 (computed once, shared by every frame of the step).
+    spectra: KernelSpectra,
 }
 
 /// A loaded frame and its targets on the p̂ grid.
@@ -109,6 +111,7 @@ pub struct ChainForward {
     /// The p̂ grid.
     pub grid: PitchGrid,
     tapes: Vec<SensorTape>,
+    s1: Vec<S1Tape>,
 }
 
 /// Gradients of a scalar loss w.r.t. the optical and sensor parameters.
@@ -120,16 +123,17 @@ pub struct ChainGrad {
     pub p_hat: f64,
 }
 
-/// ∂L/∂PSF accumulated over frames (and subnets) before the one PSF VJP of a step.
-#[derive(Clone, Debug)]
+/// ∂L/∂PSF accumulated over frames (and subnets) before the one PSF VJP of a step: ∂L/∂P̂_k
+/// in the frequency domain, ⟨∂L/∂I⁽ᵏ⁾, conv_k⟩ for ∂L/∂η_k, and ∂L/∂p̂.
 pub struct PsfGradAccumulator {
-    /// ∂L/∂P̂_k.
-    unit: Vec<Mat<f64>>,
-    /// ∂L/∂η_k.
-    eta: Vec<f64>,
+    kernels: KernelGradAccumulator,
     /// ∂L/∂p̂ (per metre).
     p_hat: f64,
 }
+
+/// Frames whose S1 adjoints run at once: their per-frame accumulators are merged in frame
+/// order, so the sum does not depend on the thread count, and memory stays bounded.
+const BACKWARD_CHUNK: usize = 4;
 
 impl CameraChain {
     /// A chain for `native` (the dataset's camera) with depth slabs `spec`, for radiance
@@ -309,7 +313,18 @@ impl CameraChain {
                 (p[(i, j)] as f64 * inv) as f32
             }));
         }
-        Ok(StepPsfs { stack, unit, eta })
+        let kernels: Vec<Option<&Mat<f32>>> = unit
+            .iter()
+            .zip(active)
+            .map(|(u, &a)| a.then_some(u))
+            .collect();
+        let spectra = self.imager.kernel_spectra(&kernels)?;
+        Ok(StepPsfs {
+            stack,
+            unit,
+            eta,
+            spectra,
+        })
     }
 
     /// S1 inputs of a frame, back to front: radiance η_k·scale·L_k and the layer's α.
@@ -329,20 +344,12 @@ impl CameraChain {
             .collect()
     }
 
-    /// Sensor-plane image of one frame (photons per base-pixel area, native grid): S1.
-    pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<Mat<f32>> {
+    /// Sensor-plane image of one frame (photons per base-pixel area, native grid): S1, and
+    /// the tape its PSF VJP needs.
+    pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<(Mat<f32>, S1Tape)> {
         let inputs = self.layer_inputs(f, psfs);
-        let alphas: Vec<&Mat<f32>> = f.data.layers.iter().rev().map(|l| &l.alpha).collect();
-        let layers: Vec<Layer> = inputs
-            .iter()
-            .zip(&alphas)
-            .map(|((k, rad), a)| Layer {
-                radiance: rad,
-                alpha: a,
-                psf: &psfs.unit[*k],
-            })
-            .collect();
-        let mut img = self.imager.forward(&layers)?;
+        let layers = Self::spectral_layers(f, &inputs);
+        let (mut img, tape) = self.imager.forward_spectral(&layers, &psfs.spectra)?;
         // FFT round-off leaves values of order 1e-16 of the peak below zero where there is no
         // light; intensity is non-negative, so they are cut (the VJP treats the cut as identity:
         // it moves nothing larger than round-off).
@@ -351,7 +358,22 @@ impl CameraChain {
                 *v = v.max(0.0);
             }
         }
-        Ok(img)
+        Ok((img, tape))
+    }
+
+    fn spectral_layers<'a>(
+        f: &'a ChainFrame,
+        inputs: &'a [(usize, Mat<f32>)],
+    ) -> Vec<SpectralLayer<'a>> {
+        inputs
+            .iter()
+            .zip(f.data.layers.iter().rev())
+            .map(|((k, rad), l)| SpectralLayer {
+                radiance: rad,
+                alpha: &l.alpha,
+                kernel: *k,
+            })
+            .collect()
     }
 
     /// Runs the batch forward at effective pitch `p_hat_m` with noise mode `noise` drawn from
@@ -380,7 +402,7 @@ impl CameraChain {
         let per: Vec<Result<_>> = frames
             .par_iter()
             .map(|f| {
-                let img = self.optical_image(f, psfs)?;
+                let (img, s1) = self.optical_image(f, psfs)?;
                 let (dn, tape) = sensor.forward(&img, base, p_hat_m, seed, f.id)?;
                 let integ = nanoeye_sensor::BoxIntegrator::new(
                     img.nrows(),
@@ -397,7 +419,7 @@ impl CameraChain {
                 let pc = grid
                     .project(&pose, f.record.landmarks.pupil_center.world_m)
                     .ok();
-                Ok((dn, tape, el, mask, pc))
+                Ok((dn, tape, el, mask, pc, s1))
             })
             .collect();
         let (h, w) = grid.shape();
@@ -409,8 +431,10 @@ impl CameraChain {
         let mut mask = Tensor::zeros(n, 1, h, w);
         let mut slip = Tensor::zeros(n, 3, 1, 1);
         let (mut dns, mut els, mut tapes, mut pcs) = (vec![], vec![], vec![], vec![]);
+        let mut s1s = Vec::with_capacity(n);
         for (b, r) in per.into_iter().enumerate() {
-            let (dn, tape, el, m, pc) = r?;
+            let (dn, tape, el, m, pc, s1) = r?;
+            s1s.push(s1);
             let xi = input.image_mut(b);
             let mi = &mut mask.data[b * h * w..(b + 1) * h * w];
             for i in 0..h {
@@ -436,15 +460,14 @@ impl CameraChain {
             pupil_center_px: pcs,
             grid,
             tapes,
+            s1: s1s,
         })
     }
 
     /// A zeroed accumulator for this chain's slabs.
     pub fn accumulator(&self) -> PsfGradAccumulator {
-        let wp = self.psf_px();
         PsfGradAccumulator {
-            unit: vec![Mat::zeros(wp, wp); self.spec.count],
-            eta: vec![0.0; self.spec.count],
+            kernels: self.imager.kernel_grad_accumulator(self.spec.count),
             p_hat: 0.0,
         }
     }
@@ -475,59 +498,31 @@ impl CameraChain {
         let mut scfg = c.clone();
         scfg.noise = NoiseMode::None;
         let sensor = CmosSensor::new(scfg)?;
-        let per: Vec<Result<_>> = frames
-            .par_iter()
-            .enumerate()
-            .map(|(b, f)| {
-                let gi = d_input.image(b);
-                let g_dn = Mat::from_fn(h, w, |i, j| gi[i * w + j] * inv_span);
-                let sg = sensor.vjp(&fwd.tapes[b], &g_dn)?;
-                let inputs = self.layer_inputs(f, psfs);
-                let alphas: Vec<&Mat<f32>> = f.data.layers.iter().rev().map(|l| &l.alpha).collect();
-                let layers: Vec<Layer> = inputs
-                    .iter()
-                    .zip(&alphas)
-                    .map(|((k, rad), a)| Layer {
-                        radiance: rad,
-                        alpha: a,
-                        psf: &psfs.unit[*k],
-                    })
-                    .collect();
-                let gimg = Mat::from_fn(sg.d_image.nrows(), sg.d_image.ncols(), |i, j| {
-                    sg.d_image[(i, j)] as f64
-                });
-                let lg = self.imager.vjp(&layers, &gimg)?;
-                // ∂/∂η_k = Σ ∂L/∂(η L')·L' with L' = scale·L_k.
-                let mut out = Vec::with_capacity(layers.len());
-                for (j, (k, rad)) in inputs.iter().enumerate() {
-                    let e = psfs.eta[*k];
-                    let mut ge = 0.0f64;
-                    if e > 0.0 {
-                        let g = &lg.radiance[j];
-                        for cc in 0..rad.ncols() {
-                            for r in 0..rad.nrows() {
-                                ge += g[(r, cc)] * rad[(r, cc)] as f64;
-                            }
-                        }
-                        ge /= e;
-                    }
-                    out.push((*k, lg.psf[j].clone(), ge));
-                }
-                Ok((sg.d_p_hat, out))
-            })
-            .collect();
-        // Summed in frame order: the result does not depend on the thread count.
-        for r in per {
-            let (dp, layers) = r?;
-            acc.p_hat += dp;
-            for (k, gp, ge) in layers {
-                acc.eta[k] += ge;
-                let u = &mut acc.unit[k];
-                for cc in 0..u.ncols() {
-                    for rr in 0..u.nrows() {
-                        u[(rr, cc)] += gp[(rr, cc)];
-                    }
-                }
+        for c0 in (0..frames.len()).step_by(BACKWARD_CHUNK) {
+            let c1 = (c0 + BACKWARD_CHUNK).min(frames.len());
+            let per: Vec<Result<_>> = (c0..c1)
+                .into_par_iter()
+                .map(|b| {
+                    let f = &frames[b];
+                    let gi = d_input.image(b);
+                    let g_dn = Mat::from_fn(h, w, |i, j| gi[i * w + j] * inv_span);
+                    let sg = sensor.vjp(&fwd.tapes[b], &g_dn)?;
+                    let inputs = self.layer_inputs(f, psfs);
+                    let layers = Self::spectral_layers(f, &inputs);
+                    let gimg = Mat::from_fn(sg.d_image.nrows(), sg.d_image.ncols(), |i, j| {
+                        sg.d_image[(i, j)] as f64
+                    });
+                    let mut local = self.imager.kernel_grad_accumulator(self.spec.count);
+                    self.imager
+                        .vjp_kernels(&layers, &fwd.s1[b], &gimg, &mut local)?;
+                    Ok((sg.d_p_hat, local))
+                })
+                .collect();
+            // Merged in frame order: the sum does not depend on the thread count.
+            for r in per {
+                let (dp, local) = r?;
+                acc.p_hat += dp;
+                LayeredImager::merge_kernel_grads(&mut acc.kernels, local);
             }
         }
         Ok(())
@@ -539,16 +534,19 @@ impl CameraChain {
         &self,
         map: &PhaseMap,
         psfs: &StepPsfs,
-        acc: &PsfGradAccumulator,
+        acc: PsfGradAccumulator,
     ) -> Result<ChainGrad> {
         let wp = self.psf_px();
+        let p_hat = acc.p_hat;
+        let scale = acc.kernels.radiance_scale.clone();
+        let unit = self.imager.kernel_grads(acc.kernels);
         let grads: Vec<Mat<f64>> = (0..self.spec.count)
             .map(|k| {
                 let e = psfs.eta[k];
                 if e <= 0.0 {
                     return Mat::zeros(wp, wp);
                 }
-                let g = &acc.unit[k];
+                let g = &unit[k];
                 let u = &psfs.unit[k];
                 let mut dot = 0.0;
                 for c in 0..wp {
@@ -556,13 +554,15 @@ impl CameraChain {
                         dot += g[(r, c)] * u[(r, c)] as f64;
                     }
                 }
-                Mat::from_fn(wp, wp, |r, c| (g[(r, c)] - dot) / e + acc.eta[k])
+                // Radiance enters as η_k·L': ∂L/∂η_k = ⟨∂L/∂I⁽ᵏ⁾, conv_k⟩ / η_k.
+                let g_eta = scale[k] / e;
+                Mat::from_fn(wp, wp, |r, c| (g[(r, c)] - dot) / e + g_eta)
             })
             .collect();
         let pg = self.psf.vjp(map, &self.depths_m, &grads, None)?;
         Ok(ChainGrad {
             phase_rad: pg.phase_rad,
-            p_hat: acc.p_hat,
+            p_hat,
         })
     }
 }

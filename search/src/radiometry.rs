@@ -63,7 +63,7 @@ impl Radiometry {
             positive("led_distance_m", d)?;
         }
         let e = self.corneal_irradiance_w_m2;
-        if !(e.is_finite() && e >= 0.0 && e <= IEC62471_EXEMPT_W_M2 * (1.0 + 1e-12)) {
+        if !(0.0..=IEC62471_EXEMPT_W_M2 * (1.0 + 1e-12)).contains(&e) {
             return Err(param(
                 "corneal_irradiance_w_m2",
                 format!("must lie in [0, {IEC62471_EXEMPT_W_M2}] W/m² (IEC 62471 exempt), got {e}"),

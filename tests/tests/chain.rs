@@ -46,8 +46,10 @@ fn tiny_dataset() -> (tempfile::TempDir, Dataset) {
 /// Coarse but fast: a 10 µm metasurface grid (the chain's consistency, not the lens's
 /// convergence, is under test).
 fn test_cfg() -> ChainConfig {
-    let mut c = ChainConfig::default();
-    c.aperture_step_m = 10e-6;
+    let mut c = ChainConfig {
+        aperture_step_m: 10e-6,
+        ..ChainConfig::default()
+    };
     c.sensor.base_pitch = 48e-6;
     // 48 µm pixels collect 256× the light of 3 µm ones: keep the signal below full well.
     c.radiometry.exposure_s = 0.1e-3 / 256.0;
@@ -408,7 +410,7 @@ fn loss_at(
     r.chain
         .backward(&frames, &psfs, &fwd, &dx, &mut acc)
         .unwrap();
-    (l, r.chain.finish(map, &psfs, &acc).unwrap())
+    (l, r.chain.finish(map, &psfs, acc).unwrap())
 }
 
 fn smooth_dir(n: usize, t: usize, seed: f64) -> Mat<f64> {

@@ -1,0 +1,122 @@
+//! Time of the camera chain's optics part per frame against its FFT floor, and the PSF stack
+//! and its VJP per step. Usage: `RAYON_NUM_THREADS=1 cargo run --release -p nanoeye-search
+//! --example chain_floor -- DATASET [PITCH_UM] [FRAMES]` (docs/chain.md).
+
+use nanoeye_datagen::render::Dataset;
+use nanoeye_nets::Tensor;
+use nanoeye_search::{CameraChain, ChainConfig, LensSpec};
+use nanoeye_sensor::NoiseMode;
+use std::time::Instant;
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let Some(dir) = args.get(1) else {
+        eprintln!("usage: chain_floor DATASET [PITCH_UM] [FRAMES]");
+        std::process::exit(2);
+    };
+    let pitch_um: f64 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(9.5);
+    let nf: usize = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(1);
+    let ds = Dataset::open(std::path::Path::new(dir)).expect("dataset");
+    let chain = CameraChain::for_dataset(&ds, ChainConfig::default()).expect("chain");
+    let map = LensSpec::Hyperbolic
+        .phase_map(chain.aperture_grid(), 940e-9, 2e-3)
+        .expect("lens");
+    let ids: Vec<usize> = (0..nf.min(ds.len())).collect();
+    let frames = chain.load(&ds, &ids).expect("load");
+    let active = chain.active(&frames);
+    let layers: usize = frames.iter().map(|f| f.data.layers.len()).sum();
+    let reps = 3;
+    let time = |f: &mut dyn FnMut()| {
+        f();
+        let t = Instant::now();
+        for _ in 0..reps {
+            f();
+        }
+        t.elapsed().as_secs_f64() / reps as f64
+    };
+    // Floor: one bare 2-D FFT of S1's padded grid (batched rows, then batched columns of the
+    // transpose; no copies, no allocation).
+    let (h, w) = chain.native().shape();
+    let (ny, nx) = (
+        nanoeye_optics::psf::fast_fft_size(h + chain.psf_px() - 1),
+        nanoeye_optics::psf::fast_fft_size(w + chain.psf_px() - 1),
+    );
+    let mut planner = rustfft::FftPlanner::<f64>::new();
+    let (fx, fy) = (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny));
+    let mut buf = vec![rustfft::num_complex::Complex::new(0.5f64, 0.25); ny * nx];
+    let mut scratch = vec![
+        rustfft::num_complex::Complex::new(0.0f64, 0.0);
+        fx.get_inplace_scratch_len()
+            .max(fy.get_inplace_scratch_len())
+    ];
+    let t_fft = time(&mut || {
+        fx.process_with_scratch(&mut buf, &mut scratch);
+        fy.process_with_scratch(&mut buf, &mut scratch);
+    });
+    let mut psfs = None;
+    let t_psf = time(&mut || psfs = Some(chain.psfs(&map, &active).expect("psfs")));
+    let psfs = psfs.expect("set");
+    let p_hat = pitch_um * 1e-6;
+    let mut fwd = None;
+    let t_fwd = time(&mut || {
+        fwd = Some(
+            chain
+                .forward(&frames, &psfs, p_hat, NoiseMode::Gaussian, 0)
+                .expect("forward"),
+        )
+    });
+    let fwd = fwd.expect("set");
+    let g = {
+        let mut g = Tensor::zeros(fwd.input.n, 1, fwd.input.h, fwd.input.w);
+        g.data
+            .iter_mut()
+            .enumerate()
+            .for_each(|(i, v)| *v = (i % 7) as f32 - 3.0);
+        g
+    };
+    let t_bwd = time(&mut || {
+        let mut acc = chain.accumulator();
+        chain
+            .backward(&frames, &psfs, &fwd, &g, &mut acc)
+            .expect("backward");
+    });
+    let t_vjp = time(&mut || {
+        let mut acc = chain.accumulator();
+        chain
+            .backward(&frames, &psfs, &fwd, &g, &mut acc)
+            .expect("backward");
+        chain.finish(&map, &psfs, acc).expect("vjp");
+    }) - t_bwd;
+    let n = frames.len() as f64;
+    // Forward: layer spectrum + inverse per layer; backward: gradient spectrum + layer
+    // spectrum per layer (the PSF spectra and the inverse FFTs of ∂L/∂P are per step).
+    let floor_f = 2.0 * layers as f64 / n * t_fft;
+    println!(
+        "native {h}x{w}, PSF window {} px, {} frames, {:.1} layers/frame, p_hat {pitch_um} um",
+        chain.psf_px(),
+        frames.len(),
+        layers as f64 / n
+    );
+    println!(
+        "one bare 2-D FFT of S1's {ny}x{nx} grid: {:.2} ms",
+        t_fft * 1e3
+    );
+    println!(
+        "chain forward per frame: {:.1} ms; FFT floor {:.1} ms; ratio {:.2}",
+        t_fwd / n * 1e3,
+        floor_f * 1e3,
+        t_fwd / n / floor_f
+    );
+    println!(
+        "chain backward per frame: {:.1} ms; FFT floor {:.1} ms; ratio {:.2}",
+        t_bwd / n * 1e3,
+        floor_f * 1e3,
+        t_bwd / n / floor_f
+    );
+    println!(
+        "per step: PSF stack ({} depths) {:.1} ms, PSF VJP + kernel inverse FFTs {:.1} ms",
+        active.iter().filter(|&&a| a).count(),
+        t_psf * 1e3,
+        t_vjp * 1e3
+    );
+}
