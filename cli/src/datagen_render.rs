@@ -111,7 +111,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let summary = write_dataset(&opts).map_err(|e| {
         let msg = e.to_string();
         // Name the flag behind a size or sample error.
-        let flag = if msg.contains("invalid width") {
+        let flag = if msg.contains("requested, at most") {
+            "--n"
+        } else if msg.contains("invalid width") {
             "--width"
         } else if msg.contains("invalid height") {
             "--height"

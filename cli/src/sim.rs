@@ -218,7 +218,6 @@ pub fn sim(a: SimArgs) -> Result<()> {
         .lens
         .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)
         .context("--lens")?;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     let noise = match a.noise {
         OnOff::On => NoiseMode::Poisson,
         OnOff::Off => NoiseMode::None,
@@ -226,6 +225,7 @@ pub fn sim(a: SimArgs) -> Result<()> {
     let p_hat = a.chain.pitch_um * 1e-6;
     // Validate the pitch before any work.
     chain.native().at(p_hat).context("--pitch-um")?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     let (mut sensor, mut masks, mut lines) = (Vec::new(), Vec::new(), String::new());
     let mut shape = (0, 0);
     // Chunks bound memory; the PSF stack is recomputed only when the active slabs change.

@@ -524,3 +524,130 @@ fn fisher_init_resume_refuses_changed_parameters_and_keeps_one_checkpoint_file()
         p,
     );
 }
+
+#[test]
+fn datagen_render_names_n_and_refuses_a_symlinked_manifest() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    refused(
+        &[
+            "datagen",
+            "render",
+            "--set",
+            "ambiguity",
+            "--n",
+            "1000000000000",
+            "--out",
+            "x",
+        ],
+        "--n",
+        p,
+    );
+    std::fs::create_dir(p.join("ds")).unwrap();
+    std::os::unix::fs::symlink(p.join("elsewhere"), p.join("ds/dataset.json")).unwrap();
+    refused(
+        &[
+            "datagen",
+            "render",
+            "--set",
+            "ambiguity",
+            "--n",
+            "1",
+            "--width",
+            "80",
+            "--height",
+            "50",
+            "--out",
+            "ds",
+        ],
+        "--out",
+        p,
+    );
+    assert!(!p.join("elsewhere").exists());
+    assert!(
+        std::fs::symlink_metadata(p.join("ds/dataset.json"))
+            .unwrap()
+            .file_type()
+            .is_symlink()
+    );
+}
+
+#[test]
+fn sim_and_search_loss_name_their_bad_flags() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let ok = nanoeye(
+        &[
+            "datagen",
+            "render",
+            "--set",
+            "ambiguity",
+            "--n",
+            "1",
+            "--width",
+            "80",
+            "--height",
+            "50",
+            "--spp",
+            "1",
+            "--out",
+            "ds",
+        ],
+        p,
+    );
+    assert!(ok.status.success());
+    for (args, flag) in [
+        (vec!["sim", "--dataset", "nope", "--out", "o"], "--dataset"),
+        (
+            vec!["sim", "--dataset", "ds", "--pitch-um", "1", "--out", "o"],
+            "--pitch-um",
+        ),
+        (
+            vec!["sim", "--dataset", "ds", "--pitch-um", "NaN", "--out", "o"],
+            "--pitch-um",
+        ),
+        (
+            vec!["sim", "--dataset", "ds", "--pitch-um", "1e30", "--out", "o"],
+            "--pitch-um",
+        ),
+        (
+            vec!["sim", "--dataset", "ds", "--exposure-ms=-1", "--out", "o"],
+            "--exposure-ms",
+        ),
+        (
+            vec![
+                "sim",
+                "--dataset",
+                "ds",
+                "--lens",
+                "file:nope.npy",
+                "--out",
+                "o",
+            ],
+            "--lens",
+        ),
+        (
+            vec!["sim", "--dataset", "ds", "--frames", "2:1", "--out", "o"],
+            "--frames",
+        ),
+        (
+            vec!["search", "loss", "--dataset", "ds", "--frames", "0:99"],
+            "--frames",
+        ),
+        (
+            vec!["search", "loss", "--dataset", "ds", "--subnet", "mid"],
+            "--subnet",
+        ),
+        (
+            vec!["search", "loss", "--dataset", "ds", "--phase", "nope.npy"],
+            "--phase",
+        ),
+        (
+            vec!["search", "loss", "--dataset", "ds", "--lambda-slip", "NaN"],
+            "--lambda-slip",
+        ),
+    ] {
+        refused(&args, flag, p);
+    }
+    assert!(!p.join("o").exists(), "a refused sim must write nothing");
+}
