@@ -14,6 +14,7 @@ mod rig;
 mod run;
 mod sensor;
 mod sim;
+mod train;
 mod util;
 
 use clap::{Parser, Subcommand};

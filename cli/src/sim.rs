@@ -46,7 +46,8 @@ pub struct ChainArgs {
 }
 
 impl ChainArgs {
-    fn build(&self) -> Result<(Dataset, CameraChain)> {
+    /// Opens the dataset and builds the chain, naming the flag behind a bad value.
+    pub fn build(&self) -> Result<(Dataset, CameraChain)> {
         let ds = Dataset::open(&self.dataset)
             .with_context(|| format!("--dataset {}", self.dataset.display()))?;
         let mut cfg = ChainConfig::default();
@@ -109,6 +110,8 @@ pub struct SimArgs {
 pub enum SearchCmd {
     /// Task loss of one subnet on the chain's output, with ∂L/∂φ and ∂L/∂p̂.
     Loss(LossArgs),
+    /// Sandwich-rule co-design training of lens, pitch and supernet (S22).
+    Train(crate::train::TrainArgs),
 }
 
 /// `nanoeye search loss` options.
@@ -188,7 +191,8 @@ fn npy_stack(planes: &[Mat<f32>]) -> Result<Vec<u8>> {
     Ok(buf)
 }
 
-fn npy_mat64(m: &Mat<f64>) -> Result<Vec<u8>> {
+/// NPY bytes of an f64 matrix (C order).
+pub fn npy_mat64(m: &Mat<f64>) -> Result<Vec<u8>> {
     use npyz::WriterBuilder;
     let mut buf = Vec::new();
     let mut wr = npyz::WriteOptions::<f64>::new()
@@ -313,6 +317,7 @@ fn parse_subnet(text: &str) -> Result<Arch> {
 pub fn search(cmd: SearchCmd) -> Result<()> {
     match cmd {
         SearchCmd::Loss(a) => loss(a),
+        SearchCmd::Train(a) => crate::train::train(a),
     }
 }
 

@@ -88,7 +88,40 @@ impl Default for Adam {
     }
 }
 
+/// The moments and step count of an [`Adam`], for checkpoints.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AdamState {
+    /// Steps taken.
+    pub t: i32,
+    /// First moments, one vector per parameter in `Supernet::visit` order.
+    pub m: Vec<Vec<f32>>,
+    /// Second moments, same layout.
+    pub v: Vec<Vec<f32>>,
+}
+
 impl Adam {
+    /// Its moments and step count.
+    pub fn state(&self) -> AdamState {
+        AdamState {
+            t: self.t,
+            m: self.m.clone(),
+            v: self.v.clone(),
+        }
+    }
+
+    /// Restores moments and step count saved by [`Adam::state`].
+    pub fn set_state(&mut self, s: AdamState) -> Result<()> {
+        if s.m.len() != s.v.len() || s.m.iter().zip(&s.v).any(|(a, b)| a.len() != b.len()) {
+            return Err(NetsError::Checkpoint(
+                "Adam state: first and second moments differ in shape".into(),
+            ));
+        }
+        self.t = s.t;
+        self.m = s.m;
+        self.v = s.v;
+        Ok(())
+    }
+
     /// One update with learning rate `lr` from the accumulated gradients.
     pub fn step(&mut self, net: &mut Supernet, lr: f64) -> Result<()> {
         check_lr(lr)?;

@@ -135,6 +135,13 @@ pub struct PsfGradAccumulator {
 /// order, so the sum does not depend on the thread count, and memory stays bounded.
 const BACKWARD_CHUNK: usize = 4;
 
+impl PsfGradAccumulator {
+    /// ∂L/∂p̂ accumulated so far (per metre).
+    pub fn p_hat(&self) -> f64 {
+        self.p_hat
+    }
+}
+
 impl CameraChain {
     /// A chain for `native` (the dataset's camera) with depth slabs `spec`, for radiance
     /// rendered with an illuminator of `render_w_per_sr` at `render_distance_m` from the cornea.

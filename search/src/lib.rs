@@ -9,6 +9,7 @@ pub mod geometry;
 pub mod lens;
 pub mod radiometry;
 pub mod task;
+pub mod train;
 
 pub use chain::{
     CameraChain, ChainConfig, ChainForward, ChainFrame, ChainGrad, PsfGradAccumulator, StepPsfs,
@@ -18,3 +19,4 @@ pub use geometry::{NativeGrid, PitchGrid};
 pub use lens::LensSpec;
 pub use radiometry::Radiometry;
 pub use task::{TaskLoss, task_loss};
+pub use train::{Metrics, StepRecord, TrainConfig, Trainer, evaluate_net};

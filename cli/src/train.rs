@@ -1,0 +1,261 @@
+//! `nanoeye search train`: sandwich-rule co-design of the lens, the pixel pitch and the
+//! supernet (S22) on a rendered dataset, resumable, with loss curves and validation.
+
+use crate::sim::ChainArgs;
+use crate::util;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use nanoeye_datagen::render::Dataset;
+use nanoeye_nets::Arch;
+use nanoeye_search::{LensSpec, StepRecord, TrainConfig, Trainer};
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::time::Instant;
+
+/// `nanoeye search train` options.
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    #[command(flatten)]
+    chain: ChainArgs,
+    /// Held-out dataset for validation (default: the training set).
+    #[arg(long)]
+    val: Option<PathBuf>,
+    /// Initial lens: hyperbolic, double-helix or file:PHASE.npy (e.g. `fisher init`'s
+    /// DIR/phase.npy, the Fisher initialization of A.2).
+    #[arg(long, default_value = "hyperbolic")]
+    lens: LensSpec,
+    /// Keep the lens fixed (baselines).
+    #[arg(long)]
+    fixed_lens: bool,
+    /// Optimisation steps.
+    #[arg(long, default_value_t = 100)]
+    steps: usize,
+    /// Frames per batch.
+    #[arg(long, default_value_t = 4)]
+    batch: usize,
+    /// Random subnets per step besides N_max and N_min.
+    #[arg(long, default_value_t = 2)]
+    random_subnets: usize,
+    /// Peak learning rate of the network (Adam, cosine decay).
+    #[arg(long, default_value_t = 2e-3)]
+    lr_net: f64,
+    /// Learning rate of the phase map (rad per step, Adam).
+    #[arg(long, default_value_t = 2e-2)]
+    lr_phase_rad: f64,
+    /// Learning rate of the pitch (µm per step, Adam).
+    #[arg(long, default_value_t = 5e-2)]
+    lr_pitch_um: f64,
+    /// Weight of the slippage MSE (per mm²).
+    #[arg(long, default_value_t = 0.1)]
+    lambda_slip: f64,
+    /// Smallest and largest effective pitch (µm).
+    #[arg(long, default_value = "3:12")]
+    pitch_range_um: String,
+    /// Seed of batches, subnets and noise.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Seed of the initial weights.
+    #[arg(long, default_value_t = 0)]
+    weights_seed: u64,
+    /// Steps between checkpoints.
+    #[arg(long, default_value_t = 10)]
+    checkpoint_every: usize,
+    /// Run directory (checkpoint.bin, phase.npy, history.jsonl, loss.svg, metrics.json).
+    #[arg(long)]
+    out: PathBuf,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+fn svg_curves(h: &[StepRecord]) -> String {
+    let (w, ht, m) = (640.0, 360.0, 40.0);
+    let n = h.len().max(2) as f64;
+    let ymax = h
+        .iter()
+        .flat_map(|r| [r.loss_max, r.loss_min])
+        .fold(1e-9f64, f64::max);
+    let pts = |f: &dyn Fn(&StepRecord) -> f64| {
+        h.iter()
+            .enumerate()
+            .map(|(i, r)| {
+                let x = m + (w - 2.0 * m) * i as f64 / (n - 1.0);
+                let y = ht - m - (ht - 2.0 * m) * (f(r) / ymax).clamp(0.0, 1.0);
+                format!("{x:.1},{y:.1}")
+            })
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    format!(
+        r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{ht}" font-family="sans-serif" font-size="12">
+<rect width="100%" height="100%" fill="white"/>
+<line x1="{m}" y1="{b}" x2="{r}" y2="{b}" stroke="black"/><line x1="{m}" y1="{m}" x2="{m}" y2="{b}" stroke="black"/>
+<text x="{cx}" y="{tb}" text-anchor="middle">step (0 … {last})</text>
+<text x="12" y="{cy}" transform="rotate(-90 12 {cy})" text-anchor="middle">task loss (0 … {ymax:.3})</text>
+<polyline fill="none" stroke="#c0392b" stroke-width="1.5" points="{pmax}"/>
+<polyline fill="none" stroke="#2471a3" stroke-width="1.5" points="{pmin}"/>
+<text x="{lx}" y="{m}" fill="#c0392b">N_max</text><text x="{lx}" y="{l2}" fill="#2471a3">N_min</text>
+</svg>
+"##,
+        b = ht - m,
+        r = w - m,
+        cx = w / 2.0,
+        tb = ht - 8.0,
+        cy = ht / 2.0,
+        last = h.len().saturating_sub(1),
+        pmax = pts(&|r| r.loss_max),
+        pmin = pts(&|r| r.loss_min),
+        lx = w - m - 60.0,
+        l2 = m + 16.0,
+    )
+}
+
+fn write_outputs(t: &mut Trainer, out: &std::path::Path) -> Result<()> {
+    t.save(&out.join("checkpoint.bin"))
+        .context("--out: writing checkpoint.bin")?;
+    util::write_atomic(&out.join("phase.npy"), &crate::sim::npy_mat64(&t.phase)?)?;
+    let lines: String = t
+        .history
+        .iter()
+        .map(|r| serde_json::to_string(r).unwrap_or_default() + "\n")
+        .collect();
+    util::write_atomic(&out.join("history.jsonl"), lines.as_bytes())?;
+    util::write_atomic(&out.join("loss.svg"), svg_curves(&t.history).as_bytes())?;
+    Ok(())
+}
+
+/// Runs `nanoeye search train`.
+pub fn train(a: TrainArgs) -> Result<()> {
+    let t0 = Instant::now();
+    let (ds, chain) = a.chain.build()?;
+    let range = util::parse_list("--pitch-range-um", &a.pitch_range_um.replace(':', ","))?;
+    let [lo, hi] = range[..] else {
+        bail!(
+            "--pitch-range-um: expected MIN:MAX, got '{}'",
+            a.pitch_range_um
+        );
+    };
+    let cfg = TrainConfig {
+        steps: a.steps,
+        batch: a.batch,
+        n_random: a.random_subnets,
+        lr_net: a.lr_net,
+        lr_phase_rad: a.lr_phase_rad,
+        lr_pitch_um: a.lr_pitch_um,
+        lambda_slip: a.lambda_slip,
+        pitch_init_um: a.chain.pitch_um,
+        pitch_range_um: [lo, hi],
+        fixed_lens: a.fixed_lens,
+        seed: a.seed,
+        weights_seed: a.weights_seed,
+        ..TrainConfig::default()
+    };
+    cfg.validate().map_err(|e| {
+        let m = e.to_string();
+        let flag = [
+            ("`steps`", "--steps"),
+            ("`batch`", "--batch"),
+            ("`n_random`", "--random-subnets"),
+            ("`lr_net`", "--lr-net"),
+            ("`lr_phase_rad`", "--lr-phase-rad"),
+            ("`lr_pitch_um`", "--lr-pitch-um"),
+            ("`lambda_slip`", "--lambda-slip"),
+            ("`pitch_range_um`", "--pitch-range-um"),
+            ("`pitch_init_um`", "--pitch-um"),
+        ]
+        .iter()
+        .find(|(k, _)| m.contains(k))
+        .map_or("--out", |(_, f)| f);
+        anyhow::anyhow!("{flag}: {m}")
+    })?;
+    if a.checkpoint_every == 0 {
+        bail!("--checkpoint-every: must be at least 1");
+    }
+    let val = match &a.val {
+        Some(p) => Some(Dataset::open(p).with_context(|| format!("--val {}", p.display()))?),
+        None => None,
+    };
+    let r = &chain.config().radiometry;
+    let map = a
+        .lens
+        .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)
+        .context("--lens")?;
+    let mut t = Trainer::new(&chain, &ds, cfg, map.phase_rad).context("--lens / --pitch-um")?;
+    util::check_output_target(&a.out.join("checkpoint.bin"))?;
+    let ck = a.out.join("checkpoint.bin");
+    if ck.exists() {
+        t.load(&ck).context("--out (resume)")?;
+        eprintln!("resuming {} at step {}", a.out.display(), t.step);
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+    let tty = std::io::stderr().is_terminal();
+    let bar = if tty {
+        indicatif::ProgressBar::new(a.steps as u64)
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    bar.set_position(t.step as u64);
+    let tick = (a.steps / 10).max(1);
+    while t.step < a.steps {
+        let rec = t.train_step()?;
+        bar.inc(1);
+        bar.set_message(format!(
+            "L_max {:.3} L_min {:.3}",
+            rec.loss_max, rec.loss_min
+        ));
+        if !tty && (rec.step + 1) % tick == 0 {
+            eprintln!(
+                "step {}/{}: L_max {:.4}, L_min {:.4}, p̂ {:.3} µm, {:.0} s",
+                rec.step + 1,
+                a.steps,
+                rec.loss_max,
+                rec.loss_min,
+                rec.pitch_um,
+                t0.elapsed().as_secs_f64()
+            );
+        }
+        if t.step % a.checkpoint_every == 0 || t.step == a.steps {
+            write_outputs(&mut t, &a.out)?;
+        }
+    }
+    bar.finish_and_clear();
+    write_outputs(&mut t, &a.out)?;
+    let v = val.as_ref().unwrap_or(&ds);
+    let m = t.evaluate(v, &Arch::min(), 2)?;
+    let mmax = t.evaluate(v, &Arch::max(), 2)?;
+    let out = serde_json::json!({
+        "steps": t.step,
+        "v_deg": m.v_deg,
+        "median_deg": m.median_deg,
+        "failures": m.failures,
+        "dice": m.dice,
+        "slip_mse": m.slip_mse,
+        "max_subnet": {"v_deg": mmax.v_deg, "dice": mmax.dice, "slip_mse": mmax.slip_mse},
+        "pitch_um": t.pitch_um,
+        "seconds": t0.elapsed().as_secs_f64(),
+    });
+    for k in ["v_deg", "dice", "slip_mse", "pitch_um"] {
+        if !out[k].as_f64().is_some_and(f64::is_finite) {
+            bail!("{k} is not finite: training diverged; lower the learning rates");
+        }
+    }
+    util::write_atomic(
+        &a.out.join("metrics.json"),
+        serde_json::to_string_pretty(&out)?.as_bytes(),
+    )?;
+    if a.json {
+        println!("{out}");
+    } else {
+        println!(
+            "{} steps: V = {:.2}° (min subnet, {} failures), Dice {:.3}, slip MSE {:.3} mm², p̂ {:.3} µm; {}",
+            t.step,
+            m.v_deg,
+            m.failures,
+            m.dice,
+            m.slip_mse,
+            t.pitch_um,
+            a.out.display()
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,639 @@
+//! Sandwich-rule co-design training (S22, B.4): each step runs N_max, N_min and n random
+//! subnets on one batch through the camera chain, sums their task losses, and updates the
+//! shared supernet weights (Adam, cosine schedule), the phase map φ and the effective pitch p̂
+//! (Adam each, own learning rates) from one PSF VJP. Checkpoints are one atomic file holding
+//! everything a resume needs; a resume with another configuration is refused.
+//! Validation V (docs/train.md): mean angular gaze error of the full chain — predicted mask →
+//! S9 centroid → S10–S14 with the predicted slippage — after BN recalibration.
+
+use crate::chain::{CameraChain, ChainFrame};
+use crate::error::{Result, param};
+use crate::task::task_loss;
+use faer::Mat;
+use nanoeye_datagen::render::{Batcher, Dataset};
+use nanoeye_gaze::{GazeSolver, Rig, SphereSolver, angular_error};
+use nanoeye_nets::loss::{hard_dice, slip_mse};
+use nanoeye_nets::optim::{Adam, AdamState, cosine_lr};
+use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig, Tensor};
+use nanoeye_optics::PhaseMap;
+use nanoeye_sensor::NoiseMode;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Training hyper-parameters (every one a CLI flag).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    /// Optimisation steps.
+    pub steps: usize,
+    /// Frames per batch.
+    pub batch: usize,
+    /// Random subnets per step besides N_max and N_min (n of S22).
+    pub n_random: usize,
+    /// Peak learning rate of the network weights (Adam, cosine decay to 0).
+    pub lr_net: f64,
+    /// Learning rate of φ (rad per step, Adam).
+    pub lr_phase_rad: f64,
+    /// Learning rate of p̂ (µm per step, Adam).
+    pub lr_pitch_um: f64,
+    /// Weight of the slippage MSE (per mm²).
+    pub lambda_slip: f64,
+    /// Initial effective pitch (µm).
+    pub pitch_init_um: f64,
+    /// Allowed effective pitch range (µm).
+    pub pitch_range_um: [f64; 2],
+    /// Keep φ fixed (baseline lenses).
+    pub fixed_lens: bool,
+    /// Seed of batches, subnets and sensor noise.
+    pub seed: u64,
+    /// Seed of the supernet's initial weights.
+    pub weights_seed: u64,
+    /// Supernet widths.
+    pub supernet: SupernetConfig,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig {
+            steps: 100,
+            batch: 4,
+            n_random: 2,
+            lr_net: 2e-3,
+            lr_phase_rad: 2e-2,
+            lr_pitch_um: 5e-2,
+            lambda_slip: 0.1,
+            pitch_init_um: 9.5,
+            pitch_range_um: [3.0, 12.0],
+            fixed_lens: false,
+            seed: 0,
+            weights_seed: 0,
+            supernet: SupernetConfig::default(),
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Checks every field, naming the bad one.
+    pub fn validate(&self) -> Result<()> {
+        if self.steps == 0 || self.steps > 10_000_000 {
+            return Err(param(
+                "steps",
+                format!("must be 1..=1e7, got {}", self.steps),
+            ));
+        }
+        if self.batch == 0 || self.batch > 4096 {
+            return Err(param(
+                "batch",
+                format!("must be 1..=4096, got {}", self.batch),
+            ));
+        }
+        if self.n_random > 64 {
+            return Err(param("n_random", "at most 64 random subnets per step"));
+        }
+        for (name, v) in [
+            ("lr_net", self.lr_net),
+            ("lr_phase_rad", self.lr_phase_rad),
+            ("lr_pitch_um", self.lr_pitch_um),
+            ("lambda_slip", self.lambda_slip),
+        ] {
+            if !(v.is_finite() && (0.0..=1e3).contains(&v)) {
+                return Err(param(name, format!("must be finite in [0, 1000], got {v}")));
+            }
+        }
+        let [lo, hi] = self.pitch_range_um;
+        if !(lo.is_finite() && hi.is_finite() && 0.0 < lo && lo <= hi) {
+            return Err(param(
+                "pitch_range_um",
+                format!("need 0 < min ≤ max, got {lo}..{hi}"),
+            ));
+        }
+        if !(lo..=hi).contains(&self.pitch_init_um) {
+            return Err(param(
+                "pitch_init_um",
+                format!("{} lies outside {lo}..{hi} µm", self.pitch_init_um),
+            ));
+        }
+        self.supernet.validate()?;
+        Ok(())
+    }
+}
+
+/// One step's losses.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StepRecord {
+    /// Step index.
+    pub step: usize,
+    /// L_task of N_max.
+    pub loss_max: f64,
+    /// L_task of N_min.
+    pub loss_min: f64,
+    /// L_train of S22 (all subnets).
+    pub loss_total: f64,
+    /// p̂ after the step (µm).
+    pub pitch_um: f64,
+    /// RMS change of φ in the step (rad).
+    pub phase_step_rad: f64,
+}
+
+/// Validation metrics of one subnet.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Metrics {
+    /// V: mean angular gaze error (degrees) over the validation frames; a frame whose mask
+    /// is empty or whose ray misses the sphere counts 90°.
+    pub v_deg: f64,
+    /// Median angular error (degrees).
+    pub median_deg: f64,
+    /// Frames where the solver failed.
+    pub failures: usize,
+    /// Hard Dice of the thresholded mask.
+    pub dice: f64,
+    /// Slippage MSE (mm²).
+    pub slip_mse: f64,
+    /// Frames evaluated.
+    pub frames: usize,
+}
+
+/// Adam for an f64 vector (φ, p̂): bias-corrected moments.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct VecAdam {
+    t: i32,
+    m: Vec<f64>,
+    v: Vec<f64>,
+}
+
+impl VecAdam {
+    fn new(n: usize) -> VecAdam {
+        VecAdam {
+            t: 0,
+            m: vec![0.0; n],
+            v: vec![0.0; n],
+        }
+    }
+
+    /// Updates `x` in place; returns the RMS step.
+    fn step(&mut self, x: &mut [f64], g: &[f64], lr: f64) -> f64 {
+        let (b1, b2, eps) = (0.9f64, 0.999f64, 1e-12f64);
+        self.t += 1;
+        let c1 = 1.0 - b1.powi(self.t);
+        let c2 = 1.0 - b2.powi(self.t);
+        let mut ss = 0.0;
+        for i in 0..x.len() {
+            self.m[i] = b1 * self.m[i] + (1.0 - b1) * g[i];
+            self.v[i] = b2 * self.v[i] + (1.0 - b2) * g[i] * g[i];
+            let d = lr * (self.m[i] / c1) / ((self.v[i] / c2).sqrt() + eps);
+            x[i] -= d;
+            ss += d * d;
+        }
+        (ss / x.len().max(1) as f64).sqrt()
+    }
+}
+
+/// Everything a resume needs besides the network and its optimiser.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct Meta {
+    config: TrainConfig,
+    step: usize,
+    pitch_um: f64,
+    pitch_adam: VecAdam,
+    phase_adam: VecAdam,
+    history: Vec<StepRecord>,
+    phase_n: usize,
+}
+
+/// The sandwich trainer over one dataset and one camera chain.
+pub struct Trainer<'a> {
+    chain: &'a CameraChain,
+    ds: &'a Dataset,
+    cfg: TrainConfig,
+    batcher: Batcher,
+    /// The supernet.
+    pub net: Supernet,
+    opt: Adam,
+    /// Phase map φ (rad) on the chain's aperture grid.
+    pub phase: Mat<f64>,
+    phase_adam: VecAdam,
+    /// Effective pitch p̂ (µm).
+    pub pitch_um: f64,
+    pitch_adam: VecAdam,
+    /// Steps done.
+    pub step: usize,
+    /// Per-step losses.
+    pub history: Vec<StepRecord>,
+}
+
+/// Magic line of a training checkpoint.
+pub const TRAIN_MAGIC: &[u8] = b"NANOEYE-TRAIN-CKPT-1\n";
+
+fn fnv1a(bytes: &[u8]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in bytes {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
+}
+
+impl<'a> Trainer<'a> {
+    /// A fresh trainer starting from phase map `phase0` (rad, aperture grid).
+    pub fn new(
+        chain: &'a CameraChain,
+        ds: &'a Dataset,
+        cfg: TrainConfig,
+        phase0: Mat<f64>,
+    ) -> Result<Trainer<'a>> {
+        cfg.validate()?;
+        let n = chain.aperture_grid().n;
+        if phase0.nrows() != n || phase0.ncols() != n {
+            return Err(param(
+                "lens",
+                format!(
+                    "phase map is {}×{}, aperture grid {n}×{n}",
+                    phase0.nrows(),
+                    phase0.ncols()
+                ),
+            ));
+        }
+        let min_pitch = chain.native().pitch_m() * 1e6;
+        if cfg.pitch_range_um[0] < min_pitch * (1.0 - 1e-9) {
+            return Err(param(
+                "pitch_range_um",
+                format!(
+                    "the lower bound {} µm is finer than the dataset's {min_pitch} µm grid",
+                    cfg.pitch_range_um[0]
+                ),
+            ));
+        }
+        let batcher = Batcher::new(&[ds.len()], cfg.batch.min(ds.len()), cfg.seed)?;
+        let net = Supernet::new(cfg.supernet.clone(), cfg.weights_seed)?;
+        Ok(Trainer {
+            chain,
+            ds,
+            batcher,
+            net,
+            opt: Adam::default(),
+            phase_adam: VecAdam::new(n * n),
+            phase: phase0,
+            pitch_um: cfg.pitch_init_um,
+            pitch_adam: VecAdam::new(1),
+            step: 0,
+            history: Vec::new(),
+            cfg,
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &TrainConfig {
+        &self.cfg
+    }
+
+    /// The phase map as the optics needs it.
+    pub fn phase_map(&self) -> Result<PhaseMap> {
+        Ok(PhaseMap::phase_only(
+            *self.chain.aperture_grid(),
+            self.phase.clone(),
+        )?)
+    }
+
+    /// The subnets of step `t`: N_max, N_min and n draws from ChaCha8(seed, stream t).
+    pub fn subnets(&self, t: usize) -> Vec<Arch> {
+        let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed ^ 0x5a5a_5a5a);
+        rng.set_stream(t as u64);
+        let mut v = vec![Arch::max(), Arch::min()];
+        v.extend((0..self.cfg.n_random).map(|_| Arch::sample(&mut rng)));
+        v
+    }
+
+    fn frames(&self, t: usize) -> Result<Vec<ChainFrame>> {
+        let ids: Vec<usize> = self
+            .batcher
+            .batch(t as u64)
+            .into_iter()
+            .map(|(_, i)| i)
+            .collect();
+        self.chain.load(self.ds, &ids)
+    }
+
+    /// One sandwich step (S22).
+    pub fn train_step(&mut self) -> Result<StepRecord> {
+        let t = self.step;
+        let frames = self.frames(t)?;
+        let map = self.phase_map()?;
+        let psfs = self.chain.psfs(&map, &self.chain.active(&frames))?;
+        let p_hat = self.pitch_um * 1e-6;
+        let fwd = self.chain.forward(
+            &frames,
+            &psfs,
+            p_hat,
+            NoiseMode::Gaussian,
+            self.cfg.seed ^ (t as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        )?;
+        self.net.zero_grad();
+        let mut dx = Tensor::zeros(fwd.input.n, 1, fwd.input.h, fwd.input.w);
+        let mut losses = Vec::new();
+        for a in self.subnets(t) {
+            let (l, g) = task_loss(
+                &mut self.net,
+                std::slice::from_ref(&a),
+                &fwd.input,
+                &fwd.mask,
+                &fwd.slip_mm,
+                self.cfg.lambda_slip,
+                BnMode::Train,
+            )?;
+            dx.add_assign(&g);
+            losses.push(l.total);
+        }
+        if losses.iter().any(|l| !l.is_finite()) {
+            return Err(param(
+                "lr_net",
+                format!("step {t}: the loss is not finite ({losses:?}); lower the learning rates"),
+            ));
+        }
+        self.opt.step(
+            &mut self.net,
+            cosine_lr(self.cfg.lr_net, 0.0, t, self.cfg.steps),
+        )?;
+        let mut acc = self.chain.accumulator();
+        self.chain.backward(&frames, &psfs, &fwd, &dx, &mut acc)?;
+        let dp_um = acc.p_hat() * 1e-6;
+        let mut phase_step = 0.0;
+        if !self.cfg.fixed_lens {
+            let g = self.chain.finish(&map, &psfs, acc)?;
+            let n = self.phase.nrows();
+            let mut x: Vec<f64> = (0..n * n).map(|k| self.phase[(k / n, k % n)]).collect();
+            let gv: Vec<f64> = (0..n * n).map(|k| g.phase_rad[(k / n, k % n)]).collect();
+            phase_step = self.phase_adam.step(&mut x, &gv, self.cfg.lr_phase_rad);
+            self.phase = Mat::from_fn(n, n, |i, j| x[i * n + j]);
+        }
+        let mut p = [self.pitch_um];
+        self.pitch_adam.step(&mut p, &[dp_um], self.cfg.lr_pitch_um);
+        let [lo, hi] = self.cfg.pitch_range_um;
+        self.pitch_um = p[0].clamp(lo, hi);
+        let rec = StepRecord {
+            step: t,
+            loss_max: losses[0],
+            loss_min: losses[1],
+            loss_total: losses.iter().sum(),
+            pitch_um: self.pitch_um,
+            phase_step_rad: phase_step,
+        };
+        self.history.push(rec.clone());
+        self.step += 1;
+        Ok(rec)
+    }
+
+    /// Validation of subnet `arch` on `val` (all frames, in batches of the training batch
+    /// size) after recalibrating BN on `recal_batches` training batches at the current φ, p̂.
+    pub fn evaluate(
+        &mut self,
+        val: &Dataset,
+        arch: &Arch,
+        recal_batches: usize,
+    ) -> Result<Metrics> {
+        let map = self.phase_map()?;
+        let p_hat = self.pitch_um * 1e-6;
+        let mut recal = Vec::new();
+        for b in 0..recal_batches.max(1) {
+            let frames = self.frames(b)?;
+            let psfs = self.chain.psfs(&map, &self.chain.active(&frames))?;
+            let fwd = self.chain.forward(
+                &frames,
+                &psfs,
+                p_hat,
+                NoiseMode::Gaussian,
+                self.cfg.seed ^ 0xEEEE,
+            )?;
+            recal.push(fwd.input);
+        }
+        self.net.recalibrate_bn(arch, &recal)?;
+        evaluate_net(
+            &mut self.net,
+            self.chain,
+            val,
+            &map,
+            p_hat,
+            arch,
+            self.cfg.batch,
+            self.cfg.seed,
+        )
+    }
+
+    /// Writes the checkpoint file atomically (temp file + rename): one unit, never a mix.
+    pub fn save(&mut self, path: &Path) -> Result<()> {
+        let meta = Meta {
+            config: self.cfg.clone(),
+            step: self.step,
+            pitch_um: self.pitch_um,
+            pitch_adam: self.pitch_adam.clone(),
+            phase_adam: self.phase_adam.clone(),
+            history: self.history.clone(),
+            phase_n: self.phase.nrows(),
+        };
+        let json = serde_json::to_vec(&meta).map_err(|e| param("checkpoint", e.to_string()))?;
+        let net = nanoeye_nets::checkpoint::to_bytes(&mut self.net)?;
+        let st = self.opt.state();
+        let mut b = Vec::with_capacity(json.len() + net.len() + 64);
+        b.extend_from_slice(TRAIN_MAGIC);
+        b.extend_from_slice(&(json.len() as u64).to_le_bytes());
+        b.extend_from_slice(&json);
+        let n = self.phase.nrows();
+        for i in 0..n {
+            for j in 0..n {
+                b.extend_from_slice(&self.phase[(i, j)].to_le_bytes());
+            }
+        }
+        b.extend_from_slice(&(net.len() as u64).to_le_bytes());
+        b.extend_from_slice(&net);
+        b.extend_from_slice(&st.t.to_le_bytes());
+        b.extend_from_slice(&(st.m.len() as u64).to_le_bytes());
+        for (m, v) in st.m.iter().zip(&st.v) {
+            b.extend_from_slice(&(m.len() as u64).to_le_bytes());
+            for x in m.iter().chain(v) {
+                b.extend_from_slice(&x.to_le_bytes());
+            }
+        }
+        let h = fnv1a(&b);
+        b.extend_from_slice(&h.to_le_bytes());
+        let dir = path.parent().unwrap_or(Path::new("."));
+        std::fs::create_dir_all(dir)
+            .map_err(|e| param("out", format!("{}: {e}", dir.display())))?;
+        let io = |e: std::io::Error| param("out", format!("{}: {e}", path.display()));
+        let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io)?;
+        std::io::Write::write_all(&mut tmp, &b).map_err(io)?;
+        tmp.as_file().sync_all().map_err(io)?;
+        tmp.persist(path).map_err(|e| io(e.error))?;
+        Ok(())
+    }
+
+    /// Restores a checkpoint written by [`Self::save`]; refuses one made with another
+    /// configuration (naming the first differing field) or whose checksum fails.
+    pub fn load(&mut self, path: &Path) -> Result<()> {
+        let b =
+            std::fs::read(path).map_err(|e| param("out", format!("{}: {e}", path.display())))?;
+        let bad = |why: &str| param("checkpoint", format!("{}: {why}", path.display()));
+        if b.len() < TRAIN_MAGIC.len() + 16 || &b[..TRAIN_MAGIC.len()] != TRAIN_MAGIC {
+            return Err(bad("not a training checkpoint"));
+        }
+        let (body, tail) = b.split_at(b.len() - 8);
+        if fnv1a(body) != u64::from_le_bytes(tail.try_into().expect("8 bytes")) {
+            return Err(bad("checksum mismatch: the file is corrupted or truncated"));
+        }
+        let mut r = Reader {
+            b: body,
+            at: TRAIN_MAGIC.len(),
+        };
+        let jl = r.u64()? as usize;
+        let meta: Meta = serde_json::from_slice(r.take(jl)?).map_err(|e| bad(&e.to_string()))?;
+        if meta.config != self.cfg {
+            let a = serde_json::to_value(&meta.config).unwrap_or_default();
+            let c = serde_json::to_value(&self.cfg).unwrap_or_default();
+            let field = a
+                .as_object()
+                .and_then(|x| x.keys().find(|k| x.get(*k) != c.get(*k)).cloned())
+                .unwrap_or_else(|| "?".into());
+            return Err(param(
+                "checkpoint",
+                format!(
+                    "{} was written with a different `{field}`; use a new --out or the same parameters",
+                    path.display()
+                ),
+            ));
+        }
+        let n = meta.phase_n;
+        if n != self.phase.nrows() {
+            return Err(bad("phase grid differs from this run's aperture grid"));
+        }
+        let mut ph = Vec::with_capacity(n * n);
+        for _ in 0..n * n {
+            ph.push(r.f64()?);
+        }
+        let nl = r.u64()? as usize;
+        nanoeye_nets::checkpoint::from_bytes(&mut self.net, r.take(nl)?)?;
+        let t = r.i32()?;
+        let cnt = r.u64()? as usize;
+        let (mut m, mut v) = (Vec::new(), Vec::new());
+        for _ in 0..cnt {
+            let l = r.u64()? as usize;
+            let mut a = Vec::with_capacity(l);
+            for _ in 0..l {
+                a.push(r.f32()?);
+            }
+            let mut c = Vec::with_capacity(l);
+            for _ in 0..l {
+                c.push(r.f32()?);
+            }
+            m.push(a);
+            v.push(c);
+        }
+        self.opt.set_state(AdamState { t, m, v })?;
+        self.phase = Mat::from_fn(n, n, |i, j| ph[i * n + j]);
+        self.step = meta.step;
+        self.pitch_um = meta.pitch_um;
+        self.pitch_adam = meta.pitch_adam;
+        self.phase_adam = meta.phase_adam;
+        self.history = meta.history;
+        Ok(())
+    }
+}
+
+struct Reader<'b> {
+    b: &'b [u8],
+    at: usize,
+}
+
+impl<'b> Reader<'b> {
+    fn take(&mut self, n: usize) -> Result<&'b [u8]> {
+        let end = self
+            .at
+            .checked_add(n)
+            .filter(|&e| e <= self.b.len())
+            .ok_or_else(|| param("checkpoint", "truncated"))?;
+        let s = &self.b[self.at..end];
+        self.at = end;
+        Ok(s)
+    }
+    fn u64(&mut self) -> Result<u64> {
+        Ok(u64::from_le_bytes(self.take(8)?.try_into().expect("8")))
+    }
+    fn f64(&mut self) -> Result<f64> {
+        Ok(f64::from_le_bytes(self.take(8)?.try_into().expect("8")))
+    }
+    fn i32(&mut self) -> Result<i32> {
+        Ok(i32::from_le_bytes(self.take(4)?.try_into().expect("4")))
+    }
+    fn f32(&mut self) -> Result<f32> {
+        Ok(f32::from_le_bytes(self.take(4)?.try_into().expect("4")))
+    }
+}
+
+/// Validation of `arch` (BN as it stands: recalibrate first) on every frame of `val` through
+/// the chain at φ = `map`, p̂ = `p_hat` (m): V, median, failures, Dice, slip MSE.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_net(
+    net: &mut Supernet,
+    chain: &CameraChain,
+    val: &Dataset,
+    map: &PhaseMap,
+    p_hat: f64,
+    arch: &Arch,
+    batch: usize,
+    seed: u64,
+) -> Result<Metrics> {
+    let rig0: &Rig = &val.manifest.rig;
+    let mut errs = Vec::with_capacity(val.len());
+    let (mut failures, mut dice_sum, mut mse_sum, mut nb) = (0usize, 0.0, 0.0, 0usize);
+    let ids: Vec<usize> = (0..val.len()).collect();
+    for chunk in ids.chunks(batch.max(1)) {
+        let frames = chain.load(val, chunk)?;
+        let psfs = chain.psfs(map, &chain.active(&frames))?;
+        let fwd = chain.forward(&frames, &psfs, p_hat, NoiseMode::Gaussian, seed ^ 0xBEEF)?;
+        let out = net.forward(arch, &fwd.input, BnMode::Eval)?;
+        let hard_target = Tensor {
+            data: fwd
+                .mask
+                .data
+                .iter()
+                .map(|&m| if m >= 0.5 { 1.0 } else { 0.0 })
+                .collect(),
+            ..fwd.mask.clone()
+        };
+        dice_sum += hard_dice(&out.mask_logits, &hard_target)? * frames.len() as f64;
+        mse_sum += slip_mse(&out.slip, &fwd.slip_mm)?.0 * frames.len() as f64;
+        nb += frames.len();
+        let rig = Rig {
+            camera: fwd.grid.camera.clone(),
+            ..rig0.clone()
+        };
+        let solver = SphereSolver::new(&rig)?;
+        let (h, w) = fwd.grid.shape();
+        for (b, f) in frames.iter().enumerate() {
+            let probs = Mat::from_fn(h, w, |i, j| {
+                let l = out.mask_logits.image(b)[i * w + j];
+                1.0 / (1.0 + (-l).exp())
+            });
+            let slip = [0, 1, 2].map(|a| out.slip.data[b * 3 + a] as f64 * 1e-3);
+            match solver.solve_mask(probs.as_ref(), slip) {
+                Ok(s) => errs.push(angular_error(s.gaze, f.record.gaze).to_degrees()),
+                Err(_) => {
+                    failures += 1;
+                    errs.push(90.0);
+                }
+            }
+        }
+    }
+    if nb == 0 {
+        return Err(param("val", "no validation frames"));
+    }
+    let mut sorted = errs.clone();
+    sorted.sort_by(f64::total_cmp);
+    Ok(Metrics {
+        v_deg: errs.iter().sum::<f64>() / errs.len() as f64,
+        median_deg: sorted[sorted.len() / 2],
+        failures,
+        dice: dice_sum / nb as f64,
+        slip_mse: mse_sum / nb as f64,
+        frames: nb,
+    })
+}

@@ -1,0 +1,137 @@
+//! Sandwich-rule co-design training on a tiny configuration: the losses of N_max and N_min
+//! fall, φ and p̂ move, a killed run resumes to the same bits, a resume with other parameters
+//! is refused, and validation runs the full chain to gaze.
+
+use nanoeye_datagen::render::{Dataset, DatasetOptions, LayerSpec, RenderSet, SceneSource};
+use nanoeye_gaze::Rig;
+use nanoeye_nets::{Arch, SupernetConfig};
+use nanoeye_search::{CameraChain, ChainConfig, LensSpec, TrainConfig, Trainer};
+
+fn dataset(dir: &std::path::Path, seed: u64) -> Dataset {
+    nanoeye_datagen::render::write_dataset(&DatasetOptions {
+        set: RenderSet::Ambiguity,
+        n: 1,
+        seed,
+        width_px: 80,
+        height_px: 50,
+        spp: 1,
+        out_dir: dir.to_path_buf(),
+        rig: Rig::default(),
+        source: SceneSource::Procedural,
+        progress: false,
+        layers: LayerSpec::default(),
+    })
+    .unwrap();
+    Dataset::open(dir).unwrap()
+}
+
+fn chain(ds: &Dataset) -> CameraChain {
+    let mut c = ChainConfig {
+        aperture_step_m: 10e-6,
+        ..ChainConfig::default()
+    };
+    c.sensor.base_pitch = 48e-6;
+    c.radiometry.exposure_s = 0.1e-3 / 256.0;
+    CameraChain::for_dataset(ds, c).unwrap()
+}
+
+fn cfg(steps: usize) -> TrainConfig {
+    TrainConfig {
+        steps,
+        batch: 3,
+        n_random: 1,
+        lr_net: 5e-3,
+        lr_phase_rad: 5e-2,
+        lr_pitch_um: 0.5,
+        pitch_init_um: 70.0,
+        pitch_range_um: [48.0, 150.0],
+        supernet: SupernetConfig {
+            head_expand: 32,
+            head_hidden: 16,
+            ..SupernetConfig::default()
+        },
+        ..TrainConfig::default()
+    }
+}
+
+fn phase0(c: &CameraChain) -> faer::Mat<f64> {
+    LensSpec::Hyperbolic
+        .phase_map(c.aperture_grid(), 940e-9, 2e-3)
+        .unwrap()
+        .phase_rad
+}
+
+#[test]
+fn sandwich_training_lowers_both_losses_and_moves_the_optics() {
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 3);
+    let c = chain(&ds);
+    let mut t = Trainer::new(&c, &ds, cfg(8), phase0(&c)).unwrap();
+    let p0 = t.phase.clone();
+    for _ in 0..8 {
+        t.train_step().unwrap();
+    }
+    let h = &t.history;
+    let first = &h[0];
+    let last = h.last().unwrap();
+    assert!(last.loss_max < first.loss_max, "{h:?}");
+    assert!(last.loss_min < first.loss_min, "{h:?}");
+    assert!(t.pitch_um != 70.0, "p̂ did not move");
+    let moved = (0..p0.nrows())
+        .flat_map(|i| (0..p0.ncols()).map(move |j| (i, j)))
+        .any(|(i, j)| t.phase[(i, j)] != p0[(i, j)]);
+    assert!(moved, "φ did not move");
+    // Validation: the full chain to gaze gives finite, bounded numbers.
+    let m = t.evaluate(&ds, &Arch::min(), 1).unwrap();
+    assert_eq!(m.frames, 3);
+    assert!(
+        m.v_deg.is_finite() && (0.0..=90.0).contains(&m.v_deg),
+        "{m:?}"
+    );
+    assert!((0.0..=1.0).contains(&m.dice) && m.slip_mse.is_finite());
+}
+
+#[test]
+fn a_killed_run_resumes_to_the_same_bits_and_other_parameters_are_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 4);
+    let c = chain(&ds);
+    let ck = d.path().join("run/checkpoint.bin");
+    let mut a = Trainer::new(&c, &ds, cfg(4), phase0(&c)).unwrap();
+    for _ in 0..4 {
+        a.train_step().unwrap();
+    }
+    let mut b = Trainer::new(&c, &ds, cfg(4), phase0(&c)).unwrap();
+    for _ in 0..2 {
+        b.train_step().unwrap();
+    }
+    b.save(&ck).unwrap();
+    drop(b);
+    let mut r = Trainer::new(&c, &ds, cfg(4), phase0(&c)).unwrap();
+    r.load(&ck).unwrap();
+    assert_eq!(r.step, 2);
+    for _ in 0..2 {
+        r.train_step().unwrap();
+    }
+    assert_eq!(r.history, a.history);
+    assert_eq!(r.pitch_um, a.pitch_um);
+    assert_eq!(r.phase, a.phase);
+    let (na, nr) = (
+        nanoeye_nets::checkpoint::to_bytes(&mut a.net).unwrap(),
+        nanoeye_nets::checkpoint::to_bytes(&mut r.net).unwrap(),
+    );
+    assert!(na == nr, "network weights differ after resume");
+    // Another learning rate: refused, naming it.
+    let mut other = cfg(4);
+    other.lr_phase_rad = 1e-3;
+    let mut x = Trainer::new(&c, &ds, other, phase0(&c)).unwrap();
+    let e = x.load(&ck).unwrap_err().to_string();
+    assert!(e.contains("lr_phase_rad"), "{e}");
+    // A flipped byte is detected.
+    let mut bytes = std::fs::read(&ck).unwrap();
+    let k = bytes.len() / 2;
+    bytes[k] ^= 1;
+    std::fs::write(&ck, bytes).unwrap();
+    let mut y = Trainer::new(&c, &ds, cfg(4), phase0(&c)).unwrap();
+    assert!(y.load(&ck).unwrap_err().to_string().contains("checksum"));
+}
