@@ -112,6 +112,8 @@ pub enum SearchCmd {
     Loss(LossArgs),
     /// Sandwich-rule co-design training of lens, pitch and supernet (S22).
     Train(crate::train::TrainArgs),
+    /// Regularized evolution over subnets with inner-loop fine-tuning (S16–S21).
+    Rea(crate::train::ReaArgs),
 }
 
 /// `nanoeye search loss` options.
@@ -318,6 +320,7 @@ pub fn search(cmd: SearchCmd) -> Result<()> {
     match cmd {
         SearchCmd::Loss(a) => loss(a),
         SearchCmd::Train(a) => crate::train::train(a),
+        SearchCmd::Rea(a) => crate::train::rea(a),
     }
 }
 

@@ -259,3 +259,149 @@ pub fn train(a: TrainArgs) -> Result<()> {
     }
     Ok(())
 }
+
+/// `nanoeye search rea` options.
+#[derive(Debug, Args)]
+pub struct ReaArgs {
+    #[command(flatten)]
+    chain: ChainArgs,
+    /// Trained run directory (`search train --out`): its checkpoint gives the supernet, φ, p̂.
+    #[arg(long)]
+    run: PathBuf,
+    /// Validation dataset (default: the training set).
+    #[arg(long)]
+    val: Option<PathBuf>,
+    /// Evolution cycles N_iter.
+    #[arg(long, default_value_t = 150)]
+    cycles: usize,
+    /// Population size P.
+    #[arg(long, default_value_t = 100)]
+    population: usize,
+    /// Tournament size k.
+    #[arg(long, default_value_t = 10)]
+    tournament: usize,
+    /// Inner-loop fine-tuning epochs.
+    #[arg(long, default_value_t = 3.0)]
+    epochs: f64,
+    /// Budget penalty γ.
+    #[arg(long, default_value_t = 10.0)]
+    gamma: f64,
+    /// Mutation rate per layer.
+    #[arg(long, default_value_t = 0.1)]
+    mutation_rate: f64,
+    /// MAC budget (0: none).
+    #[arg(long, default_value_t = 0)]
+    budget_macs: u64,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Runs `nanoeye search rea`.
+pub fn rea(a: ReaArgs) -> Result<()> {
+    use nanoeye_search::{Rea, ReaConfig, ReaState};
+    let t0 = Instant::now();
+    let (ds, chain) = a.chain.build()?;
+    let val = match &a.val {
+        Some(p) => Some(Dataset::open(p).with_context(|| format!("--val {}", p.display()))?),
+        None => None,
+    };
+    let cfg = ReaConfig {
+        cycles: a.cycles,
+        population: a.population,
+        tournament: a.tournament,
+        epochs: a.epochs,
+        gamma: a.gamma,
+        mutation_rate: a.mutation_rate,
+        budget_macs: a.budget_macs,
+        seed: a.seed,
+        ..ReaConfig::default()
+    };
+    cfg.validate().map_err(|e| {
+        let m = e.to_string();
+        let flag = [
+            ("`population`", "--population"),
+            ("`tournament`", "--tournament"),
+            ("`cycles`", "--cycles"),
+            ("`epochs`", "--epochs"),
+            ("`gamma`", "--gamma"),
+            ("`mutation_rate`", "--mutation-rate"),
+        ]
+        .iter()
+        .find(|(k, _)| m.contains(k))
+        .map_or("--run", |(_, f)| f);
+        anyhow::anyhow!("{flag}: {m}")
+    })?;
+    let ck = a.run.join("checkpoint.bin");
+    let v = val.as_ref().unwrap_or(&ds);
+    let mut r =
+        Rea::new(&chain, &ds, v, &ck, cfg).with_context(|| format!("--run {}", a.run.display()))?;
+    let state_path = a.run.join("rea_state.json");
+    util::check_output_target(&state_path)?;
+    if state_path.exists() {
+        r.resume(&state_path).context("--run (resume)")?;
+        eprintln!(
+            "resuming the search: {} evaluated, {} cycles done",
+            r.state.evaluated.len(),
+            r.state.history.len()
+        );
+    }
+    let total = a.population + a.cycles;
+    let tty = std::io::stderr().is_terminal();
+    let bar = if tty {
+        indicatif::ProgressBar::new(total as u64)
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let run_dir = a.run.clone();
+    let mut save = |s: &ReaState| -> nanoeye_search::Result<()> {
+        let io = |e: anyhow::Error| nanoeye_search::SearchError::Param {
+            name: "run",
+            reason: e.to_string(),
+        };
+        let text = serde_json::to_string(s).map_err(|e| io(e.into()))?;
+        util::write_atomic(&state_path, text.as_bytes()).map_err(io)?;
+        let lines: String = s
+            .history
+            .iter()
+            .map(|c| serde_json::to_string(c).unwrap_or_default() + "\n")
+            .collect();
+        util::write_atomic(&run_dir.join("rea.jsonl"), lines.as_bytes()).map_err(io)?;
+        bar.set_position((s.evaluated.len()) as u64);
+        if !tty && s.evaluated.len() % (total / 10).max(1) == 0 {
+            eprintln!(
+                "evaluated {}/{total}, {:.0} s",
+                s.evaluated.len(),
+                t0.elapsed().as_secs_f64()
+            );
+        }
+        Ok(())
+    };
+    r.run(&mut save)?;
+    bar.finish_and_clear();
+    let best = r.best().context("the search evaluated nothing")?;
+    let out = serde_json::json!({
+        "best": {"arch": best.arch, "macs": best.macs, "v_deg": best.v, "pitch_um": best.pitch_um,
+                 "fitness": best.fitness, "id": best.id},
+        "evaluated": r.state.evaluated.len(),
+        "cycles": r.state.history.len(),
+        "seconds": t0.elapsed().as_secs_f64(),
+    });
+    if a.json {
+        println!("{out}");
+    } else {
+        println!(
+            "best of {}: id {} with V = {:.2}°, {} MACs at p̂ {:.3} µm; history in {}",
+            r.state.evaluated.len(),
+            best.id,
+            best.v,
+            best.macs,
+            best.pitch_um,
+            a.run.join("rea.jsonl").display()
+        );
+    }
+    Ok(())
+}

@@ -8,6 +8,7 @@ pub mod error;
 pub mod geometry;
 pub mod lens;
 pub mod radiometry;
+pub mod rea;
 pub mod task;
 pub mod train;
 
@@ -18,5 +19,6 @@ pub use error::{Result, SearchError};
 pub use geometry::{NativeGrid, PitchGrid};
 pub use lens::LensSpec;
 pub use radiometry::Radiometry;
+pub use rea::{CycleRecord, Individual, Rea, ReaConfig, ReaState};
 pub use task::{TaskLoss, task_loss};
 pub use train::{Metrics, StepRecord, TrainConfig, Trainer, evaluate_net};

@@ -420,6 +420,90 @@ impl<'a> Trainer<'a> {
         )
     }
 
+    /// A trainer restored from a run's checkpoint, with the run's own configuration.
+    pub fn from_checkpoint(
+        chain: &'a CameraChain,
+        ds: &'a Dataset,
+        path: &Path,
+    ) -> Result<Trainer<'a>> {
+        let cfg = read_config(path)?;
+        let n = chain.aperture_grid().n;
+        let mut t = Trainer::new(chain, ds, cfg, Mat::zeros(n, n))?;
+        t.load(path)?;
+        Ok(t)
+    }
+
+    /// One inner-loop step (S16, S18): subnet `arch` alone, with the budget hinge
+    /// λ·max(0, C/C_budget − 1) on p̂ through the continuous relaxation C ∝ p̂⁻² (the MAC count
+    /// itself is piecewise constant in p̂). Returns (task loss, MACs at the current p̂).
+    pub fn finetune_step(
+        &mut self,
+        arch: &Arch,
+        budget_macs: u64,
+        lambda_budget: f64,
+        lr_scale: f64,
+    ) -> Result<(f64, u64)> {
+        let t = self.step;
+        let frames = self.frames(t)?;
+        let map = self.phase_map()?;
+        let psfs = self.chain.psfs(&map, &self.chain.active(&frames))?;
+        let p_hat = self.pitch_um * 1e-6;
+        let fwd = self.chain.forward(
+            &frames,
+            &psfs,
+            p_hat,
+            NoiseMode::Gaussian,
+            self.cfg.seed ^ (t as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        )?;
+        self.net.zero_grad();
+        let (l, dx) = task_loss(
+            &mut self.net,
+            std::slice::from_ref(arch),
+            &fwd.input,
+            &fwd.mask,
+            &fwd.slip_mm,
+            self.cfg.lambda_slip,
+            BnMode::Train,
+        )?;
+        if !l.total.is_finite() {
+            return Err(param(
+                "lr_net",
+                "fine-tuning diverged; lower the learning rates",
+            ));
+        }
+        self.opt.step(&mut self.net, self.cfg.lr_net * lr_scale)?;
+        let mut acc = self.chain.accumulator();
+        self.chain.backward(&frames, &psfs, &fwd, &dx, &mut acc)?;
+        let (h, w) = fwd.grid.shape();
+        let macs = nanoeye_nets::cost::subnet_cost(&self.cfg.supernet, arch, h, w)?.macs;
+        let mut dp_um = acc.p_hat() * 1e-6;
+        if budget_macs > 0 && macs > budget_macs {
+            // d/dp̂ [λ (C/B − 1)] with C ∝ p̂⁻²: −2λC/(B p̂).
+            dp_um += -2.0 * lambda_budget * macs as f64 / (budget_macs as f64 * self.pitch_um);
+        }
+        if !self.cfg.fixed_lens {
+            let g = self.chain.finish(&map, &psfs, acc)?;
+            let n = self.phase.nrows();
+            let mut x: Vec<f64> = (0..n * n).map(|k| self.phase[(k / n, k % n)]).collect();
+            let gv: Vec<f64> = (0..n * n).map(|k| g.phase_rad[(k / n, k % n)]).collect();
+            self.phase_adam
+                .step(&mut x, &gv, self.cfg.lr_phase_rad * lr_scale);
+            self.phase = Mat::from_fn(n, n, |i, j| x[i * n + j]);
+        }
+        let mut p = [self.pitch_um];
+        self.pitch_adam
+            .step(&mut p, &[dp_um], self.cfg.lr_pitch_um * lr_scale);
+        let [lo, hi] = self.cfg.pitch_range_um;
+        self.pitch_um = p[0].clamp(lo, hi);
+        self.step += 1;
+        Ok((l.total, macs))
+    }
+
+    /// Batches per epoch of the training set.
+    pub fn batches_per_epoch(&self) -> usize {
+        self.batcher.batches_per_epoch()
+    }
+
     /// Writes the checkpoint file atomically (temp file + rename): one unit, never a mix.
     pub fn save(&mut self, path: &Path) -> Result<()> {
         let meta = Meta {
@@ -536,6 +620,26 @@ impl<'a> Trainer<'a> {
         self.history = meta.history;
         Ok(())
     }
+}
+
+/// The configuration stored in a training checkpoint (checksum verified).
+pub fn read_config(path: &Path) -> Result<TrainConfig> {
+    let b = std::fs::read(path).map_err(|e| param("run", format!("{}: {e}", path.display())))?;
+    let bad = |why: &str| param("run", format!("{}: {why}", path.display()));
+    if b.len() < TRAIN_MAGIC.len() + 16 || &b[..TRAIN_MAGIC.len()] != TRAIN_MAGIC {
+        return Err(bad("not a training checkpoint"));
+    }
+    let (body, tail) = b.split_at(b.len() - 8);
+    if fnv1a(body) != u64::from_le_bytes(tail.try_into().expect("8 bytes")) {
+        return Err(bad("checksum mismatch: the file is corrupted or truncated"));
+    }
+    let mut r = Reader {
+        b: body,
+        at: TRAIN_MAGIC.len(),
+    };
+    let jl = r.u64()? as usize;
+    let meta: Meta = serde_json::from_slice(r.take(jl)?).map_err(|e| bad(&e.to_string()))?;
+    Ok(meta.config)
 }
 
 struct Reader<'b> {

@@ -135,3 +135,93 @@ fn a_killed_run_resumes_to_the_same_bits_and_other_parameters_are_refused() {
     let mut y = Trainer::new(&c, &ds, cfg(4), phase0(&c)).unwrap();
     assert!(y.load(&ck).unwrap_err().to_string().contains("checksum"));
 }
+
+fn trained_run(dir: &std::path::Path, c: &CameraChain, ds: &Dataset) -> std::path::PathBuf {
+    let mut t = Trainer::new(c, ds, cfg(2), phase0(c)).unwrap();
+    t.train_step().unwrap();
+    t.train_step().unwrap();
+    let p = dir.join("run/checkpoint.bin");
+    t.save(&p).unwrap();
+    p
+}
+
+fn rea_cfg() -> nanoeye_search::ReaConfig {
+    nanoeye_search::ReaConfig {
+        cycles: 3,
+        population: 3,
+        tournament: 2,
+        epochs: 1.0,
+        budget_macs: 200_000,
+        recal_batches: 1,
+        seed: 9,
+        ..nanoeye_search::ReaConfig::default()
+    }
+}
+
+#[test]
+fn regularized_evolution_ages_out_the_oldest_and_resumes_exactly() {
+    use nanoeye_search::{Rea, ReaState};
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 5);
+    let c = chain(&ds);
+    let run = trained_run(d.path(), &c, &ds);
+    let mut full = Rea::new(&c, &ds, &ds, &run, rea_cfg()).unwrap();
+    full.run(&mut |_| Ok(())).unwrap();
+    let st = &full.state;
+    assert_eq!(st.evaluated.len(), 6);
+    for rec in &st.history {
+        // Aging: the oldest member leaves, whatever its fitness.
+        assert_eq!(rec.removed, rec.population[0]);
+        // The parent is the tournament's argmax of the S19 fitness.
+        let best = rec
+            .tournament
+            .iter()
+            .map(|&i| st.evaluated[i].fitness)
+            .fold(f64::NEG_INFINITY, f64::max);
+        assert_eq!(st.evaluated[rec.parent].fitness, best);
+        assert!(rec.tournament.iter().all(|i| rec.population.contains(i)));
+        // Children stay in the search space; fitness is −V − γ·𝕀(C > budget).
+        rec.child.arch.validate().unwrap();
+        let pen = if rec.child.macs > 200_000 { 10.0 } else { 0.0 };
+        assert_eq!(rec.child.fitness, -rec.child.v - pen);
+    }
+    assert_eq!(st.population.len(), 3);
+    // Kill after 4 evaluations, resume from the saved state: the same search.
+    let saved: std::cell::RefCell<Option<String>> = Default::default();
+    let mut n = 0;
+    let mut part = Rea::new(&c, &ds, &ds, &run, rea_cfg()).unwrap();
+    let r = part.run(&mut |s: &ReaState| {
+        n += 1;
+        *saved.borrow_mut() = Some(serde_json::to_string(s).unwrap());
+        if n == 4 {
+            return Err(nanoeye_search::SearchError::Param {
+                name: "kill",
+                reason: "simulated".into(),
+            });
+        }
+        Ok(())
+    });
+    assert!(r.is_err());
+    let state_path = d.path().join("rea_state.json");
+    std::fs::write(&state_path, saved.borrow().as_ref().unwrap()).unwrap();
+    let mut resumed = Rea::new(&c, &ds, &ds, &run, rea_cfg()).unwrap();
+    resumed.resume(&state_path).unwrap();
+    resumed.run(&mut |_| Ok(())).unwrap();
+    assert_eq!(
+        serde_json::to_string(&resumed.state).unwrap(),
+        serde_json::to_string(&full.state).unwrap()
+    );
+    // Other parameters are refused.
+    let mut other = Rea::new(
+        &c,
+        &ds,
+        &ds,
+        &run,
+        nanoeye_search::ReaConfig {
+            gamma: 1.0,
+            ..rea_cfg()
+        },
+    )
+    .unwrap();
+    assert!(other.resume(&state_path).is_err());
+}

@@ -1,0 +1,332 @@
+//! Regularized evolution (S17, S19–S21, B.3) over subnet architectures, each candidate scored
+//! by the inner loop (S16, S18, S20): weights, φ and p̂ inherited from the trained run, a short
+//! fine-tune with the MAC-budget hinge, then V on the validation set.
+//!
+//! Scores: v = V (mean angular gaze error, degrees; lower is better), and the S19 fitness,
+//! maximised, = −v − γ·𝕀(C_total > C_budget). Aging: each cycle removes the oldest
+//! individual, not the worst. Every draw of cycle c comes from ChaCha8(seed, stream c), so a
+//! resumed search repeats the uninterrupted one exactly; the state (population, history,
+//! next id) is one atomic JSON file rewritten after every evaluation.
+
+use crate::chain::CameraChain;
+use crate::error::{Result, param};
+use crate::train::{Metrics, Trainer};
+use nanoeye_datagen::render::Dataset;
+use nanoeye_nets::Arch;
+use rand::SeedableRng;
+use rand::seq::index::sample;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+
+/// REA hyper-parameters; defaults are Table S1's.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReaConfig {
+    /// Evolution cycles N_iter.
+    pub cycles: usize,
+    /// Population size P.
+    pub population: usize,
+    /// Tournament size k.
+    pub tournament: usize,
+    /// Inner-loop fine-tuning epochs.
+    pub epochs: f64,
+    /// Budget penalty γ of S19.
+    pub gamma: f64,
+    /// Mutation rate per layer.
+    pub mutation_rate: f64,
+    /// MAC budget C_budget (0: none).
+    pub budget_macs: u64,
+    /// Weight λ of the budget hinge in the inner loop (S16), on C/C_budget − 1.
+    pub lambda_budget: f64,
+    /// Learning-rate scale of the fine-tune relative to the run's.
+    pub lr_scale: f64,
+    /// Training batches for BN recalibration before each evaluation.
+    pub recal_batches: usize,
+    /// Seed.
+    pub seed: u64,
+}
+
+impl Default for ReaConfig {
+    /// Table S1: N_iter 150, P 100, k 10, 3 epochs, γ 10, rate 0.1.
+    fn default() -> Self {
+        ReaConfig {
+            cycles: 150,
+            population: 100,
+            tournament: 10,
+            epochs: 3.0,
+            gamma: 10.0,
+            mutation_rate: 0.1,
+            budget_macs: 0,
+            lambda_budget: 1.0,
+            lr_scale: 0.1,
+            recal_batches: 2,
+            seed: 0,
+        }
+    }
+}
+
+impl ReaConfig {
+    /// Checks every field, naming the bad one.
+    pub fn validate(&self) -> Result<()> {
+        if self.population == 0 || self.population > 100_000 {
+            return Err(param("population", "must be 1..=100000"));
+        }
+        if self.tournament == 0 || self.tournament > self.population {
+            return Err(param(
+                "tournament",
+                format!(
+                    "must be 1..=population ({}), got {}",
+                    self.population, self.tournament
+                ),
+            ));
+        }
+        if self.cycles > 10_000_000 {
+            return Err(param("cycles", "at most 1e7"));
+        }
+        if !(self.epochs.is_finite() && (0.0..=1000.0).contains(&self.epochs)) {
+            return Err(param(
+                "epochs",
+                format!("must lie in [0, 1000], got {}", self.epochs),
+            ));
+        }
+        for (n, v) in [
+            ("gamma", self.gamma),
+            ("lambda_budget", self.lambda_budget),
+            ("lr_scale", self.lr_scale),
+        ] {
+            if !(v.is_finite() && (0.0..=1e6).contains(&v)) {
+                return Err(param(n, format!("must be finite in [0, 1e6], got {v}")));
+            }
+        }
+        if !(0.0..=1.0).contains(&self.mutation_rate) {
+            return Err(param("mutation_rate", "must lie in [0, 1]"));
+        }
+        Ok(())
+    }
+}
+
+/// One evaluated architecture.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Individual {
+    /// Id (order of creation).
+    pub id: usize,
+    /// The architecture.
+    pub arch: Arch,
+    /// C_total at its fine-tuned p̂ (MACs, S23).
+    pub macs: u64,
+    /// V (degrees).
+    pub v: f64,
+    /// S19 fitness (maximised).
+    pub fitness: f64,
+    /// p̂ after fine-tuning (µm).
+    pub pitch_um: f64,
+    /// Validation details.
+    pub metrics: Metrics,
+}
+
+/// One cycle of S19–S21, as written to rea.jsonl.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CycleRecord {
+    /// Cycle index.
+    pub cycle: usize,
+    /// Population ids before the update, oldest first.
+    pub population: Vec<usize>,
+    /// Tournament ids.
+    pub tournament: Vec<usize>,
+    /// Parent id (the tournament's argmax of fitness).
+    pub parent: usize,
+    /// The child: {id, arch, macs, fitness, v}.
+    pub child: ChildRecord,
+    /// Id removed (the oldest).
+    pub removed: usize,
+}
+
+/// The child of a cycle.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChildRecord {
+    /// Id.
+    pub id: usize,
+    /// Architecture.
+    pub arch: Arch,
+    /// MACs.
+    pub macs: u64,
+    /// Fitness.
+    pub fitness: f64,
+    /// V (degrees).
+    pub v: f64,
+}
+
+/// The resumable state of a search.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ReaState {
+    /// The configuration it was started with.
+    pub config: ReaConfig,
+    /// Every individual evaluated, by id.
+    pub evaluated: Vec<Individual>,
+    /// Current population ids, oldest first.
+    pub population: VecDeque<usize>,
+    /// Cycles done.
+    pub history: Vec<CycleRecord>,
+}
+
+/// The search over one trained run.
+pub struct Rea<'a> {
+    chain: &'a CameraChain,
+    train: &'a Dataset,
+    val: &'a Dataset,
+    run: PathBuf,
+    /// State.
+    pub state: ReaState,
+}
+
+impl<'a> Rea<'a> {
+    /// A search starting from run checkpoint `run` (the trained supernet, φ and p̂).
+    pub fn new(
+        chain: &'a CameraChain,
+        train: &'a Dataset,
+        val: &'a Dataset,
+        run: &Path,
+        config: ReaConfig,
+    ) -> Result<Rea<'a>> {
+        config.validate()?;
+        crate::train::read_config(run)?;
+        Ok(Rea {
+            chain,
+            train,
+            val,
+            run: run.to_path_buf(),
+            state: ReaState {
+                config,
+                evaluated: Vec::new(),
+                population: VecDeque::new(),
+                history: Vec::new(),
+            },
+        })
+    }
+
+    /// Restores the state file at `path` (refused if its configuration differs).
+    pub fn resume(&mut self, path: &Path) -> Result<()> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| param("out", format!("{}: {e}", path.display())))?;
+        let st: ReaState = serde_json::from_str(&text)
+            .map_err(|e| param("out", format!("{}: {e}", path.display())))?;
+        if st.config != self.state.config {
+            return Err(param(
+                "out",
+                format!(
+                    "{} holds a search with other parameters; use a new --out or the same flags",
+                    path.display()
+                ),
+            ));
+        }
+        self.state = st;
+        Ok(())
+    }
+
+    fn rng(&self, stream: u64) -> ChaCha8Rng {
+        let mut r = ChaCha8Rng::seed_from_u64(self.state.config.seed);
+        r.set_stream(stream);
+        r
+    }
+
+    /// The inner loop for `arch`: inherit, fine-tune `epochs`, recalibrate BN, validate.
+    pub fn evaluate(&self, id: usize, arch: &Arch) -> Result<Individual> {
+        let c = &self.state.config;
+        let mut t = Trainer::from_checkpoint(self.chain, self.train, &self.run)?;
+        let steps = (c.epochs * t.batches_per_epoch() as f64).round() as usize;
+        let mut macs = 0;
+        for _ in 0..steps {
+            macs = t
+                .finetune_step(arch, c.budget_macs, c.lambda_budget, c.lr_scale)?
+                .1;
+        }
+        let m = t.evaluate(self.val, arch, c.recal_batches)?;
+        if steps == 0 {
+            let (h, w) = self.chain.native().at(t.pitch_um * 1e-6)?.shape();
+            macs = nanoeye_nets::cost::subnet_cost(&t.config().supernet, arch, h, w)?.macs;
+        }
+        let over = c.budget_macs > 0 && macs > c.budget_macs;
+        Ok(Individual {
+            id,
+            arch: arch.clone(),
+            macs,
+            v: m.v_deg,
+            fitness: -m.v_deg - if over { c.gamma } else { 0.0 },
+            pitch_um: t.pitch_um,
+            metrics: m,
+        })
+    }
+
+    /// Runs (or continues) the search; `save` is called after every evaluation with the state.
+    pub fn run(&mut self, save: &mut dyn FnMut(&ReaState) -> Result<()>) -> Result<()> {
+        let p = self.state.config.population;
+        // Initial population: P uniform draws (stream 0), evaluated in id order.
+        let initial: Vec<Arch> = {
+            let mut rng = self.rng(0);
+            (0..p).map(|_| Arch::sample(&mut rng)).collect()
+        };
+        while self.state.evaluated.len() < p {
+            let id = self.state.evaluated.len();
+            let ind = self.evaluate(id, &initial[id])?;
+            self.state.evaluated.push(ind);
+            self.state.population.push_back(id);
+            save(&self.state)?;
+        }
+        while self.state.history.len() < self.state.config.cycles {
+            let c = self.state.history.len();
+            let mut rng = self.rng(c as u64 + 1);
+            let pop: Vec<usize> = self.state.population.iter().copied().collect();
+            let k = self.state.config.tournament.min(pop.len());
+            let tour: Vec<usize> = sample(&mut rng, pop.len(), k)
+                .into_iter()
+                .map(|i| pop[i])
+                .collect();
+            // argmax of fitness; ties go to the earlier tournament member.
+            let parent = *tour
+                .iter()
+                .reduce(|a, b| {
+                    if self.state.evaluated[*b].fitness > self.state.evaluated[*a].fitness {
+                        b
+                    } else {
+                        a
+                    }
+                })
+                .expect("k ≥ 1");
+            let child_arch = self.state.evaluated[parent]
+                .arch
+                .mutate(&mut rng, self.state.config.mutation_rate)?;
+            let id = self.state.evaluated.len();
+            let child = self.evaluate(id, &child_arch)?;
+            let rec = CycleRecord {
+                cycle: c,
+                population: pop,
+                tournament: tour,
+                parent,
+                child: ChildRecord {
+                    id,
+                    arch: child.arch.clone(),
+                    macs: child.macs,
+                    fitness: child.fitness,
+                    v: child.v,
+                },
+                removed: *self.state.population.front().expect("P ≥ 1"),
+            };
+            self.state.evaluated.push(child);
+            self.state.population.push_back(id);
+            self.state.population.pop_front();
+            self.state.history.push(rec);
+            save(&self.state)?;
+        }
+        Ok(())
+    }
+
+    /// The best individual ever evaluated under the S19 fitness.
+    pub fn best(&self) -> Option<&Individual> {
+        self.state
+            .evaluated
+            .iter()
+            .reduce(|a, b| if b.fitness > a.fitness { b } else { a })
+    }
+}
