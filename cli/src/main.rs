@@ -10,6 +10,7 @@ mod gaze;
 mod metalib;
 mod nets;
 mod optics;
+mod report;
 mod rig;
 mod run;
 mod sensor;
@@ -30,7 +31,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Run the main job on the built-in default config (protocol set → gaze → error summary).
+    /// The main job: render → co-design training → REA → protocol gaze error, with a report.
     Run(run::RunArgs),
     /// Eye–camera rig.
     #[command(subcommand)]

@@ -1,141 +1,533 @@
-//! `nanoeye run`: the main job on the built-in default config. For now it runs what exists:
-//! sample the acquisition protocol, project each true pupil centre through the slipped camera,
-//! solve gaze, and summarize the angular error.
+//! `nanoeye run`: the paper end to end on a small built-in default (docs/run.md). Renders the
+//! training, validation and acquisition-protocol sets; trains the supernet with the sandwich
+//! rule behind the co-designed lens (φ and p̂ learned) and behind the fixed hyperbolic and
+//! double-helix lenses; runs a short regularized evolution on the co-designed run; evaluates
+//! the protocol set (D.4: 49 targets × 7 slippage states) through the whole chain — rendered
+//! layers → lens → sensor → network → S9 → S10–S14 with the predicted slippage — and writes
+//! DIR/result.json and DIR/report.html. Every stage resumes: rendered frames, checkpoints and
+//! the search state are kept, and a stage whose output exists is not redone.
 
-use crate::{rig, util};
-use anyhow::{Result, bail};
+use crate::util;
+use anyhow::{Context, Result, bail};
 use clap::Args;
-use nanoeye_datagen::states::{self, Protocol};
-use nanoeye_gaze::{GazeSolver, Rig, SphereSolver, Summary, angular_error};
-use serde::Serialize;
-use std::path::PathBuf;
+use nanoeye_datagen::render::{
+    Dataset, DatasetOptions, LayerSpec, RenderSet, SceneSource, write_dataset,
+};
+use nanoeye_gaze::Rig;
+use nanoeye_search::{
+    CameraChain, ChainConfig, LensSpec, Rea, ReaConfig, ReaState, TrainConfig, Trainer,
+};
+use serde::{Deserialize, Serialize};
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The main job's configuration; `nanoeye run --print-config` lists every default.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RunConfig {
+    /// Seed of every set, subject, batch, subnet and noise draw.
+    pub seed: u64,
+    /// Rendered (native) image width (px) over the rig's sensor; 320 → 12 µm pixels.
+    pub width_px: usize,
+    /// Rendered image height (px).
+    pub height_px: usize,
+    /// Samples per pixel of the renderer.
+    pub spp: usize,
+    /// Ambiguity pairs (3 frames each) for training.
+    pub train_pairs: usize,
+    /// Ambiguity pairs for validation (V of S17/S19).
+    pub val_pairs: usize,
+    /// Subjects of the acquisition protocol (7 × 49 frames each).
+    pub protocol_subjects: usize,
+    /// Sandwich training steps per lens.
+    pub train_steps: usize,
+    /// Frames per batch.
+    pub batch: usize,
+    /// Random subnets per sandwich step.
+    pub random_subnets: usize,
+    /// Network learning rate.
+    pub lr_net: f64,
+    /// Phase learning rate (rad per step).
+    pub lr_phase_rad: f64,
+    /// Pitch learning rate (µm per step).
+    pub lr_pitch_um: f64,
+    /// Slippage loss weight (per mm²).
+    pub lambda_slip: f64,
+    /// Initial effective pitch (µm).
+    pub pitch_init_um: f64,
+    /// Effective pitch range (µm).
+    pub pitch_range_um: [f64; 2],
+    /// REA cycles.
+    pub rea_cycles: usize,
+    /// REA population.
+    pub rea_population: usize,
+    /// REA tournament size.
+    pub rea_tournament: usize,
+    /// REA inner-loop epochs.
+    pub rea_epochs: f64,
+    /// MAC budget of the search.
+    pub budget_macs: u64,
+    /// Budget penalty γ.
+    pub gamma: f64,
+    /// Metasurface sampling step (µm).
+    pub aperture_step_um: f64,
+    /// Exposure (ms).
+    pub exposure_ms: f64,
+    /// Supernet calibration-head widths [1×1 expansion, hidden] (960, 1280 in OFA).
+    pub head_widths: [usize; 2],
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        RunConfig {
+            seed: 0,
+            width_px: 320,
+            height_px: 200,
+            spp: 2,
+            train_pairs: 8,
+            val_pairs: 2,
+            protocol_subjects: 1,
+            train_steps: 40,
+            batch: 4,
+            random_subnets: 1,
+            lr_net: 2e-3,
+            lr_phase_rad: 2e-2,
+            lr_pitch_um: 5e-2,
+            lambda_slip: 0.1,
+            pitch_init_um: 14.0,
+            pitch_range_um: [12.0, 24.0],
+            rea_cycles: 4,
+            rea_population: 4,
+            rea_tournament: 2,
+            rea_epochs: 1.0,
+            budget_macs: 40_000_000,
+            gamma: 10.0,
+            aperture_step_um: 1.5,
+            exposure_ms: 0.1,
+            head_widths: [960, 1280],
+        }
+    }
+}
 
 /// Main job options.
 #[derive(Args)]
 pub struct RunArgs {
-    /// Subjects in the protocol set (49 targets × 7 slippage states each).
-    #[arg(long, default_value_t = 4)]
-    subjects: usize,
-    /// Random seed.
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
-    /// Rig JSON file; default: the built-in seed rig.
+    /// Output directory (resumable); default `nanoeye-run-<seed>`.
     #[arg(long)]
-    rig: Option<PathBuf>,
-    /// Print JSON.
+    out: Option<PathBuf>,
+    /// Configuration file (JSON or TOML); missing keys take the defaults.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Print the configuration (defaults merged with --config) as JSON and exit.
+    #[arg(long)]
+    print_config: bool,
+    /// Print the result as JSON.
     #[arg(long)]
     json: bool,
 }
 
-#[derive(Serialize)]
-struct Row {
-    solver: &'static str,
-    solver_radius_m: f64,
-    slip_correction: bool,
-    error_deg: Option<Summary>,
-    failures: usize,
+const LENSES: [(&str, &str); 3] = [
+    ("learned", "hyperbolic"),
+    ("hyperbolic", "hyperbolic"),
+    ("double_helix", "double-helix"),
+];
+
+fn load_config(p: Option<&Path>) -> Result<RunConfig> {
+    let Some(p) = p else {
+        return Ok(RunConfig::default());
+    };
+    let text = std::fs::read_to_string(p).with_context(|| format!("--config {}", p.display()))?;
+    let text = text.trim_start_matches('\u{feff}');
+    let is_toml = p.extension().is_some_and(|e| e == "toml");
+    let cfg: RunConfig = if is_toml {
+        toml::from_str(text).with_context(|| format!("--config {}", p.display()))?
+    } else {
+        serde_json::from_str(text).with_context(|| format!("--config {}", p.display()))?
+    };
+    Ok(cfg)
 }
 
-fn evaluate(
-    rig: &Rig,
-    caps: &[states::Capture],
-    radius: f64,
-    correct: bool,
-    name: &'static str,
-) -> Result<Row> {
-    let mut srig = rig.clone();
-    srig.eye_radius_m = radius;
-    let solver = SphereSolver::new(&srig)?;
-    let mut errs = Vec::with_capacity(caps.len());
-    let mut failures = 0;
-    for c in caps {
-        let px = c.state.pupil_px(rig)?;
-        let slip = if correct { c.state.slip_m } else { [0.0; 3] };
-        match solver.solve_pixel(px, slip) {
-            Ok(sol) => errs.push(angular_error(sol.gaze, c.state.gaze()).to_degrees()),
-            Err(_) => failures += 1,
-        }
+fn check(cfg: &RunConfig) -> Result<()> {
+    if cfg.train_pairs == 0 || cfg.val_pairs == 0 || cfg.protocol_subjects == 0 {
+        bail!("--config: train_pairs, val_pairs and protocol_subjects must be at least 1");
     }
-    Ok(Row {
-        solver: name,
-        solver_radius_m: radius,
-        slip_correction: correct,
-        error_deg: Summary::of(&errs),
-        failures,
+    if cfg.train_pairs > 100_000 || cfg.val_pairs > 100_000 || cfg.protocol_subjects > 1000 {
+        bail!("--config: at most 100000 pairs and 1000 protocol subjects");
+    }
+    if cfg.spp == 0 || cfg.spp > 1024 {
+        bail!("--config: spp must be 1..=1024");
+    }
+    if !(cfg.exposure_ms.is_finite() && cfg.exposure_ms > 0.0 && cfg.exposure_ms <= 1000.0) {
+        bail!("--config: exposure_ms must lie in (0, 1000]");
+    }
+    if !(cfg.aperture_step_um.is_finite() && cfg.aperture_step_um > 0.0) {
+        bail!("--config: aperture_step_um must be positive");
+    }
+    Ok(())
+}
+
+/// Stage times, kept across resumes.
+#[derive(Default, Serialize, Deserialize)]
+struct Stages(std::collections::BTreeMap<String, f64>);
+
+/// Statistics over frames; a frame the solver could not solve (no pupil found, ray misses the
+/// sphere) counts as 90°, as in V, and is also counted in `failures`.
+fn summarize(errs: &[Option<f64>]) -> serde_json::Value {
+    let mut v: Vec<f64> = errs.iter().map(|e| e.unwrap_or(90.0)).collect();
+    v.sort_by(f64::total_cmp);
+    let failures = errs.iter().filter(|e| e.is_none()).count();
+    if v.is_empty() {
+        v.push(90.0);
+    }
+    let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
+    serde_json::json!({
+        "mean_deg": v.iter().sum::<f64>() / v.len() as f64,
+        "median_deg": q(0.5),
+        "p95_deg": q(0.95),
+        "failures": failures,
+        "frames": errs.len(),
     })
 }
 
+fn protocol_summary(errs: &[Option<f64>]) -> serde_json::Value {
+    let mut s = summarize(errs);
+    // Protocol order: subject, slip state (7), target (49).
+    let per_slip: Vec<serde_json::Value> = (0..7)
+        .map(|k| {
+            let e: Vec<Option<f64>> = errs
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| (i / 49) % 7 == k)
+                .map(|(_, e)| *e)
+                .collect();
+            let mut r = summarize(&e);
+            r["slip_state"] = k.into();
+            r
+        })
+        .collect();
+    s["per_slip"] = per_slip.into();
+    s
+}
+
+fn render(dir: &Path, set: RenderSet, n: usize, seed: u64, cfg: &RunConfig) -> Result<Dataset> {
+    write_dataset(&DatasetOptions {
+        set,
+        n,
+        seed,
+        width_px: cfg.width_px,
+        height_px: cfg.height_px,
+        spp: cfg.spp,
+        out_dir: dir.to_path_buf(),
+        rig: Rig::default(),
+        source: SceneSource::Procedural,
+        progress: std::io::stderr().is_terminal(),
+        layers: LayerSpec::default(),
+    })
+    .with_context(|| format!("rendering {}", dir.display()))?;
+    Ok(Dataset::open(dir)?)
+}
+
+/// Runs the main job.
 pub fn run(a: RunArgs) -> Result<()> {
-    if a.subjects == 0 {
-        bail!("--subjects: must be at least 1");
+    let cfg = load_config(a.config.as_deref())?;
+    if a.print_config {
+        return util::print_json(&cfg);
     }
-    if a.subjects > states::MAX_PROTOCOL_SUBJECTS {
-        bail!(
-            "--subjects: at most {} (the protocol set is held in memory), got {}",
-            states::MAX_PROTOCOL_SUBJECTS,
-            a.subjects
+    check(&cfg)?;
+    let t0 = Instant::now();
+    let out = a
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from(format!("nanoeye-run-{}", cfg.seed)));
+    std::fs::create_dir_all(&out).with_context(|| format!("--out {}", out.display()))?;
+    let cpath = out.join("config.json");
+    if let Ok(text) = std::fs::read_to_string(&cpath) {
+        let old: RunConfig = serde_json::from_str(&text)
+            .with_context(|| format!("--out: {} is not a run configuration", cpath.display()))?;
+        if old != cfg {
+            bail!(
+                "--out: {} holds a run with another configuration; use a new --out or the same --config",
+                out.display()
+            );
+        }
+    } else {
+        util::write_atomic(&cpath, serde_json::to_string_pretty(&cfg)?.as_bytes())?;
+    }
+    // A finished run: report it again without redoing anything.
+    if let Ok(text) = std::fs::read_to_string(out.join("result.json")) {
+        let result: serde_json::Value = serde_json::from_str(&text)
+            .with_context(|| format!("--out: {} is corrupt", out.join("result.json").display()))?;
+        eprintln!(
+            "{} is complete; reporting it (delete result.json to re-evaluate)",
+            out.display()
         );
+        return print_result(&result, a.json);
     }
-    let rig = rig::load(a.rig.as_deref())?;
-    let t0 = std::time::Instant::now();
-    let caps = states::protocol(&rig, &Protocol::default(), a.subjects, a.seed)?;
-    let rows = vec![
-        evaluate(
-            &rig,
-            &caps,
-            rig.eye_radius_m,
-            true,
-            "seed sphere, known slippage",
-        )?,
-        evaluate(
-            &rig,
-            &caps,
-            rig.eye_radius_m,
+    let spath = out.join("stages.json");
+    let mut stages: Stages = std::fs::read_to_string(&spath)
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .unwrap_or_default();
+    let note = |s: &str| eprintln!("[{:>6.0} s] {s}", t0.elapsed().as_secs_f64());
+    let stage = |name: &str, secs: f64, st: &mut Stages| -> Result<()> {
+        st.0.entry(name.to_string()).or_insert(secs);
+        util::write_atomic(&spath, serde_json::to_string_pretty(st)?.as_bytes())
+    };
+
+    // 1. Data.
+    let t = Instant::now();
+    note("rendering the training, validation and protocol sets");
+    let train = render(
+        &out.join("data/train"),
+        RenderSet::Ambiguity,
+        cfg.train_pairs,
+        cfg.seed,
+        &cfg,
+    )?;
+    let val = render(
+        &out.join("data/val"),
+        RenderSet::Ambiguity,
+        cfg.val_pairs,
+        cfg.seed + 1,
+        &cfg,
+    )?;
+    let proto = render(
+        &out.join("data/protocol"),
+        RenderSet::Protocol,
+        cfg.protocol_subjects,
+        cfg.seed + 2,
+        &cfg,
+    )?;
+    stage("render", t.elapsed().as_secs_f64(), &mut stages)?;
+
+    let chain_cfg = {
+        let mut c = ChainConfig {
+            aperture_step_m: cfg.aperture_step_um * 1e-6,
+            ..ChainConfig::default()
+        };
+        c.radiometry.exposure_s = cfg.exposure_ms * 1e-3;
+        c.sensor.base_pitch = c
+            .sensor
+            .base_pitch
+            .min(train.manifest.rig.camera.pixel_pitch_m);
+        c
+    };
+    let chain = CameraChain::for_dataset(&train, chain_cfg.clone())?;
+    let proto_chain = CameraChain::for_dataset(&proto, chain_cfg.clone())?;
+    let tcfg = |fixed: bool| TrainConfig {
+        steps: cfg.train_steps,
+        batch: cfg.batch,
+        n_random: cfg.random_subnets,
+        lr_net: cfg.lr_net,
+        lr_phase_rad: cfg.lr_phase_rad,
+        lr_pitch_um: cfg.lr_pitch_um,
+        lambda_slip: cfg.lambda_slip,
+        pitch_init_um: cfg.pitch_init_um,
+        pitch_range_um: cfg.pitch_range_um,
+        fixed_lens: fixed,
+        seed: cfg.seed,
+        weights_seed: cfg.seed,
+        supernet: nanoeye_nets::SupernetConfig {
+            head_expand: cfg.head_widths[0],
+            head_hidden: cfg.head_widths[1],
+            ..nanoeye_nets::SupernetConfig::default()
+        },
+    };
+
+    // 2. Sandwich training per lens.
+    for (name, lens) in LENSES {
+        let t = Instant::now();
+        let ck = out.join(format!("runs/{name}/checkpoint.bin"));
+        let r = &chain.config().radiometry;
+        let map = lens
+            .parse::<LensSpec>()
+            .map_err(anyhow::Error::msg)?
+            .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)?;
+        let mut tr = Trainer::new(&chain, &train, tcfg(name != "learned"), map.phase_rad)?;
+        if ck.exists() {
+            tr.load(&ck).context("--out (resume)")?;
+        }
+        if tr.step < cfg.train_steps {
+            note(&format!(
+                "training the supernet behind the {name} lens ({} steps)",
+                cfg.train_steps
+            ));
+        }
+        while tr.step < cfg.train_steps {
+            let rec = tr.train_step()?;
+            if (rec.step + 1) % (cfg.train_steps / 4).max(1) == 0 {
+                note(&format!(
+                    "  {name} step {}: L_max {:.3}, L_min {:.3}, p̂ {:.2} µm",
+                    rec.step + 1,
+                    rec.loss_max,
+                    rec.loss_min,
+                    rec.pitch_um
+                ));
+                tr.save(&ck)?;
+            }
+        }
+        tr.save(&ck)?;
+        util::write_atomic(
+            &out.join(format!("runs/{name}/phase.npy")),
+            &crate::sim::npy_mat64(&tr.phase)?,
+        )?;
+        let lines: String = tr
+            .history
+            .iter()
+            .map(|h| serde_json::to_string(h).unwrap_or_default() + "\n")
+            .collect();
+        util::write_atomic(
+            &out.join(format!("runs/{name}/history.jsonl")),
+            lines.as_bytes(),
+        )?;
+        stage(
+            &format!("train_{name}"),
+            t.elapsed().as_secs_f64(),
+            &mut stages,
+        )?;
+    }
+
+    // 3. Short REA on the co-designed run.
+    let t = Instant::now();
+    let rea_cfg = ReaConfig {
+        cycles: cfg.rea_cycles,
+        population: cfg.rea_population,
+        tournament: cfg.rea_tournament,
+        epochs: cfg.rea_epochs,
+        gamma: cfg.gamma,
+        budget_macs: cfg.budget_macs,
+        seed: cfg.seed,
+        ..ReaConfig::default()
+    };
+    let learned_ck = out.join("runs/learned/checkpoint.bin");
+    let mut rea = Rea::new(&chain, &train, &val, &learned_ck, rea_cfg)?;
+    let rea_state = out.join("runs/learned/rea_state.json");
+    if rea_state.exists() {
+        rea.resume(&rea_state)?;
+    }
+    note(&format!(
+        "regularized evolution: {} + {} candidates",
+        cfg.rea_population, cfg.rea_cycles
+    ));
+    let rea_dir = out.join("runs/learned");
+    rea.run(&mut |s: &ReaState| {
+        let io = |e: anyhow::Error| nanoeye_search::SearchError::Param {
+            name: "out",
+            reason: e.to_string(),
+        };
+        util::write_atomic(
+            &rea_state,
+            serde_json::to_string(s)
+                .map_err(|e| io(e.into()))?
+                .as_bytes(),
+        )
+        .map_err(io)?;
+        let lines: String = s
+            .history
+            .iter()
+            .map(|c| serde_json::to_string(c).unwrap_or_default() + "\n")
+            .collect();
+        util::write_atomic(&rea_dir.join("rea.jsonl"), lines.as_bytes()).map_err(io)
+    })?;
+    let best = rea.best().context("the search evaluated nothing")?.clone();
+    stage("rea", t.elapsed().as_secs_f64(), &mut stages)?;
+
+    // 4. The acquisition protocol through each lens's chain with the selected subnet.
+    let t = Instant::now();
+    note("evaluating the acquisition protocol (49 targets × 7 slippage states)");
+    let mut protocol = serde_json::Map::new();
+    let mut pitch = 0.0;
+    for (name, _) in LENSES {
+        let ck = out.join(format!("runs/{name}/checkpoint.bin"));
+        let mut tr = Trainer::from_checkpoint(&proto_chain, &proto, &ck)?;
+        // BN statistics from the training set's chain, then the protocol frames.
+        let mut trn = Trainer::from_checkpoint(&chain, &train, &ck)?;
+        trn.recalibrate(&best.arch, 2)?;
+        let bytes = nanoeye_nets::checkpoint::to_bytes(&mut trn.net)?;
+        nanoeye_nets::checkpoint::from_bytes(&mut tr.net, &bytes)?;
+        let map = tr.phase_map()?;
+        let p_hat = tr.pitch_um * 1e-6;
+        let e = nanoeye_search::evaluate_frames(
+            &mut tr.net,
+            &proto_chain,
+            &proto,
+            &map,
+            p_hat,
+            &best.arch,
+            cfg.batch,
+            cfg.seed,
             false,
-            "seed sphere, slippage ignored",
-        )?,
-        evaluate(
-            &rig,
-            &caps,
-            rig.pupil_sphere_radius_m,
-            true,
-            "pupil sphere, known slippage",
-        )?,
-    ];
-    let seconds = t0.elapsed().as_secs_f64();
-    if a.json {
-        return util::print_json(&serde_json::json!({
-            "captures": caps.len(), "subjects": a.subjects, "seed": a.seed,
-            "rows": rows, "seconds": seconds,
-        }));
-    }
-    println!(
-        "protocol set: {} subjects × 7 slippage states × 49 targets = {} captures (seed {})",
-        a.subjects,
-        caps.len(),
-        a.seed
-    );
-    println!("pupil centres projected through the slipped, rotated camera; gaze solved by S9–S14");
-    println!();
-    println!(
-        "{:<32} {:>9} {:>9} {:>9} {:>9} {:>6}",
-        "solver", "mean °", "median °", "p95 °", "max °", "fail"
-    );
-    for r in &rows {
-        match r.error_deg {
-            Some(s) => println!(
-                "{:<32} {:>9.3} {:>9.3} {:>9.3} {:>9.3} {:>6}",
-                r.solver, s.mean, s.median, s.p95, s.max, r.failures
-            ),
-            None => println!(
-                "{:<32} {:>9} {:>9} {:>9} {:>9} {:>6}",
-                r.solver, "-", "-", "-", "-", r.failures
-            ),
+        )?;
+        protocol.insert(name.to_string(), protocol_summary(&e.errors_deg));
+        if name == "learned" {
+            pitch = tr.pitch_um;
+            let g = nanoeye_search::evaluate_frames(
+                &mut tr.net,
+                &proto_chain,
+                &proto,
+                &map,
+                p_hat,
+                &best.arch,
+                cfg.batch,
+                cfg.seed,
+                true,
+            )?;
+            protocol.insert("geometric_no_slip".into(), protocol_summary(&g.errors_deg));
         }
     }
-    println!();
-    println!("The remaining error with known slippage comes from the camera rotation (mounting");
-    println!("perturbation) that S11 ignores and, on the seed sphere, from the 12 mm vs 10.39 mm");
-    println!("radius mismatch (`nanoeye gaze bias`). Done in {seconds:.2} s.");
+    stage("protocol", t.elapsed().as_secs_f64(), &mut stages)?;
+    let result = serde_json::json!({
+        "stages": stages.0,
+        "protocol": protocol,
+        "best_arch": best.arch,
+        "macs": best.macs,
+        "v_deg": best.v,
+        "pitch_um": pitch,
+        "seconds": t0.elapsed().as_secs_f64(),
+        "out": out.display().to_string(),
+    });
+    util::write_atomic(
+        &out.join("result.json"),
+        serde_json::to_string_pretty(&result)?.as_bytes(),
+    )?;
+    util::write_atomic(
+        &out.join("report.html"),
+        crate::report::html(&out, &result)?.as_bytes(),
+    )?;
+    print_result(&result, a.json)
+}
+
+fn print_result(result: &serde_json::Value, json: bool) -> Result<()> {
+    if json {
+        println!("{result}");
+        return Ok(());
+    }
+    println!(
+        "nanoeye run: {} s; report {}/report.html",
+        result["seconds"].as_f64().unwrap_or(0.0).round(),
+        result["out"].as_str().unwrap_or(".")
+    );
+    println!(
+        "{:<20} {:>9} {:>9} {:>9} {:>6}",
+        "protocol gaze error", "mean °", "median °", "p95 °", "fail"
+    );
+    for (name, s) in result["protocol"].as_object().cloned().unwrap_or_default() {
+        let f = |k: &str| s[k].as_f64().map_or("-".into(), |v| format!("{v:.2}"));
+        println!(
+            "{:<20} {:>9} {:>9} {:>9} {:>6}",
+            name,
+            f("mean_deg"),
+            f("median_deg"),
+            f("p95_deg"),
+            s["failures"]
+        );
+    }
+    println!(
+        "selected subnet: {} MACs at p̂ = {:.2} µm (V = {:.2}° on the validation set)",
+        result["macs"],
+        result["pitch_um"].as_f64().unwrap_or(0.0),
+        result["v_deg"].as_f64().unwrap_or(0.0)
+    );
     Ok(())
 }

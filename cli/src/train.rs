@@ -68,7 +68,8 @@ pub struct TrainArgs {
     json: bool,
 }
 
-fn svg_curves(h: &[StepRecord]) -> String {
+/// Loss curves of N_max and N_min as a self-contained SVG.
+pub fn svg_curves(h: &[StepRecord]) -> String {
     let (w, ht, m) = (640.0, 360.0, 40.0);
     let n = h.len().max(2) as f64;
     let ymax = h

@@ -21,4 +21,6 @@ pub use lens::LensSpec;
 pub use radiometry::Radiometry;
 pub use rea::{CycleRecord, Individual, Rea, ReaConfig, ReaState};
 pub use task::{TaskLoss, task_loss};
-pub use train::{Metrics, StepRecord, TrainConfig, Trainer, evaluate_net};
+pub use train::{
+    FrameEval, Metrics, StepRecord, TrainConfig, Trainer, evaluate_frames, evaluate_net,
+};

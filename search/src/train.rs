@@ -384,18 +384,13 @@ impl<'a> Trainer<'a> {
         Ok(rec)
     }
 
-    /// Validation of subnet `arch` on `val` (all frames, in batches of the training batch
-    /// size) after recalibrating BN on `recal_batches` training batches at the current φ, p̂.
-    pub fn evaluate(
-        &mut self,
-        val: &Dataset,
-        arch: &Arch,
-        recal_batches: usize,
-    ) -> Result<Metrics> {
+    /// Recomputes BN statistics of `arch` exactly over `batches` training batches at the
+    /// current φ and p̂ (before any evaluation).
+    pub fn recalibrate(&mut self, arch: &Arch, batches: usize) -> Result<()> {
         let map = self.phase_map()?;
         let p_hat = self.pitch_um * 1e-6;
         let mut recal = Vec::new();
-        for b in 0..recal_batches.max(1) {
+        for b in 0..batches.max(1) {
             let frames = self.frames(b)?;
             let psfs = self.chain.psfs(&map, &self.chain.active(&frames))?;
             let fwd = self.chain.forward(
@@ -408,15 +403,52 @@ impl<'a> Trainer<'a> {
             recal.push(fwd.input);
         }
         self.net.recalibrate_bn(arch, &recal)?;
+        Ok(())
+    }
+
+    /// Validation of subnet `arch` on `val` (all frames, in batches of the training batch
+    /// size) after recalibrating BN on `recal_batches` training batches at the current φ, p̂.
+    pub fn evaluate(
+        &mut self,
+        val: &Dataset,
+        arch: &Arch,
+        recal_batches: usize,
+    ) -> Result<Metrics> {
+        self.recalibrate(arch, recal_batches)?;
+        let map = self.phase_map()?;
         evaluate_net(
             &mut self.net,
             self.chain,
             val,
             &map,
-            p_hat,
+            self.pitch_um * 1e-6,
             arch,
             self.cfg.batch,
             self.cfg.seed,
+        )
+    }
+
+    /// Per-frame gaze errors of `arch` on `val` after BN recalibration; `ignore_slip` hands
+    /// the solver zero slippage (the geometric solver that ignores slippage).
+    pub fn evaluate_frames(
+        &mut self,
+        val: &Dataset,
+        arch: &Arch,
+        recal_batches: usize,
+        ignore_slip: bool,
+    ) -> Result<FrameEval> {
+        self.recalibrate(arch, recal_batches)?;
+        let map = self.phase_map()?;
+        evaluate_frames(
+            &mut self.net,
+            self.chain,
+            val,
+            &map,
+            self.pitch_um * 1e-6,
+            arch,
+            self.cfg.batch,
+            self.cfg.seed,
+            ignore_slip,
         )
     }
 
@@ -672,6 +704,85 @@ impl<'b> Reader<'b> {
     }
 }
 
+/// Per-frame results of a validation pass.
+#[derive(Clone, Debug, Default)]
+pub struct FrameEval {
+    /// Angular gaze error per frame (degrees); None where the solver failed (empty mask or
+    /// the ray misses the sphere).
+    pub errors_deg: Vec<Option<f64>>,
+    /// Hard Dice per frame.
+    pub dice: Vec<f64>,
+    /// Slippage squared error per frame (mm²).
+    pub slip_sq_mm2: Vec<f64>,
+}
+
+/// Runs `arch` (BN as it stands: recalibrate first) on every frame of `val` through the chain
+/// at φ = `map`, p̂ = `p_hat` (m): predicted mask → S9 → S10–S14 with the predicted slippage
+/// (or none, `ignore_slip`), against the recorded gaze.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_frames(
+    net: &mut Supernet,
+    chain: &CameraChain,
+    val: &Dataset,
+    map: &PhaseMap,
+    p_hat: f64,
+    arch: &Arch,
+    batch: usize,
+    seed: u64,
+    ignore_slip: bool,
+) -> Result<FrameEval> {
+    let rig0: &Rig = &val.manifest.rig;
+    let mut out = FrameEval::default();
+    let ids: Vec<usize> = (0..val.len()).collect();
+    for chunk in ids.chunks(batch.max(1)) {
+        let frames = chain.load(val, chunk)?;
+        let psfs = chain.psfs(map, &chain.active(&frames))?;
+        let fwd = chain.forward(&frames, &psfs, p_hat, NoiseMode::Gaussian, seed ^ 0xBEEF)?;
+        let o = net.forward(arch, &fwd.input, BnMode::Eval)?;
+        let rig = Rig {
+            camera: fwd.grid.camera.clone(),
+            ..rig0.clone()
+        };
+        let solver = SphereSolver::new(&rig)?;
+        let (h, w) = fwd.grid.shape();
+        for (b, f) in frames.iter().enumerate() {
+            let one = |t: &Tensor, c: usize| Tensor {
+                n: 1,
+                data: t.data[b * c * t.h * t.w..(b + 1) * c * t.h * t.w].to_vec(),
+                ..t.clone()
+            };
+            let target = one(&fwd.mask, 1);
+            let hard = Tensor {
+                data: target
+                    .data
+                    .iter()
+                    .map(|&m| if m >= 0.5 { 1.0 } else { 0.0 })
+                    .collect(),
+                ..target
+            };
+            out.dice.push(hard_dice(&one(&o.mask_logits, 1), &hard)?);
+            out.slip_sq_mm2
+                .push(slip_mse(&one(&o.slip, 3), &one(&fwd.slip_mm, 3))?.0);
+            let probs = Mat::from_fn(h, w, |i, j| {
+                let l = o.mask_logits.image(b)[i * w + j];
+                1.0 / (1.0 + (-l).exp())
+            });
+            let slip = if ignore_slip {
+                [0.0; 3]
+            } else {
+                [0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64 * 1e-3)
+            };
+            out.errors_deg.push(
+                solver
+                    .solve_mask(probs.as_ref(), slip)
+                    .ok()
+                    .map(|s| angular_error(s.gaze, f.record.gaze).to_degrees()),
+            );
+        }
+    }
+    Ok(out)
+}
+
 /// Validation of `arch` (BN as it stands: recalibrate first) on every frame of `val` through
 /// the chain at φ = `map`, p̂ = `p_hat` (m): V, median, failures, Dice, slip MSE.
 #[allow(clippy::too_many_arguments)]
@@ -685,59 +796,20 @@ pub fn evaluate_net(
     batch: usize,
     seed: u64,
 ) -> Result<Metrics> {
-    let rig0: &Rig = &val.manifest.rig;
-    let mut errs = Vec::with_capacity(val.len());
-    let (mut failures, mut dice_sum, mut mse_sum, mut nb) = (0usize, 0.0, 0.0, 0usize);
-    let ids: Vec<usize> = (0..val.len()).collect();
-    for chunk in ids.chunks(batch.max(1)) {
-        let frames = chain.load(val, chunk)?;
-        let psfs = chain.psfs(map, &chain.active(&frames))?;
-        let fwd = chain.forward(&frames, &psfs, p_hat, NoiseMode::Gaussian, seed ^ 0xBEEF)?;
-        let out = net.forward(arch, &fwd.input, BnMode::Eval)?;
-        let hard_target = Tensor {
-            data: fwd
-                .mask
-                .data
-                .iter()
-                .map(|&m| if m >= 0.5 { 1.0 } else { 0.0 })
-                .collect(),
-            ..fwd.mask.clone()
-        };
-        dice_sum += hard_dice(&out.mask_logits, &hard_target)? * frames.len() as f64;
-        mse_sum += slip_mse(&out.slip, &fwd.slip_mm)?.0 * frames.len() as f64;
-        nb += frames.len();
-        let rig = Rig {
-            camera: fwd.grid.camera.clone(),
-            ..rig0.clone()
-        };
-        let solver = SphereSolver::new(&rig)?;
-        let (h, w) = fwd.grid.shape();
-        for (b, f) in frames.iter().enumerate() {
-            let probs = Mat::from_fn(h, w, |i, j| {
-                let l = out.mask_logits.image(b)[i * w + j];
-                1.0 / (1.0 + (-l).exp())
-            });
-            let slip = [0, 1, 2].map(|a| out.slip.data[b * 3 + a] as f64 * 1e-3);
-            match solver.solve_mask(probs.as_ref(), slip) {
-                Ok(s) => errs.push(angular_error(s.gaze, f.record.gaze).to_degrees()),
-                Err(_) => {
-                    failures += 1;
-                    errs.push(90.0);
-                }
-            }
-        }
-    }
+    let e = evaluate_frames(net, chain, val, map, p_hat, arch, batch, seed, false)?;
+    let nb = e.errors_deg.len();
     if nb == 0 {
         return Err(param("val", "no validation frames"));
     }
+    let errs: Vec<f64> = e.errors_deg.iter().map(|x| x.unwrap_or(90.0)).collect();
     let mut sorted = errs.clone();
     sorted.sort_by(f64::total_cmp);
     Ok(Metrics {
-        v_deg: errs.iter().sum::<f64>() / errs.len() as f64,
-        median_deg: sorted[sorted.len() / 2],
-        failures,
-        dice: dice_sum / nb as f64,
-        slip_mse: mse_sum / nb as f64,
+        v_deg: errs.iter().sum::<f64>() / nb as f64,
+        median_deg: sorted[nb / 2],
+        failures: e.errors_deg.iter().filter(|x| x.is_none()).count(),
+        dice: e.dice.iter().sum::<f64>() / nb as f64,
+        slip_mse: e.slip_sq_mm2.iter().sum::<f64>() / nb as f64,
         frames: nb,
     })
 }

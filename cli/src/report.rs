@@ -1,0 +1,191 @@
+//! DIR/report.html of `nanoeye run`: one self-contained page (inline SVG and base64 PNG, no
+//! external files) with the learned and baseline phase maps, training curves, the REA history
+//! and the protocol error tables, and what each number means.
+
+use anyhow::Result;
+use nanoeye_search::StepRecord;
+use std::fmt::Write;
+use std::path::Path;
+
+fn b64(bytes: &[u8]) -> String {
+    const T: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut s = String::with_capacity(bytes.len().div_ceil(3) * 4);
+    for c in bytes.chunks(3) {
+        let n = (c[0] as u32) << 16
+            | (*c.get(1).unwrap_or(&0) as u32) << 8
+            | *c.get(2).unwrap_or(&0) as u32;
+        for (i, sh) in [18, 12, 6, 0].iter().enumerate() {
+            if i <= c.len() {
+                s.push(T[(n >> sh & 63) as usize] as char);
+            } else {
+                s.push('=');
+            }
+        }
+    }
+    s
+}
+
+/// The phase map wrapped to [0, 2π) as an 8-bit PNG (downsampled to ≤ 256 px).
+fn phase_png(path: &Path) -> Option<String> {
+    let phi = nanoeye_optics::io::read_phase_npy(path).ok()?;
+    let n = phi.nrows();
+    let step = n.div_ceil(256).max(1);
+    let m = n.div_ceil(step);
+    let tau = std::f64::consts::TAU;
+    let px: Vec<u8> = (0..m * m)
+        .map(|k| {
+            let v = phi[((k / m) * step, (k % m) * step)].rem_euclid(tau);
+            (v / tau * 255.0) as u8
+        })
+        .collect();
+    let img = image::GrayImage::from_raw(m as u32, m as u32, px)?;
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png).ok()?;
+    Some(b64(&out.into_inner()))
+}
+
+fn history(path: &Path) -> Vec<StepRecord> {
+    std::fs::read_to_string(path)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect()
+}
+
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+/// The page for run directory `out` and its result JSON.
+pub fn html(out: &Path, r: &serde_json::Value) -> Result<String> {
+    let mut h = String::new();
+    let num = |v: &serde_json::Value| v.as_f64().map_or("–".into(), |x| format!("{x:.2}"));
+    writeln!(
+        h,
+        r#"<!doctype html><html lang="en"><head><meta charset="utf-8"><title>nanoeye run</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}}
+table{{border-collapse:collapse;margin:1em 0}}td,th{{border:1px solid #bbb;padding:4px 8px;text-align:right}}
+th{{background:#eee}}td:first-child,th:first-child{{text-align:left}}.row{{display:flex;gap:2em;flex-wrap:wrap}}
+figure{{margin:0}}figcaption{{font-size:90%;color:#555}}</style></head><body>
+<h1>nanoeye run</h1>
+<p>A metasurface lens, its effective pixel pitch p̂ and a MobileNetV3 supernet co-designed end
+to end (sandwich rule, S22), a short regularized evolution (S19–S21) choosing the subnet, and
+the acquisition protocol (D.4: 49 targets × 7 slippage states per subject) evaluated through
+the whole simulated chain: rendered depth layers → lens PSFs (S1) → sensor at p̂ (S2) →
+network → pupil centroid (S9) → ray–sphere gaze with the network's slippage (S10–S14). The
+same network is trained behind the fixed hyperbolic and double-helix lenses for comparison.
+Total {:.0} s.</p>"#,
+        r["seconds"].as_f64().unwrap_or(0.0)
+    )?;
+    // Protocol table.
+    writeln!(
+        h,
+        "<h2>Gaze error on the acquisition protocol</h2><p>Angular error between the \
+estimated and the true optical axis (degrees). A frame where no pupil is found or the ray \
+misses the sphere counts 90° and is listed under failures. <i>geometric_no_slip</i>: the \
+learned lens and network, but the solver is told there is no slippage.</p>\
+<table><tr><th>chain</th><th>mean °</th><th>median °</th><th>p95 °</th><th>failures</th><th>frames</th></tr>"
+    )?;
+    let proto = r["protocol"].as_object().cloned().unwrap_or_default();
+    for (name, s) in &proto {
+        writeln!(
+            h,
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            esc(name),
+            num(&s["mean_deg"]),
+            num(&s["median_deg"]),
+            num(&s["p95_deg"]),
+            s["failures"],
+            s["frames"]
+        )?;
+    }
+    writeln!(
+        h,
+        "</table><h3>Mean error per slippage state</h3><p>States 0–6 of the protocol's translation stages (origin, ±x, four z steps of 2.5 mm, D.4).</p><table><tr><th>chain</th>"
+    )?;
+    for k in 0..7 {
+        write!(h, "<th>state {k}</th>")?;
+    }
+    writeln!(h, "</tr>")?;
+    for (name, s) in &proto {
+        write!(h, "<tr><td>{}</td>", esc(name))?;
+        for row in s["per_slip"].as_array().cloned().unwrap_or_default() {
+            write!(h, "<td>{}</td>", num(&row["mean_deg"]))?;
+        }
+        writeln!(h, "</tr>")?;
+    }
+    writeln!(h, "</table>")?;
+    // Lenses.
+    writeln!(
+        h,
+        "<h2>Phase maps</h2><p>Metasurface phase wrapped to [0, 2π) (black 0, white 2π) over the \
+1 mm aperture. The learned lens starts from the hyperbolic one and moves by gradient descent \
+through the chain.</p><div class=\"row\">"
+    )?;
+    for name in ["learned", "hyperbolic", "double_helix"] {
+        if let Some(png) = phase_png(&out.join(format!("runs/{name}/phase.npy"))) {
+            writeln!(
+                h,
+                "<figure><img width=\"256\" alt=\"{name} phase\" src=\"data:image/png;base64,{png}\"><figcaption>{name}</figcaption></figure>"
+            )?;
+        }
+    }
+    writeln!(
+        h,
+        "</div><h2>Training curves</h2><p>Task loss (Dice + λ·slip MSE in mm²) of the largest and smallest subnet per sandwich step.</p><div class=\"row\">"
+    )?;
+    for name in ["learned", "hyperbolic", "double_helix"] {
+        let hist = history(&out.join(format!("runs/{name}/history.jsonl")));
+        if !hist.is_empty() {
+            let last = hist.last().map_or(0.0, |x| x.pitch_um);
+            writeln!(
+                h,
+                "<figure>{}<figcaption>{name} (final p̂ {last:.2} µm)</figcaption></figure>",
+                crate::train::svg_curves(&hist)
+            )?;
+        }
+    }
+    writeln!(h, "</div>")?;
+    // REA.
+    writeln!(
+        h,
+        "<h2>Regularized evolution</h2><p>Each cycle: a tournament of the population, its best \
+(fitness = −V − γ·[MACs &gt; budget]) is mutated, the child fine-tuned and validated, the \
+oldest member removed. V = mean gaze error on the validation set (degrees).</p><table>\
+<tr><th>cycle</th><th>parent</th><th>child</th><th>child V °</th><th>child MACs</th><th>removed</th></tr>"
+    )?;
+    let rea = std::fs::read_to_string(out.join("runs/learned/rea.jsonl")).unwrap_or_default();
+    for l in rea.lines() {
+        if let Ok(c) = serde_json::from_str::<serde_json::Value>(l) {
+            writeln!(
+                h,
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+                c["cycle"],
+                c["parent"],
+                c["child"]["id"],
+                num(&c["child"]["v"]),
+                c["child"]["macs"],
+                c["removed"]
+            )?;
+        }
+    }
+    writeln!(
+        h,
+        "</table><p>Selected subnet: {} MACs at p̂ = {} µm, V = {}°.</p><pre>{}</pre>",
+        r["macs"],
+        num(&r["pitch_um"]),
+        num(&r["v_deg"]),
+        esc(&serde_json::to_string(&r["best_arch"])?)
+    )?;
+    writeln!(
+        h,
+        "<h2>Stages</h2><table><tr><th>stage</th><th>seconds</th></tr>"
+    )?;
+    for (k, v) in r["stages"].as_object().cloned().unwrap_or_default() {
+        writeln!(h, "<tr><td>{}</td><td>{}</td></tr>", esc(&k), num(&v))?;
+    }
+    writeln!(h, "</table></body></html>")?;
+    Ok(h)
+}

@@ -1,0 +1,69 @@
+//! `nanoeye run` end to end on a tiny configuration: every stage runs, the numbers come from
+//! the chain (the learned and baseline lenses give different protocol errors), the report's
+//! images exist, and a second call reports the finished run without redoing it.
+
+use std::process::Command;
+
+#[test]
+fn the_main_job_runs_end_to_end_on_a_tiny_config() {
+    let d = tempfile::tempdir().unwrap();
+    let cfg = d.path().join("tiny.json");
+    std::fs::write(
+        &cfg,
+        r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_pairs": 1, "val_pairs": 1,
+            "protocol_subjects": 1, "train_steps": 2, "batch": 3, "random_subnets": 0,
+            "pitch_init_um": 60.0, "pitch_range_um": [48.0, 120.0], "rea_cycles": 1,
+            "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0,
+            "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16]}"#,
+    )
+    .unwrap();
+    let out = d.path().join("run");
+    let run = || {
+        Command::new(env!("CARGO_BIN_EXE_nanoeye"))
+            .args(["run", "--json", "--config"])
+            .arg(&cfg)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap()
+    };
+    let o = run();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    for k in [
+        "render",
+        "train_learned",
+        "train_hyperbolic",
+        "train_double_helix",
+        "rea",
+        "protocol",
+    ] {
+        assert!(r["stages"][k].as_f64().is_some(), "stage {k} missing: {r}");
+    }
+    let p = &r["protocol"];
+    for lens in ["learned", "hyperbolic", "double_helix", "geometric_no_slip"] {
+        let s = &p[lens];
+        assert_eq!(s["frames"], 343, "{lens}");
+        assert_eq!(s["per_slip"].as_array().unwrap().len(), 7);
+        let m = s["mean_deg"].as_f64().unwrap();
+        assert!(m.is_finite() && (0.0..=90.0).contains(&m), "{lens}: {m}");
+    }
+    // Different lenses through the same chain give different errors.
+    assert_ne!(p["learned"]["mean_deg"], p["double_helix"]["mean_deg"]);
+    assert_ne!(p["hyperbolic"]["mean_deg"], p["double_helix"]["mean_deg"]);
+    assert!(r["macs"].as_u64().unwrap() > 0);
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(html.contains("data:image/png;base64,") && html.contains("<svg"));
+    assert_eq!(html.matches("<img").count(), 3, "three phase maps");
+    // Finished: the second call reports the same result without redoing any stage.
+    let again = run();
+    assert!(again.status.success());
+    let r2: serde_json::Value = serde_json::from_slice(&again.stdout).unwrap();
+    assert_eq!(r2, r);
+    // Another configuration in the same directory is refused.
+    std::fs::write(&cfg, r#"{"width_px": 80, "height_px": 50, "seed": 1}"#).unwrap();
+    let o = run();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--out"));
+}
