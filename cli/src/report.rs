@@ -25,23 +25,45 @@ fn b64(bytes: &[u8]) -> String {
     s
 }
 
-/// The phase map wrapped to [0, 2π) as an 8-bit PNG (downsampled to ≤ 256 px).
-fn phase_png(path: &Path) -> Option<String> {
-    let phi = nanoeye_optics::io::read_phase_npy(path).ok()?;
-    let n = phi.nrows();
-    let step = n.div_ceil(256).max(1);
-    let m = n.div_ceil(step);
-    let tau = std::f64::consts::TAU;
-    let px: Vec<u8> = (0..m * m)
-        .map(|k| {
-            let v = phi[((k / m) * step, (k % m) * step)].rem_euclid(tau);
-            (v / tau * 255.0) as u8
-        })
-        .collect();
+fn png_b64(m: usize, px: Vec<u8>) -> Option<String> {
     let img = image::GrayImage::from_raw(m as u32, m as u32, px)?;
     let mut out = std::io::Cursor::new(Vec::new());
     img.write_to(&mut out, image::ImageFormat::Png).ok()?;
     Some(b64(&out.into_inner()))
+}
+
+/// The phase map wrapped to [0, 2π) as an 8-bit PNG at full resolution (a strided
+/// downsample of the fast-varying hyperbolic phase would show moiré, not the lens).
+fn phase_png(path: &Path) -> Option<String> {
+    let phi = nanoeye_optics::io::read_phase_npy(path).ok()?;
+    let n = phi.nrows();
+    let tau = std::f64::consts::TAU;
+    let px = (0..n * n)
+        .map(|k| (phi[(k / n, k % n)].rem_euclid(tau) / tau * 255.0) as u8)
+        .collect();
+    png_b64(n, px)
+}
+
+/// φ_a − φ_b (unwrapped difference, mid-grey 0, black/white ∓ its largest magnitude) and that
+/// magnitude (rad): what co-design changed.
+fn difference_png(a: &Path, b: &Path) -> Option<(String, f64)> {
+    let (pa, pb) = (
+        nanoeye_optics::io::read_phase_npy(a).ok()?,
+        nanoeye_optics::io::read_phase_npy(b).ok()?,
+    );
+    let n = pa.nrows();
+    if pb.nrows() != n {
+        return None;
+    }
+    let d: Vec<f64> = (0..n * n)
+        .map(|k| pa[(k / n, k % n)] - pb[(k / n, k % n)])
+        .collect();
+    let m = d.iter().fold(1e-12f64, |x, v| x.max(v.abs()));
+    let px = d
+        .iter()
+        .map(|v| ((v / m * 0.5 + 0.5) * 255.0) as u8)
+        .collect();
+    Some((png_b64(n, px)?, m))
 }
 
 fn history(path: &Path) -> Vec<StepRecord> {
@@ -76,7 +98,11 @@ the acquisition protocol (D.4: 49 targets × 7 slippage states per subject) eval
 the whole simulated chain: rendered depth layers → lens PSFs (S1) → sensor at p̂ (S2) →
 network → pupil centroid (S9) → ray–sphere gaze with the network's slippage (S10–S14). The
 same network is trained behind the fixed hyperbolic and double-helix lenses for comparison.
-Total {:.0} s.</p>"#,
+Total {:.0} s.</p>
+<p><b>Scale.</b> The built-in default is sized to finish in minutes on a laptop: a few dozen
+training frames at 12 µm pixels and tens of training steps. Its errors are therefore far
+from the paper's; `nanoeye run --print-config` lists every size, and `--config FILE` scales
+the run up (more pairs, steps, REA cycles and a finer render).</p>"#,
         r["seconds"].as_f64().unwrap_or(0.0)
     )?;
     // Protocol table.
@@ -131,6 +157,15 @@ through the chain.</p><div class=\"row\">"
                 "<figure><img width=\"256\" alt=\"{name} phase\" src=\"data:image/png;base64,{png}\"><figcaption>{name}</figcaption></figure>"
             )?;
         }
+    }
+    if let Some((png, m)) = difference_png(
+        &out.join("runs/learned/phase.npy"),
+        &out.join("runs/hyperbolic/phase.npy"),
+    ) {
+        writeln!(
+            h,
+            "<figure><img width=\"256\" alt=\"learned minus hyperbolic\" src=\"data:image/png;base64,{png}\"><figcaption>learned − hyperbolic (black −{m:.3}, white +{m:.3} rad)</figcaption></figure>"
+        )?;
     }
     writeln!(
         h,

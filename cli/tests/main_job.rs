@@ -55,7 +55,11 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     assert!(r["macs"].as_u64().unwrap() > 0);
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert!(html.contains("data:image/png;base64,") && html.contains("<svg"));
-    assert_eq!(html.matches("<img").count(), 3, "three phase maps");
+    assert_eq!(
+        html.matches("<img").count(),
+        4,
+        "three phase maps and their difference"
+    );
     // Finished: the second call reports the same result without redoing any stage.
     let again = run();
     assert!(again.status.success());
