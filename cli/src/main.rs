@@ -15,6 +15,7 @@ mod rig;
 mod run;
 mod sensor;
 mod sim;
+mod track;
 mod train;
 mod util;
 
@@ -63,6 +64,8 @@ enum Command {
     /// Co-design: task loss and gradients through the camera chain (S7, S8, S16–S22).
     #[command(subcommand)]
     Search(sim::SearchCmd),
+    /// Sensor frames → gaze, one JSON line per frame, with a trained run (A.4).
+    Track(track::TrackArgs),
 }
 
 fn dispatch(command: Command) -> anyhow::Result<()> {
@@ -78,6 +81,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         Command::Nets(c) => nets::run(c),
         Command::Sim(a) => sim::sim(a),
         Command::Search(c) => sim::search(c),
+        Command::Track(a) => track::track(a),
     }
 }
 

@@ -76,6 +76,8 @@ pub struct RunConfig {
     pub exposure_ms: f64,
     /// Supernet calibration-head widths [1×1 expansion, hidden] (960, 1280 in OFA).
     pub head_widths: [usize; 2],
+    /// The eye–camera rig (`None`: the built-in rig; `--rig FILE` sets it).
+    pub rig: Option<Rig>,
 }
 
 impl Default for RunConfig {
@@ -106,6 +108,7 @@ impl Default for RunConfig {
             aperture_step_um: 1.5,
             exposure_ms: 0.1,
             head_widths: [960, 1280],
+            rig: None,
         }
     }
 }
@@ -122,6 +125,9 @@ pub struct RunArgs {
     /// Print the configuration (defaults merged with --config) as JSON and exit.
     #[arg(long)]
     print_config: bool,
+    /// Rig JSON file (default: the built-in rig); overrides the configuration's `rig`.
+    #[arg(long)]
+    rig: Option<PathBuf>,
     /// Print the result as JSON.
     #[arg(long)]
     json: bool,
@@ -219,7 +225,7 @@ fn render(dir: &Path, set: RenderSet, n: usize, seed: u64, cfg: &RunConfig) -> R
         height_px: cfg.height_px,
         spp: cfg.spp,
         out_dir: dir.to_path_buf(),
-        rig: Rig::default(),
+        rig: cfg.rig.clone().unwrap_or_default(),
         source: SceneSource::Procedural,
         progress: std::io::stderr().is_terminal(),
         layers: LayerSpec::default(),
@@ -230,7 +236,12 @@ fn render(dir: &Path, set: RenderSet, n: usize, seed: u64, cfg: &RunConfig) -> R
 
 /// Runs the main job.
 pub fn run(a: RunArgs) -> Result<()> {
-    let cfg = load_config(a.config.as_deref())?;
+    let mut cfg = load_config(a.config.as_deref())?;
+    if a.rig.is_some() {
+        cfg.rig = Some(crate::rig::load(a.rig.as_deref())?);
+    } else if let Some(r) = &cfg.rig {
+        r.validate().context("--config: rig")?;
+    }
     if a.print_config {
         return util::print_json(&cfg);
     }
@@ -369,6 +380,10 @@ pub fn run(a: RunArgs) -> Result<()> {
         }
         tr.save(&ck)?;
         util::write_atomic(
+            &out.join(format!("runs/{name}/rig.json")),
+            serde_json::to_string_pretty(&train.manifest.rig)?.as_bytes(),
+        )?;
+        util::write_atomic(
             &out.join(format!("runs/{name}/phase.npy")),
             &crate::sim::npy_mat64(&tr.phase)?,
         )?;
@@ -445,6 +460,12 @@ pub fn run(a: RunArgs) -> Result<()> {
         let mut trn = Trainer::from_checkpoint(&chain, &train, &ck)?;
         trn.recalibrate(&best.arch, 2)?;
         let bytes = nanoeye_nets::checkpoint::to_bytes(&mut trn.net)?;
+        // The tracker's model: the selected subnet with its exact BN statistics.
+        util::write_atomic(&out.join(format!("runs/{name}/tracker_net.bin")), &bytes)?;
+        util::write_atomic(
+            &out.join(format!("runs/{name}/tracker_arch.json")),
+            serde_json::to_string(&best.arch)?.as_bytes(),
+        )?;
         nanoeye_nets::checkpoint::from_bytes(&mut tr.net, &bytes)?;
         let map = tr.phase_map()?;
         let p_hat = tr.pitch_um * 1e-6;

@@ -189,6 +189,11 @@ pub fn train(a: TrainArgs) -> Result<()> {
         eprintln!("resuming {} at step {}", a.out.display(), t.step);
     }
     std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+    // The native rig: with p̂ it gives the camera the tracker must use.
+    util::write_atomic(
+        &a.out.join("rig.json"),
+        serde_json::to_string_pretty(&ds.manifest.rig)?.as_bytes(),
+    )?;
     let tty = std::io::stderr().is_terminal();
     let bar = if tty {
         indicatif::ProgressBar::new(a.steps as u64)

@@ -60,6 +60,83 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         4,
         "three phase maps and their difference"
     );
+    // The tracker on the protocol frames imaged through the learned lens at the learned p̂.
+    let bin = env!("CARGO_BIN_EXE_nanoeye");
+    let pitch = r["pitch_um"].as_f64().unwrap().to_string();
+    let sim = d.path().join("sim");
+    let o = Command::new(bin)
+        .args([
+            "sim",
+            "--frames",
+            "0:3",
+            "--exposure-ms",
+            "0.0004",
+            "--aperture-step-um",
+            "10",
+        ])
+        .args(["--pitch-um", &pitch, "--dataset"])
+        .arg(out.join("data/protocol"))
+        .arg("--lens")
+        .arg(format!(
+            "file:{}",
+            out.join("runs/learned/phase.npy").display()
+        ))
+        .arg("--out")
+        .arg(&sim)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let frames = d.path().join("frames");
+    std::fs::create_dir(&frames).unwrap();
+    std::fs::copy(sim.join("sensor.npy"), frames.join("a.npy")).unwrap();
+    std::fs::write(frames.join("b.npy"), b"not an npy file").unwrap();
+    let o = Command::new(bin)
+        .args(["track", "--model"])
+        .arg(out.join("runs/learned"))
+        .arg("--frames")
+        .arg(&frames)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 4, "3 frames and one error line");
+    // Each frame gives a unit gaze vector, or (a barely trained network may find no pupil)
+    // a per-frame error line; never a crash.
+    for l in &lines[..3] {
+        if let Some(e) = l["error"].as_str() {
+            assert!(!e.is_empty());
+            continue;
+        }
+        let g: Vec<f64> = serde_json::from_value(l["gaze"].clone()).unwrap();
+        let n = g.iter().map(|v| v * v).sum::<f64>().sqrt();
+        assert!((n - 1.0).abs() < 1e-9, "{l}");
+        assert!(l["latency_us"].as_u64().is_some());
+    }
+    assert!(
+        lines[3]["error"].as_str().unwrap().contains("b.npy"),
+        "{}",
+        lines[3]
+    );
+    // A bad stdin header gives an error line, not a crash.
+    let mut child = Command::new(bin)
+        .args(["track", "--stdin", "--model"])
+        .arg(out.join("runs/learned"))
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    {
+        use std::io::Write;
+        let mut si = child.stdin.take().unwrap();
+        si.write_all(b"JUNKJUNKJUNKJUNK").unwrap();
+    }
+    let o = child.wait_with_output().unwrap();
+    assert!(o.status.success());
+    assert!(String::from_utf8_lossy(&o.stdout).contains("NEYE"));
+
     // Finished: the second call reports the same result without redoing any stage.
     let again = run();
     assert!(again.status.success());

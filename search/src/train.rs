@@ -654,6 +654,31 @@ impl<'a> Trainer<'a> {
     }
 }
 
+/// The trained network, p̂ (µm) and configuration of a checkpoint, without a dataset or chain
+/// (for the tracker): BN uses the running statistics stored with the weights.
+pub fn load_model(path: &Path) -> Result<(Supernet, f64, TrainConfig)> {
+    let b = std::fs::read(path).map_err(|e| param("model", format!("{}: {e}", path.display())))?;
+    let bad = |why: &str| param("model", format!("{}: {why}", path.display()));
+    if b.len() < TRAIN_MAGIC.len() + 16 || &b[..TRAIN_MAGIC.len()] != TRAIN_MAGIC {
+        return Err(bad("not a training checkpoint"));
+    }
+    let (body, tail) = b.split_at(b.len() - 8);
+    if fnv1a(body) != u64::from_le_bytes(tail.try_into().expect("8 bytes")) {
+        return Err(bad("checksum mismatch: the file is corrupted or truncated"));
+    }
+    let mut r = Reader {
+        b: body,
+        at: TRAIN_MAGIC.len(),
+    };
+    let jl = r.u64()? as usize;
+    let meta: Meta = serde_json::from_slice(r.take(jl)?).map_err(|e| bad(&e.to_string()))?;
+    r.take(meta.phase_n * meta.phase_n * 8)?;
+    let nl = r.u64()? as usize;
+    let mut net = Supernet::new(meta.config.supernet.clone(), meta.config.weights_seed)?;
+    nanoeye_nets::checkpoint::from_bytes(&mut net, r.take(nl)?)?;
+    Ok((net, meta.pitch_um, meta.config))
+}
+
 /// The configuration stored in a training checkpoint (checksum verified).
 pub fn read_config(path: &Path) -> Result<TrainConfig> {
     let b = std::fs::read(path).map_err(|e| param("run", format!("{}: {e}", path.display())))?;

@@ -1,0 +1,327 @@
+//! `nanoeye track`: sensor frames in, gaze out, one JSON line per frame (docs/track.md).
+//!
+//! Model: a run directory of `search train` or `nanoeye run` (its `checkpoint.bin`, `rig.json`
+//! and, when present, the REA's selection in `rea_state.json`). Frames: DN images on the
+//! model's p̂ grid — NPY (f32 or f64, [H, W] or [N, H, W], e.g. `nanoeye sim`'s sensor.npy),
+//! 8-bit PNG (0–255 scaled to the ADC range), or raw frames on stdin, each a 16-byte header
+//! `NEYE`, u32 LE width, u32 LE height, u32 LE 0, then width·height f32 LE DN values.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use faer::Mat;
+use nanoeye_gaze::{GazeSolver, Rig, SphereSolver};
+use nanoeye_nets::{Arch, BnMode, Supernet, Tensor};
+use nanoeye_sensor::SensorConfig;
+use std::io::{BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// `nanoeye track` options.
+#[derive(Debug, Args)]
+pub struct TrackArgs {
+    /// Run directory (checkpoint.bin, rig.json).
+    #[arg(long)]
+    model: PathBuf,
+    /// Directory of frames (.npy, .png), read in name order.
+    #[arg(long, conflicts_with = "stdin")]
+    frames: Option<PathBuf>,
+    /// Read raw frames from standard input (header NEYE, u32 w, u32 h, u32 0, f32 DN).
+    #[arg(long)]
+    stdin: bool,
+    /// Subnet: best (the REA's choice, else min), min, max or file:ARCH.json.
+    #[arg(long, default_value = "best")]
+    subnet: String,
+    /// One JSON object per line (the default and only output format; kept for scripts).
+    #[arg(long)]
+    json_lines: bool,
+}
+
+struct Model {
+    net: Supernet,
+    arch: Arch,
+    solver: SphereSolver,
+    shape: (usize, usize),
+    black: f32,
+    span: f32,
+    max_dn: f32,
+}
+
+fn load(a: &TrackArgs) -> Result<Model> {
+    let ck = a.model.join("checkpoint.bin");
+    let (mut net, pitch_um, _) = nanoeye_search::load_model(&ck)
+        .with_context(|| format!("--model {}", a.model.display()))?;
+    // `nanoeye run` leaves the selected subnet with BN recalibrated exactly (tracker_net.bin);
+    // without it the running statistics of training are used.
+    let tuned = a.model.join("tracker_net.bin");
+    let tuned_arch = a.model.join("tracker_arch.json");
+    let have_tuned = tuned.exists() && tuned_arch.exists();
+    if have_tuned && a.subnet == "best" {
+        let b = std::fs::read(&tuned).with_context(|| format!("--model {}", tuned.display()))?;
+        nanoeye_nets::checkpoint::from_bytes(&mut net, &b)
+            .with_context(|| format!("--model {}", tuned.display()))?;
+    }
+    let rig_text = std::fs::read_to_string(a.model.join("rig.json")).with_context(|| {
+        format!(
+            "--model {}: rig.json (re-run `search train`)",
+            a.model.display()
+        )
+    })?;
+    let rig0 =
+        Rig::from_json(&rig_text).with_context(|| format!("--model {}", a.model.display()))?;
+    let cam = rig0
+        .camera
+        .with_pitch(pitch_um * 1e-6)
+        .with_context(|| format!("--model {}: p̂ {pitch_um} µm", a.model.display()))?;
+    let shape = (cam.height_px, cam.width_px);
+    let rig = Rig {
+        camera: cam,
+        ..rig0
+    };
+    let arch = match a.subnet.as_str() {
+        "min" => Arch::min(),
+        "max" => Arch::max(),
+        "best" if have_tuned => {
+            let t = std::fs::read_to_string(&tuned_arch)?;
+            serde_json::from_str(&t).with_context(|| format!("--model {}", tuned_arch.display()))?
+        }
+        "best" => best_arch(&a.model).unwrap_or_else(Arch::min),
+        s => {
+            let p = s
+                .strip_prefix("file:")
+                .with_context(|| format!("--subnet: '{s}' is not best, min, max or file:A.json"))?;
+            let t = std::fs::read_to_string(p).with_context(|| format!("--subnet {p}"))?;
+            let a: Arch = serde_json::from_str(&t).with_context(|| format!("--subnet {p}"))?;
+            a.validate().with_context(|| format!("--subnet {p}"))?;
+            a
+        }
+    };
+    let s = SensorConfig::default();
+    Ok(Model {
+        net,
+        arch,
+        solver: SphereSolver::new(&rig)?,
+        shape,
+        black: s.black_level_dn as f32,
+        span: (s.max_dn() - s.black_level_dn) as f32,
+        max_dn: s.max_dn() as f32,
+    })
+}
+
+fn best_arch(run: &Path) -> Option<Arch> {
+    let text = std::fs::read_to_string(run.join("rea_state.json")).ok()?;
+    let st: nanoeye_search::ReaState = serde_json::from_str(&text).ok()?;
+    st.evaluated
+        .iter()
+        .reduce(|a, b| if b.fitness > a.fitness { b } else { a })
+        .map(|i| i.arch.clone())
+}
+
+/// A frame source: (name, DN image) or a per-frame error.
+type Frame = std::result::Result<(String, Mat<f32>), String>;
+
+fn npy_frames(path: &Path) -> Vec<Frame> {
+    let name = path.display().to_string();
+    let (shape, data) = match read_npy(path) {
+        Ok(v) => v,
+        Err(e) => return vec![Err(format!("{name}: {e}"))],
+    };
+    let (n, h, w) = match shape[..] {
+        [h, w] => (1, h, w),
+        [n, h, w] => (n, h, w),
+        _ => {
+            return vec![Err(format!(
+                "{name}: shape {shape:?} is not [H, W] or [N, H, W]"
+            ))];
+        }
+    };
+    (0..n)
+        .map(|k| {
+            Ok((
+                if n == 1 {
+                    name.clone()
+                } else {
+                    format!("{name}[{k}]")
+                },
+                Mat::from_fn(h, w, |i, j| data[k * h * w + i * w + j]),
+            ))
+        })
+        .collect()
+}
+
+fn read_npy(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
+    let bytes = std::fs::read(path)?;
+    let npy = npyz::NpyFile::new(&bytes[..])?;
+    let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
+    if shape.iter().any(|&d| d == 0 || d > 1 << 16) || shape.len() > 3 {
+        bail!("implausible shape {shape:?}");
+    }
+    if npy.order() != npyz::Order::C {
+        bail!("Fortran-ordered arrays are not supported");
+    }
+    let descr = npy.dtype().descr();
+    let data: Vec<f32> = if descr.contains("f8") {
+        npy.into_vec::<f64>()?
+            .into_iter()
+            .map(|v| v as f32)
+            .collect()
+    } else {
+        npy.into_vec::<f32>()?
+    };
+    Ok((shape, data))
+}
+
+fn png_frame(path: &Path, max_dn: f32) -> Frame {
+    let name = path.display().to_string();
+    let img = image::open(path)
+        .map_err(|e| format!("{name}: {e}"))?
+        .to_luma8();
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    Ok((
+        name,
+        Mat::from_fn(h, w, |i, j| {
+            img.get_pixel(j as u32, i as u32)[0] as f32 / 255.0 * max_dn
+        }),
+    ))
+}
+
+fn stdin_frame(r: &mut impl Read) -> Option<Frame> {
+    let mut hdr = [0u8; 16];
+    match r.read_exact(&mut hdr) {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return None,
+        Err(e) => return Some(Err(format!("stdin: {e}"))),
+    }
+    if &hdr[..4] != b"NEYE" {
+        return Some(Err("stdin: frame header does not start with NEYE".into()));
+    }
+    let w = u32::from_le_bytes(hdr[4..8].try_into().expect("4")) as usize;
+    let h = u32::from_le_bytes(hdr[8..12].try_into().expect("4")) as usize;
+    if w == 0 || h == 0 || w > 1 << 14 || h > 1 << 14 {
+        return Some(Err(format!("stdin: implausible frame size {w}×{h}")));
+    }
+    let mut buf = vec![0u8; w * h * 4];
+    if let Err(e) = r.read_exact(&mut buf) {
+        return Some(Err(format!("stdin: truncated frame ({e})")));
+    }
+    let m = Mat::from_fn(h, w, |i, j| {
+        let k = (i * w + j) * 4;
+        f32::from_le_bytes(buf[k..k + 4].try_into().expect("4"))
+    });
+    Some(Ok(("stdin".into(), m)))
+}
+
+fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, String> {
+    let (h, w) = m.shape;
+    if (img.nrows(), img.ncols()) != (h, w) {
+        return Err(format!(
+            "frame is {}×{}, the model's sensor grid at p̂ is {w}×{h}",
+            img.ncols(),
+            img.nrows()
+        ));
+    }
+    let mut x = Tensor::zeros(1, 1, h, w);
+    for i in 0..h {
+        for j in 0..w {
+            let v = img[(i, j)];
+            if !v.is_finite() {
+                return Err(format!("non-finite value at ({i}, {j})"));
+            }
+            x.data[i * w + j] = (v - m.black) / m.span;
+        }
+    }
+    let o = m
+        .net
+        .forward(&m.arch, &x, BnMode::Eval)
+        .map_err(|e| e.to_string())?;
+    let probs = Mat::from_fn(h, w, |i, j| {
+        1.0 / (1.0 + (-o.mask_logits.data[i * w + j]).exp())
+    });
+    // S9 takes the soft mask, as in training and evaluation. Confidence: the largest pupil
+    // probability in the frame (a frame without any confident pupil pixel says so).
+    let conf = probs
+        .col_iter()
+        .flat_map(|c| c.iter().copied().collect::<Vec<_>>())
+        .fold(0.0f32, f32::max) as f64;
+    let slip = [0, 1, 2].map(|a| o.slip.data[a] as f64 * 1e-3);
+    let sol = m
+        .solver
+        .solve_mask(probs.as_ref(), slip)
+        .map_err(|e| e.to_string())?;
+    Ok(serde_json::json!({
+        "gaze": sol.gaze,
+        "pupil_px": sol.pupil_px,
+        "slip_m": slip,
+        "confidence": conf,
+    }))
+}
+
+/// Runs `nanoeye track`.
+pub fn track(a: TrackArgs) -> Result<()> {
+    let mut m = load(&a)?;
+    if a.frames.is_none() && !a.stdin {
+        bail!("--frames DIR or --stdin: say where the frames come from");
+    }
+    let max_dn = m.max_dn;
+    let out = std::io::stdout();
+    let mut out = BufWriter::new(out.lock());
+    let mut emit = |i: usize, name: &str, f: std::result::Result<Mat<f32>, String>| -> Result<()> {
+        let t = Instant::now();
+        let r = f.and_then(|img| track_one(&mut m, &img));
+        let us = t.elapsed().as_micros() as u64;
+        let line = match r {
+            Ok(mut v) => {
+                v["frame"] = i.into();
+                v["source"] = name.into();
+                v["latency_us"] = us.into();
+                v
+            }
+            Err(e) => serde_json::json!({"frame": i, "source": name, "error": e}),
+        };
+        writeln!(out, "{line}")?;
+        Ok(())
+    };
+    let mut i = 0;
+    if let Some(dir) = &a.frames {
+        let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+            .with_context(|| format!("--frames {}", dir.display()))?
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| p.extension().is_some_and(|e| e == "npy" || e == "png"))
+            .collect();
+        files.sort();
+        if files.is_empty() {
+            bail!("--frames {}: no .npy or .png files", dir.display());
+        }
+        for p in files {
+            let frames = if p.extension().is_some_and(|e| e == "png") {
+                vec![png_frame(&p, max_dn)]
+            } else {
+                npy_frames(&p)
+            };
+            for f in frames {
+                match f {
+                    Ok((name, img)) => emit(i, &name, Ok(img))?,
+                    Err(e) => emit(i, &p.display().to_string(), Err(e))?,
+                }
+                i += 1;
+            }
+        }
+    } else {
+        let stdin = std::io::stdin();
+        let mut r = stdin.lock();
+        while let Some(f) = stdin_frame(&mut r) {
+            let bad = f.is_err();
+            match f {
+                Ok((name, img)) => emit(i, &name, Ok(img))?,
+                Err(e) => emit(i, "stdin", Err(e))?,
+            }
+            i += 1;
+            if bad {
+                // A broken header desynchronises the stream: stop after reporting it.
+                break;
+            }
+        }
+    }
+    out.flush()?;
+    Ok(())
+}
