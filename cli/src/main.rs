@@ -13,6 +13,7 @@ mod optics;
 mod report;
 mod rig;
 mod run;
+mod safety;
 mod sensor;
 mod sim;
 mod track;
@@ -66,6 +67,8 @@ enum Command {
     Search(sim::SearchCmd),
     /// Sensor frames → gaze, one JSON line per frame, with a trained run (A.4).
     Track(track::TrackArgs),
+    /// Largest eye-safe LED intensity for glint illumination, indoors and outdoors (D.5).
+    Safety(safety::SafetyArgs),
 }
 
 fn dispatch(command: Command) -> anyhow::Result<()> {
@@ -82,6 +85,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         Command::Sim(a) => sim::sim(a),
         Command::Search(c) => sim::search(c),
         Command::Track(a) => track::track(a),
+        Command::Safety(a) => safety::run(a),
     }
 }
 
