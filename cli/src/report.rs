@@ -111,7 +111,10 @@ the run up (more pairs, steps, REA cycles and a finer render).</p>"#,
         "<h2>Gaze error on the acquisition protocol</h2><p>Angular error between the \
 estimated and the true optical axis (degrees). A frame where no pupil is found or the ray \
 misses the sphere counts 90° and is listed under failures. <i>geometric_no_slip</i>: the \
-learned lens and network, but the solver is told there is no slippage.</p>\
+learned lens and network, but the solver is told there is no slippage. \
+<i>solver_true_mask_true_slip</i>: the true visible-pupil mask on the same sensor grid and the \
+true slippage — the geometric solver's own error (pupil seen through the cornea, the 12 mm \
+sphere) without the network; the difference to <i>learned</i> is the network's share.</p>\
 <table><tr><th>chain</th><th>mean °</th><th>median °</th><th>p95 °</th><th>failures</th><th>frames</th></tr>"
     )?;
     let proto = r["protocol"].as_object().cloned().unwrap_or_default();

@@ -15,7 +15,7 @@ use nanoeye_datagen::render::{
 };
 use nanoeye_gaze::Rig;
 use nanoeye_search::{
-    CameraChain, ChainConfig, LensSpec, Rea, ReaConfig, ReaState, TrainConfig, Trainer,
+    CameraChain, ChainConfig, LensSpec, Rea, ReaConfig, ReaState, SolverInput, TrainConfig, Trainer,
 };
 use serde::{Deserialize, Serialize};
 use std::io::IsTerminal;
@@ -478,23 +478,28 @@ pub fn run(a: RunArgs) -> Result<()> {
             &best.arch,
             cfg.batch,
             cfg.seed,
-            false,
+            SolverInput::Predicted,
         )?;
         protocol.insert(name.to_string(), protocol_summary(&e.errors_deg));
         if name == "learned" {
             pitch = tr.pitch_um;
-            let g = nanoeye_search::evaluate_frames(
-                &mut tr.net,
-                &proto_chain,
-                &proto,
-                &map,
-                p_hat,
-                &best.arch,
-                cfg.batch,
-                cfg.seed,
-                true,
-            )?;
-            protocol.insert("geometric_no_slip".into(), protocol_summary(&g.errors_deg));
+            for (key, input) in [
+                ("geometric_no_slip", SolverInput::NoSlip),
+                ("solver_true_mask_true_slip", SolverInput::Truth),
+            ] {
+                let g = nanoeye_search::evaluate_frames(
+                    &mut tr.net,
+                    &proto_chain,
+                    &proto,
+                    &map,
+                    p_hat,
+                    &best.arch,
+                    cfg.batch,
+                    cfg.seed,
+                    input,
+                )?;
+                protocol.insert(key.into(), protocol_summary(&g.errors_deg));
+            }
         }
     }
     stage("protocol", t.elapsed().as_secs_f64(), &mut stages)?;
@@ -530,13 +535,13 @@ fn print_result(result: &serde_json::Value, json: bool) -> Result<()> {
         result["out"].as_str().unwrap_or(".")
     );
     println!(
-        "{:<20} {:>9} {:>9} {:>9} {:>6}",
+        "{:<28} {:>9} {:>9} {:>9} {:>6}",
         "protocol gaze error", "mean °", "median °", "p95 °", "fail"
     );
     for (name, s) in result["protocol"].as_object().cloned().unwrap_or_default() {
         let f = |k: &str| s[k].as_f64().map_or("-".into(), |v| format!("{v:.2}"));
         println!(
-            "{:<20} {:>9} {:>9} {:>9} {:>6}",
+            "{:<28} {:>9} {:>9} {:>9} {:>6}",
             name,
             f("mean_deg"),
             f("median_deg"),

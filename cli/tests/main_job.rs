@@ -42,7 +42,13 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         assert!(r["stages"][k].as_f64().is_some(), "stage {k} missing: {r}");
     }
     let p = &r["protocol"];
-    for lens in ["learned", "hyperbolic", "double_helix", "geometric_no_slip"] {
+    for lens in [
+        "learned",
+        "hyperbolic",
+        "double_helix",
+        "geometric_no_slip",
+        "solver_true_mask_true_slip",
+    ] {
         let s = &p[lens];
         assert_eq!(s["frames"], 343, "{lens}");
         assert_eq!(s["per_slip"].as_array().unwrap().len(), 7);

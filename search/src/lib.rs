@@ -22,5 +22,6 @@ pub use radiometry::Radiometry;
 pub use rea::{CycleRecord, Individual, Rea, ReaConfig, ReaState};
 pub use task::{TaskLoss, task_loss};
 pub use train::{
-    FrameEval, Metrics, StepRecord, TrainConfig, Trainer, evaluate_frames, evaluate_net, load_model,
+    FrameEval, Metrics, SolverInput, StepRecord, TrainConfig, Trainer, evaluate_frames,
+    evaluate_net, load_model,
 };

@@ -428,14 +428,14 @@ impl<'a> Trainer<'a> {
         )
     }
 
-    /// Per-frame gaze errors of `arch` on `val` after BN recalibration; `ignore_slip` hands
-    /// the solver zero slippage (the geometric solver that ignores slippage).
+    /// Per-frame gaze errors of `arch` on `val` after BN recalibration, the solver fed as
+    /// `input` says.
     pub fn evaluate_frames(
         &mut self,
         val: &Dataset,
         arch: &Arch,
         recal_batches: usize,
-        ignore_slip: bool,
+        input: SolverInput,
     ) -> Result<FrameEval> {
         self.recalibrate(arch, recal_batches)?;
         let map = self.phase_map()?;
@@ -448,7 +448,7 @@ impl<'a> Trainer<'a> {
             arch,
             self.cfg.batch,
             self.cfg.seed,
-            ignore_slip,
+            input,
         )
     }
 
@@ -729,6 +729,18 @@ impl<'b> Reader<'b> {
     }
 }
 
+/// What the gaze solver is given in an evaluation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SolverInput {
+    /// The network's mask and slippage (the full chain).
+    Predicted,
+    /// The network's mask, zero slippage (the geometric solver that ignores slippage).
+    NoSlip,
+    /// The true visible-pupil mask on the p̂ grid and the true slippage: the solver's own
+    /// error on rendered frames, without the network.
+    Truth,
+}
+
 /// Per-frame results of a validation pass.
 #[derive(Clone, Debug, Default)]
 pub struct FrameEval {
@@ -743,7 +755,7 @@ pub struct FrameEval {
 
 /// Runs `arch` (BN as it stands: recalibrate first) on every frame of `val` through the chain
 /// at φ = `map`, p̂ = `p_hat` (m): predicted mask → S9 → S10–S14 with the predicted slippage
-/// (or none, `ignore_slip`), against the recorded gaze.
+/// (`input` selects what the solver gets), against the recorded gaze.
 #[allow(clippy::too_many_arguments)]
 pub fn evaluate_frames(
     net: &mut Supernet,
@@ -754,7 +766,7 @@ pub fn evaluate_frames(
     arch: &Arch,
     batch: usize,
     seed: u64,
-    ignore_slip: bool,
+    input: SolverInput,
 ) -> Result<FrameEval> {
     let rig0: &Rig = &val.manifest.rig;
     let mut out = FrameEval::default();
@@ -788,14 +800,18 @@ pub fn evaluate_frames(
             out.dice.push(hard_dice(&one(&o.mask_logits, 1), &hard)?);
             out.slip_sq_mm2
                 .push(slip_mse(&one(&o.slip, 3), &one(&fwd.slip_mm, 3))?.0);
-            let probs = Mat::from_fn(h, w, |i, j| {
-                let l = o.mask_logits.image(b)[i * w + j];
-                1.0 / (1.0 + (-l).exp())
-            });
-            let slip = if ignore_slip {
-                [0.0; 3]
+            let probs = if input == SolverInput::Truth {
+                Mat::from_fn(h, w, |i, j| fwd.mask.image(b)[i * w + j])
             } else {
-                [0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64 * 1e-3)
+                Mat::from_fn(h, w, |i, j| {
+                    let l = o.mask_logits.image(b)[i * w + j];
+                    1.0 / (1.0 + (-l).exp())
+                })
+            };
+            let slip = match input {
+                SolverInput::NoSlip => [0.0; 3],
+                SolverInput::Truth => f.record.state.slip_m,
+                SolverInput::Predicted => [0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64 * 1e-3),
             };
             out.errors_deg.push(
                 solver
@@ -821,7 +837,17 @@ pub fn evaluate_net(
     batch: usize,
     seed: u64,
 ) -> Result<Metrics> {
-    let e = evaluate_frames(net, chain, val, map, p_hat, arch, batch, seed, false)?;
+    let e = evaluate_frames(
+        net,
+        chain,
+        val,
+        map,
+        p_hat,
+        arch,
+        batch,
+        seed,
+        SolverInput::Predicted,
+    )?;
     let nb = e.errors_deg.len();
     if nb == 0 {
         return Err(param("val", "no validation frames"));
