@@ -586,22 +586,12 @@ impl<'a> Trainer<'a> {
     /// Restores a checkpoint written by [`Self::save`]; refuses one made with another
     /// configuration (naming the first differing field) or whose checksum fails.
     pub fn load(&mut self, path: &Path) -> Result<()> {
-        let b =
-            std::fs::read(path).map_err(|e| param("out", format!("{}: {e}", path.display())))?;
+        let (b, meta, at) = open_checkpoint(path, "checkpoint")?;
         let bad = |why: &str| param("checkpoint", format!("{}: {why}", path.display()));
-        if b.len() < TRAIN_MAGIC.len() + 16 || &b[..TRAIN_MAGIC.len()] != TRAIN_MAGIC {
-            return Err(bad("not a training checkpoint"));
-        }
-        let (body, tail) = b.split_at(b.len() - 8);
-        if fnv1a(body) != u64::from_le_bytes(tail.try_into().expect("8 bytes")) {
-            return Err(bad("checksum mismatch: the file is corrupted or truncated"));
-        }
         let mut r = Reader {
-            b: body,
-            at: TRAIN_MAGIC.len(),
+            b: &b[..b.len() - 8],
+            at,
         };
-        let jl = r.u64()? as usize;
-        let meta: Meta = serde_json::from_slice(r.take(jl)?).map_err(|e| bad(&e.to_string()))?;
         if meta.config != self.cfg {
             let a = serde_json::to_value(&meta.config).unwrap_or_default();
             let c = serde_json::to_value(&self.cfg).unwrap_or_default();
@@ -657,21 +647,11 @@ impl<'a> Trainer<'a> {
 /// The trained network, p̂ (µm) and configuration of a checkpoint, without a dataset or chain
 /// (for the tracker): BN uses the running statistics stored with the weights.
 pub fn load_model(path: &Path) -> Result<(Supernet, f64, TrainConfig)> {
-    let b = std::fs::read(path).map_err(|e| param("model", format!("{}: {e}", path.display())))?;
-    let bad = |why: &str| param("model", format!("{}: {why}", path.display()));
-    if b.len() < TRAIN_MAGIC.len() + 16 || &b[..TRAIN_MAGIC.len()] != TRAIN_MAGIC {
-        return Err(bad("not a training checkpoint"));
-    }
-    let (body, tail) = b.split_at(b.len() - 8);
-    if fnv1a(body) != u64::from_le_bytes(tail.try_into().expect("8 bytes")) {
-        return Err(bad("checksum mismatch: the file is corrupted or truncated"));
-    }
+    let (b, meta, at) = open_checkpoint(path, "model")?;
     let mut r = Reader {
-        b: body,
-        at: TRAIN_MAGIC.len(),
+        b: &b[..b.len() - 8],
+        at,
     };
-    let jl = r.u64()? as usize;
-    let meta: Meta = serde_json::from_slice(r.take(jl)?).map_err(|e| bad(&e.to_string()))?;
     r.take(meta.phase_n * meta.phase_n * 8)?;
     let nl = r.u64()? as usize;
     let mut net = Supernet::new(meta.config.supernet.clone(), meta.config.weights_seed)?;
@@ -681,8 +661,14 @@ pub fn load_model(path: &Path) -> Result<(Supernet, f64, TrainConfig)> {
 
 /// The configuration stored in a training checkpoint (checksum verified).
 pub fn read_config(path: &Path) -> Result<TrainConfig> {
-    let b = std::fs::read(path).map_err(|e| param("run", format!("{}: {e}", path.display())))?;
-    let bad = |why: &str| param("run", format!("{}: {why}", path.display()));
+    Ok(open_checkpoint(path, "run")?.1.config)
+}
+
+/// Reads a training checkpoint, checks its magic line and checksum and parses the metadata;
+/// returns the bytes, the metadata and the offset just after it. Errors name `name`.
+fn open_checkpoint(path: &Path, name: &'static str) -> Result<(Vec<u8>, Meta, usize)> {
+    let b = std::fs::read(path).map_err(|e| param(name, format!("{}: {e}", path.display())))?;
+    let bad = |why: &str| param(name, format!("{}: {why}", path.display()));
     if b.len() < TRAIN_MAGIC.len() + 16 || &b[..TRAIN_MAGIC.len()] != TRAIN_MAGIC {
         return Err(bad("not a training checkpoint"));
     }
@@ -696,7 +682,8 @@ pub fn read_config(path: &Path) -> Result<TrainConfig> {
     };
     let jl = r.u64()? as usize;
     let meta: Meta = serde_json::from_slice(r.take(jl)?).map_err(|e| bad(&e.to_string()))?;
-    Ok(meta.config)
+    let at = r.at;
+    Ok((b, meta, at))
 }
 
 struct Reader<'b> {
