@@ -328,7 +328,15 @@ impl AsmPsf {
             Some(v) => positive("period_m", v)?,
             None => d + w as f64 * p + margin,
         };
-        let n_fold = fast_fft_size(((period / delta) - 1e-9).ceil().max(2.0) as usize);
+        // Checked in floating point first: a huge period must not wrap the integer size.
+        let folded = ((period / delta) - 1e-9).ceil().max(2.0);
+        if folded.is_nan() || folded > 16384.0 {
+            return Err(OpticsError::param(
+                "period_m",
+                format!("folded grid of {folded:e} samples is too large (max 16384)"),
+            ));
+        }
+        let n_fold = fast_fft_size(folded as usize);
         if n_fold > 16384 {
             return Err(OpticsError::param(
                 "period_m",
@@ -364,7 +372,14 @@ impl AsmPsf {
         // each sub-cell exactly (to QUAD_TOL) from the 2T+1 nearest samples.
         let nyq = OVERSAMPLE / (4.0 * f_band.max(1e-300));
         let sub_max = user_sub.map_or(nyq, |v| v.min(nyq));
-        let q = (p / sub_max - 1e-9).ceil().max(1.0) as usize;
+        let qf = (p / sub_max - 1e-9).ceil().max(1.0);
+        if qf.is_nan() || qf * w as f64 > 8192.0 {
+            return Err(OpticsError::param(
+                "pitch_m",
+                format!("{qf:e} sub-pixel points per pixel × {w} pixels is too many (max 8192)"),
+            ));
+        }
+        let q = qf as usize;
         let sub = p / q as f64;
         let (cw, quad_err) = subcell_quadrature(2.0 * f_band * sub);
         let taps = cw.len() - 1;

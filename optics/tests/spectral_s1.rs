@@ -101,3 +101,43 @@ fn spectral_path_matches_the_reference_forward_and_psf_gradient() {
         );
     }
 }
+
+#[test]
+fn absurd_sizes_are_refused_before_any_integer_conversion() {
+    use nanoeye_optics::{ApertureGrid, AsmPsf, PsfConfig};
+    let grid = ApertureGrid::new(0.1e-3, 2e-6).unwrap();
+    let cfg = PsfConfig {
+        window_px: 16,
+        ..PsfConfig::default()
+    };
+    for (period, pitch) in [(Some(1e17), 3e-6), (None, 6.9359757717147935e19)] {
+        let c = PsfConfig {
+            period_m: period,
+            pitch_m: pitch,
+            ..cfg
+        };
+        assert!(AsmPsf::new(c, grid).is_err(), "{period:?} {pitch}");
+    }
+}
+
+#[test]
+fn saving_over_a_symlink_is_refused() {
+    use nanoeye_optics::{ApertureGrid, AsmPsf, Hyperbolic, PhaseProfile, PsfConfig, PsfModel};
+    let d = tempfile::tempdir().unwrap();
+    let target = d.path().join("elsewhere");
+    let link = d.path().join("psf.npy");
+    std::os::unix::fs::symlink(&target, &link).unwrap();
+    let grid = ApertureGrid::new(0.1e-3, 2e-6).unwrap();
+    let m = AsmPsf::new(
+        PsfConfig {
+            window_px: 8,
+            ..PsfConfig::default()
+        },
+        grid,
+    )
+    .unwrap();
+    let map = Hyperbolic::default().phase_map(&grid).unwrap();
+    let stack = m.forward(&map, &[20e-3], None).unwrap();
+    assert!(nanoeye_optics::io::save_stack_npy(&stack, &link).is_err());
+    assert!(!target.exists());
+}
