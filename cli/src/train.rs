@@ -411,3 +411,193 @@ pub fn rea(a: ReaArgs) -> Result<()> {
     }
     Ok(())
 }
+
+/// `nanoeye search pareto` options.
+#[derive(Debug, Args)]
+pub struct ParetoArgs {
+    /// Trained run directories, comma separated (one per lens).
+    #[arg(long)]
+    runs: String,
+    /// Evaluation dataset (the ambiguity set, C.3).
+    #[arg(long)]
+    dataset: PathBuf,
+    /// Dataset for BN recalibration (default: the evaluation dataset).
+    #[arg(long)]
+    train: Option<PathBuf>,
+    /// Subnets per lens: the run's REA selections by fitness (the first run's, shared by all
+    /// lenses), topped up with uniform draws (resolution scale U[0.3, 1]).
+    #[arg(long, default_value_t = 100)]
+    subnets: usize,
+    /// Seed of the uniform draws.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Plot file (SVG).
+    #[arg(long, default_value = "pareto.svg")]
+    plot: PathBuf,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+fn pareto_svg(lenses: &[(String, Vec<nanoeye_search::pareto::Point>)]) -> String {
+    use nanoeye_search::pareto::front;
+    let (w, ht, m) = (720.0, 420.0, 50.0);
+    let all: Vec<_> = lenses.iter().flat_map(|(_, p)| p.iter()).collect();
+    let xmax = all.iter().map(|p| p.macs as f64).fold(1.0, f64::max) * 1.05;
+    let ymax = all.iter().map(|p| p.v_deg).fold(1e-9, f64::max) * 1.05;
+    let xy = |p: &nanoeye_search::pareto::Point| {
+        (
+            m + (w - 2.0 * m) * p.macs as f64 / xmax,
+            ht - m - (ht - 2.0 * m) * p.v_deg / ymax,
+        )
+    };
+    let colors = ["#c0392b", "#2471a3", "#229954", "#7d3c98", "#b9770e"];
+    let mut s = format!(
+        r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{ht}" font-family="sans-serif" font-size="12">
+<rect width="100%" height="100%" fill="white"/>
+<line x1="{m}" y1="{b}" x2="{r}" y2="{b}" stroke="black"/><line x1="{m}" y1="{m}" x2="{m}" y2="{b}" stroke="black"/>
+<text x="{cx}" y="{tb}" text-anchor="middle">MACs (0 … {xmax:.3e})</text>
+<text x="14" y="{cy}" transform="rotate(-90 14 {cy})" text-anchor="middle">gaze error V, degrees (0 … {ymax:.1})</text>
+"##,
+        b = ht - m,
+        r = w - m,
+        cx = w / 2.0,
+        tb = ht - 10.0,
+        cy = ht / 2.0
+    );
+    for (k, (name, pts)) in lenses.iter().enumerate() {
+        let c = colors[k % colors.len()];
+        for p in pts {
+            let (x, y) = xy(p);
+            s += &format!(
+                "<circle cx=\"{x:.1}\" cy=\"{y:.1}\" r=\"2.5\" fill=\"{c}\" fill-opacity=\"0.5\"/>\n"
+            );
+        }
+        let f: Vec<String> = front(pts)
+            .iter()
+            .map(|p| {
+                let (x, y) = xy(p);
+                format!("{x:.1},{y:.1}")
+            })
+            .collect();
+        s += &format!(
+            "<polyline fill=\"none\" stroke=\"{c}\" stroke-width=\"2\" points=\"{}\"/>\n<text x=\"{}\" y=\"{}\" fill=\"{c}\">{name}</text>\n",
+            f.join(" "),
+            w - m - 150.0,
+            m + 16.0 * k as f64
+        );
+    }
+    s + "</svg>\n"
+}
+
+/// Runs `nanoeye search pareto`.
+pub fn pareto(a: ParetoArgs) -> Result<()> {
+    use nanoeye_search::pareto::{Point, dominates, front};
+    use nanoeye_search::{CameraChain, ChainConfig};
+    use rand::SeedableRng;
+    let t0 = Instant::now();
+    let runs: Vec<PathBuf> = a.runs.split(',').map(|s| PathBuf::from(s.trim())).collect();
+    if runs.is_empty() || runs.iter().any(|r| r.as_os_str().is_empty()) {
+        bail!("--runs: give run directories separated by commas");
+    }
+    if a.subnets == 0 || a.subnets > 100_000 {
+        bail!("--subnets: must be 1..=100000, got {}", a.subnets);
+    }
+    let ds =
+        Dataset::open(&a.dataset).with_context(|| format!("--dataset {}", a.dataset.display()))?;
+    let train = match &a.train {
+        Some(p) => Dataset::open(p).with_context(|| format!("--train {}", p.display()))?,
+        None => ds.clone(),
+    };
+    // Subnets: REA selections of the first run by fitness, then uniform draws.
+    let mut archs: Vec<Arch> = std::fs::read_to_string(runs[0].join("rea_state.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<nanoeye_search::ReaState>(&t).ok())
+        .map(|st| {
+            let mut e = st.evaluated;
+            e.sort_by(|x, y| y.fitness.total_cmp(&x.fitness));
+            e.into_iter().map(|i| i.arch).collect()
+        })
+        .unwrap_or_default();
+    archs.truncate(a.subnets);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
+    while archs.len() < a.subnets {
+        archs.push(Arch::sample(&mut rng));
+    }
+    let mut lenses = Vec::new();
+    for run in &runs {
+        let ck = run.join("checkpoint.bin");
+        let tcfg = nanoeye_search::train::read_config(&ck)
+            .with_context(|| format!("--runs {}", run.display()))?;
+        let mut cc = ChainConfig::default();
+        cc.sensor.base_pitch = cc
+            .sensor
+            .base_pitch
+            .min(ds.manifest.rig.camera.pixel_pitch_m);
+        let chain = CameraChain::for_dataset(&ds, cc.clone())?;
+        let tchain = CameraChain::for_dataset(&train, cc)?;
+        let mut tr = Trainer::from_checkpoint(&tchain, &train, &ck)
+            .with_context(|| format!("--runs {}", run.display()))?;
+        let map = tr.phase_map()?;
+        let p_hat = tr.pitch_um * 1e-6;
+        let (h, w) = chain.native().at(p_hat)?.shape();
+        let mut pts = Vec::with_capacity(archs.len());
+        for (k, arch) in archs.iter().enumerate() {
+            tr.recalibrate(arch, 2)?;
+            let m = nanoeye_search::evaluate_net(
+                &mut tr.net,
+                &chain,
+                &ds,
+                &map,
+                p_hat,
+                arch,
+                tcfg.batch,
+                tcfg.seed,
+            )?;
+            let macs = nanoeye_nets::cost::subnet_cost(&tcfg.supernet, arch, h, w)?.macs;
+            pts.push(Point {
+                macs,
+                v_deg: m.v_deg,
+            });
+            if (k + 1) % (archs.len() / 5).max(1) == 0 {
+                eprintln!("{}: {}/{} subnets", run.display(), k + 1, archs.len());
+            }
+        }
+        lenses.push((run.display().to_string(), pts));
+    }
+    util::write_atomic(&a.plot, pareto_svg(&lenses).as_bytes())
+        .with_context(|| format!("--plot {}", a.plot.display()))?;
+    let mut dom = serde_json::Map::new();
+    for (na, pa) in &lenses {
+        for (nb, pb) in &lenses {
+            if na != nb {
+                dom.insert(
+                    format!("{na} > {nb}"),
+                    dominates(&front(pa), &front(pb)).into(),
+                );
+            }
+        }
+    }
+    let out = serde_json::json!({
+        "lenses": lenses.iter().map(|(n, p)| serde_json::json!({
+            "run": n, "points": p, "front": front(p),
+        })).collect::<Vec<_>>(),
+        "dominates": dom,
+        "subnets": archs.len(),
+        "plot": a.plot.display().to_string(),
+        "seconds": t0.elapsed().as_secs_f64(),
+    });
+    if a.json {
+        println!("{out}");
+    } else {
+        for (n, p) in &lenses {
+            let f = front(p);
+            println!("{n}: {} points, front of {}", p.len(), f.len());
+        }
+        for (k, v) in &dom {
+            println!("{k}: {v}");
+        }
+        println!("plot: {}", a.plot.display());
+    }
+    Ok(())
+}

@@ -7,6 +7,7 @@ pub mod chain;
 pub mod error;
 pub mod geometry;
 pub mod lens;
+pub mod pareto;
 pub mod radiometry;
 pub mod rea;
 pub mod task;
