@@ -16,6 +16,8 @@ pub enum SetArg {
     Variational,
     /// Acquisition protocol: 7 stage positions × 49 targets per subject.
     Protocol,
+    /// Video-like sequence of --n frames: a smooth gaze path while the glasses drift 3 mm.
+    Sequence,
 }
 
 /// Length unit of a mesh file.
@@ -94,6 +96,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SetArg::Ambiguity => RenderSet::Ambiguity,
         SetArg::Variational => RenderSet::Variational,
         SetArg::Protocol => RenderSet::Protocol,
+        SetArg::Sequence => RenderSet::Sequence,
     };
     let opts = DatasetOptions {
         set,

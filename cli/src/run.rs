@@ -78,6 +78,8 @@ pub struct RunConfig {
     pub head_widths: [usize; 2],
     /// The eye–camera rig (`None`: the built-in rig; `--rig FILE` sets it).
     pub rig: Option<Rig>,
+    /// Frames of the video-like demo sequence (smooth gaze path, glasses drifting 3 mm).
+    pub sequence_frames: usize,
 }
 
 impl Default for RunConfig {
@@ -109,6 +111,7 @@ impl Default for RunConfig {
             exposure_ms: 0.1,
             head_widths: [960, 1280],
             rig: None,
+            sequence_frames: 60,
         }
     }
 }
@@ -310,6 +313,13 @@ pub fn run(a: RunArgs) -> Result<()> {
         cfg.seed + 2,
         &cfg,
     )?;
+    let seq = render(
+        &out.join("data/sequence"),
+        RenderSet::Sequence,
+        cfg.sequence_frames.max(1),
+        cfg.seed + 3,
+        &cfg,
+    )?;
     stage("render", t.elapsed().as_secs_f64(), &mut stages)?;
 
     let chain_cfg = {
@@ -326,6 +336,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     };
     let chain = CameraChain::for_dataset(&train, chain_cfg.clone())?;
     let proto_chain = CameraChain::for_dataset(&proto, chain_cfg.clone())?;
+    let seq_chain = CameraChain::for_dataset(&seq, chain_cfg.clone())?;
     let tcfg = |fixed: bool| TrainConfig {
         steps: cfg.train_steps,
         batch: cfg.batch,
@@ -453,6 +464,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     note("evaluating the acquisition protocol (49 targets × 7 slippage states)");
     let mut protocol = serde_json::Map::new();
     let mut pitch = 0.0;
+    let mut demo = serde_json::Value::Null;
     for (name, _) in LENSES {
         let ck = out.join(format!("runs/{name}/checkpoint.bin"));
         let mut tr = Trainer::from_checkpoint(&proto_chain, &proto, &ck)?;
@@ -500,12 +512,44 @@ pub fn run(a: RunArgs) -> Result<()> {
                 )?;
                 protocol.insert(key.into(), protocol_summary(&g.errors_deg));
             }
+            // The demo sequence through the learned chain, frame by frame.
+            let e = nanoeye_search::evaluate_frames(
+                &mut tr.net,
+                &seq_chain,
+                &seq,
+                &map,
+                p_hat,
+                &best.arch,
+                cfg.batch,
+                cfg.seed,
+                SolverInput::Predicted,
+            )?;
+            let mut lines = String::new();
+            for (k, rec) in seq.records.iter().enumerate() {
+                let (ta, te) = nanoeye_gaze::eye::angles_from_gaze(rec.gaze);
+                let est = e.gaze[k].map(|g| {
+                    let (a, el) = nanoeye_gaze::eye::angles_from_gaze(g);
+                    [a.to_degrees(), el.to_degrees()]
+                });
+                lines += &serde_json::json!({
+                    "frame": k,
+                    "true_deg": [ta.to_degrees(), te.to_degrees()],
+                    "tracked_deg": est,
+                    "slip_m": rec.state.slip_m,
+                    "error_deg": e.errors_deg[k],
+                })
+                .to_string();
+                lines.push('\n');
+            }
+            util::write_atomic(&out.join("demo.jsonl"), lines.as_bytes())?;
+            demo = summarize(&e.errors_deg);
         }
     }
     stage("protocol", t.elapsed().as_secs_f64(), &mut stages)?;
     let result = serde_json::json!({
         "stages": stages.0,
         "protocol": protocol,
+        "demo_sequence": demo,
         "best_arch": best.arch,
         "macs": best.macs,
         "v_deg": best.v,

@@ -14,7 +14,8 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
             "protocol_subjects": 1, "train_steps": 2, "batch": 3, "random_subnets": 0,
             "pitch_init_um": 60.0, "pitch_range_um": [48.0, 120.0], "rea_cycles": 1,
             "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0,
-            "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16]}"#,
+            "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16],
+            "sequence_frames": 5}"#,
     )
     .unwrap();
     let out = d.path().join("run");
@@ -59,6 +60,14 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     assert_ne!(p["learned"]["mean_deg"], p["double_helix"]["mean_deg"]);
     assert_ne!(p["hyperbolic"]["mean_deg"], p["double_helix"]["mean_deg"]);
     assert!(r["macs"].as_u64().unwrap() > 0);
+    assert_eq!(r["demo_sequence"]["frames"], 5);
+    assert_eq!(
+        std::fs::read_to_string(out.join("demo.jsonl"))
+            .unwrap()
+            .lines()
+            .count(),
+        5
+    );
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert!(html.contains("data:image/png;base64,") && html.contains("<svg"));
     assert_eq!(

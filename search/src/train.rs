@@ -738,6 +738,8 @@ pub struct FrameEval {
     pub dice: Vec<f64>,
     /// Slippage squared error per frame (mm²).
     pub slip_sq_mm2: Vec<f64>,
+    /// Estimated gaze (unit optical axis) per frame; None where the solver failed.
+    pub gaze: Vec<Option<[f64; 3]>>,
 }
 
 /// Runs `arch` (BN as it stands: recalibrate first) on every frame of `val` through the chain
@@ -800,12 +802,12 @@ pub fn evaluate_frames(
                 SolverInput::Truth => f.record.state.slip_m,
                 SolverInput::Predicted => [0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64 * 1e-3),
             };
+            let sol = solver.solve_mask(probs.as_ref(), slip).ok();
             out.errors_deg.push(
-                solver
-                    .solve_mask(probs.as_ref(), slip)
-                    .ok()
+                sol.as_ref()
                     .map(|s| angular_error(s.gaze, f.record.gaze).to_degrees()),
             );
+            out.gaze.push(sol.map(|s| s.gaze));
         }
     }
     Ok(out)

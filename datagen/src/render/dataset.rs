@@ -25,6 +25,9 @@ pub enum RenderSet {
     Variational,
     /// Acquisition protocol: `n` subjects × 7 stage positions × 49 targets.
     Protocol,
+    /// A video-like sequence of `n` frames of one subject: gaze on a smooth Lissajous path
+    /// (azimuth ±20°, elevation 5° ± 8°) while the glasses drift 0 → 3 mm down the nasal bridge.
+    Sequence,
 }
 
 /// Where the geometry comes from.
@@ -239,6 +242,34 @@ pub fn plan(
                 });
             }
         }
+        RenderSet::Sequence => {
+            if n > states::MAX_SET_ITEMS {
+                return Err(RenderError::Invalid {
+                    what: "n",
+                    reason: format!(
+                        "{n} sequence frames requested, at most {}",
+                        states::MAX_SET_ITEMS
+                    ),
+                });
+            }
+            for i in 0..n {
+                let t = i as f64 / n.max(1) as f64;
+                let tau = std::f64::consts::TAU;
+                let (slip_m, cam_rot_rad) = states::Mounting::NONE.slip(rig, 3e-3 * t);
+                out.push(PlannedFrame {
+                    item: i,
+                    role: "sequence",
+                    subject: subj(0),
+                    state: State {
+                        azimuth_rad: 20f64.to_radians() * (tau * t).sin(),
+                        elevation_rad: (5.0 + 8.0 * (2.0 * tau * t).sin()).to_radians(),
+                        torsion_rad: 0.0,
+                        slip_m,
+                        cam_rot_rad,
+                    },
+                });
+            }
+        }
     }
     Ok(out)
 }
@@ -404,6 +435,7 @@ pub fn manifest_for(opts: &DatasetOptions) -> Result<DatasetManifest, RenderErro
     let frames = match opts.set {
         RenderSet::Ambiguity | RenderSet::Variational => opts.n.saturating_mul(3),
         RenderSet::Protocol => opts.n.saturating_mul(7 * 49),
+        RenderSet::Sequence => opts.n,
     };
     Ok(DatasetManifest {
         format: DATASET_FORMAT,
