@@ -173,7 +173,70 @@ fn check(cfg: &RunConfig) -> Result<()> {
     if !(cfg.aperture_step_um.is_finite() && cfg.aperture_step_um > 0.0) {
         bail!("--config: aperture_step_um must be positive");
     }
+    if cfg.sequence_frames == 0 || cfg.sequence_frames > 100_000 {
+        bail!("--config: sequence_frames must be 1..=100000");
+    }
+    // Everything a later stage would refuse is refused here, before any work or output.
+    let native = nanoeye_datagen::render::dataset::rig_at_size(
+        &cfg.rig.clone().unwrap_or_default(),
+        cfg.width_px,
+        cfg.height_px,
+    )
+    .context("--config: width_px/height_px")?
+    .camera
+    .pixel_pitch_m
+        * 1e6;
+    if cfg.pitch_range_um[0] < native * (1.0 - 1e-9) {
+        bail!(
+            "--config: pitch_range_um starts at {} µm, finer than the {native:.3} µm pixels of a \
+             {}×{} render",
+            cfg.pitch_range_um[0],
+            cfg.width_px,
+            cfg.height_px
+        );
+    }
+    train_config(cfg, false)
+        .validate()
+        .context("--config (training)")?;
+    rea_config(cfg).validate().context("--config (search)")?;
     Ok(())
+}
+
+/// The sandwich-training configuration of each lens.
+fn train_config(cfg: &RunConfig, fixed_lens: bool) -> TrainConfig {
+    TrainConfig {
+        steps: cfg.train_steps,
+        batch: cfg.batch,
+        n_random: cfg.random_subnets,
+        lr_net: cfg.lr_net,
+        lr_phase_rad: cfg.lr_phase_rad,
+        lr_pitch_um: cfg.lr_pitch_um,
+        lambda_slip: cfg.lambda_slip,
+        pitch_init_um: cfg.pitch_init_um,
+        pitch_range_um: cfg.pitch_range_um,
+        fixed_lens,
+        seed: cfg.seed,
+        weights_seed: cfg.seed,
+        supernet: nanoeye_nets::SupernetConfig {
+            head_expand: cfg.head_widths[0],
+            head_hidden: cfg.head_widths[1],
+            ..nanoeye_nets::SupernetConfig::default()
+        },
+    }
+}
+
+/// The evolutionary search's configuration.
+fn rea_config(cfg: &RunConfig) -> ReaConfig {
+    ReaConfig {
+        cycles: cfg.rea_cycles,
+        population: cfg.rea_population,
+        tournament: cfg.rea_tournament,
+        epochs: cfg.rea_epochs,
+        gamma: cfg.gamma,
+        budget_macs: cfg.budget_macs,
+        seed: cfg.seed,
+        ..ReaConfig::default()
+    }
 }
 
 /// Stage times, kept across resumes.
@@ -337,25 +400,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     let chain = CameraChain::for_dataset(&train, chain_cfg.clone())?;
     let proto_chain = CameraChain::for_dataset(&proto, chain_cfg.clone())?;
     let seq_chain = CameraChain::for_dataset(&seq, chain_cfg.clone())?;
-    let tcfg = |fixed: bool| TrainConfig {
-        steps: cfg.train_steps,
-        batch: cfg.batch,
-        n_random: cfg.random_subnets,
-        lr_net: cfg.lr_net,
-        lr_phase_rad: cfg.lr_phase_rad,
-        lr_pitch_um: cfg.lr_pitch_um,
-        lambda_slip: cfg.lambda_slip,
-        pitch_init_um: cfg.pitch_init_um,
-        pitch_range_um: cfg.pitch_range_um,
-        fixed_lens: fixed,
-        seed: cfg.seed,
-        weights_seed: cfg.seed,
-        supernet: nanoeye_nets::SupernetConfig {
-            head_expand: cfg.head_widths[0],
-            head_hidden: cfg.head_widths[1],
-            ..nanoeye_nets::SupernetConfig::default()
-        },
-    };
+    let tcfg = |fixed: bool| train_config(&cfg, fixed);
 
     // 2. Sandwich training per lens.
     for (name, lens) in LENSES {
@@ -416,16 +461,7 @@ pub fn run(a: RunArgs) -> Result<()> {
 
     // 3. Short REA on the co-designed run.
     let t = Instant::now();
-    let rea_cfg = ReaConfig {
-        cycles: cfg.rea_cycles,
-        population: cfg.rea_population,
-        tournament: cfg.rea_tournament,
-        epochs: cfg.rea_epochs,
-        gamma: cfg.gamma,
-        budget_macs: cfg.budget_macs,
-        seed: cfg.seed,
-        ..ReaConfig::default()
-    };
+    let rea_cfg = rea_config(&cfg);
     let learned_ck = out.join("runs/learned/checkpoint.bin");
     let mut rea = Rea::new(&chain, &train, &val, &learned_ck, rea_cfg)?;
     let rea_state = out.join("runs/learned/rea_state.json");

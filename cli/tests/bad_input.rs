@@ -651,3 +651,29 @@ fn sim_and_search_loss_name_their_bad_flags() {
     }
     assert!(!p.join("o").exists(), "a refused sim must write nothing");
 }
+
+#[test]
+fn run_refuses_a_bad_config_before_any_work_or_output() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    for (cfg, key) in [
+        (r#"{"train_steps": 0}"#, "steps"),
+        (r#"{"width_px": 0}"#, "width"),
+        (r#"{"pitch_range_um": [24, 12]}"#, "pitch_range_um"),
+        (r#"{"pitch_range_um": [3, 12]}"#, "pitch_range_um"),
+        (r#"{"rea_population": 0}"#, "population"),
+        (r#"{"rea_tournament": 9}"#, "tournament"),
+        (r#"{"sequence_frames": 100000000}"#, "sequence_frames"),
+        (r#"{"lr_net": 1e300}"#, "lr_net"),
+        (r#"{"bogus": 1}"#, "bogus"),
+        (r#"{"train_pairs": "#, "--config"),
+    ] {
+        std::fs::write(p.join("c.json"), cfg).unwrap();
+        let err = refused(&["run", "--config", "c.json", "--out", "r"], "--config", p);
+        assert!(err.contains(key), "{cfg}: {err}");
+        assert!(
+            !p.join("r").exists(),
+            "{cfg}: a refused run must write nothing"
+        );
+    }
+}
