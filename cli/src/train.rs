@@ -68,6 +68,23 @@ pub struct TrainArgs {
     json: bool,
 }
 
+/// The error prefixed with the CLI flag of the configuration field it names (`flags`: field →
+/// flag), or with `fallback` when it names none.
+fn with_flag(
+    e: nanoeye_search::SearchError,
+    flags: &[(&str, &'static str)],
+    fallback: &'static str,
+) -> anyhow::Error {
+    let flag = match &e {
+        nanoeye_search::SearchError::Param { name, .. } => flags
+            .iter()
+            .find(|(k, _)| k == name)
+            .map_or(fallback, |(_, f)| f),
+        _ => fallback,
+    };
+    anyhow::anyhow!("{flag}: {e}")
+}
+
 /// Loss curves of N_max and N_min as a self-contained SVG.
 pub fn svg_curves(h: &[StepRecord]) -> String {
     let (w, ht, m) = (640.0, 360.0, 40.0);
@@ -152,22 +169,21 @@ pub fn train(a: TrainArgs) -> Result<()> {
         ..TrainConfig::default()
     };
     cfg.validate().map_err(|e| {
-        let m = e.to_string();
-        let flag = [
-            ("`steps`", "--steps"),
-            ("`batch`", "--batch"),
-            ("`n_random`", "--random-subnets"),
-            ("`lr_net`", "--lr-net"),
-            ("`lr_phase_rad`", "--lr-phase-rad"),
-            ("`lr_pitch_um`", "--lr-pitch-um"),
-            ("`lambda_slip`", "--lambda-slip"),
-            ("`pitch_range_um`", "--pitch-range-um"),
-            ("`pitch_init_um`", "--pitch-um"),
-        ]
-        .iter()
-        .find(|(k, _)| m.contains(k))
-        .map_or("--out", |(_, f)| f);
-        anyhow::anyhow!("{flag}: {m}")
+        with_flag(
+            e,
+            &[
+                ("steps", "--steps"),
+                ("batch", "--batch"),
+                ("n_random", "--random-subnets"),
+                ("lr_net", "--lr-net"),
+                ("lr_phase_rad", "--lr-phase-rad"),
+                ("lr_pitch_um", "--lr-pitch-um"),
+                ("lambda_slip", "--lambda-slip"),
+                ("pitch_range_um", "--pitch-range-um"),
+                ("pitch_init_um", "--pitch-um"),
+            ],
+            "--out",
+        )
     })?;
     if a.checkpoint_every == 0 {
         bail!("--checkpoint-every: must be at least 1");
@@ -327,19 +343,18 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         ..ReaConfig::default()
     };
     cfg.validate().map_err(|e| {
-        let m = e.to_string();
-        let flag = [
-            ("`population`", "--population"),
-            ("`tournament`", "--tournament"),
-            ("`cycles`", "--cycles"),
-            ("`epochs`", "--epochs"),
-            ("`gamma`", "--gamma"),
-            ("`mutation_rate`", "--mutation-rate"),
-        ]
-        .iter()
-        .find(|(k, _)| m.contains(k))
-        .map_or("--run", |(_, f)| f);
-        anyhow::anyhow!("{flag}: {m}")
+        with_flag(
+            e,
+            &[
+                ("population", "--population"),
+                ("tournament", "--tournament"),
+                ("cycles", "--cycles"),
+                ("epochs", "--epochs"),
+                ("gamma", "--gamma"),
+                ("mutation_rate", "--mutation-rate"),
+            ],
+            "--run",
+        )
     })?;
     let ck = a.run.join("checkpoint.bin");
     let v = val.as_ref().unwrap_or(&ds);

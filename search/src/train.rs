@@ -190,6 +190,14 @@ impl VecAdam {
     }
 }
 
+/// One step's batch through the chain: what its backward needs.
+struct StepData {
+    frames: Vec<ChainFrame>,
+    map: PhaseMap,
+    psfs: crate::chain::StepPsfs,
+    fwd: crate::chain::ChainForward,
+}
+
 /// Everything a resume needs besides the network and its optimiser.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 struct Meta {
@@ -315,21 +323,66 @@ impl<'a> Trainer<'a> {
         self.chain.load(self.ds, &ids)
     }
 
-    /// One sandwich step (S22).
-    pub fn train_step(&mut self) -> Result<StepRecord> {
-        let t = self.step;
+    /// The batch of step `t` through the chain at the current φ and p̂, with the noise stream
+    /// of step `t`.
+    fn chain_step(&self, t: usize) -> Result<StepData> {
         let frames = self.frames(t)?;
         let map = self.phase_map()?;
         let psfs = self.chain.psfs(&map, &self.chain.active(&frames))?;
-        let p_hat = self.pitch_um * 1e-6;
         let fwd = self.chain.forward(
             &frames,
             &psfs,
-            p_hat,
+            self.pitch_um * 1e-6,
             NoiseMode::Gaussian,
             self.cfg.seed ^ (t as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
         )?;
+        Ok(StepData {
+            frames,
+            map,
+            psfs,
+            fwd,
+        })
+    }
+
+    /// The chain's backward from ∂L/∂input `dx`, then one Adam step of φ (unless the lens is
+    /// fixed) and of p̂ (with `extra_dp_um` added to its gradient, per µm), each at `lr_scale`
+    /// times its rate, p̂ clamped to its range. Returns the RMS change of φ (rad).
+    fn update_optics(
+        &mut self,
+        s: StepData,
+        dx: &Tensor,
+        extra_dp_um: f64,
+        lr_scale: f64,
+    ) -> Result<f64> {
+        let mut acc = self.chain.accumulator();
+        self.chain
+            .backward(&s.frames, &s.psfs, &s.fwd, dx, &mut acc)?;
+        let dp_um = acc.p_hat() * 1e-6 + extra_dp_um;
+        let mut phase_step = 0.0;
+        if !self.cfg.fixed_lens {
+            let g = self.chain.finish(&s.map, &s.psfs, acc)?;
+            let n = self.phase.nrows();
+            let mut x: Vec<f64> = (0..n * n).map(|k| self.phase[(k / n, k % n)]).collect();
+            let gv: Vec<f64> = (0..n * n).map(|k| g.phase_rad[(k / n, k % n)]).collect();
+            phase_step = self
+                .phase_adam
+                .step(&mut x, &gv, self.cfg.lr_phase_rad * lr_scale);
+            self.phase = Mat::from_fn(n, n, |i, j| x[i * n + j]);
+        }
+        let mut p = [self.pitch_um];
+        self.pitch_adam
+            .step(&mut p, &[dp_um], self.cfg.lr_pitch_um * lr_scale);
+        let [lo, hi] = self.cfg.pitch_range_um;
+        self.pitch_um = p[0].clamp(lo, hi);
+        Ok(phase_step)
+    }
+
+    /// One sandwich step (S22).
+    pub fn train_step(&mut self) -> Result<StepRecord> {
+        let t = self.step;
+        let s = self.chain_step(t)?;
         self.net.zero_grad();
+        let fwd = &s.fwd;
         let mut dx = Tensor::zeros(fwd.input.n, 1, fwd.input.h, fwd.input.w);
         let mut losses = Vec::new();
         for a in self.subnets(t) {
@@ -355,22 +408,7 @@ impl<'a> Trainer<'a> {
             &mut self.net,
             cosine_lr(self.cfg.lr_net, 0.0, t, self.cfg.steps),
         )?;
-        let mut acc = self.chain.accumulator();
-        self.chain.backward(&frames, &psfs, &fwd, &dx, &mut acc)?;
-        let dp_um = acc.p_hat() * 1e-6;
-        let mut phase_step = 0.0;
-        if !self.cfg.fixed_lens {
-            let g = self.chain.finish(&map, &psfs, acc)?;
-            let n = self.phase.nrows();
-            let mut x: Vec<f64> = (0..n * n).map(|k| self.phase[(k / n, k % n)]).collect();
-            let gv: Vec<f64> = (0..n * n).map(|k| g.phase_rad[(k / n, k % n)]).collect();
-            phase_step = self.phase_adam.step(&mut x, &gv, self.cfg.lr_phase_rad);
-            self.phase = Mat::from_fn(n, n, |i, j| x[i * n + j]);
-        }
-        let mut p = [self.pitch_um];
-        self.pitch_adam.step(&mut p, &[dp_um], self.cfg.lr_pitch_um);
-        let [lo, hi] = self.cfg.pitch_range_um;
-        self.pitch_um = p[0].clamp(lo, hi);
+        let phase_step = self.update_optics(s, &dx, 0.0, 1.0)?;
         let rec = StepRecord {
             step: t,
             loss_max: losses[0],
@@ -475,25 +513,14 @@ impl<'a> Trainer<'a> {
         lambda_budget: f64,
         lr_scale: f64,
     ) -> Result<(f64, u64)> {
-        let t = self.step;
-        let frames = self.frames(t)?;
-        let map = self.phase_map()?;
-        let psfs = self.chain.psfs(&map, &self.chain.active(&frames))?;
-        let p_hat = self.pitch_um * 1e-6;
-        let fwd = self.chain.forward(
-            &frames,
-            &psfs,
-            p_hat,
-            NoiseMode::Gaussian,
-            self.cfg.seed ^ (t as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
-        )?;
+        let s = self.chain_step(self.step)?;
         self.net.zero_grad();
         let (l, dx) = task_loss(
             &mut self.net,
             std::slice::from_ref(arch),
-            &fwd.input,
-            &fwd.mask,
-            &fwd.slip_mm,
+            &s.fwd.input,
+            &s.fwd.mask,
+            &s.fwd.slip_mm,
             self.cfg.lambda_slip,
             BnMode::Train,
         )?;
@@ -504,29 +531,15 @@ impl<'a> Trainer<'a> {
             ));
         }
         self.opt.step(&mut self.net, self.cfg.lr_net * lr_scale)?;
-        let mut acc = self.chain.accumulator();
-        self.chain.backward(&frames, &psfs, &fwd, &dx, &mut acc)?;
-        let (h, w) = fwd.grid.shape();
+        let (h, w) = s.fwd.grid.shape();
         let macs = nanoeye_nets::cost::subnet_cost(&self.cfg.supernet, arch, h, w)?.macs;
-        let mut dp_um = acc.p_hat() * 1e-6;
-        if budget_macs > 0 && macs > budget_macs {
-            // d/dp̂ [λ (C/B − 1)] with C ∝ p̂⁻²: −2λC/(B p̂).
-            dp_um += -2.0 * lambda_budget * macs as f64 / (budget_macs as f64 * self.pitch_um);
-        }
-        if !self.cfg.fixed_lens {
-            let g = self.chain.finish(&map, &psfs, acc)?;
-            let n = self.phase.nrows();
-            let mut x: Vec<f64> = (0..n * n).map(|k| self.phase[(k / n, k % n)]).collect();
-            let gv: Vec<f64> = (0..n * n).map(|k| g.phase_rad[(k / n, k % n)]).collect();
-            self.phase_adam
-                .step(&mut x, &gv, self.cfg.lr_phase_rad * lr_scale);
-            self.phase = Mat::from_fn(n, n, |i, j| x[i * n + j]);
-        }
-        let mut p = [self.pitch_um];
-        self.pitch_adam
-            .step(&mut p, &[dp_um], self.cfg.lr_pitch_um * lr_scale);
-        let [lo, hi] = self.cfg.pitch_range_um;
-        self.pitch_um = p[0].clamp(lo, hi);
+        // d/dp̂ [λ (C/B − 1)] with C ∝ p̂⁻²: −2λC/(B p̂), only while over the budget.
+        let hinge = if budget_macs > 0 && macs > budget_macs {
+            -2.0 * lambda_budget * macs as f64 / (budget_macs as f64 * self.pitch_um)
+        } else {
+            0.0
+        };
+        self.update_optics(s, &dx, hinge, lr_scale)?;
         self.step += 1;
         Ok((l.total, macs))
     }
