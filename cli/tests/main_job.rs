@@ -158,7 +158,9 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     let r2: serde_json::Value = serde_json::from_slice(&again.stdout).unwrap();
     assert_eq!(r2, r);
     // Another configuration in the same directory is refused.
-    std::fs::write(&cfg, r#"{"width_px": 80, "height_px": 50, "seed": 1}"#).unwrap();
+    // (a valid configuration, so it is the directory check that refuses it)
+    let tiny = std::fs::read_to_string(&cfg).unwrap();
+    std::fs::write(&cfg, tiny.replacen('{', r#"{"seed": 1, "#, 1)).unwrap();
     let o = run();
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--out"));
