@@ -5,7 +5,7 @@ use anyhow::{Context, Result, bail};
 use clap::Subcommand;
 use faer::Mat;
 use nanoeye_gaze::bias::{GazeGrid, MAX_GRID_STEPS, pupil_sphere_bias};
-use nanoeye_gaze::{GazeSolver, SphereSolver};
+use nanoeye_gaze::{GazeSolver, RefractiveSolver, SolverKind, SphereSolver};
 use serde::Deserialize;
 use serde_json::json;
 use std::io::{BufRead, Write};
@@ -25,6 +25,10 @@ pub enum Cmd {
         /// Also output the visual axis (rig's kappa applied).
         #[arg(long)]
         kappa: bool,
+        /// Solver: sphere (S12–S14 on the rig's `eye_radius_m`) or refractive (the pupil seen
+        /// through the rig's cornea, on its pupil sphere; docs/gaze.md).
+        #[arg(long, default_value = "sphere")]
+        solver: String,
         /// Write results here (atomically) instead of stdout.
         #[arg(long)]
         out: Option<PathBuf>,
@@ -66,7 +70,7 @@ pub fn read_mask_png(path: &Path) -> Result<Mat<f32>> {
     }))
 }
 
-fn solve_line(solver: &SphereSolver, line: &str, base: &Path) -> Result<serde_json::Value> {
+fn solve_line(solver: &dyn GazeSolver, line: &str, base: &Path) -> Result<serde_json::Value> {
     let q: Query = serde_json::from_str(line).context("not a query object")?;
     let sol = match (q.pupil_px, q.mask_png) {
         (Some(px), None) => solver.solve_pixel(px, q.slip_m)?,
@@ -89,13 +93,21 @@ pub fn run(cmd: Cmd) -> Result<()> {
             input,
             rig,
             kappa,
+            solver,
             out,
         } => {
             let rig = rig::load(rig.as_deref())?;
-            let mut solver = SphereSolver::new(&rig)?;
-            if kappa {
-                solver = solver.with_kappa(&rig);
-            }
+            let solver: Box<dyn GazeSolver> =
+                match SolverKind::parse(&solver).context("--solver")? {
+                    SolverKind::Sphere => {
+                        let s = SphereSolver::new(&rig)?;
+                        Box::new(if kappa { s.with_kappa(&rig) } else { s })
+                    }
+                    SolverKind::Refractive => {
+                        let s = RefractiveSolver::new(&rig)?;
+                        Box::new(if kappa { s.with_kappa(&rig) } else { s })
+                    }
+                };
             let file = std::fs::File::open(&input)
                 .with_context(|| format!("--input: cannot open '{}'", input.display()))?;
             // Mask paths are relative to the query file's directory.
@@ -116,7 +128,7 @@ pub fn run(cmd: Cmd) -> Result<()> {
                 // A bad line answers with an error object and never stops the batch.
                 let v = match util::jsonl_line(&raw, n) {
                     Ok(line) if line.trim().is_empty() => continue,
-                    Ok(line) => solve_line(&solver, line, &base),
+                    Ok(line) => solve_line(solver.as_ref(), line, &base),
                     Err(e) => Err(e),
                 }
                 .unwrap_or_else(|e| json!({"error": format!("line {n}: {e:#}")}));

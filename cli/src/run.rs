@@ -13,7 +13,7 @@ use clap::Args;
 use nanoeye_datagen::render::{
     Dataset, DatasetOptions, LayerSpec, RenderSet, SceneSource, write_dataset,
 };
-use nanoeye_gaze::Rig;
+use nanoeye_gaze::{Rig, SolverKind};
 use nanoeye_search::{
     CameraChain, ChainConfig, LensSpec, Rea, ReaConfig, ReaState, SolverInput, TrainConfig, Trainer,
 };
@@ -80,6 +80,9 @@ pub struct RunConfig {
     pub rig: Option<Rig>,
     /// Frames of the video-like demo sequence (smooth gaze path, glasses drifting 3 mm).
     pub sequence_frames: usize,
+    /// Gaze solver: "refractive" (the pupil seen through the rig's cornea) or "sphere" (S12's
+    /// sphere of radius `rig.eye_radius_m`, the paper's seed).
+    pub solver: SolverKind,
 }
 
 impl Default for RunConfig {
@@ -112,6 +115,7 @@ impl Default for RunConfig {
             head_widths: [960, 1280],
             rig: None,
             sequence_frames: 60,
+            solver: SolverKind::Refractive,
         }
     }
 }
@@ -222,6 +226,7 @@ fn train_config(cfg: &RunConfig, fixed_lens: bool) -> TrainConfig {
             head_hidden: cfg.head_widths[1],
             ..nanoeye_nets::SupernetConfig::default()
         },
+        solver: cfg.solver,
     }
 }
 
@@ -527,13 +532,28 @@ pub fn run(a: RunArgs) -> Result<()> {
             cfg.batch,
             cfg.seed,
             SolverInput::Predicted,
+            cfg.solver,
         )?;
         protocol.insert(name.to_string(), protocol_summary(&e.errors_deg));
         if name == "learned" {
             pitch = tr.pitch_um;
-            for (key, input) in [
-                ("geometric_no_slip", SolverInput::NoSlip),
-                ("solver_true_mask_true_slip", SolverInput::Truth),
+            // The solver's own share: true masks and slippage, with the configured solver and
+            // with the other one, so the refraction correction's effect is visible.
+            let other = match cfg.solver {
+                SolverKind::Refractive => SolverKind::Sphere,
+                SolverKind::Sphere => SolverKind::Refractive,
+            };
+            for (key, input, kind) in [
+                ("geometric_no_slip", SolverInput::NoSlip, cfg.solver),
+                ("solver_true_mask_true_slip", SolverInput::Truth, cfg.solver),
+                (
+                    match other {
+                        SolverKind::Sphere => "sphere_solver_true_mask_true_slip",
+                        SolverKind::Refractive => "refractive_solver_true_mask_true_slip",
+                    },
+                    SolverInput::Truth,
+                    other,
+                ),
             ] {
                 let g = nanoeye_search::evaluate_frames(
                     &mut tr.net,
@@ -545,6 +565,7 @@ pub fn run(a: RunArgs) -> Result<()> {
                     cfg.batch,
                     cfg.seed,
                     input,
+                    kind,
                 )?;
                 protocol.insert(key.into(), protocol_summary(&g.errors_deg));
             }
@@ -559,6 +580,7 @@ pub fn run(a: RunArgs) -> Result<()> {
                 cfg.batch,
                 cfg.seed,
                 SolverInput::Predicted,
+                cfg.solver,
             )?;
             let mut lines = String::new();
             for (k, rec) in seq.records.iter().enumerate() {

@@ -9,7 +9,7 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use faer::Mat;
-use nanoeye_gaze::{GazeSolver, Rig, SphereSolver};
+use nanoeye_gaze::{GazeSolver, Rig, solver_for};
 use nanoeye_nets::{Arch, BnMode, Supernet, Tensor};
 use nanoeye_sensor::SensorConfig;
 use std::io::{BufWriter, Read, Write};
@@ -39,7 +39,7 @@ pub struct TrackArgs {
 struct Model {
     net: Supernet,
     arch: Arch,
-    solver: SphereSolver,
+    solver: Box<dyn GazeSolver + Send + Sync>,
     shape: (usize, usize),
     black: f32,
     span: f32,
@@ -48,7 +48,7 @@ struct Model {
 
 fn load(a: &TrackArgs) -> Result<Model> {
     let ck = a.model.join("checkpoint.bin");
-    let (mut net, pitch_um, _) = nanoeye_search::load_model(&ck)
+    let (mut net, pitch_um, tcfg) = nanoeye_search::load_model(&ck)
         .with_context(|| format!("--model {}", a.model.display()))?;
     // `nanoeye run` leaves the selected subnet with BN recalibrated exactly (tracker_net.bin);
     // without it the running statistics of training are used.
@@ -99,7 +99,8 @@ fn load(a: &TrackArgs) -> Result<Model> {
     Ok(Model {
         net,
         arch,
-        solver: SphereSolver::new(&rig)?,
+        // The solver the run was validated with (refraction-aware unless it said otherwise).
+        solver: solver_for(&rig, tcfg.solver)?,
         shape,
         black: s.black_level_dn as f32,
         span: (s.max_dn() - s.black_level_dn) as f32,

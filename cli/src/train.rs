@@ -57,6 +57,9 @@ pub struct TrainArgs {
     /// Seed of the initial weights.
     #[arg(long, default_value_t = 0)]
     weights_seed: u64,
+    /// Gaze solver of the validation: refractive (through the rig's cornea) or sphere (S12).
+    #[arg(long, default_value = "refractive")]
+    solver: String,
     /// Steps between checkpoints.
     #[arg(long, default_value_t = 10)]
     checkpoint_every: usize,
@@ -166,6 +169,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
         fixed_lens: a.fixed_lens,
         seed: a.seed,
         weights_seed: a.weights_seed,
+        solver: nanoeye_gaze::SolverKind::parse(&a.solver).context("--solver")?,
         ..TrainConfig::default()
     };
     cfg.validate().map_err(|e| {
@@ -568,6 +572,7 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
                 arch,
                 tcfg.batch,
                 tcfg.seed,
+                tcfg.solver,
             )?;
             let macs = nanoeye_nets::cost::subnet_cost(&tcfg.supernet, arch, h, w)?.macs;
             pts.push(Point {

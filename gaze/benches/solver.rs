@@ -1,8 +1,8 @@
-//! Solver throughput: pixel input, 64×64 mask input, and the pixel VJP.
+//! Solver throughput: pixel input (sphere and refraction-aware), 64×64 mask input, and the pixel VJP.
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use faer::Mat;
-use nanoeye_gaze::{GazeSolver, Rig, SphereSolver};
+use nanoeye_gaze::{GazeSolver, RefractiveSolver, Rig, SphereSolver};
 use std::hint::black_box;
 
 fn bench(c: &mut Criterion) {
@@ -20,6 +20,18 @@ fn bench(c: &mut Criterion) {
             let mut acc = 0.0;
             for &px in &pixels {
                 if let Ok(s) = solver.solve_pixel(black_box(px), slip) {
+                    acc += s.gaze[2];
+                }
+            }
+            acc
+        })
+    });
+    let refractive = RefractiveSolver::new(&rig).unwrap();
+    g.bench_function("refractive_solve_pixel_x1000", |b| {
+        b.iter(|| {
+            let mut acc = 0.0;
+            for &px in &pixels {
+                if let Ok(s) = refractive.solve_pixel(black_box(px), slip) {
                     acc += s.gaze[2];
                 }
             }

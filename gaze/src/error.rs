@@ -46,6 +46,13 @@ pub enum GazeError {
         /// Solver sphere radius (m).
         radius_m: f64,
     },
+    /// The back-projected ray does not reach the pupil through the cornea (it meets the sclera
+    /// or passes the eye), so the refraction-aware solver has no gaze to return.
+    #[error("the camera ray does not reach the pupil through the cornea of radius {radius_m} m")]
+    RayMissesCornea {
+        /// Cornea radius (m).
+        radius_m: f64,
+    },
     /// The (slipped) camera centre lies inside or on the eye sphere.
     #[error(
         "the camera centre is {distance_m} m from the eye centre, inside the eye sphere of radius {radius_m} m"

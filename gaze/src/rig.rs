@@ -3,6 +3,7 @@
 
 use crate::error::GazeError;
 use crate::geom::{self, Mat3, Vec3};
+use crate::refract::Cornea;
 use serde::{Deserialize, Serialize};
 
 /// Default solver sphere radius (m): the seed's 12 mm eyeball (Sec. A.4).
@@ -89,6 +90,10 @@ pub struct Rig {
     pub camera: Camera,
     /// The slippage model.
     pub slip: SlipModel,
+    /// The cornea the refraction-aware solver looks through (absent in older rig files: the
+    /// average eye).
+    #[serde(default)]
+    pub cornea: Cornea,
 }
 
 /// A camera pose: optical centre and camera-to-world rotation.
@@ -408,6 +413,7 @@ impl Default for Rig {
             kappa_rad: [0.0, 0.0],
             camera,
             slip: SlipModel::default(),
+            cornea: Cornea::default(),
         }
     }
 }

@@ -11,7 +11,7 @@ use crate::error::{Result, param};
 use crate::task::task_loss;
 use faer::Mat;
 use nanoeye_datagen::render::{Batcher, Dataset};
-use nanoeye_gaze::{GazeSolver, Rig, SphereSolver, angular_error};
+use nanoeye_gaze::{Rig, SolverKind, angular_error, solver_for};
 use nanoeye_nets::loss::{hard_dice, slip_mse};
 use nanoeye_nets::optim::{Adam, AdamState, cosine_lr};
 use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig, Tensor};
@@ -52,6 +52,9 @@ pub struct TrainConfig {
     pub weights_seed: u64,
     /// Supernet widths.
     pub supernet: SupernetConfig,
+    /// Gaze solver of every evaluation (absent in older checkpoints: refraction-aware).
+    #[serde(default)]
+    pub solver: SolverKind,
 }
 
 impl Default for TrainConfig {
@@ -70,6 +73,7 @@ impl Default for TrainConfig {
             seed: 0,
             weights_seed: 0,
             supernet: SupernetConfig::default(),
+            solver: SolverKind::default(),
         }
     }
 }
@@ -463,6 +467,7 @@ impl<'a> Trainer<'a> {
             arch,
             self.cfg.batch,
             self.cfg.seed,
+            self.cfg.solver,
         )
     }
 
@@ -487,6 +492,7 @@ impl<'a> Trainer<'a> {
             self.cfg.batch,
             self.cfg.seed,
             input,
+            self.cfg.solver,
         )
     }
 
@@ -757,7 +763,7 @@ pub struct FrameEval {
 
 /// Runs `arch` (BN as it stands: recalibrate first) on every frame of `val` through the chain
 /// at φ = `map`, p̂ = `p_hat` (m): predicted mask → S9 → S10–S14 with the predicted slippage
-/// (`input` selects what the solver gets), against the recorded gaze.
+/// (`input` selects what the solver gets, `kind` which solver), against the recorded gaze.
 #[allow(clippy::too_many_arguments)]
 pub fn evaluate_frames(
     net: &mut Supernet,
@@ -769,6 +775,7 @@ pub fn evaluate_frames(
     batch: usize,
     seed: u64,
     input: SolverInput,
+    kind: SolverKind,
 ) -> Result<FrameEval> {
     let rig0: &Rig = &val.manifest.rig;
     let mut out = FrameEval::default();
@@ -782,7 +789,7 @@ pub fn evaluate_frames(
             camera: fwd.grid.camera.clone(),
             ..rig0.clone()
         };
-        let solver = SphereSolver::new(&rig)?;
+        let solver = solver_for(&rig, kind)?;
         let (h, w) = fwd.grid.shape();
         for (b, f) in frames.iter().enumerate() {
             let one = |t: &Tensor, c: usize| Tensor {
@@ -827,7 +834,7 @@ pub fn evaluate_frames(
 }
 
 /// Validation of `arch` (BN as it stands: recalibrate first) on every frame of `val` through
-/// the chain at φ = `map`, p̂ = `p_hat` (m): V, median, failures, Dice, slip MSE.
+/// the chain at φ = `map`, p̂ = `p_hat` (m), solved by `kind`: V, median, failures, Dice, slip MSE.
 #[allow(clippy::too_many_arguments)]
 pub fn evaluate_net(
     net: &mut Supernet,
@@ -838,6 +845,7 @@ pub fn evaluate_net(
     arch: &Arch,
     batch: usize,
     seed: u64,
+    kind: SolverKind,
 ) -> Result<Metrics> {
     let e = evaluate_frames(
         net,
@@ -849,6 +857,7 @@ pub fn evaluate_net(
         batch,
         seed,
         SolverInput::Predicted,
+        kind,
     )?;
     let nb = e.errors_deg.len();
     if nb == 0 {
