@@ -5,6 +5,7 @@
 
 mod datagen;
 mod datagen_render;
+mod figures;
 mod fisher;
 mod gaze;
 mod metalib;

@@ -162,8 +162,11 @@ estimated and the true optical axis (degrees). A frame where no pupil is found o
 misses the sphere counts 90° and is listed under failures. <i>geometric_no_slip</i>: the \
 learned lens and network, but the solver is told there is no slippage. \
 <i>solver_true_mask_true_slip</i>: the true visible-pupil mask on the same sensor grid and the \
-true slippage — the geometric solver's own error (pupil seen through the cornea, the 12 mm \
-sphere) without the network; the difference to <i>learned</i> is the network's share.</p>\
+true slippage — the configured geometric solver's own error without the network; the \
+difference to <i>learned</i> is the network's share. <i>sphere_solver_…</i> / \
+<i>refractive_solver_…</i>: the same with the other solver (the paper's S12 sphere of the \
+rig's eye radius, or the refraction-aware solver that looks through the cornea, \
+docs/gaze.md), so the refraction correction's effect is visible.</p>\
 <table><tr><th>chain</th><th>mean °</th><th>median °</th><th>p95 °</th><th>failures</th><th>frames</th></tr>"
     )?;
     let proto = r["protocol"].as_object().cloned().unwrap_or_default();
@@ -219,9 +222,52 @@ through the chain.</p><div class=\"row\">"
             "<figure><img width=\"256\" alt=\"learned minus hyperbolic\" src=\"data:image/png;base64,{png}\"><figcaption>learned − hyperbolic (black −{m:.3}, white +{m:.3} rad)</figcaption></figure>"
         )?;
     }
+    // PSFs over depth and what the network sees.
+    let depths: Vec<String> = r["psf_depths_mm"]
+        .as_array()
+        .map(|a| {
+            a.iter()
+                .filter_map(|v| v.as_f64())
+                .map(|d| format!("{d:.1}"))
+                .collect()
+        })
+        .unwrap_or_default();
     writeln!(
         h,
-        "</div><h2>Training curves</h2><p>Task loss (Dice + λ·slip MSE in mm²) of the largest and smallest subnet per sandwich step.</p><div class=\"row\">"
+        "</div><h2>PSFs over depth</h2><p>The point-spread function of each lens at the \
+representative depth of every scene slab, near to far ({} mm from the lens), as the chain uses \
+it (normalised to unit sum, P̂ = P/η), each tile scaled to its own peak with a square-root \
+tone curve so the out-of-focus tails show.</p>",
+        depths.join(", ")
+    )?;
+    for name in ["learned", "hyperbolic", "double_helix"] {
+        if let Ok(b) = std::fs::read(out.join(format!("runs/{name}/psfs.png"))) {
+            writeln!(
+                h,
+                "<figure><img style=\"max-width:100%\" alt=\"{name} PSFs\" src=\"data:image/png;base64,{}\"><figcaption>{name}</figcaption></figure>",
+                b64(&b)
+            )?;
+        }
+    }
+    writeln!(
+        h,
+        "<h2>What the network sees</h2><p>Protocol frames (centre target; slippage states 0, 3 \
+and 6) through each lens and the sensor at its p̂, as the selected subnet receives them \
+(contrast stretched for display). Outline of the true visible pupil in green, of the \
+network's predicted mask (p ≥ 0.5) in red, yellow where they coincide.</p>"
+    )?;
+    for name in ["learned", "hyperbolic", "double_helix"] {
+        if let Ok(b) = std::fs::read(out.join(format!("runs/{name}/examples.png"))) {
+            writeln!(
+                h,
+                "<figure><img style=\"max-width:100%\" alt=\"{name} sensor images\" src=\"data:image/png;base64,{}\"><figcaption>{name}</figcaption></figure>",
+                b64(&b)
+            )?;
+        }
+    }
+    writeln!(
+        h,
+        "<h2>Training curves</h2><p>Task loss (Dice + λ·slip MSE in mm²) of the largest and smallest subnet per sandwich step.</p><div class=\"row\">"
     )?;
     for name in ["learned", "hyperbolic", "double_helix"] {
         let hist = history(&out.join(format!("runs/{name}/history.jsonl")));

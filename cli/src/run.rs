@@ -506,6 +506,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     let mut protocol = serde_json::Map::new();
     let mut pitch = 0.0;
     let mut demo = serde_json::Value::Null;
+    let mut psf_depths_mm = Vec::new();
     for (name, _) in LENSES {
         let ck = out.join(format!("runs/{name}/checkpoint.bin"));
         let mut tr = Trainer::from_checkpoint(&proto_chain, &proto, &ck)?;
@@ -522,7 +523,29 @@ pub fn run(a: RunArgs) -> Result<()> {
         nanoeye_nets::checkpoint::from_bytes(&mut tr.net, &bytes)?;
         let map = tr.phase_map()?;
         let p_hat = tr.pitch_um * 1e-6;
-        let e = nanoeye_search::evaluate_frames(
+        // One pass of the chain and the network per lens; for the learned lens the same pass
+        // also feeds the solver without slippage and the solver alone (true masks and
+        // slippage, with the configured solver and with the other one), so the network's and
+        // the refraction correction's shares of the error are visible.
+        let other = match cfg.solver {
+            SolverKind::Refractive => SolverKind::Sphere,
+            SolverKind::Sphere => SolverKind::Refractive,
+        };
+        let mut solves = vec![(name.to_string(), SolverInput::Predicted, cfg.solver)];
+        if name == "learned" {
+            solves.push(("geometric_no_slip".into(), SolverInput::NoSlip, cfg.solver));
+            solves.push((
+                "solver_true_mask_true_slip".into(),
+                SolverInput::Truth,
+                cfg.solver,
+            ));
+            solves.push((
+                format!("{}_solver_true_mask_true_slip", other.name()),
+                SolverInput::Truth,
+                other,
+            ));
+        }
+        let evals = nanoeye_search::evaluate_frames_multi(
             &mut tr.net,
             &proto_chain,
             &proto,
@@ -531,44 +554,33 @@ pub fn run(a: RunArgs) -> Result<()> {
             &best.arch,
             cfg.batch,
             cfg.seed,
-            SolverInput::Predicted,
-            cfg.solver,
+            &solves.iter().map(|(_, i, k)| (*i, *k)).collect::<Vec<_>>(),
         )?;
-        protocol.insert(name.to_string(), protocol_summary(&e.errors_deg));
+        for ((key, _, _), e) in solves.iter().zip(&evals) {
+            protocol.insert(key.clone(), protocol_summary(&e.errors_deg));
+        }
+        // Figures for the report: the lens's PSFs over depth, and three protocol frames
+        // (centre target; slippage states 0, 3 and 6) as the network sees them.
+        let (psf_png, depths) = crate::figures::psf_strip(&proto_chain, &map)?;
+        util::write_atomic(&out.join(format!("runs/{name}/psfs.png")), &psf_png)?;
+        psf_depths_mm = depths;
+        let ids: Vec<usize> = [24, 3 * 49 + 24, 6 * 49 + 24]
+            .into_iter()
+            .filter(|&i| i < proto.len())
+            .collect();
+        let ex = crate::figures::example_strip(
+            &mut tr.net,
+            &proto_chain,
+            &proto,
+            &map,
+            p_hat,
+            &best.arch,
+            &ids,
+            cfg.seed,
+        )?;
+        util::write_atomic(&out.join(format!("runs/{name}/examples.png")), &ex)?;
         if name == "learned" {
             pitch = tr.pitch_um;
-            // The solver's own share: true masks and slippage, with the configured solver and
-            // with the other one, so the refraction correction's effect is visible.
-            let other = match cfg.solver {
-                SolverKind::Refractive => SolverKind::Sphere,
-                SolverKind::Sphere => SolverKind::Refractive,
-            };
-            for (key, input, kind) in [
-                ("geometric_no_slip", SolverInput::NoSlip, cfg.solver),
-                ("solver_true_mask_true_slip", SolverInput::Truth, cfg.solver),
-                (
-                    match other {
-                        SolverKind::Sphere => "sphere_solver_true_mask_true_slip",
-                        SolverKind::Refractive => "refractive_solver_true_mask_true_slip",
-                    },
-                    SolverInput::Truth,
-                    other,
-                ),
-            ] {
-                let g = nanoeye_search::evaluate_frames(
-                    &mut tr.net,
-                    &proto_chain,
-                    &proto,
-                    &map,
-                    p_hat,
-                    &best.arch,
-                    cfg.batch,
-                    cfg.seed,
-                    input,
-                    kind,
-                )?;
-                protocol.insert(key.into(), protocol_summary(&g.errors_deg));
-            }
             // The demo sequence through the learned chain, frame by frame.
             let e = nanoeye_search::evaluate_frames(
                 &mut tr.net,
@@ -612,6 +624,7 @@ pub fn run(a: RunArgs) -> Result<()> {
         "macs": best.macs,
         "v_deg": best.v,
         "pitch_um": pitch,
+        "psf_depths_mm": psf_depths_mm,
         "seconds": t0.elapsed().as_secs_f64(),
         "out": out.display().to_string(),
     });

@@ -49,6 +49,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         "double_helix",
         "geometric_no_slip",
         "solver_true_mask_true_slip",
+        "sphere_solver_true_mask_true_slip",
     ] {
         let s = &p[lens];
         assert_eq!(s["frames"], 343, "{lens}");
@@ -72,9 +73,17 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     assert!(html.contains("data:image/png;base64,") && html.contains("<svg"));
     assert_eq!(
         html.matches("<img").count(),
-        4,
-        "three phase maps and their difference"
+        10,
+        "three phase maps and their difference, three PSF strips, three example strips"
     );
+    for lens in ["learned", "hyperbolic", "double_helix"] {
+        for f in ["psfs.png", "examples.png"] {
+            let p = out.join(format!("runs/{lens}/{f}"));
+            let img = image::open(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+            assert!(img.width() > 0 && img.height() > 0);
+        }
+    }
+    assert_eq!(r["psf_depths_mm"].as_array().unwrap().len(), 8);
     // The tracker on the protocol frames imaged through the learned lens at the learned p̂.
     let bin = env!("CARGO_BIN_EXE_nanoeye");
     let pitch = r["pitch_um"].as_f64().unwrap().to_string();

@@ -24,5 +24,5 @@ pub use rea::{CycleRecord, Individual, Rea, ReaConfig, ReaState};
 pub use task::{TaskLoss, task_loss};
 pub use train::{
     FrameEval, Metrics, SolverInput, StepRecord, TrainConfig, Trainer, evaluate_frames,
-    evaluate_net, load_model,
+    evaluate_frames_multi, evaluate_net, load_model,
 };

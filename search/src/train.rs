@@ -777,8 +777,39 @@ pub fn evaluate_frames(
     input: SolverInput,
     kind: SolverKind,
 ) -> Result<FrameEval> {
+    let mut v = evaluate_frames_multi(
+        net,
+        chain,
+        val,
+        map,
+        p_hat,
+        arch,
+        batch,
+        seed,
+        &[(input, kind)],
+    )?;
+    Ok(v.remove(0))
+}
+
+/// [`evaluate_frames`] for several (solver input, solver) pairs from one pass of the chain and
+/// the network: one [`FrameEval`] per pair, in order.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_frames_multi(
+    net: &mut Supernet,
+    chain: &CameraChain,
+    val: &Dataset,
+    map: &PhaseMap,
+    p_hat: f64,
+    arch: &Arch,
+    batch: usize,
+    seed: u64,
+    solves: &[(SolverInput, SolverKind)],
+) -> Result<Vec<FrameEval>> {
+    if solves.is_empty() {
+        return Err(param("solves", "need at least one solver input"));
+    }
     let rig0: &Rig = &val.manifest.rig;
-    let mut out = FrameEval::default();
+    let mut out = vec![FrameEval::default(); solves.len()];
     let ids: Vec<usize> = (0..val.len()).collect();
     for chunk in ids.chunks(batch.max(1)) {
         let frames = chain.load(val, chunk)?;
@@ -789,7 +820,10 @@ pub fn evaluate_frames(
             camera: fwd.grid.camera.clone(),
             ..rig0.clone()
         };
-        let solver = solver_for(&rig, kind)?;
+        let solvers = solves
+            .iter()
+            .map(|&(_, k)| solver_for(&rig, k))
+            .collect::<std::result::Result<Vec<_>, _>>()?;
         let (h, w) = fwd.grid.shape();
         for (b, f) in frames.iter().enumerate() {
             let one = |t: &Tensor, c: usize| Tensor {
@@ -806,28 +840,35 @@ pub fn evaluate_frames(
                     .collect(),
                 ..target
             };
-            out.dice.push(hard_dice(&one(&o.mask_logits, 1), &hard)?);
-            out.slip_sq_mm2
-                .push(slip_mse(&one(&o.slip, 3), &one(&fwd.slip_mm, 3))?.0);
-            let probs = if input == SolverInput::Truth {
-                Mat::from_fn(h, w, |i, j| fwd.mask.image(b)[i * w + j])
-            } else {
-                Mat::from_fn(h, w, |i, j| {
-                    let l = o.mask_logits.image(b)[i * w + j];
-                    1.0 / (1.0 + (-l).exp())
-                })
-            };
-            let slip = match input {
-                SolverInput::NoSlip => [0.0; 3],
-                SolverInput::Truth => f.record.state.slip_m,
-                SolverInput::Predicted => [0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64 * 1e-3),
-            };
-            let sol = solver.solve_mask(probs.as_ref(), slip).ok();
-            out.errors_deg.push(
-                sol.as_ref()
-                    .map(|s| angular_error(s.gaze, f.record.gaze).to_degrees()),
-            );
-            out.gaze.push(sol.map(|s| s.gaze));
+            let dice = hard_dice(&one(&o.mask_logits, 1), &hard)?;
+            let slip_sq = slip_mse(&one(&o.slip, 3), &one(&fwd.slip_mm, 3))?.0;
+            let predicted = Mat::from_fn(h, w, |i, j| {
+                let l = o.mask_logits.image(b)[i * w + j];
+                1.0 / (1.0 + (-l).exp())
+            });
+            let truth = Mat::from_fn(h, w, |i, j| fwd.mask.image(b)[i * w + j]);
+            for ((&(input, _), solver), e) in solves.iter().zip(&solvers).zip(out.iter_mut()) {
+                e.dice.push(dice);
+                e.slip_sq_mm2.push(slip_sq);
+                let probs = if input == SolverInput::Truth {
+                    &truth
+                } else {
+                    &predicted
+                };
+                let slip = match input {
+                    SolverInput::NoSlip => [0.0; 3],
+                    SolverInput::Truth => f.record.state.slip_m,
+                    SolverInput::Predicted => {
+                        [0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64 * 1e-3)
+                    }
+                };
+                let sol = solver.solve_mask(probs.as_ref(), slip).ok();
+                e.errors_deg.push(
+                    sol.as_ref()
+                        .map(|s| angular_error(s.gaze, f.record.gaze).to_degrees()),
+                );
+                e.gaze.push(sol.map(|s| s.gaze));
+            }
         }
     }
     Ok(out)
