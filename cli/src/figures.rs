@@ -3,10 +3,9 @@
 
 use anyhow::{Context, Result};
 use image::{Rgb, RgbImage};
-use nanoeye_datagen::render::Dataset;
-use nanoeye_nets::{Arch, BnMode, Supernet};
+use nanoeye_nets::{BnMode, Supernet};
 use nanoeye_optics::PhaseMap;
-use nanoeye_search::CameraChain;
+use nanoeye_search::{CameraChain, EvalSetup};
 use nanoeye_sensor::NoiseMode;
 
 /// Gap between tiles (px).
@@ -68,25 +67,20 @@ fn outline(m: &[f32], h: usize, w: usize) -> Vec<bool> {
     out
 }
 
-/// Frames `ids` of `ds` through the chain at φ = `map`, p̂ = `p_hat_m`, and the network
-/// `arch` (BN as it stands): the normalised sensor image in grey (×2 upscaled), the true
-/// visible-pupil outline in green, the predicted one (p ≥ 0.5) in red, yellow where they
-/// coincide; tiles side by side.
-#[allow(clippy::too_many_arguments)]
-pub fn example_strip(
-    net: &mut Supernet,
-    chain: &CameraChain,
-    ds: &Dataset,
-    map: &PhaseMap,
-    p_hat_m: f64,
-    arch: &Arch,
-    ids: &[usize],
-    seed: u64,
-) -> Result<Vec<u8>> {
-    let frames = chain.load(ds, ids)?;
-    let psfs = chain.psfs(map, &chain.active(&frames))?;
-    let fwd = chain.forward(&frames, &psfs, p_hat_m, NoiseMode::Gaussian, seed ^ 0xBEEF)?;
-    let o = net.forward(arch, &fwd.input, BnMode::Eval)?;
+/// Frames `ids` of `s.data` through `s`'s chain, lens, p̂ and subnet (BN as it stands): the
+/// normalised sensor image in grey (×2 upscaled), the true visible-pupil outline in green, the
+/// predicted one (p ≥ 0.5) in red, yellow where they coincide; tiles side by side.
+pub fn example_strip(net: &mut Supernet, s: &EvalSetup, ids: &[usize]) -> Result<Vec<u8>> {
+    let frames = s.chain.load(s.data, ids)?;
+    let psfs = s.chain.psfs(s.map, &s.chain.active(&frames))?;
+    let fwd = s.chain.forward(
+        &frames,
+        &psfs,
+        s.p_hat_m,
+        NoiseMode::Gaussian,
+        s.seed ^ 0xBEEF,
+    )?;
+    let o = net.forward(s.arch, &fwd.input, BnMode::Eval)?;
     let (h, w) = fwd.grid.shape();
     const S: u32 = 2;
     let tw = w as u32 * S;

@@ -92,13 +92,13 @@ impl Default for RunConfig {
             width_px: 320,
             height_px: 200,
             spp: 2,
-            train_pairs: 8,
-            val_pairs: 2,
+            train_pairs: 40,
+            val_pairs: 4,
             protocol_subjects: 1,
-            train_steps: 40,
+            train_steps: 150,
             batch: 4,
-            random_subnets: 1,
-            lr_net: 2e-3,
+            random_subnets: 0,
+            lr_net: 4e-3,
             lr_phase_rad: 2e-2,
             lr_pitch_um: 5e-2,
             lambda_slip: 0.1,
@@ -107,7 +107,7 @@ impl Default for RunConfig {
             rea_cycles: 4,
             rea_population: 4,
             rea_tournament: 2,
-            rea_epochs: 1.0,
+            rea_epochs: 0.1,
             budget_macs: 40_000_000,
             gamma: 10.0,
             aperture_step_um: 1.5,
@@ -545,15 +545,18 @@ pub fn run(a: RunArgs) -> Result<()> {
                 other,
             ));
         }
+        let setup = nanoeye_search::EvalSetup {
+            chain: &proto_chain,
+            data: &proto,
+            map: &map,
+            p_hat_m: p_hat,
+            arch: &best.arch,
+            batch: cfg.batch,
+            seed: cfg.seed,
+        };
         let evals = nanoeye_search::evaluate_frames_multi(
             &mut tr.net,
-            &proto_chain,
-            &proto,
-            &map,
-            p_hat,
-            &best.arch,
-            cfg.batch,
-            cfg.seed,
+            &setup,
             &solves.iter().map(|(_, i, k)| (*i, *k)).collect::<Vec<_>>(),
         )?;
         for ((key, _, _), e) in solves.iter().zip(&evals) {
@@ -568,29 +571,19 @@ pub fn run(a: RunArgs) -> Result<()> {
             .into_iter()
             .filter(|&i| i < proto.len())
             .collect();
-        let ex = crate::figures::example_strip(
-            &mut tr.net,
-            &proto_chain,
-            &proto,
-            &map,
-            p_hat,
-            &best.arch,
-            &ids,
-            cfg.seed,
-        )?;
+        let ex = crate::figures::example_strip(&mut tr.net, &setup, &ids)?;
         util::write_atomic(&out.join(format!("runs/{name}/examples.png")), &ex)?;
         if name == "learned" {
             pitch = tr.pitch_um;
             // The demo sequence through the learned chain, frame by frame.
+            let seq_setup = nanoeye_search::EvalSetup {
+                chain: &seq_chain,
+                data: &seq,
+                ..setup
+            };
             let e = nanoeye_search::evaluate_frames(
                 &mut tr.net,
-                &seq_chain,
-                &seq,
-                &map,
-                p_hat,
-                &best.arch,
-                cfg.batch,
-                cfg.seed,
+                &seq_setup,
                 SolverInput::Predicted,
                 cfg.solver,
             )?;

@@ -85,7 +85,7 @@ impl ChainArgs {
 pub struct SimArgs {
     #[command(flatten)]
     chain: ChainArgs,
-    /// Lens: hyperbolic, double-helix or file:PHASE.npy.
+    /// Lens: hyperbolic, double-helix, flat (no lens) or file:PHASE.npy.
     #[arg(long, default_value = "hyperbolic")]
     lens: LensSpec,
     /// Sensor noise (on: Poisson + read noise, output in DN; off: mean photo-electrons).

@@ -20,7 +20,7 @@ pub struct TrainArgs {
     /// Held-out dataset for validation (default: the training set).
     #[arg(long)]
     val: Option<PathBuf>,
-    /// Initial lens: hyperbolic, double-helix or file:PHASE.npy (e.g. `fisher init`'s
+    /// Initial lens: hyperbolic, double-helix, flat (no lens) or file:PHASE.npy (e.g. `fisher init`'s
     /// DIR/phase.npy, the Fisher initialization of A.2).
     #[arg(long, default_value = "hyperbolic")]
     lens: LensSpec,
@@ -563,17 +563,16 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         let mut pts = Vec::with_capacity(archs.len());
         for (k, arch) in archs.iter().enumerate() {
             tr.recalibrate(arch, 2)?;
-            let m = nanoeye_search::evaluate_net(
-                &mut tr.net,
-                &chain,
-                &ds,
-                &map,
-                p_hat,
+            let setup = nanoeye_search::EvalSetup {
+                chain: &chain,
+                data: &ds,
+                map: &map,
+                p_hat_m: p_hat,
                 arch,
-                tcfg.batch,
-                tcfg.seed,
-                tcfg.solver,
-            )?;
+                batch: tcfg.batch,
+                seed: tcfg.seed,
+            };
+            let m = nanoeye_search::evaluate_net(&mut tr.net, &setup, tcfg.solver)?;
             let macs = nanoeye_nets::cost::subnet_cost(&tcfg.supernet, arch, h, w)?.macs;
             pts.push(Point {
                 macs,

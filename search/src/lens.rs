@@ -5,13 +5,16 @@ use crate::error::{Result, param};
 use nanoeye_optics::{ApertureGrid, DoubleHelix, Hyperbolic, PhaseMap, PhaseProfile};
 use std::path::PathBuf;
 
-/// A lens choice, parsed from `hyperbolic`, `double-helix` or `file:PATH.npy`.
+/// A lens choice, parsed from `hyperbolic`, `double-helix`, `flat` or `file:PATH.npy`.
 #[derive(Clone, Debug, PartialEq)]
 pub enum LensSpec {
     /// Hyperbolic lens focused at 25 mm (the default rig).
     Hyperbolic,
     /// Double-helix (rotating two-lobe) lens over 17–26 mm.
     DoubleHelix,
+    /// No lens: zero phase over the aperture (a bare pinhole-less aperture, no depth cue:
+    /// the control of the co-design claim).
+    Flat,
     /// A phase map (rad, n×n on the aperture grid) from an NPY file.
     File(PathBuf),
 }
@@ -22,10 +25,11 @@ impl std::str::FromStr for LensSpec {
         match s {
             "hyperbolic" => Ok(LensSpec::Hyperbolic),
             "double-helix" => Ok(LensSpec::DoubleHelix),
+            "flat" => Ok(LensSpec::Flat),
             _ => match s.strip_prefix("file:") {
                 Some(p) if !p.is_empty() => Ok(LensSpec::File(PathBuf::from(p))),
                 _ => Err(format!(
-                    "'{s}' is not a lens: use hyperbolic, double-helix or file:PATH.npy"
+                    "'{s}' is not a lens: use hyperbolic, double-helix, flat or file:PATH.npy"
                 )),
             },
         }
@@ -56,6 +60,10 @@ impl LensSpec {
                 ..DoubleHelix::default()
             }
             .phase_map(grid)?),
+            LensSpec::Flat => Ok(PhaseMap::phase_only(
+                *grid,
+                faer::Mat::zeros(grid.n, grid.n),
+            )?),
             LensSpec::File(p) => {
                 let phi = nanoeye_optics::io::read_phase_npy(p)?;
                 if phi.nrows() != grid.n {
@@ -76,5 +84,29 @@ impl LensSpec {
                 Ok(PhaseMap::phase_only(*grid, phi)?)
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn flat_is_zero_phase_and_every_name_parses() {
+        let grid = ApertureGrid::new(1e-3, 20e-6).unwrap();
+        let m = "flat"
+            .parse::<LensSpec>()
+            .unwrap()
+            .phase_map(&grid, 940e-9, 2e-3)
+            .unwrap();
+        assert!(
+            (0..grid.n).all(|i| (0..grid.n).all(|j| m.phase_rad[(i, j)] == 0.0)),
+            "a flat lens bends nothing"
+        );
+        for s in ["hyperbolic", "double-helix", "flat", "file:x.npy"] {
+            assert!(s.parse::<LensSpec>().is_ok(), "{s}");
+        }
+        let e = "fresnel".parse::<LensSpec>().unwrap_err();
+        assert!(e.contains("flat"), "{e}");
     }
 }

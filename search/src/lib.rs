@@ -23,6 +23,6 @@ pub use radiometry::Radiometry;
 pub use rea::{CycleRecord, Individual, Rea, ReaConfig, ReaState};
 pub use task::{TaskLoss, task_loss};
 pub use train::{
-    FrameEval, Metrics, SolverInput, StepRecord, TrainConfig, Trainer, evaluate_frames,
+    EvalSetup, FrameEval, Metrics, SolverInput, StepRecord, TrainConfig, Trainer, evaluate_frames,
     evaluate_frames_multi, evaluate_net, load_model,
 };

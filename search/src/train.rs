@@ -458,17 +458,16 @@ impl<'a> Trainer<'a> {
     ) -> Result<Metrics> {
         self.recalibrate(arch, recal_batches)?;
         let map = self.phase_map()?;
-        evaluate_net(
-            &mut self.net,
-            self.chain,
-            val,
-            &map,
-            self.pitch_um * 1e-6,
+        let s = EvalSetup {
+            chain: self.chain,
+            data: val,
+            map: &map,
+            p_hat_m: self.pitch_um * 1e-6,
             arch,
-            self.cfg.batch,
-            self.cfg.seed,
-            self.cfg.solver,
-        )
+            batch: self.cfg.batch,
+            seed: self.cfg.seed,
+        };
+        evaluate_net(&mut self.net, &s, self.cfg.solver)
     }
 
     /// Per-frame gaze errors of `arch` on `val` after BN recalibration, the solver fed as
@@ -482,18 +481,16 @@ impl<'a> Trainer<'a> {
     ) -> Result<FrameEval> {
         self.recalibrate(arch, recal_batches)?;
         let map = self.phase_map()?;
-        evaluate_frames(
-            &mut self.net,
-            self.chain,
-            val,
-            &map,
-            self.pitch_um * 1e-6,
+        let s = EvalSetup {
+            chain: self.chain,
+            data: val,
+            map: &map,
+            p_hat_m: self.pitch_um * 1e-6,
             arch,
-            self.cfg.batch,
-            self.cfg.seed,
-            input,
-            self.cfg.solver,
-        )
+            batch: self.cfg.batch,
+            seed: self.cfg.seed,
+        };
+        evaluate_frames(&mut self.net, &s, input, self.cfg.solver)
     }
 
     /// A trainer restored from a run's checkpoint, with the run's own configuration.
@@ -761,50 +758,55 @@ pub struct FrameEval {
     pub gaze: Vec<Option<[f64; 3]>>,
 }
 
-/// Runs `arch` (BN as it stands: recalibrate first) on every frame of `val` through the chain
-/// at φ = `map`, p̂ = `p_hat` (m): predicted mask → S9 → S10–S14 with the predicted slippage
+/// What an evaluation runs: every frame of `data` through `chain` at φ = `map`, p̂ =
+/// `p_hat_m` (m), subnet `arch` (BN as it stands: recalibrate first), in batches of `batch`,
+/// sensor noise drawn from `seed`.
+#[derive(Clone, Copy)]
+pub struct EvalSetup<'a> {
+    /// The camera chain.
+    pub chain: &'a CameraChain,
+    /// The frames, with their recorded gaze and slippage.
+    pub data: &'a Dataset,
+    /// The lens.
+    pub map: &'a PhaseMap,
+    /// Effective pixel pitch p̂ (m).
+    pub p_hat_m: f64,
+    /// The subnet.
+    pub arch: &'a Arch,
+    /// Frames per batch.
+    pub batch: usize,
+    /// Noise seed.
+    pub seed: u64,
+}
+
+/// Per-frame gaze errors of `s`: predicted mask → S9 → S10–S14 with the predicted slippage
 /// (`input` selects what the solver gets, `kind` which solver), against the recorded gaze.
-#[allow(clippy::too_many_arguments)]
 pub fn evaluate_frames(
     net: &mut Supernet,
-    chain: &CameraChain,
-    val: &Dataset,
-    map: &PhaseMap,
-    p_hat: f64,
-    arch: &Arch,
-    batch: usize,
-    seed: u64,
+    s: &EvalSetup,
     input: SolverInput,
     kind: SolverKind,
 ) -> Result<FrameEval> {
-    let mut v = evaluate_frames_multi(
-        net,
-        chain,
-        val,
-        map,
-        p_hat,
-        arch,
-        batch,
-        seed,
-        &[(input, kind)],
-    )?;
+    let mut v = evaluate_frames_multi(net, s, &[(input, kind)])?;
     Ok(v.remove(0))
 }
 
 /// [`evaluate_frames`] for several (solver input, solver) pairs from one pass of the chain and
 /// the network: one [`FrameEval`] per pair, in order.
-#[allow(clippy::too_many_arguments)]
 pub fn evaluate_frames_multi(
     net: &mut Supernet,
-    chain: &CameraChain,
-    val: &Dataset,
-    map: &PhaseMap,
-    p_hat: f64,
-    arch: &Arch,
-    batch: usize,
-    seed: u64,
+    s: &EvalSetup,
     solves: &[(SolverInput, SolverKind)],
 ) -> Result<Vec<FrameEval>> {
+    let &EvalSetup {
+        chain,
+        data: val,
+        map,
+        p_hat_m: p_hat,
+        arch,
+        batch,
+        seed,
+    } = s;
     if solves.is_empty() {
         return Err(param("solves", "need at least one solver input"));
     }
@@ -874,32 +876,9 @@ pub fn evaluate_frames_multi(
     Ok(out)
 }
 
-/// Validation of `arch` (BN as it stands: recalibrate first) on every frame of `val` through
-/// the chain at φ = `map`, p̂ = `p_hat` (m), solved by `kind`: V, median, failures, Dice, slip MSE.
-#[allow(clippy::too_many_arguments)]
-pub fn evaluate_net(
-    net: &mut Supernet,
-    chain: &CameraChain,
-    val: &Dataset,
-    map: &PhaseMap,
-    p_hat: f64,
-    arch: &Arch,
-    batch: usize,
-    seed: u64,
-    kind: SolverKind,
-) -> Result<Metrics> {
-    let e = evaluate_frames(
-        net,
-        chain,
-        val,
-        map,
-        p_hat,
-        arch,
-        batch,
-        seed,
-        SolverInput::Predicted,
-        kind,
-    )?;
+/// Validation of `s` solved by `kind`: V, median, failures, Dice, slip MSE.
+pub fn evaluate_net(net: &mut Supernet, s: &EvalSetup, kind: SolverKind) -> Result<Metrics> {
+    let e = evaluate_frames(net, s, SolverInput::Predicted, kind)?;
     let nb = e.errors_deg.len();
     if nb == 0 {
         return Err(param("val", "no validation frames"));
