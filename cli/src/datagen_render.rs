@@ -18,6 +18,8 @@ pub enum SetArg {
     Protocol,
     /// Video-like sequence of --n frames: a smooth gaze path while the glasses drift 3 mm.
     Sequence,
+    /// --n frames spanning the protocol's gaze range and stage slippage (training data).
+    Envelope,
 }
 
 /// Length unit of a mesh file.
@@ -97,6 +99,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SetArg::Variational => RenderSet::Variational,
         SetArg::Protocol => RenderSet::Protocol,
         SetArg::Sequence => RenderSet::Sequence,
+        SetArg::Envelope => RenderSet::Envelope,
     };
     let opts = DatasetOptions {
         set,

@@ -19,26 +19,33 @@ fn encode(img: &RgbImage) -> Result<Vec<u8>> {
 }
 
 /// The PSF of every depth slab of `chain` through `map`, side by side (near to far), each
-/// scaled to its own peak with a square-root tone curve so the out-of-focus tails show; the
-/// PNG's width is slabs × window. Returns the PNG and the slab depths (mm).
+/// scaled to its own peak with a square-root tone curve so the out-of-focus tails show, each
+/// tile upscaled to ≈ 96 px. Returns the PNG and the slab depths (mm).
 pub fn psf_strip(chain: &CameraChain, map: &PhaseMap) -> Result<(Vec<u8>, Vec<f64>)> {
     let depths = chain.depths_m().to_vec();
     let psfs = chain.psfs(map, &vec![true; depths.len()])?;
     let planes = &psfs.unit;
     let n = planes.first().map_or(0, |p| p.nrows()) as u32;
-    let w = planes.len() as u32 * (n + GAP) - GAP;
-    let mut img = RgbImage::from_pixel(w.max(1), n.max(1), Rgb([255, 255, 255]));
+    // Nearest-neighbour upscale so a tile is ≈ 96 px wide: the windows are a few dozen pixels.
+    let z = (96 / n.max(1)).max(1);
+    let t = n * z;
+    let w = planes.len() as u32 * (t + GAP) - GAP;
+    let mut img = RgbImage::from_pixel(w.max(1), t.max(1), Rgb([255, 255, 255]));
     for (k, p) in planes.iter().enumerate() {
         let peak = p
             .col_iter()
             .flat_map(|c| c.iter().copied())
             .fold(0.0f32, f32::max);
         let inv = if peak > 0.0 { 1.0 / peak } else { 0.0 };
-        let x0 = k as u32 * (n + GAP);
+        let x0 = k as u32 * (t + GAP);
         for i in 0..p.nrows() {
             for j in 0..p.ncols() {
                 let v = ((p[(i, j)] * inv).max(0.0).sqrt() * 255.0).round() as u8;
-                img.put_pixel(x0 + j as u32, i as u32, Rgb([v, v, v]));
+                for di in 0..z {
+                    for dj in 0..z {
+                        img.put_pixel(x0 + j as u32 * z + dj, i as u32 * z + di, Rgb([v, v, v]));
+                    }
+                }
             }
         }
     }

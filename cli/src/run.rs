@@ -22,6 +22,30 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+/// Which state set the supernet trains on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TrainSet {
+    /// The protocol's gaze range and stage slippage on top of Table S2's bridge slip.
+    Envelope,
+    /// Table S2's ambiguity pairs.
+    Ambiguity,
+}
+
+// By hand so that a wrong value names its key: serde_json's unknown-variant error does not.
+impl<'de> Deserialize<'de> for TrainSet {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        match s.as_str() {
+            "envelope" => Ok(TrainSet::Envelope),
+            "ambiguity" => Ok(TrainSet::Ambiguity),
+            _ => Err(serde::de::Error::custom(format!(
+                "train_set must be \"envelope\" or \"ambiguity\", got {s:?}"
+            ))),
+        }
+    }
+}
+
 /// The main job's configuration; `nanoeye run --print-config` lists every default.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -34,8 +58,11 @@ pub struct RunConfig {
     pub height_px: usize,
     /// Samples per pixel of the renderer.
     pub spp: usize,
-    /// Ambiguity pairs (3 frames each) for training.
-    pub train_pairs: usize,
+    /// Training set: "envelope" (frames spanning the protocol's gaze range and stage slippage on
+    /// top of Table S2's bridge slip) or "ambiguity" (Table S2's pairs, 3 frames each).
+    pub train_set: TrainSet,
+    /// Training items: frames (envelope) or pairs (ambiguity).
+    pub train_items: usize,
     /// Ambiguity pairs for validation (V of S17/S19).
     pub val_pairs: usize,
     /// Subjects of the acquisition protocol (7 × 49 frames each).
@@ -92,7 +119,8 @@ impl Default for RunConfig {
             width_px: 320,
             height_px: 200,
             spp: 2,
-            train_pairs: 40,
+            train_set: TrainSet::Envelope,
+            train_items: 120,
             val_pairs: 4,
             protocol_subjects: 1,
             train_steps: 150,
@@ -162,11 +190,11 @@ fn load_config(p: Option<&Path>) -> Result<RunConfig> {
 }
 
 fn check(cfg: &RunConfig) -> Result<()> {
-    if cfg.train_pairs == 0 || cfg.val_pairs == 0 || cfg.protocol_subjects == 0 {
-        bail!("--config: train_pairs, val_pairs and protocol_subjects must be at least 1");
+    if cfg.train_items == 0 || cfg.val_pairs == 0 || cfg.protocol_subjects == 0 {
+        bail!("--config: train_items, val_pairs and protocol_subjects must be at least 1");
     }
-    if cfg.train_pairs > 100_000 || cfg.val_pairs > 100_000 || cfg.protocol_subjects > 1000 {
-        bail!("--config: at most 100000 pairs and 1000 protocol subjects");
+    if cfg.train_items > 100_000 || cfg.val_pairs > 100_000 || cfg.protocol_subjects > 1000 {
+        bail!("--config: at most 100000 training items or pairs and 1000 protocol subjects");
     }
     if cfg.spp == 0 || cfg.spp > 1024 {
         bail!("--config: spp must be 1..=1024");
@@ -362,8 +390,11 @@ pub fn run(a: RunArgs) -> Result<()> {
     note("rendering the training, validation and protocol sets");
     let train = render(
         &out.join("data/train"),
-        RenderSet::Ambiguity,
-        cfg.train_pairs,
+        match cfg.train_set {
+            TrainSet::Envelope => RenderSet::Envelope,
+            TrainSet::Ambiguity => RenderSet::Ambiguity,
+        },
+        cfg.train_items,
         cfg.seed,
         &cfg,
     )?;

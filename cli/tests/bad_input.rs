@@ -666,7 +666,9 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         (r#"{"sequence_frames": 100000000}"#, "sequence_frames"),
         (r#"{"lr_net": 1e300}"#, "lr_net"),
         (r#"{"bogus": 1}"#, "bogus"),
-        (r#"{"train_pairs": "#, "--config"),
+        (r#"{"train_items": "#, "--config"),
+        (r#"{"train_items": 0}"#, "train_items"),
+        (r#"{"train_set": "protocol"}"#, "train_set"),
     ] {
         std::fs::write(p.join("c.json"), cfg).unwrap();
         let err = refused(&["run", "--config", "c.json", "--out", "r"], "--config", p);

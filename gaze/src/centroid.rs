@@ -21,6 +21,65 @@ pub struct Centroid {
     pub scale: f64,
 }
 
+/// The mask restricted to its dominant blob: the 8-connected component of pixels ≥ `threshold`
+/// with the largest mass Σ M (values kept), everything else zeroed. A network's soft mask can
+/// carry small false positives (a dark lid fold, a lash shadow) that would drag S9's centroid
+/// off the pupil; a pupil is one blob. Returns the mask unchanged when no pixel reaches the
+/// threshold or when any pixel is NaN (the solver then reports an empty, faint or non-finite
+/// pupil as it would have).
+pub fn dominant_blob(mask: MatRef<'_, f32>, threshold: f32) -> Mat<f32> {
+    let (h, w) = (mask.nrows(), mask.ncols());
+    // A NaN anywhere must reach the centroid, which names it; zeroing it here would hide it.
+    if (0..w).any(|j| (0..h).any(|i| mask[(i, j)].is_nan())) {
+        return mask.to_owned();
+    }
+    let mut label = vec![u32::MAX; h * w];
+    let mut best = (0.0f64, u32::MAX);
+    let mut stack = Vec::new();
+    let mut next = 0u32;
+    for i0 in 0..h {
+        for j0 in 0..w {
+            if label[i0 * w + j0] != u32::MAX || mask[(i0, j0)] < threshold {
+                continue;
+            }
+            let id = next;
+            next += 1;
+            let mut mass = 0.0f64;
+            label[i0 * w + j0] = id;
+            stack.push((i0, j0));
+            while let Some((i, j)) = stack.pop() {
+                mass += mask[(i, j)] as f64;
+                for di in -1isize..=1 {
+                    for dj in -1isize..=1 {
+                        let (a, b) = (i as isize + di, j as isize + dj);
+                        if a < 0 || b < 0 || a >= h as isize || b >= w as isize {
+                            continue;
+                        }
+                        let (a, b) = (a as usize, b as usize);
+                        if label[a * w + b] == u32::MAX && mask[(a, b)] >= threshold {
+                            label[a * w + b] = id;
+                            stack.push((a, b));
+                        }
+                    }
+                }
+            }
+            if mass > best.0 {
+                best = (mass, id);
+            }
+        }
+    }
+    if best.1 == u32::MAX {
+        return mask.to_owned();
+    }
+    Mat::from_fn(h, w, |i, j| {
+        if label[i * w + j] == best.1 {
+            mask[(i, j)]
+        } else {
+            0.0
+        }
+    })
+}
+
 /// Camera pixels per mask pixel for a `mask_w`×`mask_h` mask on a `cam_w`×`cam_h` image.
 pub fn mask_scale(
     mask_w: usize,
@@ -92,6 +151,37 @@ pub fn centroid_vjp(c: &Centroid, h: usize, w: usize, grad_px: [f64; 2]) -> Mat<
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A disc plus a smaller far blob: the blob is removed, the disc's centroid recovered
+    /// exactly; a single disc is left untouched; an all-faint mask, or one
+    /// holding a NaN, comes back unchanged (and the NaN one is refused by the centroid).
+    #[test]
+    fn dominant_blob_drops_false_positives() {
+        let disc = |ci: f64, cj: f64, r: f64| {
+            move |i: usize, j: usize| {
+                if (i as f64 - ci).hypot(j as f64 - cj) <= r {
+                    1.0f32
+                } else {
+                    0.0
+                }
+            }
+        };
+        let (a, b) = (disc(20.0, 30.0, 6.0), disc(5.0, 5.0, 3.0));
+        let m = Mat::<f32>::from_fn(40, 60, |i, j| a(i, j).max(b(i, j)));
+        let only = Mat::<f32>::from_fn(40, 60, a);
+        let d = dominant_blob(m.as_ref(), 0.5);
+        assert_eq!(d, only);
+        assert_eq!(dominant_blob(only.as_ref(), 0.5), only);
+        let c = centroid(d.as_ref(), 1.0).unwrap();
+        assert!((c.px[0] - 30.5).abs() < 1e-9 && (c.px[1] - 20.5).abs() < 1e-9);
+        let faint = Mat::<f32>::from_fn(8, 8, |_, _| 0.1);
+        assert_eq!(dominant_blob(faint.as_ref(), 0.5), faint);
+        let mut nan = m.clone();
+        nan[(39, 59)] = f32::NAN;
+        let kept = dominant_blob(nan.as_ref(), 0.5);
+        assert!(kept[(39, 59)].is_nan() && kept[(5, 5)] == 1.0);
+        assert!(centroid(kept.as_ref(), 1.0).is_err());
+    }
 
     #[test]
     fn one_pixel_mask_is_its_centre() {

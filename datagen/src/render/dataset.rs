@@ -28,6 +28,9 @@ pub enum RenderSet {
     /// A video-like sequence of `n` frames of one subject: gaze on a smooth Lissajous path
     /// (azimuth ±20°, elevation 5° ± 8°) while the glasses drift 0 → 3 mm down the nasal bridge.
     Sequence,
+    /// `n` frames, one subject each, spanning the protocol's gaze range and stage slippage on top
+    /// of Table S2's bridge slip (`states::envelope`): training data for the D.4 evaluation.
+    Envelope,
 }
 
 /// Where the geometry comes from.
@@ -242,6 +245,19 @@ pub fn plan(
                 });
             }
         }
+        RenderSet::Envelope => {
+            for (i, state) in states::envelope(rig, &Protocol::default(), n, seed)?
+                .into_iter()
+                .enumerate()
+            {
+                out.push(PlannedFrame {
+                    item: i,
+                    role: "envelope",
+                    subject: subj(i),
+                    state,
+                });
+            }
+        }
         RenderSet::Sequence => {
             if n > states::MAX_SET_ITEMS {
                 return Err(RenderError::Invalid {
@@ -435,7 +451,7 @@ pub fn manifest_for(opts: &DatasetOptions) -> Result<DatasetManifest, RenderErro
     let frames = match opts.set {
         RenderSet::Ambiguity | RenderSet::Variational => opts.n.saturating_mul(3),
         RenderSet::Protocol => opts.n.saturating_mul(7 * 49),
-        RenderSet::Sequence => opts.n,
+        RenderSet::Sequence | RenderSet::Envelope => opts.n,
     };
     Ok(DatasetManifest {
         format: DATASET_FORMAT,

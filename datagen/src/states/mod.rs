@@ -7,7 +7,7 @@ pub mod truncnorm;
 
 pub use sets::{
     AmbiguityPair, Capture, MAX_PROTOCOL_SUBJECTS, MAX_SET_ITEMS, Protocol, StatesError, TableS2,
-    Triplet, ambiguity, protocol, variational,
+    Triplet, ambiguity, envelope, protocol, variational,
 };
 pub use state::{Mounting, State};
 pub use truncnorm::{TruncNormError, TruncNormal};

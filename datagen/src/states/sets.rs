@@ -427,6 +427,42 @@ pub fn protocol(
     Ok(per_subject?.into_iter().flatten().collect())
 }
 
+/// The training envelope of the protocol: `n` states with gaze uniform over the protocol's
+/// target range (azimuth ±span_h/2, elevation ±span_v/2 + shift, widened by 10 %), the glasses
+/// both slipped along the nasal bridge (Table S2's anchor distance, with its pitch) and moved
+/// anywhere in the stage's box (x ±1 step, z ±2 steps), a fresh mounting perturbation and a
+/// Table S2 torsion per state. A network trained only on Table S2's bridge slips never sees the
+/// camera lateral to or closer than nominal, which D.4's stage states are.
+pub fn envelope(rig: &Rig, p: &Protocol, n: usize, seed: u64) -> Result<Vec<State>, StatesError> {
+    check_count("envelope states", n, MAX_SET_ITEMS)?;
+    rig.validate()?;
+    let t = TableS2::paper();
+    (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let mut rng = item_rng(seed, 5, i as u64);
+            let m = draw_mounting(rig, &mut rng)?;
+            let (h, v) = (0.55 * p.span_h_rad, 0.55 * p.span_v_rad);
+            let az = rng.random_range(-h..=h);
+            let el = p.shift_up_rad + rng.random_range(-v..=v);
+            let d = t.slip_anchor.sample(&mut rng);
+            let (bridge, rot) = m.slip(rig, d);
+            let stage = [
+                rng.random_range(-p.step_m..=p.step_m),
+                0.0,
+                rng.random_range(-2.0 * p.step_m..=2.0 * p.step_m),
+            ];
+            Ok(State {
+                azimuth_rad: az,
+                elevation_rad: el,
+                torsion_rad: t.torsion.sample(&mut rng),
+                slip_m: geom::add(bridge, stage),
+                cam_rot_rad: rot,
+            })
+        })
+        .collect()
+}
+
 /// Pixel of the pupil of `s` (convenience for callers that only hold a rig).
 pub fn pupil_px(rig: &Rig, s: &State) -> Result<[f64; 2], GazeError> {
     project(&rig.camera, &s.camera_pose(rig), s.pupil_center(rig))
@@ -444,6 +480,7 @@ mod bad_input_tests {
             ambiguity(&rig, n, 0).unwrap_err(),
             variational(&rig, n, 0).unwrap_err(),
             protocol(&rig, &Protocol::default(), n, 0).unwrap_err(),
+            envelope(&rig, &Protocol::default(), n, 0).unwrap_err(),
         ] {
             assert!(
                 matches!(
@@ -456,5 +493,38 @@ mod bad_input_tests {
                 "{e}"
             );
         }
+    }
+
+    /// The envelope covers what the protocol tests: every one of the 49 targets has a training
+    /// gaze within 4°, the camera goes lateral on both sides and closer and farther than any
+    /// Table S2 bridge slip would take it, and the same seed gives the same states.
+    #[test]
+    fn envelope_covers_the_protocol() {
+        let rig = Rig::default();
+        let p = Protocol::default();
+        let e = envelope(&rig, &p, 400, 3).unwrap();
+        assert_eq!(e, envelope(&rig, &p, 400, 3).unwrap());
+        let targets = protocol(&rig, &p, 1, 0).unwrap();
+        for t in targets.iter().take(49) {
+            let near = e.iter().any(|s| {
+                (s.azimuth_rad - t.state.azimuth_rad).hypot(s.elevation_rad - t.state.elevation_rad)
+                    < 4f64.to_radians()
+            });
+            assert!(
+                near,
+                "no training gaze near target {:?}",
+                (t.state.azimuth_rad, t.state.elevation_rad)
+            );
+        }
+        let ext = |k: usize| {
+            e.iter()
+                .map(|s| s.slip_m[k])
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+                    (lo.min(v), hi.max(v))
+                })
+        };
+        let (sx, sz) = (ext(0), ext(2));
+        assert!(sx.0 < -0.8 * p.step_m && sx.1 > 0.8 * p.step_m, "x {sx:?}");
+        assert!(sz.0 < -1.5 * p.step_m && sz.1 > 1.5 * p.step_m, "z {sz:?}");
     }
 }
