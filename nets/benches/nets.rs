@@ -1,12 +1,12 @@
-//! Criterion benches: supernet forward and forward+backward (min / max subnet, 64² and 128²,
-//! batch 16), per-layer-kind throughput, and the 1×1 convolution against faer's GEMM on the
-//! same shape. MACs per pass come from the cost model and are printed once per case.
+//! Criterion benches: supernet forward and forward+backward (min / max subnet, 64², 128² and
+//! 320×200, batch 16), per-layer-kind throughput (depthwise forward and backward at strides 1
+//! and 2), and the 1×1 convolution against faer's GEMM on the same shape. MACs per pass come from the cost model and are printed once per case.
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, Par};
 use nanoeye_nets::arch::{Arch, SupernetConfig};
-use nanoeye_nets::conv::{depthwise_forward, pointwise_forward};
+use nanoeye_nets::conv::{depthwise_forward, depthwise_vjp, out_size, pointwise_forward};
 use nanoeye_nets::cost::subnet_cost;
 use nanoeye_nets::se::{SeWeights, se_forward};
 use nanoeye_nets::{BnMode, Supernet, Tensor};
@@ -29,20 +29,19 @@ fn supernet(c: &mut Criterion) {
         .measurement_time(Duration::from_secs(4))
         .warm_up_time(Duration::from_secs(1));
     for (name, arch) in [("min", Arch::min()), ("max", Arch::max())] {
-        for size in [64usize, 128] {
-            let macs = subnet_cost(&cfg, &arch, size, size).expect("cost").macs;
-            eprintln!(
-                "{name} {size}x{size}: {:.2} M MACs per image",
-                macs as f64 / 1e6
-            );
+        // 320×200: the default run's native render, the size the camera chain feeds.
+        for (hh, ww) in [(64usize, 64usize), (128, 128), (200, 320)] {
+            let size = format!("{ww}x{hh}");
+            let macs = subnet_cost(&cfg, &arch, hh, ww).expect("cost").macs;
+            eprintln!("{name} {size}: {:.2} M MACs per image", macs as f64 / 1e6);
             let mut net = Supernet::new(cfg.clone(), 1).expect("net");
-            let x = image(BATCH, 1, size, size);
+            let x = image(BATCH, 1, hh, ww);
             g.throughput(Throughput::Elements(BATCH as u64));
-            g.bench_function(BenchmarkId::new(format!("forward/{name}"), size), |b| {
+            g.bench_function(BenchmarkId::new(format!("forward/{name}"), &size), |b| {
                 b.iter(|| black_box(net.forward(&arch, &x, BnMode::Train).expect("fwd")))
             });
             g.bench_function(
-                BenchmarkId::new(format!("forward_backward/{name}"), size),
+                BenchmarkId::new(format!("forward_backward/{name}"), &size),
                 |b| {
                     b.iter(|| {
                         let out = net.forward(&arch, &x, BnMode::Train).expect("fwd");
@@ -98,13 +97,31 @@ fn layers(c: &mut Criterion) {
             },
         );
     }
-    for k in [3usize, 5, 7] {
-        let x = image(BATCH, 240, 16, 16);
-        let w = vec![0.01f32; 240 * k * k];
-        g.throughput(Throughput::Elements((BATCH * 240 * 256 * k * k) as u64));
-        g.bench_function(BenchmarkId::new("depthwise", k), |b| {
-            b.iter(|| black_box(depthwise_forward(&x, &w, k, 1).expect("dw")))
-        });
+    // Stage-2/3 maps (16², 240 channels) and a stage-1 map at the default render (100×160,
+    // 24 channels); stride 2 halves the output, so its MACs are a quarter.
+    for (c, h, w, s) in [
+        (240usize, 16usize, 16usize, 1usize),
+        (240, 16, 16, 2),
+        (24, 100, 160, 1),
+    ] {
+        for k in [3usize, 5, 7] {
+            let x = image(BATCH, c, h, w);
+            let wt = vec![0.01f32; c * k * k];
+            let (ho, wo) = (out_size(h, k, s), out_size(w, k, s));
+            let macs = (BATCH * c * ho * wo * k * k) as u64;
+            let shape = format!("{c}x{h}x{w}/s{s}/k{k}");
+            g.throughput(Throughput::Elements(macs));
+            g.bench_function(BenchmarkId::new("depthwise", &shape), |b| {
+                b.iter(|| black_box(depthwise_forward(&x, &wt, k, s).expect("dw")))
+            });
+            let dy = image(BATCH, c, ho, wo);
+            let mut dw = vec![0.0f32; c * k * k];
+            // Backward does two products per forward MAC (dL/dx and dL/dw): MACs counted 2×.
+            g.throughput(Throughput::Elements(2 * macs));
+            g.bench_function(BenchmarkId::new("depthwise_vjp", &shape), |b| {
+                b.iter(|| black_box(depthwise_vjp(&x, &wt, k, s, &dy, &mut dw).expect("dw")))
+            });
+        }
     }
     let x = image(BATCH, 240, 16, 16);
     let (w1, b1, w2, b2) = (

@@ -1,6 +1,10 @@
 //! Point-wise activations (ReLU, h-swish, h-sigmoid) and their derivatives.
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+
+/// Elements per rayon task of the element-wise passes (below this, one thread is faster).
+pub(crate) const PAR_MIN: usize = 1 << 15;
 
 /// An element-wise activation; h-swish(x) = x·ReLU6(x+3)/6, h-sigmoid(x) = ReLU6(x+3)/6.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -60,11 +64,18 @@ impl Act {
 
     /// Applies the activation to every element of `x` into a new vector.
     pub fn forward(self, x: &[f32]) -> Vec<f32> {
-        x.iter().map(|&v| self.apply(v)).collect()
+        x.par_iter()
+            .with_min_len(PAR_MIN)
+            .map(|&v| self.apply(v))
+            .collect()
     }
 
     /// VJP: dL/dx = dL/dy ⊙ f'(x), with `x` the pre-activation.
     pub fn vjp(self, x: &[f32], dy: &[f32]) -> Vec<f32> {
-        x.iter().zip(dy).map(|(&v, &g)| g * self.deriv(v)).collect()
+        x.par_iter()
+            .zip(dy)
+            .with_min_len(PAR_MIN)
+            .map(|(&v, &g)| g * self.deriv(v))
+            .collect()
     }
 }

@@ -1,6 +1,7 @@
 //! Convolutions with explicit vector–Jacobian products: dense k×k (the stem), depthwise k×k,
 //! and 1×1 (pointwise) on faer's GEMM. Padding is "same" (k/2), strides 1 or 2.
 
+use crate::depthwise;
 use crate::error::{NetsError, Result};
 use crate::tensor::Tensor;
 use faer::linalg::matmul::matmul;
@@ -141,40 +142,29 @@ pub fn conv2d_vjp(
 /// Depthwise k×k convolution: weights (C, k, k), one filter per channel, no bias.
 pub fn depthwise_forward(x: &Tensor, w: &[f32], k: usize, stride: usize) -> Result<Tensor> {
     check_weights(w.len(), x.c * k * k, "depthwise")?;
-    let (ho, wo) = (out_size(x.h, k, stride), out_size(x.w, k, stride));
-    let mut y = Tensor::zeros(x.n, x.c, ho, wo);
-    let p = k / 2;
-    let (c, hw) = (x.c, x.h * x.w);
-    y.data
-        .par_chunks_mut(ho * wo)
-        .enumerate()
-        .for_each(|(idx, out)| {
-            let ch = idx % c;
-            let xp = &x.data[idx * hw..][..hw];
-            let wk = &w[ch * k * k..][..k * k];
-            for ky in 0..k {
-                let (y0, y1) = valid_range(x.h, ho, stride, ky, p);
-                for kx in 0..k {
-                    let wv = wk[ky * k + kx];
-                    let (x0, x1) = valid_range(x.w, wo, stride, kx, p);
-                    for oy in y0..y1 {
-                        let row = &xp[(oy * stride + ky - p) * x.w..][..x.w];
-                        let orow = &mut out[oy * wo..][..wo];
-                        if stride == 1 {
-                            let off = kx as isize - p as isize;
-                            for ox in x0..x1 {
-                                orow[ox] += wv * row[(ox as isize + off) as usize];
-                            }
-                        } else {
-                            for ox in x0..x1 {
-                                orow[ox] += wv * row[ox * stride + kx - p];
-                            }
-                        }
-                    }
-                }
-            }
-        });
+    check_stride(stride)?;
+    let g = depthwise_geom(x, k, stride);
+    let mut y = Tensor::zeros(x.n, x.c, g.ho, g.wo);
+    depthwise::forward(&g, x.c, &x.data, w, &mut y.data);
     Ok(y)
+}
+
+fn check_stride(stride: usize) -> Result<()> {
+    if stride == 0 {
+        return Err(NetsError::Shape("convolution stride 0".into()));
+    }
+    Ok(())
+}
+
+fn depthwise_geom(x: &Tensor, k: usize, stride: usize) -> depthwise::Geom {
+    depthwise::Geom {
+        h: x.h,
+        w: x.w,
+        ho: out_size(x.h, k, stride),
+        wo: out_size(x.w, k, stride),
+        k,
+        s: stride,
+    }
 }
 
 /// VJP of [`depthwise_forward`]: returns dL/dx and adds dL/dw into `dw`.
@@ -188,50 +178,21 @@ pub fn depthwise_vjp(
 ) -> Result<Tensor> {
     check_weights(w.len(), x.c * k * k, "depthwise")?;
     check_weights(dw.len(), w.len(), "depthwise gradient")?;
-    let (ho, wo) = (out_size(x.h, k, stride), out_size(x.w, k, stride));
-    if dy.shape() != [x.n, x.c, ho, wo] {
+    check_stride(stride)?;
+    let g = depthwise_geom(x, k, stride);
+    if dy.shape() != [x.n, x.c, g.ho, g.wo] {
         return Err(NetsError::Shape(format!(
             "depthwise upstream gradient {:?}",
             dy.shape()
         )));
     }
-    let p = k / 2;
-    let (c, hw) = (x.c, x.h * x.w);
+    let kk = k * k;
     let mut dx = Tensor::zeros(x.n, x.c, x.h, x.w);
-    let dws: Vec<Vec<f32>> = dx
-        .data
-        .par_chunks_mut(hw)
-        .enumerate()
-        .map(|(idx, dxp)| {
-            let ch = idx % c;
-            let xp = &x.data[idx * hw..][..hw];
-            let g = &dy.data[idx * ho * wo..][..ho * wo];
-            let wk = &w[ch * k * k..][..k * k];
-            let mut dwl = vec![0.0f32; k * k];
-            for ky in 0..k {
-                let (y0, y1) = valid_range(x.h, ho, stride, ky, p);
-                for kx in 0..k {
-                    let wv = wk[ky * k + kx];
-                    let (x0, x1) = valid_range(x.w, wo, stride, kx, p);
-                    let mut acc = 0.0f32;
-                    for oy in y0..y1 {
-                        let base = (oy * stride + ky - p) * x.w;
-                        for ox in x0..x1 {
-                            let ix = base + ox * stride + kx - p;
-                            let gv = g[oy * wo + ox];
-                            acc += gv * xp[ix];
-                            dxp[ix] += gv * wv;
-                        }
-                    }
-                    dwl[ky * k + kx] = acc;
-                }
-            }
-            dwl
-        })
-        .collect();
-    for (idx, d) in dws.into_iter().enumerate() {
-        let ch = idx % c;
-        for (a, b) in dw[ch * k * k..][..k * k].iter_mut().zip(d) {
+    let mut per_plane = vec![0.0f32; x.n * x.c * kk];
+    depthwise::backward(&g, x.c, &x.data, w, &dy.data, &mut dx.data, &mut per_plane);
+    // Images summed in index order: the same result for any thread count.
+    for img in per_plane.chunks_exact(x.c * kk) {
+        for (a, b) in dw.iter_mut().zip(img) {
             *a += b;
         }
     }

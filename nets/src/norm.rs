@@ -1,7 +1,9 @@
 //! Batch normalization with training, evaluation and exact-recalibration modes.
 
+use crate::act::PAR_MIN;
 use crate::error::{NetsError, Result};
 use crate::tensor::{Param, Tensor};
+use rayon::prelude::*;
 
 /// How batch-norm layers normalize during a forward pass.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -78,17 +80,20 @@ impl BatchNorm {
             if m == 0.0 {
                 return Err(NetsError::Shape("batch norm over an empty batch".into()));
             }
-            let mut s1 = vec![0.0f64; c];
-            let mut s2 = vec![0.0f64; c];
-            for n in 0..x.n {
-                for ch in 0..c {
-                    let p = &x.data[(n * c + ch) * hw..][..hw];
-                    for &v in p {
-                        s1[ch] += v as f64;
-                        s2[ch] += (v as f64) * (v as f64);
+            // Per channel, images in order: the same sums for any thread count.
+            let (s1, s2): (Vec<f64>, Vec<f64>) = (0..c)
+                .into_par_iter()
+                .map(|ch| {
+                    let (mut a, mut b) = (0.0f64, 0.0f64);
+                    for n in 0..x.n {
+                        for &v in &x.data[(n * c + ch) * hw..][..hw] {
+                            a += v as f64;
+                            b += (v as f64) * (v as f64);
+                        }
                     }
-                }
-            }
+                    (a, b)
+                })
+                .unzip();
             for ch in 0..c {
                 let mu = s1[ch] / m;
                 mean[ch] = mu as f32;
@@ -121,16 +126,22 @@ impl BatchNorm {
         let inv_std: Vec<f32> = var.iter().map(|v| 1.0 / (v + self.eps).sqrt()).collect();
         let mut y = Tensor::zeros(x.n, c, x.h, x.w);
         let mut xhat = vec![0.0f32; x.len()];
-        for n in 0..x.n {
-            for ch in 0..c {
-                let off = (n * c + ch) * hw;
-                let (g, b) = (self.gamma.value[ch], self.beta.value[ch]);
-                for i in off..off + hw {
-                    let h = (x.data[i] - mean[ch]) * inv_std[ch];
-                    xhat[i] = h;
-                    y.data[i] = g * h + b;
-                }
-            }
+        if hw > 0 {
+            let (gamma, beta) = (&self.gamma.value, &self.beta.value);
+            y.data
+                .par_chunks_mut(hw)
+                .zip(xhat.par_chunks_mut(hw))
+                .zip(x.data.par_chunks(hw))
+                .enumerate()
+                .with_min_len((PAR_MIN / hw).max(1))
+                .for_each(|(idx, ((yp, hp), xp))| {
+                    let ch = idx % c;
+                    let (g, b, mu, is) = (gamma[ch], beta[ch], mean[ch], inv_std[ch]);
+                    for ((y, h), &v) in yp.iter_mut().zip(hp.iter_mut()).zip(xp) {
+                        *h = (v - mu) * is;
+                        *y = g * *h + b;
+                    }
+                });
         }
         self.cache = Some(Cache {
             xhat,
@@ -157,29 +168,51 @@ impl BatchNorm {
         let hw = h * w;
         let m = (nb * hw) as f32;
         let mut dx = Tensor::zeros(nb, c, h, w);
-        for ch in 0..c {
-            let (mut sg, mut sgx) = (0.0f32, 0.0f32);
-            for n in 0..nb {
-                let off = (n * c + ch) * hw;
-                for i in off..off + hw {
-                    sg += dy.data[i];
-                    sgx += dy.data[i] * cache.xhat[i];
+        if hw == 0 {
+            return Ok(dx);
+        }
+        let sums: Vec<(f32, f32)> = (0..c)
+            .into_par_iter()
+            .map(|ch| {
+                let (mut sg, mut sgx) = (0.0f32, 0.0f32);
+                for n in 0..nb {
+                    let off = (n * c + ch) * hw;
+                    for (&g, &xh) in dy.data[off..off + hw]
+                        .iter()
+                        .zip(&cache.xhat[off..off + hw])
+                    {
+                        sg += g;
+                        sgx += g * xh;
+                    }
                 }
-            }
+                (sg, sgx)
+            })
+            .collect();
+        for (ch, &(sg, sgx)) in sums.iter().enumerate() {
             self.gamma.grad[ch] += sgx;
             self.beta.grad[ch] += sg;
-            let k = self.gamma.value[ch] * cache.inv_std[ch];
-            for n in 0..nb {
-                let off = (n * c + ch) * hw;
-                for i in off..off + hw {
-                    dx.data[i] = if cache.batch_stats {
-                        k * (dy.data[i] - sg / m - cache.xhat[i] * sgx / m)
-                    } else {
-                        k * dy.data[i]
-                    };
-                }
-            }
         }
+        let gamma = &self.gamma.value;
+        dx.data
+            .par_chunks_mut(hw)
+            .zip(dy.data.par_chunks(hw))
+            .zip(cache.xhat.par_chunks(hw))
+            .enumerate()
+            .with_min_len((PAR_MIN / hw).max(1))
+            .for_each(|(idx, ((dxp, gp), hp))| {
+                let ch = idx % c;
+                let (sg, sgx) = sums[ch];
+                let k = gamma[ch] * cache.inv_std[ch];
+                if cache.batch_stats {
+                    for ((d, &g), &xh) in dxp.iter_mut().zip(gp).zip(hp) {
+                        *d = k * (g - sg / m - xh * sgx / m);
+                    }
+                } else {
+                    for (d, &g) in dxp.iter_mut().zip(gp) {
+                        *d = k * g;
+                    }
+                }
+            });
         Ok(dx)
     }
 

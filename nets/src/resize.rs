@@ -1,6 +1,8 @@
 //! Bilinear resampling to an arbitrary size (half-pixel centres, edge clamp) and its adjoint.
 
+use crate::act::PAR_MIN;
 use crate::tensor::Tensor;
+use rayon::prelude::*;
 
 /// Per output index: (lower source index, upper source index, weight of the upper one).
 fn taps(n_in: usize, n_out: usize) -> Vec<(usize, usize, f32)> {
@@ -22,15 +24,20 @@ pub fn bilinear_forward(x: &Tensor, h: usize, w: usize) -> Tensor {
         return y;
     }
     let (ty, tx) = (taps(x.h, h), taps(x.w, w));
-    for (p, out) in x.data.chunks(x.plane()).zip(y.data.chunks_mut(h * w)) {
-        for (oy, &(y0, y1, ly)) in ty.iter().enumerate() {
-            for (ox, &(x0, x1, lx)) in tx.iter().enumerate() {
-                let top = p[y0 * x.w + x0] * (1.0 - lx) + p[y0 * x.w + x1] * lx;
-                let bot = p[y1 * x.w + x0] * (1.0 - lx) + p[y1 * x.w + x1] * lx;
-                out[oy * w + ox] = top * (1.0 - ly) + bot * ly;
+    let per_task = (PAR_MIN / (h * w)).max(1);
+    x.data
+        .par_chunks(x.plane())
+        .zip(y.data.par_chunks_mut(h * w))
+        .with_min_len(per_task)
+        .for_each(|(p, out)| {
+            for (oy, &(y0, y1, ly)) in ty.iter().enumerate() {
+                for (ox, &(x0, x1, lx)) in tx.iter().enumerate() {
+                    let top = p[y0 * x.w + x0] * (1.0 - lx) + p[y0 * x.w + x1] * lx;
+                    let bot = p[y1 * x.w + x0] * (1.0 - lx) + p[y1 * x.w + x1] * lx;
+                    out[oy * w + ox] = top * (1.0 - ly) + bot * ly;
+                }
             }
-        }
-    }
+        });
     y
 }
 
@@ -42,16 +49,21 @@ pub fn bilinear_vjp(like: [usize; 4], dy: &Tensor) -> Tensor {
         return dx;
     }
     let (ty, tx) = (taps(hi, dy.h), taps(wi, dy.w));
-    for (g, p) in dy.data.chunks(dy.plane()).zip(dx.data.chunks_mut(hi * wi)) {
-        for (oy, &(y0, y1, ly)) in ty.iter().enumerate() {
-            for (ox, &(x0, x1, lx)) in tx.iter().enumerate() {
-                let v = g[oy * dy.w + ox];
-                p[y0 * wi + x0] += v * (1.0 - ly) * (1.0 - lx);
-                p[y0 * wi + x1] += v * (1.0 - ly) * lx;
-                p[y1 * wi + x0] += v * ly * (1.0 - lx);
-                p[y1 * wi + x1] += v * ly * lx;
+    let per_task = (PAR_MIN / dy.plane()).max(1);
+    dy.data
+        .par_chunks(dy.plane())
+        .zip(dx.data.par_chunks_mut(hi * wi))
+        .with_min_len(per_task)
+        .for_each(|(g, p)| {
+            for (oy, &(y0, y1, ly)) in ty.iter().enumerate() {
+                for (ox, &(x0, x1, lx)) in tx.iter().enumerate() {
+                    let v = g[oy * dy.w + ox];
+                    p[y0 * wi + x0] += v * (1.0 - ly) * (1.0 - lx);
+                    p[y0 * wi + x1] += v * (1.0 - ly) * lx;
+                    p[y1 * wi + x0] += v * ly * (1.0 - lx);
+                    p[y1 * wi + x1] += v * ly * lx;
+                }
             }
-        }
-    }
+        });
     dx
 }

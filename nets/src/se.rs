@@ -1,8 +1,9 @@
 //! Squeeze-and-excitation: y = x ⊙ h-sigmoid(W2·ReLU(W1·GAP(x) + b1) + b2).
 
-use crate::act::Act;
+use crate::act::{Act, PAR_MIN};
 use crate::error::{NetsError, Result};
 use crate::tensor::Tensor;
+use rayon::prelude::*;
 
 /// Weights of one SE module: W1 (M, C), b1 (M), W2 (C, M), b2 (C), all row-major.
 #[derive(Clone, Copy, Debug)]
@@ -54,9 +55,11 @@ fn check(x: &Tensor, wt: &SeWeights) -> Result<usize> {
 pub fn se_forward(x: &Tensor, wt: &SeWeights) -> Result<(Tensor, SeCache)> {
     let m = check(x, wt)?;
     let (c, hw) = (x.c, x.plane());
+    let per_task = (PAR_MIN / hw.max(1)).max(1);
     let s: Vec<f32> = x
         .data
-        .chunks(hw.max(1))
+        .par_chunks(hw.max(1))
+        .with_min_len(per_task)
         .map(|p| p.iter().sum::<f32>() / hw as f32)
         .collect();
     let mut z = vec![0.0f32; x.n * m];
@@ -79,10 +82,14 @@ pub fn se_forward(x: &Tensor, wt: &SeWeights) -> Result<(Tensor, SeCache)> {
         }
     }
     let mut y = x.clone();
-    for (p, &av) in y.data.chunks_mut(hw.max(1)).zip(&a) {
-        let g = Act::HSigmoid.apply(av);
-        p.iter_mut().for_each(|v| *v *= g);
-    }
+    y.data
+        .par_chunks_mut(hw.max(1))
+        .zip(&a)
+        .with_min_len(per_task)
+        .for_each(|(p, &av)| {
+            let g = Act::HSigmoid.apply(av);
+            p.iter_mut().for_each(|v| *v *= g);
+        });
     Ok((y, SeCache { s, z, a, m }))
 }
 
@@ -101,19 +108,36 @@ pub fn se_vjp(
     }
     let (c, hw) = (x.c, x.plane());
     let mut dx = Tensor::zeros(x.n, c, x.h, x.w);
-    for n in 0..x.n {
-        let mut ds = vec![0.0f32; c];
-        let mut dz = vec![0.0f32; m];
-        for ch in 0..c {
-            let off = (n * c + ch) * hw;
-            let av = cache.a[n * c + ch];
+    if dx.data.is_empty() {
+        return Ok(dx);
+    }
+    let per_task = (PAR_MIN / hw).max(1);
+    // The plane-sized work (dL/dgate and the gated gradient) in parallel; the small dense
+    // layers below stay serial, in the original order.
+    let dgate: Vec<f32> = dx
+        .data
+        .par_chunks_mut(hw)
+        .zip(dy.data.par_chunks(hw))
+        .zip(x.data.par_chunks(hw))
+        .zip(&cache.a)
+        .with_min_len(per_task)
+        .map(|(((dxp, gp), xp), &av)| {
             let g = Act::HSigmoid.apply(av);
             let mut dg = 0.0f32;
-            for i in off..off + hw {
-                dg += dy.data[i] * x.data[i];
-                dx.data[i] = dy.data[i] * g;
+            for ((d, &gy), &xv) in dxp.iter_mut().zip(gp).zip(xp) {
+                dg += gy * xv;
+                *d = gy * g;
             }
-            let da = dg * Act::HSigmoid.deriv(av);
+            dg
+        })
+        .collect();
+    let mut ds_all = vec![0.0f32; x.n * c];
+    for n in 0..x.n {
+        let ds = &mut ds_all[n * c..][..c];
+        let mut dz = vec![0.0f32; m];
+        for ch in 0..c {
+            let av = cache.a[n * c + ch];
+            let da = dgate[n * c + ch] * Act::HSigmoid.deriv(av);
             gr.b2[ch] += da;
             for j in 0..m {
                 gr.w2[ch * m + j] += da * Act::Relu.apply(cache.z[n * m + j]);
@@ -128,11 +152,14 @@ pub fn se_vjp(
                 ds[ch] += dzj * wt.w1[j * c + ch];
             }
         }
-        for ch in 0..c {
-            let off = (n * c + ch) * hw;
-            let v = ds[ch] / hw as f32;
-            dx.data[off..off + hw].iter_mut().for_each(|d| *d += v);
-        }
     }
+    dx.data
+        .par_chunks_mut(hw)
+        .zip(&ds_all)
+        .with_min_len(per_task)
+        .for_each(|(p, &d)| {
+            let v = d / hw as f32;
+            p.iter_mut().for_each(|x| *x += v);
+        });
     Ok(dx)
 }

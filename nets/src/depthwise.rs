@@ -1,0 +1,397 @@
+//! Depthwise k×k convolution kernels (forward, input and weight gradients), NCHW.
+//!
+//! Each (image, channel) plane is copied once into a zero-padded scratch whose columns are
+//! split by parity of the stride (phase q = column mod s), so every tap (ky, kx) of every
+//! output row reads one contiguous, bounds-free run of `wo` values: the inner loops are
+//! straight-line multiply–adds the compiler vectorizes. On x86-64 with AVX2 and FMA (checked
+//! at run time) the same code is compiled a second time with fused multiply–adds.
+//! Scratch lives per rayon task, not per plane; planes are grouped so a task carries enough
+//! work to pay for the scheduling.
+
+use rayon::prelude::*;
+
+/// Output lanes accumulated in registers per block of an output row.
+const LANES: usize = 16;
+/// Smallest number of multiply–adds a rayon task should carry.
+const TASK_MACS: usize = 1 << 16;
+
+/// Shape of one plane's depthwise convolution (same padding k/2, stride s).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Geom {
+    /// Input height, width (pixels).
+    pub h: usize,
+    pub w: usize,
+    /// Output height, width (pixels).
+    pub ho: usize,
+    pub wo: usize,
+    /// Kernel size and stride.
+    pub k: usize,
+    pub s: usize,
+}
+
+impl Geom {
+    fn pad(&self) -> usize {
+        self.k / 2
+    }
+    /// Padded rows.
+    fn rows(&self) -> usize {
+        self.h + 2 * self.pad()
+    }
+    /// Columns of one phase of a padded row.
+    fn cw(&self) -> usize {
+        (self.w + 2 * self.pad()).div_ceil(self.s)
+    }
+    fn scratch_len(&self) -> usize {
+        self.rows() * self.s * self.cw()
+    }
+    /// Planes per rayon task.
+    fn planes_per_task(&self) -> usize {
+        (TASK_MACS / (self.ho * self.wo * self.k * self.k).max(1)).max(1)
+    }
+}
+
+#[inline(always)]
+fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
+    // Without the FMA target feature `mul_add` would be a libm call; with it, one instruction.
+    if FMA { a.mul_add(b, c) } else { a * b + c }
+}
+
+/// Copies plane `x` (h × w) into the zero-padded, phase-split scratch.
+#[inline(always)]
+fn fill(g: &Geom, x: &[f32], buf: &mut Vec<f32>) {
+    buf.clear();
+    buf.resize(g.scratch_len(), 0.0);
+    let (p, s, cw, w) = (g.pad(), g.s, g.cw(), g.w);
+    for (iy, row) in x.chunks_exact(w).enumerate() {
+        let r = iy + p;
+        if s == 1 {
+            buf[r * cw + p..][..w].copy_from_slice(row);
+            continue;
+        }
+        for q in 0..s {
+            let dst = &mut buf[(r * s + q) * cw..][..cw];
+            for (j, d) in dst.iter_mut().enumerate() {
+                let c = q + s * j;
+                if c >= p && c - p < w {
+                    *d = row[c - p];
+                }
+            }
+        }
+    }
+}
+
+/// The inverse of [`fill`] on the interior: padded, phase-split `buf` → plane `x`.
+#[inline(always)]
+fn unfill(g: &Geom, buf: &[f32], x: &mut [f32]) {
+    let (p, s, cw, w) = (g.pad(), g.s, g.cw(), g.w);
+    for (iy, row) in x.chunks_exact_mut(w).enumerate() {
+        let r = iy + p;
+        if s == 1 {
+            row.copy_from_slice(&buf[r * cw + p..][..w]);
+            continue;
+        }
+        for q in 0..s {
+            let src = &buf[(r * s + q) * cw..][..cw];
+            for (j, &v) in src.iter().enumerate() {
+                let c = q + s * j;
+                if c >= p && c - p < w {
+                    row[c - p] = v;
+                }
+            }
+        }
+    }
+}
+
+/// Offset of tap (ky, kx) from the start of output row 0's input window, per tap; output row
+/// `oy` adds `oy · s² · cw`.
+#[inline(always)]
+fn tap_offsets(g: &Geom, offs: &mut Vec<usize>) {
+    offs.clear();
+    let (s, cw) = (g.s, g.cw());
+    for ky in 0..g.k {
+        for kx in 0..g.k {
+            offs.push((ky * s + kx % s) * cw + kx / s);
+        }
+    }
+}
+
+/// Per-task scratch: the padded plane, its gradient and the tap offsets.
+#[derive(Default)]
+struct Scratch {
+    buf: Vec<f32>,
+    dbuf: Vec<f32>,
+    offs: Vec<usize>,
+}
+
+#[inline(always)]
+fn forward_plane<const FMA: bool>(
+    g: &Geom,
+    x: &[f32],
+    wk: &[f32],
+    sc: &mut Scratch,
+    out: &mut [f32],
+) {
+    fill(g, x, &mut sc.buf);
+    tap_offsets(g, &mut sc.offs);
+    let (buf, offs) = (&sc.buf, &sc.offs);
+    let (wo, row_step) = (g.wo, g.s * g.s * g.cw());
+    for (oy, orow) in out.chunks_exact_mut(wo).enumerate() {
+        let base = oy * row_step;
+        let mut x0 = 0;
+        while x0 + LANES <= wo {
+            let mut acc = [0.0f32; LANES];
+            for (&wv, &off) in wk.iter().zip(offs) {
+                let src = &buf[base + off + x0..][..LANES];
+                for (a, &v) in acc.iter_mut().zip(src) {
+                    *a = madd::<FMA>(wv, v, *a);
+                }
+            }
+            orow[x0..x0 + LANES].copy_from_slice(&acc);
+            x0 += LANES;
+        }
+        if x0 < wo {
+            let tail = &mut orow[x0..];
+            tail.fill(0.0);
+            for (&wv, &off) in wk.iter().zip(offs) {
+                let src = &buf[base + off + x0..][..tail.len()];
+                for (a, &v) in tail.iter_mut().zip(src) {
+                    *a = madd::<FMA>(wv, v, *a);
+                }
+            }
+        }
+    }
+}
+
+/// dL/dx of one plane into `dx`, dL/dw of its k² taps into `dw` (overwritten).
+#[inline(always)]
+fn backward_plane<const FMA: bool>(
+    g: &Geom,
+    x: &[f32],
+    wk: &[f32],
+    dy: &[f32],
+    sc: &mut Scratch,
+    dx: &mut [f32],
+    dw: &mut [f32],
+) {
+    fill(g, x, &mut sc.buf);
+    tap_offsets(g, &mut sc.offs);
+    sc.dbuf.clear();
+    sc.dbuf.resize(g.scratch_len(), 0.0);
+    let (buf, dbuf, offs) = (&sc.buf, &mut sc.dbuf, &sc.offs);
+    let (wo, row_step) = (g.wo, g.s * g.s * g.cw());
+    // Tap-major: each tap's weight gradient keeps its lane sums over the whole plane, so the
+    // horizontal reduction is paid once per tap, not once per row.
+    for ((d, &wv), &off) in dw.iter_mut().zip(wk).zip(offs) {
+        let mut lanes = [0.0f32; 8];
+        let mut rest = 0.0f32;
+        for (oy, grow) in dy.chunks_exact(wo).enumerate() {
+            let at = oy * row_step + off;
+            let src = &buf[at..][..wo];
+            let (cg, cs) = (grow.chunks_exact(8), src.chunks_exact(8));
+            for (t, &gv) in cg.remainder().iter().zip(cs.remainder()) {
+                rest = madd::<FMA>(*t, gv, rest);
+            }
+            for (a, b) in cg.zip(cs) {
+                for l in 0..8 {
+                    lanes[l] = madd::<FMA>(a[l], b[l], lanes[l]);
+                }
+            }
+            for (t, &gv) in dbuf[at..][..wo].iter_mut().zip(grow) {
+                *t = madd::<FMA>(wv, gv, *t);
+            }
+        }
+        *d = lanes.iter().sum::<f32>() + rest;
+    }
+    unfill(g, dbuf, dx);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn forward_plane_fma(g: &Geom, x: &[f32], wk: &[f32], sc: &mut Scratch, out: &mut [f32]) {
+    forward_plane::<true>(g, x, wk, sc, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn backward_plane_fma(
+    g: &Geom,
+    x: &[f32],
+    wk: &[f32],
+    dy: &[f32],
+    sc: &mut Scratch,
+    dx: &mut [f32],
+    dw: &mut [f32],
+) {
+    backward_plane::<true>(g, x, wk, dy, sc, dx, dw)
+}
+
+fn has_fma() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Forward over all planes: `x` is N·C planes of h×w, `w` C kernels of k², `y` N·C planes of
+/// ho×wo (overwritten). Shapes are the caller's to check.
+pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
+    let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
+    if howo == 0 || hw == 0 {
+        y.fill(0.0);
+        return;
+    }
+    let fma = has_fma();
+    y.par_chunks_mut(howo)
+        .enumerate()
+        .with_min_len(g.planes_per_task())
+        .for_each_init(Scratch::default, |sc, (idx, out)| {
+            let xp = &x[idx * hw..][..hw];
+            let wk = &w[(idx % c) * kk..][..kk];
+            #[cfg(target_arch = "x86_64")]
+            if fma {
+                // SAFETY: AVX2 and FMA were detected on this CPU just above.
+                unsafe { forward_plane_fma(g, xp, wk, sc, out) };
+                return;
+            }
+            let _ = fma;
+            forward_plane::<false>(g, xp, wk, sc, out)
+        });
+}
+
+/// Backward over all planes: dL/dx into `dx` (N·C planes of h×w, overwritten) and per-plane
+/// dL/dw into `dw_planes` (N·C blocks of k², overwritten; the caller sums over images in a
+/// fixed order so the result does not depend on the thread count).
+pub(crate) fn backward(
+    g: &Geom,
+    c: usize,
+    x: &[f32],
+    w: &[f32],
+    dy: &[f32],
+    dx: &mut [f32],
+    dw_planes: &mut [f32],
+) {
+    let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
+    if hw == 0 || howo == 0 {
+        dx.fill(0.0);
+        dw_planes.fill(0.0);
+        return;
+    }
+    let fma = has_fma();
+    dx.par_chunks_mut(hw)
+        .zip(dw_planes.par_chunks_mut(kk))
+        .enumerate()
+        .with_min_len(g.planes_per_task())
+        .for_each_init(Scratch::default, |sc, (idx, (dxp, dwp))| {
+            let xp = &x[idx * hw..][..hw];
+            let g_ = &dy[idx * howo..][..howo];
+            let wk = &w[(idx % c) * kk..][..kk];
+            #[cfg(target_arch = "x86_64")]
+            if fma {
+                // SAFETY: AVX2 and FMA were detected on this CPU just above.
+                unsafe { backward_plane_fma(g, xp, wk, g_, sc, dxp, dwp) };
+                return;
+            }
+            let _ = fma;
+            backward_plane::<false>(g, xp, wk, g_, sc, dxp, dwp)
+        });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::conv::out_size;
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+
+    /// Direct definition, f64: y[o] = Σ_t w[t]·x[o·s + t − p] with zeros outside.
+    fn reference(g: &Geom, x: &[f32], wk: &[f32], dy: &[f32]) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let p = g.pad() as isize;
+        let mut y = vec![0.0f64; g.ho * g.wo];
+        let mut dx = vec![0.0f64; g.h * g.w];
+        let mut dw = vec![0.0f64; g.k * g.k];
+        for oy in 0..g.ho {
+            for ox in 0..g.wo {
+                for ky in 0..g.k {
+                    for kx in 0..g.k {
+                        let iy = (oy * g.s + ky) as isize - p;
+                        let ix = (ox * g.s + kx) as isize - p;
+                        if iy < 0 || ix < 0 || iy >= g.h as isize || ix >= g.w as isize {
+                            continue;
+                        }
+                        let (i, t, o) = (
+                            iy as usize * g.w + ix as usize,
+                            ky * g.k + kx,
+                            oy * g.wo + ox,
+                        );
+                        y[o] += wk[t] as f64 * x[i] as f64;
+                        dx[i] += wk[t] as f64 * dy[o] as f64;
+                        dw[t] += x[i] as f64 * dy[o] as f64;
+                    }
+                }
+            }
+        }
+        (y, dx, dw)
+    }
+
+    /// Both code paths (plain and, where the CPU has it, FMA) against the direct definition
+    /// on random shapes: tiny planes smaller than the kernel, odd and even sizes, rows shorter
+    /// and longer than a register block, strides 1–3.
+    #[test]
+    fn planes_match_the_definition() {
+        let mut rng = StdRng::seed_from_u64(7);
+        for case in 0..300 {
+            let k = [1, 3, 5, 7][case % 4];
+            let s = 1 + case % 3;
+            let (h, w) = (rng.random_range(1..24), rng.random_range(1..41));
+            let g = Geom {
+                h,
+                w,
+                ho: out_size(h, k, s),
+                wo: out_size(w, k, s),
+                k,
+                s,
+            };
+            let x: Vec<f32> = (0..h * w).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let wk: Vec<f32> = (0..k * k).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let dy: Vec<f32> = (0..g.ho * g.wo)
+                .map(|_| rng.random_range(-1.0..1.0))
+                .collect();
+            let (y0, dx0, dw0) = reference(&g, &x, &wk, &dy);
+            let close = |a: &[f32], b: &[f64], what: &str| {
+                for (i, (&u, &v)) in a.iter().zip(b).enumerate() {
+                    assert!(
+                        (u as f64 - v).abs() < 1e-5 * (1.0 + v.abs()) * (k * k) as f64,
+                        "{what}[{i}] {u} vs {v} in {g:?}"
+                    );
+                }
+            };
+            let mut runs: Vec<bool> = vec![false];
+            if has_fma() {
+                runs.push(true);
+            }
+            for fma in runs {
+                let mut sc = Scratch::default();
+                let mut y = vec![f32::NAN; g.ho * g.wo];
+                let mut dx = vec![f32::NAN; h * w];
+                let mut dw = vec![f32::NAN; k * k];
+                if fma {
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: has_fma() checked the CPU.
+                    unsafe {
+                        forward_plane_fma(&g, &x, &wk, &mut sc, &mut y);
+                        backward_plane_fma(&g, &x, &wk, &dy, &mut sc, &mut dx, &mut dw);
+                    }
+                } else {
+                    forward_plane::<false>(&g, &x, &wk, &mut sc, &mut y);
+                    backward_plane::<false>(&g, &x, &wk, &dy, &mut sc, &mut dx, &mut dw);
+                }
+                close(&y, &y0, "y");
+                close(&dx, &dx0, "dx");
+                close(&dw, &dw0, "dw");
+            }
+        }
+    }
+}
