@@ -237,8 +237,8 @@ fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, String>
     let probs = Mat::from_fn(h, w, |i, j| {
         1.0 / (1.0 + (-o.mask_logits.data[i * w + j]).exp())
     });
-    // S9 takes the soft mask's dominant blob, as evaluation does. Confidence: the largest
-    // pupil probability in the frame (a frame without any confident pupil pixel says so).
+    // S9 takes the soft mask, as in training and evaluation. Confidence: the largest pupil
+    // probability in the frame (a frame without any confident pupil pixel says so).
     let conf = probs
         .col_iter()
         .flat_map(|c| c.iter().copied().collect::<Vec<_>>())
@@ -246,10 +246,7 @@ fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, String>
     let slip = [0, 1, 2].map(|a| o.slip.data[a] as f64 * 1e-3);
     let sol = m
         .solver
-        .solve_mask(
-            nanoeye_gaze::centroid::dominant_blob(probs.as_ref(), 0.5).as_ref(),
-            slip,
-        )
+        .solve_mask(probs.as_ref(), slip)
         .map_err(|e| e.to_string())?;
     Ok(serde_json::json!({
         "gaze": sol.gaze,

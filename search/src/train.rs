@@ -11,7 +11,6 @@ use crate::error::{Result, param};
 use crate::task::task_loss;
 use faer::Mat;
 use nanoeye_datagen::render::{Batcher, Dataset};
-use nanoeye_gaze::centroid::dominant_blob;
 use nanoeye_gaze::{Rig, SolverKind, angular_error, solver_for};
 use nanoeye_nets::loss::{hard_dice, slip_mse};
 use nanoeye_nets::optim::{Adam, AdamState, cosine_lr};
@@ -845,16 +844,12 @@ pub fn evaluate_frames_multi(
             };
             let dice = hard_dice(&one(&o.mask_logits, 1), &hard)?;
             let slip_sq = slip_mse(&one(&o.slip, 3), &one(&fwd.slip_mm, 3))?.0;
-            // The network's soft mask, restricted to its dominant blob (S9 on the pupil, not on
-            // stray false positives; docs/gaze.md).
-            let predicted = dominant_blob(
-                Mat::from_fn(h, w, |i, j| {
-                    let l = o.mask_logits.image(b)[i * w + j];
-                    1.0 / (1.0 + (-l).exp())
-                })
-                .as_ref(),
-                0.5,
-            );
+            // The network's soft mask as S9 defines it. Cutting it to its dominant blob
+            // (gaze::centroid::dominant_blob) was measured to add failures (docs/gaze.md).
+            let predicted = Mat::from_fn(h, w, |i, j| {
+                let l = o.mask_logits.image(b)[i * w + j];
+                1.0 / (1.0 + (-l).exp())
+            });
             let truth = Mat::from_fn(h, w, |i, j| fwd.mask.image(b)[i * w + j]);
             for ((&(input, _), solver), e) in solves.iter().zip(&solvers).zip(out.iter_mut()) {
                 e.dice.push(dice);
