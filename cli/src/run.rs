@@ -63,8 +63,9 @@ pub struct RunConfig {
     pub train_set: TrainSet,
     /// Training items: frames (envelope) or pairs (ambiguity).
     pub train_items: usize,
-    /// Ambiguity pairs for validation (V of S17/S19).
-    pub val_pairs: usize,
+    /// Validation items (V of S17/S19, which the REA selects on), from the training set's kind
+    /// with another seed: frames (envelope) or pairs (ambiguity).
+    pub val_items: usize,
     /// Subjects of the acquisition protocol (7 × 49 frames each).
     pub protocol_subjects: usize,
     /// Sandwich training steps per lens.
@@ -121,7 +122,7 @@ impl Default for RunConfig {
             spp: 2,
             train_set: TrainSet::Envelope,
             train_items: 120,
-            val_pairs: 4,
+            val_items: 24,
             protocol_subjects: 1,
             train_steps: 150,
             batch: 4,
@@ -190,10 +191,10 @@ fn load_config(p: Option<&Path>) -> Result<RunConfig> {
 }
 
 fn check(cfg: &RunConfig) -> Result<()> {
-    if cfg.train_items == 0 || cfg.val_pairs == 0 || cfg.protocol_subjects == 0 {
-        bail!("--config: train_items, val_pairs and protocol_subjects must be at least 1");
+    if cfg.train_items == 0 || cfg.val_items == 0 || cfg.protocol_subjects == 0 {
+        bail!("--config: train_items, val_items and protocol_subjects must be at least 1");
     }
-    if cfg.train_items > 100_000 || cfg.val_pairs > 100_000 || cfg.protocol_subjects > 1000 {
+    if cfg.train_items > 100_000 || cfg.val_items > 100_000 || cfg.protocol_subjects > 1000 {
         bail!("--config: at most 100000 training items or pairs and 1000 protocol subjects");
     }
     if cfg.spp == 0 || cfg.spp > 1024 {
@@ -398,10 +399,14 @@ pub fn run(a: RunArgs) -> Result<()> {
         cfg.seed,
         &cfg,
     )?;
+    // V must measure what the protocol measures: a validation set of the training set's kind.
     let val = render(
         &out.join("data/val"),
-        RenderSet::Ambiguity,
-        cfg.val_pairs,
+        match cfg.train_set {
+            TrainSet::Envelope => RenderSet::Envelope,
+            TrainSet::Ambiguity => RenderSet::Ambiguity,
+        },
+        cfg.val_items,
         cfg.seed + 1,
         &cfg,
     )?;

@@ -10,7 +10,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     let cfg = d.path().join("tiny.json");
     std::fs::write(
         &cfg,
-        r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items": 3, "val_pairs": 1,
+        r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items": 3, "val_items": 2,
             "protocol_subjects": 1, "train_steps": 2, "batch": 3, "random_subnets": 0,
             "pitch_init_um": 60.0, "pitch_range_um": [48.0, 120.0], "rea_cycles": 1,
             "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0,
