@@ -1,6 +1,6 @@
 //! Criterion benches: supernet forward and forward+backward (min / max subnet, 64², 128² and
 //! 320×200, batch 16), per-layer-kind throughput (depthwise forward and backward at strides 1
-//! and 2), and the 1×1 convolution against faer's GEMM on the same shape. MACs per pass come from the cost model and are printed once per case.
+//! and 2), batch-1 inference (compiled, one thread) against the supernet's eval pass, and the 1×1 convolution against faer's GEMM on the same shape. MACs per pass come from the cost model and are printed once per case.
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use faer::linalg::matmul::matmul;
@@ -9,7 +9,7 @@ use nanoeye_nets::arch::{Arch, SupernetConfig};
 use nanoeye_nets::conv::{depthwise_forward, depthwise_vjp, out_size, pointwise_forward};
 use nanoeye_nets::cost::subnet_cost;
 use nanoeye_nets::se::{SeWeights, se_forward};
-use nanoeye_nets::{BnMode, Supernet, Tensor};
+use nanoeye_nets::{BnMode, Inference, Supernet, Tensor};
 use std::hint::black_box;
 use std::time::Duration;
 
@@ -56,6 +56,36 @@ fn supernet(c: &mut Criterion) {
                         black_box(net.backward(&dl, &ds).expect("bwd"))
                     })
                 },
+            );
+        }
+    }
+    g.finish();
+}
+
+/// Batch-1 inference (the tracker's path: compiled subnet, one thread) at the default run's
+/// sensor grid (278×174 at p̂ ≈ 13.8 µm) and at 320×200, against the supernet's own forward
+/// pass in eval mode on one image.
+fn inference(c: &mut Criterion) {
+    let cfg = SupernetConfig::default();
+    let mut g = c.benchmark_group("inference");
+    g.sample_size(20)
+        .measurement_time(Duration::from_secs(4))
+        .warm_up_time(Duration::from_secs(1));
+    let mut net = Supernet::new(cfg.clone(), 1).expect("net");
+    for (name, arch) in [("min", Arch::min()), ("max", Arch::max())] {
+        for (hh, ww) in [(174usize, 278usize), (200, 320)] {
+            let size = format!("{ww}x{hh}");
+            let macs = subnet_cost(&cfg, &arch, hh, ww).expect("cost").macs;
+            eprintln!("inference {name} {size}: {:.2} M MACs", macs as f64 / 1e6);
+            let x = image(1, 1, hh, ww);
+            let mut inf = Inference::new(&net, &arch, hh, ww).expect("compile");
+            g.throughput(Throughput::Elements(1));
+            g.bench_function(BenchmarkId::new(format!("compiled/{name}"), &size), |b| {
+                b.iter(|| black_box(inf.run(&x.data).expect("run").slip))
+            });
+            g.bench_function(
+                BenchmarkId::new(format!("supernet_eval/{name}"), &size),
+                |b| b.iter(|| black_box(net.forward(&arch, &x, BnMode::Eval).expect("fwd"))),
             );
         }
     }
@@ -150,5 +180,5 @@ fn layers(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, supernet, layers);
+criterion_group!(benches, supernet, inference, layers);
 criterion_main!(benches);

@@ -333,7 +333,8 @@ impl MbBlock {
         Ok(y)
     }
 
-    fn se_sub(&self, p: &SeParams, mid: usize) -> (Vec<f32>, Vec<f32>) {
+    /// SE weights (W1, W2) restricted to the first `mid` middle channels.
+    pub(crate) fn se_sub(&self, p: &SeParams, mid: usize) -> (Vec<f32>, Vec<f32>) {
         let smax = p.b1.len();
         let s = se_channels(mid).min(smax);
         let w1 = sub_cols(&p.w1.value, s, self.max_mid, mid);
@@ -493,7 +494,7 @@ impl MbBlock {
 }
 
 /// The first `c` columns of a row-major (rows × stride) matrix, packed.
-fn sub_cols(src: &[f32], rows: usize, stride: usize, c: usize) -> Vec<f32> {
+pub(crate) fn sub_cols(src: &[f32], rows: usize, stride: usize, c: usize) -> Vec<f32> {
     let mut out = Vec::with_capacity(rows * c);
     for r in 0..rows {
         out.extend_from_slice(&src[r * stride..][..c]);

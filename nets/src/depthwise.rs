@@ -117,7 +117,7 @@ fn tap_offsets(g: &Geom, offs: &mut Vec<usize>) {
 
 /// Per-task scratch: the padded plane, its gradient and the tap offsets.
 #[derive(Default)]
-struct Scratch {
+pub(crate) struct Scratch {
     buf: Vec<f32>,
     dbuf: Vec<f32>,
     offs: Vec<usize>,
@@ -234,6 +234,18 @@ fn has_fma() -> bool {
     {
         false
     }
+}
+
+/// Forward of one plane on the calling thread, with the caller's scratch (batch-1 inference:
+/// no rayon, no allocation once the scratch has grown).
+pub(crate) fn forward_one(g: &Geom, x: &[f32], wk: &[f32], sc: &mut Scratch, out: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if has_fma() {
+        // SAFETY: AVX2 and FMA were detected on this CPU just above.
+        unsafe { forward_plane_fma(g, x, wk, sc, out) };
+        return;
+    }
+    forward_plane::<false>(g, x, wk, sc, out)
 }
 
 /// Forward over all planes: `x` is N·C planes of h×w, `w` C kernels of k², `y` N·C planes of

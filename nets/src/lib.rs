@@ -13,6 +13,7 @@ pub mod conv;
 pub mod cost;
 mod depthwise;
 pub mod error;
+pub mod infer;
 pub mod loss;
 pub mod norm;
 pub mod optim;
@@ -24,6 +25,7 @@ pub mod tensor;
 pub mod toy;
 
 pub use error::{NetsError, Result};
+pub use infer::{Inference, InferenceOutput};
 pub use tensor::{Param, Tensor};
 
 pub use arch::{Arch, SupernetConfig};

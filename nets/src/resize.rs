@@ -5,7 +5,7 @@ use crate::tensor::Tensor;
 use rayon::prelude::*;
 
 /// Per output index: (lower source index, upper source index, weight of the upper one).
-fn taps(n_in: usize, n_out: usize) -> Vec<(usize, usize, f32)> {
+pub(crate) fn taps(n_in: usize, n_out: usize) -> Vec<(usize, usize, f32)> {
     let scale = n_in as f32 / n_out as f32;
     (0..n_out)
         .map(|o| {
@@ -29,16 +29,36 @@ pub fn bilinear_forward(x: &Tensor, h: usize, w: usize) -> Tensor {
         .par_chunks(x.plane())
         .zip(y.data.par_chunks_mut(h * w))
         .with_min_len(per_task)
-        .for_each(|(p, out)| {
-            for (oy, &(y0, y1, ly)) in ty.iter().enumerate() {
-                for (ox, &(x0, x1, lx)) in tx.iter().enumerate() {
-                    let top = p[y0 * x.w + x0] * (1.0 - lx) + p[y0 * x.w + x1] * lx;
-                    let bot = p[y1 * x.w + x0] * (1.0 - lx) + p[y1 * x.w + x1] * lx;
-                    out[oy * w + ox] = top * (1.0 - ly) + bot * ly;
-                }
-            }
-        });
+        .for_each(|(p, out)| resize_plane(p, x.w, &ty, &tx, out, false));
     y
+}
+
+/// One plane `p` (rows of `wi`) resampled with taps `ty`, `tx` into `out` (|ty| × |tx|),
+/// written or, with `add`, added.
+#[inline]
+pub(crate) fn resize_plane(
+    p: &[f32],
+    wi: usize,
+    ty: &[(usize, usize, f32)],
+    tx: &[(usize, usize, f32)],
+    out: &mut [f32],
+    add: bool,
+) {
+    let w = tx.len();
+    for (oy, &(y0, y1, ly)) in ty.iter().enumerate() {
+        let orow = &mut out[oy * w..][..w];
+        let (r0, r1) = (&p[y0 * wi..][..wi], &p[y1 * wi..][..wi]);
+        let blend = |&(x0, x1, lx): &(usize, usize, f32)| {
+            let top = r0[x0] * (1.0 - lx) + r0[x1] * lx;
+            let bot = r1[x0] * (1.0 - lx) + r1[x1] * lx;
+            top * (1.0 - ly) + bot * ly
+        };
+        if add {
+            orow.iter_mut().zip(tx).for_each(|(o, t)| *o += blend(t));
+        } else {
+            orow.iter_mut().zip(tx).for_each(|(o, t)| *o = blend(t));
+        }
+    }
 }
 
 /// VJP (adjoint) of [`bilinear_forward`] from input shape `like`.
