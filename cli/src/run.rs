@@ -94,6 +94,9 @@ pub struct RunConfig {
     pub rea_tournament: usize,
     /// REA inner-loop epochs.
     pub rea_epochs: f64,
+    /// Fine-tuning steps of the selected subnet behind each lens before the protocol (S16's
+    /// inner loop, run longer: the deployed model; the baselines' lenses stay fixed).
+    pub final_steps: usize,
     /// MAC budget of the search.
     pub budget_macs: u64,
     /// Budget penalty γ.
@@ -137,6 +140,7 @@ impl Default for RunConfig {
             rea_population: 4,
             rea_tournament: 2,
             rea_epochs: 0.1,
+            final_steps: 40,
             budget_macs: 40_000_000,
             gamma: 10.0,
             aperture_step_um: 1.5,
@@ -168,6 +172,10 @@ pub struct RunArgs {
     #[arg(long)]
     json: bool,
 }
+
+/// Learning rate of the final fine-tune relative to the training peak (the REA's inner loop
+/// uses 0.1 for its few steps).
+const FINAL_LR_SCALE: f64 = 0.25;
 
 const LENSES: [(&str, &str); 3] = [
     ("learned", "hyperbolic"),
@@ -536,7 +544,36 @@ pub fn run(a: RunArgs) -> Result<()> {
     let best = rea.best().context("the search evaluated nothing")?.clone();
     stage("rea", t.elapsed().as_secs_f64(), &mut stages)?;
 
-    // 4. The acquisition protocol through each lens's chain with the selected subnet.
+    // 4. The selected subnet fine-tuned behind each lens: weights inherited from the supernet,
+    // then S16's inner loop with the budget hinge (φ and p̂ move for the learned lens only).
+    // The protocol and the tracker use this model, so the REA's pick is a trained network and
+    // not only a slice of the supernet.
+    let t = Instant::now();
+    for (name, _) in LENSES {
+        let sel = out.join(format!("runs/{name}/selected.bin"));
+        if !sel.exists() {
+            note(&format!(
+                "fine-tuning the selected subnet behind the {name} lens ({} steps)",
+                cfg.final_steps
+            ));
+            let ck = out.join(format!("runs/{name}/checkpoint.bin"));
+            let mut tr = Trainer::from_checkpoint(&chain, &train, &ck)?;
+            let rc = rea_config(&cfg);
+            for _ in 0..cfg.final_steps {
+                tr.finetune_step(&best.arch, rc.budget_macs, rc.lambda_budget, FINAL_LR_SCALE)?;
+            }
+            tr.save(&sel)?;
+        }
+        // The final lens, also on a resume that skipped the loop above.
+        let tr = Trainer::from_checkpoint(&chain, &train, &sel)?;
+        util::write_atomic(
+            &out.join(format!("runs/{name}/phase.npy")),
+            &crate::sim::npy_mat64(&tr.phase)?,
+        )?;
+    }
+    stage("finetune", t.elapsed().as_secs_f64(), &mut stages)?;
+
+    // 5. The acquisition protocol through each lens's chain with the selected subnet.
     let t = Instant::now();
     note("evaluating the acquisition protocol (49 targets × 7 slippage states)");
     let mut protocol = serde_json::Map::new();
@@ -544,7 +581,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     let mut demo = serde_json::Value::Null;
     let mut psf_depths_mm = Vec::new();
     for (name, _) in LENSES {
-        let ck = out.join(format!("runs/{name}/checkpoint.bin"));
+        let ck = out.join(format!("runs/{name}/selected.bin"));
         let mut tr = Trainer::from_checkpoint(&proto_chain, &proto, &ck)?;
         // BN statistics from the training set's chain, then the protocol frames.
         let mut trn = Trainer::from_checkpoint(&chain, &train, &ck)?;
@@ -596,7 +633,14 @@ pub fn run(a: RunArgs) -> Result<()> {
             &solves.iter().map(|(_, i, k)| (*i, *k)).collect::<Vec<_>>(),
         )?;
         for ((key, _, _), e) in solves.iter().zip(&evals) {
-            protocol.insert(key.clone(), protocol_summary(&e.errors_deg));
+            let mut v = protocol_summary(&e.errors_deg);
+            if key == name {
+                // The network's own share: segmentation and slippage against the truth.
+                let n = e.dice.len().max(1) as f64;
+                v["dice"] = (e.dice.iter().sum::<f64>() / n).into();
+                v["slip_rmse_mm"] = (e.slip_sq_mm2.iter().sum::<f64>() / n).sqrt().into();
+            }
+            protocol.insert(key.clone(), v);
         }
         // Figures for the report: the lens's PSFs over depth, and three protocol frames
         // (centre target; slippage states 0, 3 and 6) as the network sees them.

@@ -10,7 +10,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use faer::Mat;
 use nanoeye_gaze::{GazeSolver, Rig, solver_for};
-use nanoeye_nets::{Arch, BnMode, Supernet, Tensor};
+use nanoeye_nets::{Arch, Inference};
 use nanoeye_sensor::SensorConfig;
 use std::io::{BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
@@ -37,8 +37,11 @@ pub struct TrackArgs {
 }
 
 struct Model {
-    net: Supernet,
-    arch: Arch,
+    /// The selected subnet compiled for batch-1 inference on the sensor grid.
+    inf: Inference,
+    /// Normalised network input and sigmoid mask, reused across frames.
+    x: Vec<f32>,
+    probs: Mat<f32>,
     solver: Box<dyn GazeSolver + Send + Sync>,
     shape: (usize, usize),
     black: f32,
@@ -47,7 +50,14 @@ struct Model {
 }
 
 fn load(a: &TrackArgs) -> Result<Model> {
-    let ck = a.model.join("checkpoint.bin");
+    // `nanoeye run` leaves the selected subnet fine-tuned (with its final φ and p̂) in
+    // selected.bin; a `search train` run has only checkpoint.bin.
+    let sel = a.model.join("selected.bin");
+    let ck = if sel.exists() {
+        sel
+    } else {
+        a.model.join("checkpoint.bin")
+    };
     let (mut net, pitch_um, tcfg) = nanoeye_search::load_model(&ck)
         .with_context(|| format!("--model {}", a.model.display()))?;
     // `nanoeye run` leaves the selected subnet with BN recalibrated exactly (tracker_net.bin);
@@ -96,9 +106,12 @@ fn load(a: &TrackArgs) -> Result<Model> {
         }
     };
     let s = SensorConfig::default();
+    let inf = Inference::new(&net, &arch, shape.0, shape.1)
+        .with_context(|| format!("--model {}", a.model.display()))?;
     Ok(Model {
-        net,
-        arch,
+        inf,
+        x: vec![0.0; shape.0 * shape.1],
+        probs: Mat::zeros(shape.0, shape.1),
         // The solver the run was validated with (refraction-aware unless it said otherwise).
         solver: solver_for(&rig, tcfg.solver)?,
         shape,
@@ -220,34 +233,32 @@ fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, String>
             img.nrows()
         ));
     }
-    let mut x = Tensor::zeros(1, 1, h, w);
     for i in 0..h {
         for j in 0..w {
             let v = img[(i, j)];
             if !v.is_finite() {
                 return Err(format!("non-finite value at ({i}, {j})"));
             }
-            x.data[i * w + j] = (v - m.black) / m.span;
+            m.x[i * w + j] = (v - m.black) / m.span;
         }
     }
-    let o = m
-        .net
-        .forward(&m.arch, &x, BnMode::Eval)
-        .map_err(|e| e.to_string())?;
-    let probs = Mat::from_fn(h, w, |i, j| {
-        1.0 / (1.0 + (-o.mask_logits.data[i * w + j]).exp())
-    });
+    let o = m.inf.run(&m.x).map_err(|e| e.to_string())?;
     // S9 takes the soft mask, as in training and evaluation. Confidence: the largest pupil
     // probability in the frame (a frame without any confident pupil pixel says so).
-    let conf = probs
-        .col_iter()
-        .flat_map(|c| c.iter().copied().collect::<Vec<_>>())
-        .fold(0.0f32, f32::max) as f64;
-    let slip = [0, 1, 2].map(|a| o.slip.data[a] as f64 * 1e-3);
+    let mut conf = 0.0f32;
+    for i in 0..h {
+        for j in 0..w {
+            let p = 1.0 / (1.0 + (-o.mask_logits[i * w + j]).exp());
+            m.probs[(i, j)] = p;
+            conf = conf.max(p);
+        }
+    }
+    let slip = o.slip.map(|v| v as f64 * 1e-3);
     let sol = m
         .solver
-        .solve_mask(probs.as_ref(), slip)
+        .solve_mask(m.probs.as_ref(), slip)
         .map_err(|e| e.to_string())?;
+    let conf = conf as f64;
     Ok(serde_json::json!({
         "gaze": sol.gaze,
         "pupil_px": sol.pupil_px,
@@ -267,6 +278,7 @@ pub fn track(a: TrackArgs) -> Result<()> {
     let mut out = BufWriter::new(out.lock());
     let mut emit = |i: usize, name: &str, f: std::result::Result<Mat<f32>, String>| -> Result<()> {
         let t = Instant::now();
+        let ran = f.is_ok();
         let r = f.and_then(|img| track_one(&mut m, &img));
         let us = t.elapsed().as_micros() as u64;
         let line = match r {
@@ -276,7 +288,15 @@ pub fn track(a: TrackArgs) -> Result<()> {
                 v["latency_us"] = us.into();
                 v
             }
-            Err(e) => serde_json::json!({"frame": i, "source": name, "error": e}),
+            // The time spent on a frame that failed counts too (a tracker's budget is per
+            // frame, found or not).
+            Err(e) => {
+                let mut v = serde_json::json!({"frame": i, "source": name, "error": e});
+                if ran {
+                    v["latency_us"] = us.into();
+                }
+                v
+            }
         };
         writeln!(out, "{line}")?;
         Ok(())

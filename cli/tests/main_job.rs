@@ -13,7 +13,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items": 3, "val_items": 2,
             "protocol_subjects": 1, "train_steps": 2, "batch": 3, "random_subnets": 0,
             "pitch_init_um": 60.0, "pitch_range_um": [48.0, 120.0], "rea_cycles": 1,
-            "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0,
+            "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0, "final_steps": 2,
             "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16],
             "sequence_frames": 5}"#,
     )
@@ -38,6 +38,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         "train_hyperbolic",
         "train_double_helix",
         "rea",
+        "finetune",
         "protocol",
     ] {
         assert!(r["stages"][k].as_f64().is_some(), "stage {k} missing: {r}");
@@ -56,6 +57,19 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         assert_eq!(s["per_slip"].as_array().unwrap().len(), 7);
         let m = s["mean_deg"].as_f64().unwrap();
         assert!(m.is_finite() && (0.0..=90.0).contains(&m), "{lens}: {m}");
+    }
+    for lens in ["learned", "hyperbolic", "double_helix"] {
+        let (dice, slip) = (
+            p[lens]["dice"].as_f64().unwrap(),
+            p[lens]["slip_rmse_mm"].as_f64().unwrap(),
+        );
+        assert!((0.0..=1.0).contains(&dice), "{lens}: dice {dice}");
+        assert!(slip.is_finite() && slip >= 0.0, "{lens}: slip {slip}");
+        // The deployed model: the selected subnet fine-tuned behind this lens.
+        assert!(
+            out.join(format!("runs/{lens}/selected.bin")).exists(),
+            "{lens}"
+        );
     }
     // Different lenses through the same chain give different errors.
     assert_ne!(p["learned"]["mean_deg"], p["double_helix"]["mean_deg"]);
