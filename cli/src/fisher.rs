@@ -139,7 +139,7 @@ fn model(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, AsmPsf)> 
 }
 
 /// Fisher noise of the default sensor: electrons = QE · photons · PSF, σ² = read noise².
-fn sensor_noise(photons: f64) -> FisherNoise {
+pub(crate) fn sensor_noise(photons: f64) -> FisherNoise {
     let s = SensorConfig::default();
     FisherNoise {
         photons: s.quantum_efficiency * photons,

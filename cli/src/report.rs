@@ -141,8 +141,9 @@ table{{border-collapse:collapse;margin:1em 0}}td,th{{border:1px solid #bbb;paddi
 th{{background:#eee}}td:first-child,th:first-child{{text-align:left}}.row{{display:flex;gap:2em;flex-wrap:wrap}}
 figure{{margin:0}}figcaption{{font-size:90%;color:#555}}</style></head><body>
 <h1>nanoeye run</h1>
-<p>A metasurface lens, its effective pixel pitch p̂ and a MobileNetV3 supernet co-designed end
-to end (sandwich rule, S22), a short regularized evolution (S19–S21) choosing the subnet, and
+<p>A metasurface lens (from a Fisher-information initialization, A.2), its effective pixel
+pitch p̂ and a MobileNetV3 supernet co-designed end to end (sandwich rule, S22), a short regularized evolution (S19–S21) choosing the subnet, that
+subnet fine-tuned behind each lens (S16's inner loop: the deployed model), and
 the acquisition protocol (D.4: 49 targets × 7 slippage states per subject) evaluated through
 the whole simulated chain: rendered depth layers → lens PSFs (S1) → sensor at p̂ (S2) →
 network → pupil centroid (S9) → ray–sphere gaze with the network's slippage (S10–S14). The
@@ -166,20 +167,25 @@ true slippage — the configured geometric solver's own error without the networ
 difference to <i>learned</i> is the network's share. <i>sphere_solver_…</i> / \
 <i>refractive_solver_…</i>: the same with the other solver (the paper's S12 sphere of the \
 rig's eye radius, or the refraction-aware solver that looks through the cornea, \
-docs/gaze.md), so the refraction correction's effect is visible.</p>\
-<table><tr><th>chain</th><th>mean °</th><th>median °</th><th>p95 °</th><th>failures</th><th>frames</th></tr>"
+docs/gaze.md), so the refraction correction's effect is visible. Dice: mean overlap of the \
+predicted and true pupil masks; slip RMSE: root mean square of the predicted slippage's error \
+(mm) — the network's two outputs against the truth.</p>\
+<table><tr><th>chain</th><th>mean °</th><th>median °</th><th>p95 °</th><th>failures</th><th>frames</th>\
+<th>Dice</th><th>slip RMSE (mm)</th></tr>"
     )?;
     let proto = r["protocol"].as_object().cloned().unwrap_or_default();
     for (name, s) in &proto {
         writeln!(
             h,
-            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
             esc(name),
             num(&s["mean_deg"]),
             num(&s["median_deg"]),
             num(&s["p95_deg"]),
             s["failures"],
-            s["frames"]
+            s["frames"],
+            num(&s["dice"]),
+            num(&s["slip_rmse_mm"])
         )?;
     }
     writeln!(

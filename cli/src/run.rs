@@ -68,6 +68,12 @@ pub struct RunConfig {
     pub val_items: usize,
     /// Subjects of the acquisition protocol (7 × 49 frames each).
     pub protocol_subjects: usize,
+    /// Fisher-initialization iterations of the learned lens (A.2, `fisher init`'s L_init on the
+    /// chain's PSF model, depth slabs and initial p̂, from the hyperbolic phase); 0 starts the
+    /// learned lens from the hyperbolic one.
+    pub fisher_iterations: usize,
+    /// Point-source photons per exposure of the Fisher initialization's noise model.
+    pub fisher_photons: f64,
     /// Sandwich training steps per lens.
     pub train_steps: usize,
     /// Frames per batch.
@@ -127,6 +133,8 @@ impl Default for RunConfig {
             train_items: 120,
             val_items: 24,
             protocol_subjects: 1,
+            fisher_iterations: 40,
+            fisher_photons: 1e5,
             train_steps: 150,
             batch: 4,
             random_subnets: 0,
@@ -216,6 +224,16 @@ fn check(cfg: &RunConfig) -> Result<()> {
     }
     if cfg.sequence_frames == 0 || cfg.sequence_frames > 100_000 {
         bail!("--config: sequence_frames must be 1..=100000");
+    }
+    if cfg.fisher_iterations > 100_000 || cfg.final_steps > 1_000_000 {
+        bail!("--config: fisher_iterations must be at most 100000 and final_steps 1000000");
+    }
+    // 1e20 photons: beyond it the Fisher sums overflow (as `fisher init --photons`).
+    if !(cfg.fisher_photons.is_finite() && cfg.fisher_photons > 0.0 && cfg.fisher_photons <= 1e20) {
+        bail!(
+            "--config: fisher_photons must lie in (0, 1e20], got {}",
+            cfg.fisher_photons
+        );
     }
     // Everything a later stage would refuse is refused here, before any work or output.
     let native = nanoeye_datagen::render::dataset::rig_at_size(
@@ -451,7 +469,45 @@ pub fn run(a: RunArgs) -> Result<()> {
     let seq_chain = CameraChain::for_dataset(&seq, chain_cfg.clone())?;
     let tcfg = |fixed: bool| train_config(&cfg, fixed);
 
-    // 2. Sandwich training per lens.
+    // 2. Fisher initialization of the learned lens (A.2): the hyperbolic phase moved towards
+    // PSFs that keep depth information under the sensor's binning at the initial p̂.
+    let t = Instant::now();
+    let fisher_path = out.join("runs/learned/fisher_phase.npy");
+    let learned_init = if cfg.fisher_iterations == 0 {
+        None
+    } else if fisher_path.exists() {
+        Some(
+            nanoeye_fisher::nanoeye_optics::io::read_phase_npy(&fisher_path)
+                .context("--out (resume): runs/learned/fisher_phase.npy")?,
+        )
+    } else {
+        note(&format!(
+            "Fisher initialization of the learned lens ({} iterations)",
+            cfg.fisher_iterations
+        ));
+        let grid = *chain.aperture_grid();
+        let r = &chain.config().radiometry;
+        let hyper = LensSpec::Hyperbolic
+            .phase_map(&grid, r.wavelength_m, r.sensor_distance_m)?
+            .phase_rad;
+        let icfg = nanoeye_fisher::InitConfig {
+            depths_m: chain.depths_m().to_vec(),
+            sensor_pitch_m: cfg.pitch_init_um * 1e-6,
+            noise: crate::fisher::sensor_noise(cfg.fisher_photons),
+            ..nanoeye_fisher::InitConfig::default()
+        };
+        let mut st = nanoeye_fisher::InitState::new(hyper);
+        while st.iteration < cfg.fisher_iterations {
+            nanoeye_fisher::init_step(chain.psf_model(), &grid, &icfg, &mut st)
+                .context("Fisher initialization")?;
+        }
+        std::fs::create_dir_all(out.join("runs/learned"))?;
+        util::write_atomic(&fisher_path, &crate::sim::npy_mat64(&st.phase)?)?;
+        Some(st.phase)
+    };
+    stage("fisher", t.elapsed().as_secs_f64(), &mut stages)?;
+
+    // 3. Sandwich training per lens.
     for (name, lens) in LENSES {
         let t = Instant::now();
         let ck = out.join(format!("runs/{name}/checkpoint.bin"));
@@ -460,7 +516,11 @@ pub fn run(a: RunArgs) -> Result<()> {
             .parse::<LensSpec>()
             .map_err(anyhow::Error::msg)?
             .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)?;
-        let mut tr = Trainer::new(&chain, &train, tcfg(name != "learned"), map.phase_rad)?;
+        let phase = match (&learned_init, name) {
+            (Some(p), "learned") => p.clone(),
+            _ => map.phase_rad,
+        };
+        let mut tr = Trainer::new(&chain, &train, tcfg(name != "learned"), phase)?;
         if ck.exists() {
             tr.load(&ck).context("--out (resume)")?;
         }
@@ -508,7 +568,7 @@ pub fn run(a: RunArgs) -> Result<()> {
         )?;
     }
 
-    // 3. Short REA on the co-designed run.
+    // 4. Short REA on the co-designed run.
     let t = Instant::now();
     let rea_cfg = rea_config(&cfg);
     let learned_ck = out.join("runs/learned/checkpoint.bin");
@@ -544,7 +604,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     let best = rea.best().context("the search evaluated nothing")?.clone();
     stage("rea", t.elapsed().as_secs_f64(), &mut stages)?;
 
-    // 4. The selected subnet fine-tuned behind each lens: weights inherited from the supernet,
+    // 5. The selected subnet fine-tuned behind each lens: weights inherited from the supernet,
     // then S16's inner loop with the budget hinge (φ and p̂ move for the learned lens only).
     // The protocol and the tracker use this model, so the REA's pick is a trained network and
     // not only a slice of the supernet.
@@ -573,7 +633,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     }
     stage("finetune", t.elapsed().as_secs_f64(), &mut stages)?;
 
-    // 5. The acquisition protocol through each lens's chain with the selected subnet.
+    // 6. The acquisition protocol through each lens's chain with the selected subnet.
     let t = Instant::now();
     note("evaluating the acquisition protocol (49 targets × 7 slippage states)");
     let mut protocol = serde_json::Map::new();

@@ -34,6 +34,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     for k in [
         "render",
+        "fisher",
         "train_learned",
         "train_hyperbolic",
         "train_double_helix",
@@ -71,6 +72,8 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
             "{lens}"
         );
     }
+    // The learned lens started from the Fisher initialization (A.2).
+    assert!(out.join("runs/learned/fisher_phase.npy").exists());
     // Different lenses through the same chain give different errors.
     assert_ne!(p["learned"]["mean_deg"], p["double_helix"]["mean_deg"]);
     assert_ne!(p["hyperbolic"]["mean_deg"], p["double_helix"]["mean_deg"]);
