@@ -148,12 +148,15 @@ the acquisition protocol (D.4: 49 targets × 7 slippage states per subject) eval
 the whole simulated chain: rendered depth layers → lens PSFs (S1) → sensor at p̂ (S2) →
 network → pupil centroid (S9) → ray–sphere gaze with the network's slippage (S10–S14). The
 same network is trained behind the fixed hyperbolic and double-helix lenses for comparison.
-Total {:.0} s.</p>
+Stage times add up to {:.0} s (table at the end).</p>
 <p><b>Scale.</b> The built-in default is sized to finish within 15 minutes on 2 cores: 120
 training frames at 12 µm pixels, 150 sandwich steps per lens and a 4 + 4 candidate search. Its
 errors are therefore far from the paper's; `nanoeye run --print-config` lists every size, and
 `--config FILE` scales the run up (more frames, steps, REA cycles and a finer render).</p>"#,
-        r["seconds"].as_f64().unwrap_or(0.0)
+        // The stages' sum: a resumed run's own wall time would count only what it redid.
+        r["stages"]
+            .as_object()
+            .map_or(0.0, |m| m.values().filter_map(|v| v.as_f64()).sum::<f64>())
     )?;
     // Protocol table.
     writeln!(
@@ -208,8 +211,9 @@ predicted and true pupil masks; slip RMSE: root mean square of the predicted sli
     writeln!(
         h,
         "<h2>Phase maps</h2><p>Metasurface phase wrapped to [0, 2π) (black 0, white 2π) over the \
-1 mm aperture. The learned lens starts from the hyperbolic one and moves by gradient descent \
-through the chain.</p><div class=\"row\">"
+1 mm aperture. The learned lens starts from the Fisher initialization (itself started from the \
+hyperbolic lens, unless the configuration's fisher_iterations is 0) and moves by gradient \
+descent through the chain; the difference image is against the hyperbolic lens.</p><div class=\"row\">"
     )?;
     for name in ["learned", "hyperbolic", "double_helix"] {
         if let Some(png) = phase_png(&out.join(format!("runs/{name}/phase.npy"))) {
