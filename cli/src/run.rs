@@ -231,7 +231,7 @@ fn check(cfg: &RunConfig) -> Result<()> {
     // 1e20 photons: beyond it the Fisher sums overflow (as `fisher init --photons`).
     if !(cfg.fisher_photons.is_finite() && cfg.fisher_photons > 0.0 && cfg.fisher_photons <= 1e20) {
         bail!(
-            "--config: fisher_photons must lie in (0, 1e20], got {}",
+            "--config: fisher_photons must lie in (0, 1e20], got {:e}",
             cfg.fisher_photons
         );
     }
@@ -609,23 +609,25 @@ pub fn run(a: RunArgs) -> Result<()> {
     // The protocol and the tracker use this model, so the REA's pick is a trained network and
     // not only a slice of the supernet.
     let t = Instant::now();
+    let rc = rea_config(&cfg);
     for (name, _) in LENSES {
         let sel = out.join(format!("runs/{name}/selected.bin"));
-        if !sel.exists() {
+        // A resume that finds the fine-tune done only rewrites its lens.
+        let tr = if sel.exists() {
+            Trainer::from_checkpoint(&chain, &train, &sel)?
+        } else {
             note(&format!(
                 "fine-tuning the selected subnet behind the {name} lens ({} steps)",
                 cfg.final_steps
             ));
             let ck = out.join(format!("runs/{name}/checkpoint.bin"));
             let mut tr = Trainer::from_checkpoint(&chain, &train, &ck)?;
-            let rc = rea_config(&cfg);
             for _ in 0..cfg.final_steps {
                 tr.finetune_step(&best.arch, rc.budget_macs, rc.lambda_budget, FINAL_LR_SCALE)?;
             }
             tr.save(&sel)?;
-        }
-        // The final lens, also on a resume that skipped the loop above.
-        let tr = Trainer::from_checkpoint(&chain, &train, &sel)?;
+            tr
+        };
         util::write_atomic(
             &out.join(format!("runs/{name}/phase.npy")),
             &crate::sim::npy_mat64(&tr.phase)?,

@@ -186,8 +186,8 @@ pub struct Inference {
     stem_out: Vec<f32>,
     stem_plane: Vec<f32>,
     blocks: Vec<Block>,
-    /// Indices in `blocks` of the stride-2 (first block), stride-8 and last outputs.
-    i2: usize,
+    /// Index in `blocks` of the stride-8 output (the stride-2 one is block 0, the stride-32
+    /// one the last).
     i8: usize,
     /// Shared buffers of the blocks' middle features.
     mid_a: Vec<f32>,
@@ -212,12 +212,7 @@ pub struct Inference {
     slip_head: Pointwise,
 }
 
-fn block_for(
-    b: &MbBlock,
-    k: usize,
-    e: usize,
-    (h, w): (usize, usize),
-) -> Result<(Block, (usize, usize))> {
+fn block_for(b: &MbBlock, k: usize, e: usize, (h, w): (usize, usize)) -> (Block, (usize, usize)) {
     let mid = b.mid_for(e);
     let expand = match &b.expand {
         Some(w1) => {
@@ -283,7 +278,7 @@ fn block_for(
         hw_out,
         out: vec![0.0; b.cout * hw_out],
     };
-    Ok((blk, (g.ho, g.wo)))
+    (blk, (g.ho, g.wo))
 }
 
 fn dense(d: &crate::supernet::Dense, cin: usize, act: Act) -> Pointwise {
@@ -332,14 +327,13 @@ impl Inference {
             act: Act::HSwish,
         };
         let mut blocks = Vec::new();
-        let (b0, mut size) = block_for(&net.blocks[0], 3, 1, (h2, w2))?;
+        let (b0, mut size) = block_for(&net.blocks[0], 3, 1, (h2, w2));
         blocks.push(b0);
         let (mut i8, mut size8) = (0, size);
         for s in 0..N_STAGES {
             for b in 0..arch.depth[s] {
                 let l = s * 4 + b;
-                let (blk, sz) =
-                    block_for(&net.blocks[1 + l], arch.kernel[l], arch.expand[l], size)?;
+                let (blk, sz) = block_for(&net.blocks[1 + l], arch.kernel[l], arch.expand[l], size);
                 blocks.push(blk);
                 size = sz;
             }
@@ -377,7 +371,6 @@ impl Inference {
                 Vec::new()
             },
             blocks,
-            i2: 0,
             i8,
             mid_a: vec![0.0; mid_len],
             mid_b: vec![0.0; mid_len],
@@ -481,11 +474,7 @@ impl Inference {
             }
         }
         let last = self.blocks.len() - 1;
-        let (f2, f8, f32_) = (
-            &self.blocks[self.i2],
-            &self.blocks[self.i8],
-            &self.blocks[last],
-        );
+        let (f2, f8, f32_) = (&self.blocks[0], &self.blocks[self.i8], &self.blocks[last]);
         // Perception decoder (FPN-like, as in `Supernet::forward`).
         let dw = self.dec[0].cout;
         self.dec[0].run(&f32_.out, f32_.hw_out, &mut self.p32);
