@@ -45,6 +45,26 @@ pub enum Cmd {
     },
     /// Render a state set into a dataset directory (docs/renderer.md).
     Render(crate::datagen_render::RenderArgs),
+    /// Export the procedural eye region of one subject in one state as glTF 2.0 (GLB): face,
+    /// eye, camera and illuminator with named materials (docs/formats.md).
+    Export {
+        /// Subject seed (the same seed as a dataset frame's "subject").
+        #[arg(long, default_value_t = 0)]
+        subject: u64,
+        /// The state as JSON text or a JSON file ({"azimuth_rad", "elevation_rad",
+        /// "torsion_rad", "slip_m", "cam_rot_rad", "lid_closure"}); default: primary gaze, no slip.
+        #[arg(long)]
+        state: Option<String>,
+        /// Output .glb file (written atomically).
+        #[arg(long)]
+        out: PathBuf,
+        /// Rig JSON file; default: the built-in seed rig.
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Print a one-line JSON summary.
+        #[arg(long)]
+        json: bool,
+    },
     /// The torsion Listing's law implies for a gaze (Fick angles).
     Listing {
         /// Azimuth (deg), positive towards +x.
@@ -85,6 +105,13 @@ pub fn set_jsonl(rig: &nanoeye_gaze::Rig, set: Set, n: usize, seed: u64) -> Resu
 pub fn run(cmd: Cmd) -> Result<()> {
     match cmd {
         Cmd::Render(args) => crate::datagen_render::run(args),
+        Cmd::Export {
+            subject,
+            state,
+            out,
+            rig,
+            json,
+        } => export(subject, state.as_deref(), &out, rig.as_deref(), json),
         Cmd::States {
             set,
             n,
@@ -130,5 +157,64 @@ pub fn run(cmd: Cmd) -> Result<()> {
                 Ok(())
             }
         }
+    }
+}
+
+/// `nanoeye datagen export`.
+fn export(
+    subject: u64,
+    state: Option<&str>,
+    out: &std::path::Path,
+    rig: Option<&std::path::Path>,
+    json: bool,
+) -> Result<()> {
+    use nanoeye_datagen::render::{Light, Subject, export_glb};
+    use nanoeye_datagen::states::State;
+    if out
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        != Some("glb".into())
+    {
+        bail!("--out: must name a .glb file, got '{}'", out.display());
+    }
+    let rig = rig::load(rig)?;
+    let state: State = match state {
+        None => State {
+            azimuth_rad: 0.0,
+            elevation_rad: 0.0,
+            torsion_rad: 0.0,
+            slip_m: [0.0; 3],
+            cam_rot_rad: [0.0; 3],
+            lid_closure: 0.0,
+        },
+        Some(text) => {
+            let body = if text.trim_start().starts_with('{') {
+                text.to_string()
+            } else {
+                std::fs::read_to_string(text)
+                    .map_err(|e| anyhow::anyhow!("--state: cannot read '{text}': {e}"))?
+            };
+            serde_json::from_str(&body).map_err(|e| anyhow::anyhow!("--state: {e}"))?
+        }
+    };
+    let finite = [state.azimuth_rad, state.elevation_rad, state.torsion_rad]
+        .iter()
+        .chain(&state.slip_m)
+        .chain(&state.cam_rot_rad)
+        .all(|x| x.is_finite());
+    if !finite {
+        bail!("--state: every angle and offset must be finite");
+    }
+    let subj = Subject::from_seed(subject);
+    let light = Light::near_camera(&state.camera_pose(&rig));
+    let bytes =
+        export_glb(&rig, &state, &subj, &light).map_err(|e| anyhow::anyhow!("--state: {e}"))?;
+    util::write_atomic(out, &bytes)?;
+    if json {
+        util::print_json(&json!({"out": out, "bytes": bytes.len(), "subject": subject}))
+    } else {
+        println!("wrote {} ({} bytes)", out.display(), bytes.len());
+        Ok(())
     }
 }

@@ -679,3 +679,63 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         );
     }
 }
+
+#[test]
+fn datagen_export_refuses_bad_states_and_writes_a_glb() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let ok_state = r#"{"azimuth_rad":0.1,"elevation_rad":-0.1,"torsion_rad":0,"slip_m":[0,0,0]}"#;
+    for (state, flag) in [
+        (r#"{"azimuth_rad":0.1}"#, "--state"),
+        (
+            r#"{"azimuth_rad":2,"elevation_rad":0,"torsion_rad":0,"slip_m":[0,0,0]}"#,
+            "azimuth_rad",
+        ),
+        (
+            r#"{"azimuth_rad":0,"elevation_rad":1e300,"torsion_rad":0,"slip_m":[0,0,0]}"#,
+            "elevation_rad",
+        ),
+        (
+            r#"{"azimuth_rad":0,"elevation_rad":0,"torsion_rad":0,"slip_m":[0,0,0],"lid_closure":3}"#,
+            "lid_closure",
+        ),
+        ("missing.json", "--state"),
+    ] {
+        refused(
+            &["datagen", "export", "--state", state, "--out", "s.glb"],
+            flag,
+            p,
+        );
+    }
+    refused(
+        &["datagen", "export", "--state", ok_state, "--out", "s.png"],
+        "--out",
+        p,
+    );
+    assert!(entries(p).is_empty(), "nothing written: {:?}", entries(p));
+    let out = nanoeye(
+        &[
+            "datagen",
+            "export",
+            "--subject",
+            "3",
+            "--state",
+            ok_state,
+            "--out",
+            "s.glb",
+            "--json",
+        ],
+        p,
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let bytes = std::fs::read(p.join("s.glb")).unwrap();
+    assert_eq!(&bytes[0..4], b"glTF");
+    assert_eq!(
+        u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize,
+        bytes.len()
+    );
+}

@@ -1,5 +1,6 @@
-//! Renderer throughput: frames/s of the procedural eye at 320×200 and 640×400 for 1, 4, 16 spp.
-//! The noise column of docs/bench/renderer.md comes from `render_noise` (printed once).
+//! Renderer throughput: frames/s of the procedural eye region at 320×200 and 640×400 for 1, 4,
+//! 16 spp and at the 1280×800 native grid for 4 spp, and the time to build a frame's scene (face
+//! mesh, lashes, BVH). The noise column of docs/benchmarks.md is printed once per case.
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use nanoeye_datagen::render::{Light, RenderOptions, Subject, procedural_scene, render};
@@ -14,6 +15,7 @@ fn state() -> State {
         torsion_rad: 0.0,
         slip_m: [0.0; 3],
         cam_rot_rad: [0.0; 3],
+        lid_closure: 0.0,
     }
 }
 
@@ -25,9 +27,20 @@ fn bench(c: &mut Criterion) {
         procedural_scene(&rig, &st, &Subject::default(), Light::near_camera(&pose)).expect("scene");
     let mut g = c.benchmark_group("render");
     g.sample_size(10);
-    for (w, pitch) in [(320, 12e-6), (640, 6e-6)] {
+    let light = Light::near_camera(&pose);
+    g.bench_function("scene_build", |bch| {
+        bch.iter(|| {
+            procedural_scene(&rig, black_box(&st), &Subject::default(), light).expect("scene")
+        })
+    });
+    let cases: [(usize, f64, &[usize]); 3] = [
+        (320, 12e-6, &[1, 4, 16]),
+        (640, 6e-6, &[1, 4, 16]),
+        (1280, 3e-6, &[4]),
+    ];
+    for (w, pitch, spps) in cases {
         let cam = rig.camera.with_pitch(pitch).expect("camera");
-        for spp in [1, 4, 16] {
+        for &spp in spps {
             // Noise: RMS pixel difference between two seeds, relative to the mean radiance.
             let a = render(
                 &scene,

@@ -101,6 +101,7 @@ fn check_cube_render(mesh: &Mesh) {
         torsion_rad: 0.0,
         slip_m: [0.0; 3],
         cam_rot_rad: [0.0; 3],
+        lid_closure: 0.0,
     };
     let scene = mesh.scene(&st, Light::near_camera(&pose), 1.376).unwrap();
     let f = render(

@@ -15,11 +15,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 fn skin(albedo: f64) -> Material {
-    Material {
-        kind: MaterialKind::Skin,
-        albedo,
-        iris: None,
-    }
+    Material::lambertian(MaterialKind::Skin, albedo)
 }
 
 fn centroid(m: &Mat<f32>) -> [f64; 2] {
@@ -377,6 +373,7 @@ fn primary_state() -> State {
         torsion_rad: 0.0,
         slip_m: [0.0; 3],
         cam_rot_rad: [0.0; 3],
+        lid_closure: 0.0,
     }
 }
 

@@ -104,7 +104,7 @@ pub struct LayerInfo {
 }
 
 /// Version of the dataset layout written by [`write_dataset`] (dataset.json).
-pub const DATASET_FORMAT: u32 = 2;
+pub const DATASET_FORMAT: u32 = 3;
 
 /// DIR/dataset.json: everything that determines the dataset's bytes, so a resume with other
 /// parameters is refused and a reader knows the native grid and the illuminator.
@@ -160,6 +160,10 @@ pub struct FrameRecord {
     /// The non-empty depth layers stored in `files.layers`, near to far.
     #[serde(default)]
     pub layers: Vec<LayerInfo>,
+    /// Visible share of the pupil: Σ visible-pupil mask / Σ unoccluded-pupil mask (lids and
+    /// lashes hide the rest); None where no pupil is in view.
+    #[serde(default)]
+    pub pupil_visible_fraction: Option<f64>,
 }
 
 /// What `write_dataset` did.
@@ -282,6 +286,7 @@ pub fn plan(
                         torsion_rad: 0.0,
                         slip_m,
                         cam_rot_rad,
+                        lid_closure: 0.0,
                     },
                 });
             }
@@ -679,6 +684,7 @@ pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderErro
                     far_m: l.far_m,
                 })
                 .collect(),
+            pupil_visible_fraction: visible_fraction(&frame.mask_visible_pupil, &frame.mask_pupil),
         };
         let line = serde_json::to_string(&rec).map_err(|e| RenderError::Encode {
             path: record_path.display().to_string(),
@@ -733,4 +739,19 @@ fn contact_sheet(dir: &Path, frames: usize, w: usize, h: usize) -> Result<(), Re
         }
     }
     write_atomic(&dir.join("contact_sheet.png"), &png_bytes(sheet, sw, sh)?)
+}
+
+/// Σ visible / Σ unoccluded pupil coverage, None when the unoccluded pupil is out of view.
+fn visible_fraction(visible: &Mat<f32>, unoccluded: &Mat<f32>) -> Option<f64> {
+    let sum = |m: &Mat<f32>| {
+        let mut s = 0.0f64;
+        for j in 0..m.ncols() {
+            for i in 0..m.nrows() {
+                s += m[(i, j)] as f64;
+            }
+        }
+        s
+    };
+    let total = sum(unoccluded);
+    (total > 0.0).then(|| (sum(visible) / total).min(1.0))
 }

@@ -16,6 +16,8 @@ pub enum MaterialKind {
     Pupil,
     /// Cornea front surface (Fresnel specular reflection + refraction).
     Cornea,
+    /// Eyelashes (dark Lambertian; occlude like skin).
+    Lash,
 }
 
 impl MaterialKind {
@@ -28,6 +30,7 @@ impl MaterialKind {
             ("iris", MaterialKind::Iris),
             ("cornea", MaterialKind::Cornea),
             ("sclera", MaterialKind::Sclera),
+            ("lash", MaterialKind::Lash),
             ("skin", MaterialKind::Skin),
         ] {
             if n.contains(key) {
@@ -39,7 +42,12 @@ impl MaterialKind {
 
     /// True for parts that rotate with the eye.
     pub fn is_eye(self) -> bool {
-        !matches!(self, MaterialKind::Skin)
+        !self.is_occluder()
+    }
+
+    /// True for the face's parts (skin and lashes): what the unoccluded pupil mask removes.
+    pub fn is_occluder(self) -> bool {
+        matches!(self, MaterialKind::Skin | MaterialKind::Lash)
     }
 }
 
@@ -84,6 +92,67 @@ impl IrisTexture {
     }
 }
 
+/// Skin micro-texture: two octaves of 3D value noise (pores and fine wrinkles at 0.25 mm,
+/// blotches at 1.2 mm) modulating the albedo.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SkinTexture {
+    /// Seed of the noise lattice.
+    pub seed: u64,
+    /// Relative albedo modulation (0–0.5).
+    pub amplitude: f64,
+}
+
+impl SkinTexture {
+    /// Multiplicative albedo factor at point `p` (m), within 1 ± amplitude.
+    #[inline]
+    pub fn factor(&self, p: Vec3) -> f64 {
+        let fine = value_noise(self.seed, geom::scale(p, 1.0 / 0.25e-3));
+        let coarse = value_noise(self.seed ^ 0x9E37, geom::scale(p, 1.0 / 1.2e-3));
+        1.0 + self.amplitude * (0.6 * fine + 0.4 * coarse)
+    }
+}
+
+/// Lattice value in [−1, 1] at integer point (i, j, k).
+#[inline]
+fn lattice(seed: u64, i: i64, j: i64, k: i64) -> f64 {
+    let mut h = seed
+        ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ (j as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+        ^ (k as u64).wrapping_mul(0x1656_67B1_9E37_79F9);
+    h = (h ^ (h >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    h = (h ^ (h >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    h ^= h >> 31;
+    (h >> 11) as f64 * (2.0 / (1u64 << 53) as f64) - 1.0
+}
+
+/// Smooth 3D value noise in [−1, 1] (trilinear with smoothstep weights).
+fn value_noise(seed: u64, p: Vec3) -> f64 {
+    if !geom::is_finite(p) {
+        return 0.0;
+    }
+    let f = p.map(f64::floor);
+    let (i, j, k) = (f[0] as i64, f[1] as i64, f[2] as i64);
+    let w = [0, 1, 2].map(|a| {
+        let t = p[a] - f[a];
+        t * t * (3.0 - 2.0 * t)
+    });
+    let mut acc = 0.0;
+    for dk in 0..2 {
+        for dj in 0..2 {
+            for di in 0..2 {
+                let wx = if di == 0 { 1.0 - w[0] } else { w[0] };
+                let wy = if dj == 0 { 1.0 - w[1] } else { w[1] };
+                let wz = if dk == 0 { 1.0 - w[2] } else { w[2] };
+                acc += wx * wy * wz * lattice(seed, i + di, j + dj, k + dk);
+            }
+        }
+    }
+    acc
+}
+
+/// Refractive index of the tear film (the wet coat of sclera, lid margin and caruncle).
+pub const TEAR_FILM_INDEX: f64 = 1.337;
+
 /// A surface material: class, NIR albedo and optional texture.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Material {
@@ -93,16 +162,36 @@ pub struct Material {
     pub albedo: f64,
     /// Iris texture, if any.
     pub iris: Option<IrisTexture>,
+    /// Skin micro-texture, if any.
+    pub skin: Option<SkinTexture>,
+    /// Refractive index of a specular wet coat over the Lambertian base (0: none): the
+    /// illuminator's mirror image appears where the reflected ray meets it.
+    pub coat_index: f64,
 }
 
 impl Material {
+    /// A plain Lambertian material.
+    pub fn lambertian(kind: MaterialKind, albedo: f64) -> Material {
+        Material {
+            kind,
+            albedo,
+            iris: None,
+            skin: None,
+            coat_index: 0.0,
+        }
+    }
+
     /// Albedo at surface point `p`.
     #[inline]
     pub fn albedo_at(&self, p: Vec3) -> f64 {
-        match &self.iris {
-            Some(t) => (self.albedo * t.factor(p)).clamp(0.0, 1.0),
-            None => self.albedo,
+        let mut a = self.albedo;
+        if let Some(t) = &self.iris {
+            a *= t.factor(p);
         }
+        if let Some(t) = &self.skin {
+            a *= t.factor(p);
+        }
+        a.clamp(0.0, 1.0)
     }
 }
 

@@ -3,8 +3,8 @@
 
 use super::RenderError;
 use super::material::{Material, MaterialKind};
-use super::prim::Shape;
-use super::scene::{Light, Prim, Scene, layer_of};
+use super::prim::{Clip, Shape};
+use super::scene::{Light, Prim, Scene, layer_of, rotate_shape};
 use crate::states::State;
 use nanoeye_gaze::{Vec3, geom};
 use std::path::Path;
@@ -27,13 +27,156 @@ impl MeshUnits {
     }
 }
 
-/// A triangle mesh in the eye frame at primary gaze (m), one material class per triangle.
+/// A triangle mesh in the eye frame at primary gaze (m), one material class per triangle,
+/// plus the analytic primitives a glTF file names in its nodes' extras (docs/formats.md).
 #[derive(Debug, Clone, Default)]
 pub struct Mesh {
     /// Triangles (vertices in m).
     pub triangles: Vec<[Vec3; 3]>,
     /// Class of each triangle.
     pub kinds: Vec<MaterialKind>,
+    /// Analytic spheres and discs (m) with their class.
+    pub shapes: Vec<(Shape, MaterialKind)>,
+}
+
+/// What a glTF node's `extras.nanoeye` says (docs/formats.md).
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct NodeExtras {
+    /// "eye_pose": the node's own transform poses the eye for viewers; loading ignores it,
+    /// since the renderer poses the eye from each state.
+    #[serde(default)]
+    role: Option<String>,
+    /// An exact sphere replacing the node's tessellation.
+    #[serde(default)]
+    sphere: Option<SphereExtras>,
+    /// An exact disc or annulus replacing the node's tessellation.
+    #[serde(default)]
+    disc: Option<DiscExtras>,
+}
+
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SphereExtras {
+    center: [f64; 3],
+    radius: f64,
+    /// Keeps the points p with sign·(normal·p − offset) ≥ 0.
+    #[serde(default)]
+    clip: Option<PlaneExtras>,
+}
+
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PlaneExtras {
+    normal: [f64; 3],
+    offset: f64,
+    sign: f64,
+}
+
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct DiscExtras {
+    center: [f64; 3],
+    normal: [f64; 3],
+    r_in: f64,
+    r_out: f64,
+}
+
+#[derive(Debug, serde::Deserialize)]
+struct Extras {
+    #[serde(default)]
+    nanoeye: Option<NodeExtras>,
+}
+
+/// The analytic shape of `x` under world transform `m` (rigid, else an error) in units `s`.
+fn analytic_shape(
+    x: &NodeExtras,
+    m: &[[f64; 4]; 4],
+    s: f64,
+    name: &str,
+) -> Result<Option<Shape>, RenderError> {
+    if x.sphere.is_none() && x.disc.is_none() {
+        return Ok(None);
+    }
+    // Columns of the linear part must be orthonormal: spheres and discs stay what they are.
+    for a in 0..3 {
+        for b in 0..3 {
+            let d: f64 = (0..3).map(|r| m[a][r] * m[b][r]).sum();
+            let want = if a == b { 1.0 } else { 0.0 };
+            if (d - want).abs() > 1e-5 {
+                return Err(mesh_err(
+                    name,
+                    "an analytic shape (extras.nanoeye) sits under a non-rigid transform",
+                ));
+            }
+        }
+    }
+    let point = |p: [f64; 3]| geom::scale(apply4(m, p), s);
+    let dir = |v: [f64; 3]| {
+        let d = [0, 1, 2].map(|r| m[0][r] * v[0] + m[1][r] * v[1] + m[2][r] * v[2]);
+        // A unit normal stays bit for bit what the file says (exact round trips).
+        let n = geom::norm(d);
+        if (n - 1.0).abs() < 1e-12 {
+            d
+        } else {
+            geom::scale(d, 1.0 / n)
+        }
+    };
+    let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+    let shape = if let Some(sp) = &x.sphere {
+        if !(finite(&sp.center) && sp.radius.is_finite() && sp.radius > 0.0) {
+            return Err(mesh_err(
+                name,
+                "extras.nanoeye.sphere: non-finite or non-positive",
+            ));
+        }
+        let clip = match &sp.clip {
+            None => Clip::None,
+            Some(c) => {
+                if !(finite(&c.normal) && c.offset.is_finite() && (c.sign == 1.0 || c.sign == -1.0))
+                    || geom::norm(c.normal) == 0.0
+                {
+                    return Err(mesh_err(name, "extras.nanoeye.sphere.clip: bad plane"));
+                }
+                let n = dir(c.normal);
+                // The plane n·p = offset moves with the transform's translation.
+                let t = [m[3][0], m[3][1], m[3][2]];
+                Clip::Plane {
+                    normal: n,
+                    offset_m: (c.offset + geom::dot(n, t)) * s,
+                    sign: c.sign,
+                }
+            }
+        };
+        Shape::Sphere {
+            center: point(sp.center),
+            radius_m: sp.radius * s,
+            clip,
+        }
+    } else if let Some(d) = &x.disc {
+        if !(finite(&d.center)
+            && finite(&d.normal)
+            && geom::norm(d.normal) > 0.0
+            && d.r_in.is_finite()
+            && d.r_out.is_finite()
+            && 0.0 <= d.r_in
+            && d.r_in < d.r_out)
+        {
+            return Err(mesh_err(
+                name,
+                "extras.nanoeye.disc: need finite 0 ≤ r_in < r_out",
+            ));
+        }
+        Shape::Disc {
+            center: point(d.center),
+            normal: dir(d.normal),
+            r_in_m: d.r_in * s,
+            r_out_m: d.r_out * s,
+        }
+    } else {
+        return Ok(None);
+    };
+    Ok(Some(shape))
 }
 
 /// Largest triangle count accepted (guards memory on hostile files).
@@ -168,12 +311,39 @@ impl Mesh {
             if visited > 1_000_000 {
                 return Err(mesh_err(name, "node hierarchy too large or cyclic"));
             }
+            let extras: Option<NodeExtras> = match node.extras() {
+                Some(raw) => {
+                    serde_json::from_str::<Extras>(raw.get())
+                        .map_err(|e| mesh_err(name, format!("node extras: {e}")))?
+                        .nanoeye
+                }
+                None => None,
+            };
+            let pose_only = extras.as_ref().and_then(|x| x.role.as_deref()) == Some("eye_pose");
             let local = node.transform().matrix().map(|c| c.map(|x| x as f64));
-            let world = mul4(&parent, &local);
+            let world = if pose_only {
+                parent
+            } else {
+                mul4(&parent, &local)
+            };
             for c in node.children() {
                 stack.push((c, world));
             }
             let Some(gm) = node.mesh() else { continue };
+            if let Some(shape) = match &extras {
+                Some(x) => analytic_shape(x, &world, s, name)?,
+                None => None,
+            } {
+                let label = gm
+                    .primitives()
+                    .next()
+                    .and_then(|p| p.material().name().map(str::to_string))
+                    .or_else(|| gm.name().map(str::to_string))
+                    .or_else(|| node.name().map(str::to_string))
+                    .unwrap_or_default();
+                mesh.shapes.push((shape, MaterialKind::from_name(&label)));
+                continue;
+            }
             for prim in gm.primitives() {
                 if prim.mode() != gltf::mesh::Mode::Triangles {
                     continue;
@@ -227,14 +397,14 @@ impl Mesh {
     }
 
     fn finish(self, name: &str) -> Result<Mesh, RenderError> {
-        if self.triangles.is_empty() {
+        if self.triangles.is_empty() && self.shapes.is_empty() {
             return Err(mesh_err(name, "no triangles"));
         }
         Ok(self)
     }
 
-    /// The scene of this mesh in `state`: triangles of eye classes (sclera, iris, pupil,
-    /// cornea) rotate with the eye about the world origin; skin stays put.
+    /// The scene of this mesh in `state`: triangles and shapes of eye classes (sclera, iris,
+    /// pupil, cornea) rotate with the eye about the world origin; skin and lashes stay put.
     pub fn scene(
         &self,
         state: &State,
@@ -248,32 +418,29 @@ impl Mesh {
             MaterialKind::Iris,
             MaterialKind::Pupil,
             MaterialKind::Cornea,
+            MaterialKind::Lash,
         ];
-        let albedo = [0.5, 0.65, 0.3, 0.02, 0.0];
+        let albedo = [0.5, 0.6, 0.3, 0.02, 0.0, 0.1];
         let materials = kinds
             .iter()
             .zip(albedo)
-            .map(|(&kind, albedo)| Material {
-                kind,
-                albedo,
-                iris: None,
-            })
+            .map(|(&kind, albedo)| Material::lambertian(kind, albedo))
             .collect();
+        let slot = |kind: MaterialKind| kinds.iter().position(|k| *k == kind).unwrap_or(0) as u16;
         let prims = self
             .triangles
             .iter()
             .zip(&self.kinds)
-            .map(|(t, &kind)| {
-                let v = if kind.is_eye() {
-                    t.map(|p| geom::mul_mv(&r, p))
+            .map(|(t, &kind)| (Shape::Triangle { v: *t }, kind))
+            .chain(self.shapes.iter().copied())
+            .map(|(shape, kind)| Prim {
+                shape: if kind.is_eye() {
+                    rotate_shape(&shape, &r)
                 } else {
-                    *t
-                };
-                Prim {
-                    shape: Shape::Triangle { v },
-                    material: kinds.iter().position(|k| *k == kind).unwrap_or(0) as u16,
-                    layer: layer_of(kind),
-                }
+                    shape
+                },
+                material: slot(kind),
+                layer: layer_of(kind),
             })
             .collect();
         Scene::new(prims, materials, light, cornea_index)

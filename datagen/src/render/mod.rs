@@ -6,6 +6,8 @@
 
 pub mod bvh;
 pub mod dataset;
+pub mod export;
+pub mod face;
 pub mod landmarks;
 pub mod material;
 pub mod mesh;
@@ -18,11 +20,14 @@ pub use dataset::{
     DATASET_FORMAT, DatasetManifest, DatasetOptions, DatasetSummary, FrameFiles, FrameRecord,
     LayerInfo, RenderSet, SceneSource, manifest_for, write_dataset,
 };
+pub use export::export_glb;
 pub use landmarks::{Landmark, Landmarks, aim_refracted_pupil, landmarks, refracted_pupil_px};
 pub use material::{Material, MaterialKind};
 pub use mesh::{Mesh, MeshUnits};
 pub use read::{Batcher, Dataset, FrameRef, StoredFrame, StoredLayer, read_npy_f32};
-pub use scene::{EyeGeometry, Light, Scene, Subject, procedural_scene};
+pub use scene::{
+    EyeGeometry, Light, ProceduralParts, Scene, Subject, procedural_parts, procedural_scene,
+};
 pub use trace::{DepthLayer, DepthLayers, Frame, LayerSpec, RenderOptions, render};
 
 use nanoeye_gaze::{Camera, GazeError, Pose, Vec3, geom};

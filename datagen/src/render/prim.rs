@@ -92,37 +92,6 @@ pub enum Clip {
         /// +1 keeps the side the normal points to, −1 the other.
         sign: f64,
     },
-    /// Eyelid skin: points with z ≥ `z_min_m` outside the palpebral aperture (angles about the
-    /// world origin, azimuth atan2(x, z), elevation atan2(y, √(x²+z²))).
-    Lids(Aperture),
-}
-
-/// The palpebral fissure in angular coordinates about the eye's rotation centre (rad).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Aperture {
-    /// Half width of the fissure in azimuth.
-    pub half_width_rad: f64,
-    /// Upper lid margin elevation at the fissure's centre.
-    pub upper_rad: f64,
-    /// Lower lid margin elevation at the fissure's centre (negative = below).
-    pub lower_rad: f64,
-    /// Skin exists only where z ≥ this (m); the face plane takes over behind.
-    pub z_min_m: f64,
-}
-
-impl Aperture {
-    /// True when direction/point `p` looks through the open fissure.
-    #[inline]
-    pub fn is_open(&self, p: Vec3) -> bool {
-        let az = p[0].atan2(p[2]);
-        let el = p[1].atan2((p[0] * p[0] + p[2] * p[2]).sqrt());
-        let s = az / self.half_width_rad;
-        if s.abs() >= 1.0 {
-            return false;
-        }
-        let shape = 1.0 - s * s;
-        el < self.upper_rad * shape && el > self.lower_rad * shape
-    }
 }
 
 /// Geometric shape of a primitive (m).
@@ -219,7 +188,6 @@ impl Shape {
                                 offset_m,
                                 sign,
                             } => sign * (geom::dot(normal, p) - offset_m) >= 0.0,
-                            Clip::Lids(a) => p[2] >= a.z_min_m && !a.is_open(p),
                         };
                         if keep {
                             return Some(t);

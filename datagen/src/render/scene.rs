@@ -1,8 +1,9 @@
 //! Scenes: primitives + materials + BVH + illuminator; the procedural right-eye region.
 
 use super::bvh::Bvh;
-use super::material::{IrisTexture, Material, MaterialKind};
-use super::prim::{Aperture, Clip, Shape, T_EPS};
+use super::face::{self, Face, FacePart};
+use super::material::{IrisTexture, Material, MaterialKind, SkinTexture, TEAR_FILM_INDEX};
+use super::prim::{Clip, Shape, T_EPS};
 use super::{Ray, RenderError};
 use crate::states::State;
 use nanoeye_gaze::{Mat3, Pose, Rig, Vec3, geom};
@@ -194,13 +195,14 @@ impl Scene {
 /// Layer bit for a material class.
 pub fn layer_of(kind: MaterialKind) -> u8 {
     match kind {
-        MaterialKind::Skin => LAYER_SKIN,
+        MaterialKind::Skin | MaterialKind::Lash => LAYER_SKIN,
         MaterialKind::Cornea => LAYER_CORNEA,
         _ => LAYER_EYE,
     }
 }
 
-/// Per-subject appearance and anatomy (SI units), drawn from a seed or set by hand.
+/// Per-subject appearance and anatomy (SI units, angles in rad about the eye's rotation
+/// centre), drawn from a seed or set by hand. Ranges and sources: docs/renderer.md.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Subject {
     /// Cornea front radius (m), ≈7.8 mm.
@@ -211,34 +213,71 @@ pub struct Subject {
     pub cornea_index: f64,
     /// Pupil diameter (m), 2–8 mm.
     pub pupil_diameter_m: f64,
-    /// NIR albedo of the skin.
+    /// NIR albedo of the skin at 940 nm.
     pub skin_albedo: f64,
+    /// Relative amplitude of the skin's micro-texture (0–0.5).
+    pub skin_texture: f64,
     /// NIR albedo of the sclera.
     pub sclera_albedo: f64,
     /// Mean NIR albedo of the iris.
     pub iris_albedo: f64,
     /// NIR albedo of the pupil (the dark fundus seen off-axis).
     pub pupil_albedo: f64,
+    /// NIR albedo of the eyelashes.
+    pub lash_albedo: f64,
     /// Iris fibre frequencies (cycles per turn) and phases (rad).
     pub iris_freq: [f64; 3],
     /// Iris fibre phases (rad).
     pub iris_phase: [f64; 3],
     /// Iris texture contrast (0–1).
     pub iris_contrast: f64,
-    /// Upper lid margin elevation at primary gaze (rad above the eye centre).
-    pub lid_upper_rad: f64,
-    /// Lower lid margin elevation at primary gaze (rad, negative).
-    pub lid_lower_rad: f64,
-    /// Half width of the palpebral fissure in azimuth (rad).
-    pub lid_half_width_rad: f64,
-    /// Fraction of the eye's elevation the upper lid follows.
-    pub lid_upper_follow: f64,
-    /// Fraction of the eye's elevation the lower lid follows.
-    pub lid_lower_follow: f64,
+    /// Azimuth of the palpebral fissure's centre at primary gaze (rad, + nasal).
+    pub fissure_center_az_rad: f64,
+    /// Elevation of the fissure's centre at primary gaze (rad).
+    pub fissure_center_el_rad: f64,
+    /// Angular half length of the fissure towards the medial canthus (rad).
+    pub fissure_medial_rad: f64,
+    /// Angular half length towards the lateral canthus (rad).
+    pub fissure_lateral_rad: f64,
+    /// Angular height of the upper lid margin above the fissure's centre (rad).
+    pub fissure_upper_rad: f64,
+    /// Angular depth of the lower lid margin below the centre (rad).
+    pub fissure_lower_rad: f64,
+    /// Superellipse exponent of the margins (2: ellipse; 1.5: almond with pointed canthi).
+    pub fissure_exponent: f64,
+    /// Canthal tilt (rad): positive raises the lateral canthus.
+    pub canthal_tilt_rad: f64,
+    /// Upper-lid crease: angular distance above the margin (rad; 0 = no crease).
+    pub crease_rad: f64,
+    /// Depth of the crease (m).
+    pub crease_depth_m: f64,
+    /// Epicanthic fold (0–1): shortens the fissure medially and hides the caruncle.
+    pub epicanthus: f64,
+    /// Forward relief of the brow ridge (m).
+    pub brow_m: f64,
+    /// Forward relief of the cheek (m).
+    pub cheek_m: f64,
+    /// Forward relief of the side of the nose (m).
+    pub nose_m: f64,
+    /// Caruncle radius (m).
+    pub caruncle_radius_m: f64,
+    /// Upper eyelashes.
+    pub lashes_upper: u32,
+    /// Lower eyelashes.
+    pub lashes_lower: u32,
+    /// Upper lash length (m).
+    pub lash_length_upper_m: f64,
+    /// Lower lash length (m).
+    pub lash_length_lower_m: f64,
+    /// Lash width at the root (m); tapers to 30 % at the tip.
+    pub lash_width_m: f64,
+    /// Seed of the lash layout and of the skin texture.
+    pub lash_seed: u64,
 }
 
 impl Default for Subject {
-    /// The average eye of oracles.md: 7.8 mm cornea, apex 13.3 mm, n = 1.376, 4 mm pupil.
+    /// The average eye of oracles.md (7.8 mm cornea, apex 13.3 mm, n = 1.376, 4 mm pupil) in a
+    /// typical eye region.
     fn default() -> Self {
         Subject {
             cornea_radius_m: 7.8e-3,
@@ -246,44 +285,84 @@ impl Default for Subject {
             cornea_index: 1.376,
             pupil_diameter_m: 4e-3,
             skin_albedo: 0.5,
-            sclera_albedo: 0.65,
+            skin_texture: 0.12,
+            sclera_albedo: 0.6,
             iris_albedo: 0.3,
             pupil_albedo: 0.02,
+            lash_albedo: 0.1,
             iris_freq: [17.0, 29.0, 43.0],
             iris_phase: [0.0, 1.0, 2.0],
             iris_contrast: 0.5,
-            lid_upper_rad: 26f64.to_radians(),
-            lid_lower_rad: -22f64.to_radians(),
-            lid_half_width_rad: 55f64.to_radians(),
-            lid_upper_follow: 0.8,
-            lid_lower_follow: 0.4,
+            fissure_center_az_rad: 0.0,
+            fissure_center_el_rad: -0.03,
+            fissure_medial_rad: 1.15,
+            fissure_lateral_rad: 1.25,
+            fissure_upper_rad: 0.38,
+            fissure_lower_rad: 0.42,
+            fissure_exponent: 1.7,
+            canthal_tilt_rad: 0.07,
+            crease_rad: 0.3,
+            crease_depth_m: 0.6e-3,
+            epicanthus: 0.0,
+            brow_m: 6e-3,
+            cheek_m: 3e-3,
+            nose_m: 8e-3,
+            caruncle_radius_m: 1.3e-3,
+            lashes_upper: 120,
+            lashes_lower: 55,
+            lash_length_upper_m: 9.5e-3,
+            lash_length_lower_m: 6.5e-3,
+            lash_width_m: 0.09e-3,
+            lash_seed: 0,
         }
     }
 }
 
 impl Subject {
-    /// A subject drawn from `seed`: cornea radius 7.6–8.0 mm, pupil 3–6 mm, albedos and lid
-    /// aperture within ±20 % of the defaults, a random iris texture.
+    /// A subject drawn from `seed` over the documented ranges (docs/renderer.md): cornea
+    /// radius 7.6–8.0 mm, pupil 3–6 mm, NIR albedos, fissure size, shape and tilt, crease
+    /// (absent for 30 %), epicanthic fold (40 %), facial relief, lash count and length.
     pub fn from_seed(seed: u64) -> Subject {
         let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x005E_ED0F_EE1D);
         let d = Subject::default();
-        let mut j = |x: f64, rel: f64| x * (1.0 + rel * (2.0 * rng.random::<f64>() - 1.0));
+        let mut u = |lo: f64, hi: f64| lo + (hi - lo) * rng.random::<f64>();
         let mut s = Subject {
-            cornea_radius_m: j(7.8e-3, 0.025),
-            pupil_diameter_m: j(4.5e-3, 1.5 / 4.5),
-            skin_albedo: j(d.skin_albedo, 0.2),
-            sclera_albedo: j(d.sclera_albedo, 0.15),
-            iris_albedo: j(d.iris_albedo, 0.3),
-            iris_contrast: j(d.iris_contrast, 0.4),
-            lid_upper_rad: j(d.lid_upper_rad, 0.15),
-            lid_lower_rad: j(d.lid_lower_rad, 0.15),
-            lid_half_width_rad: j(d.lid_half_width_rad, 0.1),
+            cornea_radius_m: u(7.6e-3, 8.0e-3),
+            pupil_diameter_m: u(3e-3, 6e-3),
+            skin_albedo: u(0.35, 0.6),
+            skin_texture: u(0.06, 0.2),
+            sclera_albedo: u(0.45, 0.65),
+            iris_albedo: u(0.2, 0.4),
+            lash_albedo: u(0.06, 0.14),
+            iris_contrast: u(0.3, 0.7),
+            fissure_center_az_rad: u(-0.05, 0.05),
+            fissure_center_el_rad: u(-0.08, 0.02),
+            fissure_medial_rad: u(1.05, 1.22),
+            fissure_lateral_rad: u(1.15, 1.32),
+            fissure_upper_rad: u(0.3, 0.45),
+            fissure_lower_rad: u(0.36, 0.48),
+            fissure_exponent: u(1.5, 2.0),
+            canthal_tilt_rad: u(-0.02, 0.15),
+            crease_depth_m: u(0.3e-3, 0.9e-3),
+            brow_m: u(4e-3, 9e-3),
+            cheek_m: u(1.5e-3, 5e-3),
+            nose_m: u(5e-3, 12e-3),
+            caruncle_radius_m: u(1.0e-3, 1.6e-3),
+            lash_length_upper_m: u(8e-3, 11e-3),
+            lash_length_lower_m: u(5e-3, 7.5e-3),
+            lash_width_m: u(0.07e-3, 0.11e-3),
             ..d
         };
+        s.crease_rad = if u(0.0, 1.0) < 0.3 { 0.0 } else { u(0.2, 0.4) };
+        s.epicanthus = if u(0.0, 1.0) < 0.6 { 0.0 } else { u(0.2, 1.0) };
+        s.fissure_medial_rad -= 0.2 * s.epicanthus;
+        s.lashes_upper = u(90.0, 160.0).round() as u32;
+        s.lashes_lower = u(40.0, 70.0).round() as u32;
         for k in 0..3 {
             s.iris_freq[k] = (11.0 + 40.0 * rng.random::<f64>()).round();
             s.iris_phase[k] = std::f64::consts::TAU * rng.random::<f64>();
         }
+        s.lash_seed = rng.random::<u64>();
         s
     }
 }
@@ -303,8 +382,6 @@ pub struct EyeGeometry {
     pub eyeball_radius_m: f64,
     /// Pupil radius.
     pub pupil_radius_m: f64,
-    /// Radius of the lid/skin shell about the rotation centre (just clears the apex).
-    pub lid_radius_m: f64,
 }
 
 impl EyeGeometry {
@@ -355,11 +432,13 @@ impl EyeGeometry {
             ("subject.sclera_albedo", s.sclera_albedo),
             ("subject.iris_albedo", s.iris_albedo),
             ("subject.pupil_albedo", s.pupil_albedo),
+            ("subject.lash_albedo", s.lash_albedo),
         ] {
             if !(0.0..=1.0).contains(&v) {
                 return bad(what, format!("albedo {v} outside [0, 1]"));
             }
         }
+        validate_face(s)?;
         Ok(EyeGeometry {
             pupil_plane_m: d,
             cornea_center_m: c,
@@ -367,36 +446,207 @@ impl EyeGeometry {
             limbus_radius_m: r_l,
             eyeball_radius_m: (d * d + r_l * r_l).sqrt(),
             pupil_radius_m: r_p,
-            lid_radius_m: s.cornea_apex_m + 0.4e-3,
         })
     }
 }
 
-/// The procedural right-eye region for `state`: eyeball, cornea, iris, pupil (rotated by the
-/// state's eye rotation), lids that follow elevation, and the periocular skin plane; the
-/// illuminator `light`.
-pub fn procedural_scene(
+/// Checks the eye-region parameters of a subject against their documented ranges (wide enough
+/// for any plausible face, tight enough that the mesh stays a proper surface).
+fn validate_face(s: &Subject) -> Result<(), RenderError> {
+    let checks: [(&'static str, f64, f64, f64); 17] = [
+        ("subject.skin_texture", s.skin_texture, 0.0, 0.5),
+        (
+            "subject.fissure_center_az_rad",
+            s.fissure_center_az_rad,
+            -0.3,
+            0.3,
+        ),
+        (
+            "subject.fissure_center_el_rad",
+            s.fissure_center_el_rad,
+            -0.3,
+            0.3,
+        ),
+        ("subject.fissure_medial_rad", s.fissure_medial_rad, 0.5, 1.4),
+        (
+            "subject.fissure_lateral_rad",
+            s.fissure_lateral_rad,
+            0.5,
+            1.4,
+        ),
+        ("subject.fissure_upper_rad", s.fissure_upper_rad, 0.05, 0.8),
+        ("subject.fissure_lower_rad", s.fissure_lower_rad, 0.05, 0.8),
+        ("subject.fissure_exponent", s.fissure_exponent, 1.2, 4.0),
+        ("subject.canthal_tilt_rad", s.canthal_tilt_rad, -0.4, 0.4),
+        ("subject.crease_rad", s.crease_rad, 0.0, 0.8),
+        ("subject.crease_depth_m", s.crease_depth_m, 0.0, 2e-3),
+        ("subject.epicanthus", s.epicanthus, 0.0, 1.0),
+        ("subject.brow_m", s.brow_m, 0.0, 20e-3),
+        ("subject.cheek_m", s.cheek_m, 0.0, 10e-3),
+        ("subject.nose_m", s.nose_m, 0.0, 25e-3),
+        ("subject.caruncle_radius_m", s.caruncle_radius_m, 0.0, 3e-3),
+        ("subject.lash_width_m", s.lash_width_m, 0.0, 0.5e-3),
+    ];
+    for (what, v, lo, hi) in checks {
+        if !(v >= lo && v <= hi) {
+            return Err(RenderError::Invalid {
+                what,
+                reason: format!("{v} outside [{lo}, {hi}]"),
+            });
+        }
+    }
+    for (what, v) in [
+        ("subject.lash_length_upper_m", s.lash_length_upper_m),
+        ("subject.lash_length_lower_m", s.lash_length_lower_m),
+    ] {
+        if !(v > 0.0 && v <= 20e-3) {
+            return Err(RenderError::Invalid {
+                what,
+                reason: format!("{v} outside (0, 0.02] m"),
+            });
+        }
+    }
+    for (what, v) in [
+        ("subject.lashes_upper", s.lashes_upper),
+        ("subject.lashes_lower", s.lashes_lower),
+    ] {
+        if v > 1000 {
+            return Err(RenderError::Invalid {
+                what,
+                reason: format!("{v} lashes: at most 1000"),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Material slots of the procedural scene.
+const M_SCLERA: u16 = 0;
+const M_CORNEA: u16 = 1;
+const M_IRIS: u16 = 2;
+const M_PUPIL: u16 = 3;
+const M_SKIN: u16 = 4;
+const M_MARGIN: u16 = 5;
+const M_LASH: u16 = 6;
+const M_CARUNCLE: u16 = 7;
+
+/// Names of the procedural scene's materials (glTF export; each maps back onto its class
+/// through [`MaterialKind::from_name`]).
+pub const MATERIAL_NAMES: [&str; 8] = [
+    "sclera",
+    "cornea",
+    "iris",
+    "pupil",
+    "skin",
+    "skin_lid_margin",
+    "lash",
+    "skin_caruncle",
+];
+
+/// The procedural scene split the way a file stores it: the eye's parts at primary gaze (they
+/// rotate with the eye), the face posed for the state, and the materials.
+#[derive(Debug, Clone)]
+pub struct ProceduralParts {
+    /// Eye parts (sclera, cornea, iris, pupil) at primary gaze (m).
+    pub eye_rest: Vec<Prim>,
+    /// Face parts (skin, lid margins, lashes, caruncle) posed for the state (m).
+    pub face: Vec<Prim>,
+    /// Materials, indexed by `Prim::material`; names in [`MATERIAL_NAMES`].
+    pub materials: Vec<Material>,
+    /// The eye's rotation in the state.
+    pub rotation: Mat3,
+    /// The posed fissure.
+    pub fissure: face::Fissure,
+}
+
+/// Rotates an eye part about the rotation centre.
+pub fn rotate_shape(shape: &Shape, r: &Mat3) -> Shape {
+    let rot = |p: Vec3| geom::mul_mv(r, p);
+    match *shape {
+        Shape::Sphere {
+            center,
+            radius_m,
+            clip,
+        } => Shape::Sphere {
+            center: rot(center),
+            radius_m,
+            clip: match clip {
+                Clip::None => Clip::None,
+                Clip::Plane {
+                    normal,
+                    offset_m,
+                    sign,
+                } => Clip::Plane {
+                    normal: rot(normal),
+                    offset_m,
+                    sign,
+                },
+            },
+        },
+        Shape::Disc {
+            center,
+            normal,
+            r_in_m,
+            r_out_m,
+        } => Shape::Disc {
+            center: rot(center),
+            normal: rot(normal),
+            r_in_m,
+            r_out_m,
+        },
+        Shape::Triangle { v } => Shape::Triangle { v: v.map(rot) },
+    }
+}
+
+/// The procedural right-eye region for `state`, split into rest-pose eye and posed face.
+pub fn procedural_parts(
     rig: &Rig,
     state: &State,
     subject: &Subject,
-    light: Light,
-) -> Result<Scene, RenderError> {
+) -> Result<ProceduralParts, RenderError> {
     let g = EyeGeometry::new(rig, subject)?;
+    let half_pi = std::f64::consts::FRAC_PI_2;
+    for (what, v, limit) in [
+        ("state.azimuth_rad", state.azimuth_rad, half_pi),
+        ("state.elevation_rad", state.elevation_rad, half_pi),
+        ("state.torsion_rad", state.torsion_rad, half_pi),
+        ("state.slip_m", geom::norm(state.slip_m), 0.1),
+        (
+            "state.cam_rot_rad",
+            geom::norm(state.cam_rot_rad),
+            std::f64::consts::PI,
+        ),
+    ] {
+        if !(v.abs() < limit) {
+            return Err(RenderError::Invalid {
+                what,
+                reason: format!("{v} outside (−{limit}, {limit})"),
+            });
+        }
+    }
+    if !(state.lid_closure.is_finite() && (0.0..=1.0).contains(&state.lid_closure)) {
+        return Err(RenderError::Invalid {
+            what: "state.lid_closure",
+            reason: format!("{} outside [0, 1]", state.lid_closure),
+        });
+    }
     let r: Mat3 = state.eye_rotation()?;
     let axis = |k: usize| [r[0][k], r[1][k], r[2][k]];
     let (u, v, gz) = (axis(0), axis(1), axis(2));
-    let mat = |kind, albedo| Material {
-        kind,
-        albedo,
-        iris: None,
-    };
+    let z = [0.0, 0.0, 1.0];
     let iris_center = geom::scale(gz, g.pupil_plane_m);
+    let skin_tex = Some(SkinTexture {
+        seed: subject.lash_seed,
+        amplitude: subject.skin_texture,
+    });
+    let wet = |kind, albedo| Material {
+        coat_index: TEAR_FILM_INDEX,
+        ..Material::lambertian(kind, albedo)
+    };
     let materials = vec![
-        mat(MaterialKind::Sclera, subject.sclera_albedo),
-        mat(MaterialKind::Cornea, 0.0),
+        wet(MaterialKind::Sclera, subject.sclera_albedo),
+        Material::lambertian(MaterialKind::Cornea, 0.0),
         Material {
-            kind: MaterialKind::Iris,
-            albedo: subject.iris_albedo,
             iris: Some(IrisTexture {
                 center: iris_center,
                 u,
@@ -407,83 +657,122 @@ pub fn procedural_scene(
                 phase: subject.iris_phase,
                 contrast: subject.iris_contrast,
             }),
+            ..Material::lambertian(MaterialKind::Iris, subject.iris_albedo)
         },
-        mat(MaterialKind::Pupil, subject.pupil_albedo),
-        mat(MaterialKind::Skin, subject.skin_albedo),
+        Material::lambertian(MaterialKind::Pupil, subject.pupil_albedo),
+        Material {
+            skin: skin_tex,
+            ..Material::lambertian(MaterialKind::Skin, subject.skin_albedo)
+        },
+        wet(MaterialKind::Skin, 0.9 * subject.skin_albedo),
+        Material::lambertian(MaterialKind::Lash, subject.lash_albedo),
+        wet(MaterialKind::Skin, 0.8 * subject.skin_albedo),
     ];
-    let el = state.elevation_rad;
-    let z_face = 4e-3;
-    let prims = vec![
+    let iris_rest = geom::scale(z, g.pupil_plane_m);
+    let eye_rest = vec![
         Prim {
             shape: Shape::Sphere {
                 center: [0.0; 3],
                 radius_m: g.eyeball_radius_m,
                 clip: Clip::Plane {
-                    normal: gz,
+                    normal: z,
                     offset_m: g.pupil_plane_m,
                     sign: -1.0,
                 },
             },
-            material: 0,
+            material: M_SCLERA,
             layer: LAYER_EYE,
         },
         Prim {
             shape: Shape::Sphere {
-                center: geom::scale(gz, g.cornea_center_m),
+                center: geom::scale(z, g.cornea_center_m),
                 radius_m: g.cornea_radius_m,
                 clip: Clip::Plane {
-                    normal: gz,
+                    normal: z,
                     offset_m: g.pupil_plane_m,
                     sign: 1.0,
                 },
             },
-            material: 1,
+            material: M_CORNEA,
             layer: LAYER_CORNEA,
         },
         Prim {
             shape: Shape::Disc {
-                center: iris_center,
-                normal: gz,
+                center: iris_rest,
+                normal: z,
                 r_in_m: g.pupil_radius_m,
                 r_out_m: g.limbus_radius_m,
             },
-            material: 2,
+            material: M_IRIS,
             layer: LAYER_EYE,
         },
         Prim {
             shape: Shape::Disc {
-                center: iris_center,
-                normal: gz,
+                center: iris_rest,
+                normal: z,
                 r_in_m: 0.0,
                 r_out_m: g.pupil_radius_m,
             },
-            material: 3,
+            material: M_PUPIL,
             layer: LAYER_EYE,
         },
-        Prim {
-            shape: Shape::Sphere {
-                center: [0.0; 3],
-                radius_m: g.lid_radius_m,
-                clip: Clip::Lids(Aperture {
-                    half_width_rad: subject.lid_half_width_rad,
-                    upper_rad: subject.lid_upper_rad + subject.lid_upper_follow * el,
-                    lower_rad: subject.lid_lower_rad + subject.lid_lower_follow * el,
-                    z_min_m: z_face,
-                }),
-            },
-            material: 4,
-            layer: LAYER_SKIN,
-        },
-        Prim {
-            shape: Shape::Disc {
-                center: [0.0, 0.0, z_face],
-                normal: [0.0, 0.0, 1.0],
-                r_in_m: (g.lid_radius_m * g.lid_radius_m - z_face * z_face).sqrt(),
-                r_out_m: 0.2,
-            },
-            material: 4,
-            layer: LAYER_SKIN,
-        },
     ];
-    Scene::new(prims, materials, light, subject.cornea_index)
+    let Face {
+        triangles,
+        caruncle,
+        fissure,
+    } = face::face(&g, subject, state, gz);
+    let mut face_prims: Vec<Prim> = triangles
+        .into_iter()
+        .map(|(v, part)| Prim {
+            shape: Shape::Triangle { v },
+            material: match part {
+                FacePart::Skin => M_SKIN,
+                FacePart::Margin => M_MARGIN,
+                FacePart::Lash => M_LASH,
+            },
+            layer: LAYER_SKIN,
+        })
+        .collect();
+    if caruncle.1 > 0.0 {
+        face_prims.push(Prim {
+            shape: Shape::Sphere {
+                center: caruncle.0,
+                radius_m: caruncle.1,
+                clip: Clip::None,
+            },
+            material: M_CARUNCLE,
+            layer: LAYER_SKIN,
+        });
+    }
+    Ok(ProceduralParts {
+        eye_rest,
+        face: face_prims,
+        materials,
+        rotation: r,
+        fissure,
+    })
+}
+
+/// The procedural right-eye region for `state`: eyeball, cornea, iris, pupil (rotated by the
+/// state's eye rotation), lids that follow the eye and close with `state.lid_closure`, lashes,
+/// caruncle and the periocular skin (docs/renderer.md); the illuminator `light`.
+pub fn procedural_scene(
+    rig: &Rig,
+    state: &State,
+    subject: &Subject,
+    light: Light,
+) -> Result<Scene, RenderError> {
+    let parts = procedural_parts(rig, state, subject)?;
+    let r = parts.rotation;
+    let prims = parts
+        .eye_rest
+        .iter()
+        .map(|p| Prim {
+            shape: rotate_shape(&p.shape, &r),
+            ..*p
+        })
+        .chain(parts.face)
+        .collect();
+    Scene::new(prims, parts.materials, light, subject.cornea_index)
 }

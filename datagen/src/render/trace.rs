@@ -291,7 +291,7 @@ fn trace_sample(scene: &Scene, ray: &Ray, rng: &mut Rng64) -> Sample {
             radiance: diffuse(scene, ray, &hit, rng),
             t_first: hit.t,
             seen: Some(m.kind),
-            skin_first: m.kind == MaterialKind::Skin,
+            skin_first: m.kind.is_occluder(),
         };
     }
     let (f, refl_dir, inner, p) = cornea_split(scene, ray, &hit);
@@ -326,9 +326,10 @@ fn trace_sample(scene: &Scene, ray: &Ray, rng: &mut Rng64) -> Sample {
     }
 }
 
-/// Lambertian radiance leaving hit `hit` towards the ray origin: one sample of the emitter's
-/// disc (as seen from the point) with a shadow ray. The cornea does not cast shadows (its
-/// refraction of the illumination is ignored; see docs/renderer.md).
+/// Radiance leaving hit `hit` towards the ray origin: Lambertian, from one sample of the
+/// emitter's disc (as seen from the point) with a shadow ray, under a wet coat where the
+/// material has one (Fresnel-weighted mirror image of the emitter). The cornea does not cast
+/// shadows (its refraction of the illumination is ignored; see docs/renderer.md).
 #[inline]
 fn diffuse(scene: &Scene, ray: &Ray, hit: &Hit, rng: &mut Rng64) -> f64 {
     let p = ray.at(hit.t);
@@ -337,6 +338,31 @@ fn diffuse(scene: &Scene, ray: &Ray, hit: &Hit, rng: &mut Rng64) -> f64 {
     if geom::dot(n, ray.dir) > 0.0 {
         n = geom::scale(n, -1.0);
     }
+    let (f, glint) = if m.coat_index > 0.0 {
+        coat_glint(scene, ray, p, n, m.coat_index)
+    } else {
+        (0.0, 0.0)
+    };
+    (1.0 - f) * lambert(scene, m.albedo_at(p), p, n, rng) + glint
+}
+
+/// Fresnel reflectance of a wet coat of index `index` seen along `ray` at `p` (normal `n`
+/// facing the ray), and the emitter radiance it mirrors there (0 unless the mirrored ray meets
+/// the emitter unobstructed).
+#[inline]
+fn coat_glint(scene: &Scene, ray: &Ray, p: Vec3, n: Vec3, index: f64) -> (f64, f64) {
+    let f = fresnel(-geom::dot(ray.dir, n), 1.0, index);
+    let refl = Ray::new(geom::add(p, geom::scale(n, OFFSET_M)), reflect(ray.dir, n));
+    let glint = match scene.light_hit(&refl, f64::INFINITY) {
+        Some(t) if !scene.occluded(&refl, t, LAYER_EYE | LAYER_SKIN) => f * scene.light.radiance(),
+        _ => 0.0,
+    };
+    (f, glint)
+}
+
+/// Lambertian radiance (albedo `albedo`) at `p` with normal `n` facing the viewer.
+#[inline]
+fn lambert(scene: &Scene, albedo: f64, p: Vec3, n: Vec3, rng: &mut Rng64) -> f64 {
     let light = &scene.light;
     let to_c = geom::sub(light.position_m, p);
     let dist_c = geom::norm(to_c);
@@ -373,5 +399,5 @@ fn diffuse(scene: &Scene, ray: &Ray, hit: &Hit, rng: &mut Rng64) -> f64 {
     }
     // Disc facing p: E = I·cosθ/d² (the disc's cos on the emitter side is 1).
     let e = light.intensity_w_per_sr * cos / (dist * dist);
-    m.albedo_at(p) / PI * e
+    albedo / PI * e
 }

@@ -141,6 +141,7 @@ fn draw_anchor<R: Rng>(rig: &Rig, t: &TableS2, m: &Mounting, rng: &mut R) -> (St
             torsion_rad: om,
             slip_m,
             cam_rot_rad,
+            lid_closure: 0.0,
         },
         d,
     )
@@ -407,6 +408,7 @@ pub fn protocol(
                             torsion_rad: t.torsion.sample(&mut rng),
                             slip_m: geom::add(*stage, m.translation_m),
                             cam_rot_rad: m.rotation_rad,
+                            lid_closure: 0.0,
                         };
                         out.push(Capture {
                             subject,
@@ -466,6 +468,7 @@ pub fn envelope(rig: &Rig, p: &Protocol, n: usize, seed: u64) -> Result<Vec<Stat
                 torsion_rad: t.torsion.sample(&mut rng),
                 slip_m: geom::add(bridge, stage),
                 cam_rot_rad: rot,
+                lid_closure: 0.0,
             })
         })
         .collect()

@@ -19,6 +19,14 @@ pub struct State {
     /// pitch and the mounting perturbation; zero when absent from a file.
     #[serde(default)]
     pub cam_rot_rad: Vec3,
+    /// Lid closure (0 open … 1 closed: a blink or a partial closure); zero when absent from a
+    /// file, and then not written, so files of open-eyed states keep their layout.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub lid_closure: f64,
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
 }
 
 impl State {

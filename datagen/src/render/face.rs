@@ -1,0 +1,403 @@
+//! The periocular region around the procedural eye (C.1): eyelids with a palpebral fissure that
+//! follow the eye, canthi and caruncle, an upper-lid crease, brow ridge, cheek and the side of
+//! the nose as one triangle mesh, and eyelashes as crossed ribbons. Conventions and sources in
+//! docs/renderer.md ("Eye region").
+//!
+//! The skin is a radial surface about the eye's rotation centre: along each direction ω it lies
+//! at the eye's own surface radius plus a thickness that grows away from the fissure. The mesh
+//! is laid out in fissure-polar coordinates (a ring around the fissure, rows outward), so the
+//! lid margin is sampled exactly and no triangle straddles it.
+
+use super::scene::{EyeGeometry, Subject};
+use crate::states::State;
+use nanoeye_gaze::{Vec3, geom};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::f64::consts::{PI, TAU};
+
+/// Fraction of the eye's elevation the upper lid margin follows (1: in steady fixation the eye
+/// and the upper lid take essentially equal positions, Becker & Fuchs, J. Neurophysiol. 60,
+/// 1227 (1988)).
+pub const UPPER_LID_GAIN: f64 = 1.0;
+/// Fraction of the eye's elevation the lower lid margin follows in downgaze (0.6: the vertical
+/// fissure narrows from 9.7 to 6.4 mm between primary gaze and 40° downgaze, Read et al.,
+/// Optom. Vis. Sci. 83, 715 (2006), with the upper lid following the eye).
+pub const LOWER_LID_GAIN_DOWN: f64 = 0.6;
+/// Fraction of the eye's elevation the lower lid follows in upgaze (0.3, a modelling choice:
+/// the lower lid lags the eye in upgaze, so the fissure opens).
+pub const LOWER_LID_GAIN_UP: f64 = 0.3;
+/// Fraction of the eye's azimuth the fissure's centre follows (0.15, a modelling choice: the
+/// lids' highest and lowest points shift slightly with horizontal gaze).
+pub const FISSURE_AZIMUTH_GAIN: f64 = 0.15;
+/// Gap (m) between the eye's surface and the lid margin resting on it: keeps the two surfaces
+/// from touching in floating point while staying far below a native pixel's footprint.
+pub const LID_GAP_M: f64 = 0.05e-3;
+/// Skin thickness (m) at the lid margin (the intermarginal strip's width).
+pub const LID_MARGIN_THICKNESS_M: f64 = 0.8e-3;
+/// Fissure-polar samples around the fissure.
+pub const RING_SAMPLES: usize = 256;
+/// Rows from the lid margin to the outer edge of the face.
+pub const ROWS: usize = 48;
+/// Segments per eyelash.
+pub const LASH_SEGMENTS: usize = 4;
+
+/// Which part of the face a triangle belongs to (drives its material).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum FacePart {
+    /// Lid, periocular, brow, cheek and nose skin.
+    Skin,
+    /// The intermarginal strip of the lid margin (wet: tear meniscus).
+    Margin,
+    /// An eyelash.
+    Lash,
+}
+
+/// The posed palpebral fissure in angular coordinates about the rotation centre (rad):
+/// azimuth a = atan2(x, z) (+ nasal for the right eye), elevation e = atan2(y, √(x²+z²)).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fissure {
+    /// Centre azimuth.
+    pub center_az: f64,
+    /// Centre elevation.
+    pub center_el: f64,
+    /// Angular half length towards the medial (nasal, +a) canthus.
+    pub medial: f64,
+    /// Angular half length towards the lateral (temporal, −a) canthus.
+    pub lateral: f64,
+    /// Angular height of the upper margin above the centre.
+    pub upper: f64,
+    /// Angular depth of the lower margin below the centre.
+    pub lower: f64,
+    /// Superellipse exponent of the margin (2: ellipse; smaller: pointed canthi).
+    pub exponent: f64,
+    /// Canthal tilt (rad): positive raises the lateral canthus.
+    pub tilt: f64,
+}
+
+impl Fissure {
+    /// The fissure of `subject` in `state`: lid kinematics (elevation gains above, azimuth
+    /// follow) and the state's lid closure (0 open … 1 closed: the margins meet 15 % of the
+    /// fissure's height above the lower margin).
+    pub fn posed(subject: &Subject, state: &State) -> Fissure {
+        let el = state.elevation_rad;
+        let lower_gain = if el < 0.0 {
+            LOWER_LID_GAIN_DOWN
+        } else {
+            LOWER_LID_GAIN_UP
+        };
+        let top0 = subject.fissure_center_el_rad + subject.fissure_upper_rad + UPPER_LID_GAIN * el;
+        let bottom0 = subject.fissure_center_el_rad - subject.fissure_lower_rad + lower_gain * el;
+        let bottom0 = bottom0.min(top0);
+        let c = state.lid_closure.clamp(0.0, 1.0);
+        let meet = bottom0 + 0.15 * (top0 - bottom0);
+        let top = top0 + c * (meet - top0);
+        let bottom = bottom0 + c * (meet - bottom0);
+        let height = (top - bottom).max(0.0);
+        let share =
+            subject.fissure_upper_rad / (subject.fissure_upper_rad + subject.fissure_lower_rad);
+        // A closed fissure keeps a vanishing opening so the ring stays a proper curve.
+        let min_half = 1e-6;
+        Fissure {
+            center_az: subject.fissure_center_az_rad + FISSURE_AZIMUTH_GAIN * state.azimuth_rad,
+            center_el: bottom + height * (1.0 - share),
+            medial: subject.fissure_medial_rad,
+            lateral: subject.fissure_lateral_rad,
+            upper: (height * share).max(min_half),
+            lower: (height * (1.0 - share)).max(min_half),
+            exponent: subject.fissure_exponent,
+            tilt: subject.canthal_tilt_rad,
+        }
+    }
+
+    /// Radius (rad) of the margin at fissure-polar angle `theta` (0 towards the medial canthus,
+    /// π/2 up), in the fissure's tilted frame.
+    pub fn margin_radius(&self, theta: f64) -> f64 {
+        let (s, c) = theta.sin_cos();
+        let a = if c >= 0.0 { self.medial } else { self.lateral };
+        let b = if s >= 0.0 { self.upper } else { self.lower };
+        let p = self.exponent;
+        let q = (c / a).abs().powf(p) + (s / b).abs().powf(p);
+        q.powf(-1.0 / p)
+    }
+
+    /// Angular position (azimuth, elevation) of the point at polar angle `theta`, radius `rho`.
+    pub fn at(&self, theta: f64, rho: f64) -> (f64, f64) {
+        let (s, c) = theta.sin_cos();
+        let (x, y) = (rho * c, rho * s);
+        // Rotating by −tilt lifts the lateral (x < 0) end for a positive tilt.
+        let (st, ct) = (-self.tilt).sin_cos();
+        (
+            self.center_az + x * ct - y * st,
+            self.center_el + x * st + y * ct,
+        )
+    }
+
+    /// True when direction (a, e) looks through the open fissure.
+    pub fn is_open(&self, a: f64, e: f64) -> bool {
+        let (da, de) = (a - self.center_az, e - self.center_el);
+        let (st, ct) = self.tilt.sin_cos();
+        let (x, y) = (da * ct - de * st, da * st + de * ct);
+        let rho = (x * x + y * y).sqrt();
+        rho < self.margin_radius(y.atan2(x))
+    }
+}
+
+/// Unit direction of azimuth `a`, elevation `e` (the inverse of the angles above).
+#[inline]
+pub fn direction(a: f64, e: f64) -> Vec3 {
+    let (sa, ca) = a.sin_cos();
+    let (se, ce) = e.sin_cos();
+    [sa * ce, se, ca * ce]
+}
+
+/// Distance (m) from the rotation centre to the eye's outer surface along unit `w`: the
+/// cornea where the ray leaves through the corneal cap of the eye gazing along `g`, the
+/// eyeball elsewhere.
+pub fn eye_radius(geo: &EyeGeometry, g: Vec3, w: Vec3) -> f64 {
+    let cos_psi = geom::dot(w, g).clamp(-1.0, 1.0);
+    let c = geo.cornea_center_m;
+    let disc = geo.cornea_radius_m * geo.cornea_radius_m - c * c * (1.0 - cos_psi * cos_psi);
+    if disc > 0.0 {
+        let t = c * cos_psi + disc.sqrt();
+        if t * cos_psi >= geo.pupil_plane_m {
+            return t.max(geo.eyeball_radius_m);
+        }
+    }
+    geo.eyeball_radius_m
+}
+
+#[inline]
+fn smoothstep(x: f64) -> f64 {
+    let x = x.clamp(0.0, 1.0);
+    x * x * (3.0 - 2.0 * x)
+}
+
+/// Skin thickness (m) over the eye's surface at angular position (a, e), `d` rad outside the
+/// margin, fissure-polar angle `theta`: lid skin thickening away from the margin, the upper
+/// lid's crease, and (away from the lids) brow, cheek, nose side and the rest of the face.
+fn thickness(s: &Subject, a: f64, e: f64, d: f64, theta: f64) -> f64 {
+    let lid = LID_MARGIN_THICKNESS_M + (2.0e-3 - LID_MARGIN_THICKNESS_M) * smoothstep(d / 0.35);
+    let upper = smoothstep((theta.sin() - 0.3) / 0.4);
+    let crease = if s.crease_rad > 0.0 {
+        s.crease_depth_m * (-((d - s.crease_rad) / 0.05).powi(2)).exp() * upper
+    } else {
+        0.0
+    };
+    // Face relief starts only away from the lids, which hug the globe.
+    let away = smoothstep((d - 0.1) / 0.25);
+    let brow = s.brow_m * smoothstep((e - 0.6) / 0.35);
+    let cheek = s.cheek_m * smoothstep((-e - 0.7) / 0.4);
+    let nose = s.nose_m * smoothstep((a - 1.2) / 0.5);
+    let far = 25e-3 * smoothstep((d - 0.9) / 0.6);
+    lid - crease + away * (brow + cheek + nose + far)
+}
+
+/// The posed face: triangles with their part, and the posed fissure.
+#[derive(Debug, Clone)]
+pub struct Face {
+    /// Triangles (m, world), vertices rounded to f32 so an exported mesh reproduces them
+    /// exactly.
+    pub triangles: Vec<([Vec3; 3], FacePart)>,
+    /// The caruncle: (centre, radius) in m.
+    pub caruncle: (Vec3, f64),
+    /// The fissure the lids form in this state.
+    pub fissure: Fissure,
+}
+
+#[inline]
+fn f32_round(p: Vec3) -> Vec3 {
+    p.map(|x| x as f32 as f64)
+}
+
+/// Outer edge of the mesh in fissure-polar terms (rad): far enough that the rig's wide field
+/// of view meets skin in every direction that does not look through the fissure.
+const OUTER_AZ: f64 = 1.75;
+const OUTER_EL: f64 = 1.35;
+
+/// Builds the face of `subject` in `state` around the eye `geo` gazing along `g`.
+pub fn face(geo: &EyeGeometry, subject: &Subject, state: &State, g: Vec3) -> Face {
+    let f = Fissure::posed(subject, state);
+    let n = RING_SAMPLES;
+    let rows = ROWS + 2;
+    let mut verts = vec![[0.0; 3]; n * rows];
+    let mut margin_dirs = vec![[0.0; 3]; n];
+    for i in 0..n {
+        let theta = TAU * i as f64 / n as f64;
+        let rho_m = f.margin_radius(theta);
+        let (am, em) = f.at(theta, rho_m);
+        let (st, ct) = theta.sin_cos();
+        let (ao, eo) = (
+            f.center_az + OUTER_AZ * ct,
+            (f.center_el + OUTER_EL * st).clamp(-1.4, 1.4),
+        );
+        let w = direction(am, em);
+        margin_dirs[i] = w;
+        let r_eye = eye_radius(geo, g, w);
+        verts[i] = geom::scale(w, r_eye + LID_GAP_M);
+        verts[n + i] = geom::scale(w, r_eye + LID_MARGIN_THICKNESS_M);
+        let span = ((ao - am).powi(2) + (eo - em).powi(2)).sqrt();
+        for j in 1..=ROWS {
+            let t = (j as f64 / ROWS as f64).powi(2);
+            let (a, e) = (am + t * (ao - am), em + t * (eo - em));
+            let w = direction(a, e);
+            let r = eye_radius(geo, g, w) + thickness(subject, a, e, t * span, theta);
+            verts[(j + 1) * n + i] = geom::scale(w, r);
+        }
+    }
+    let verts: Vec<Vec3> = verts.into_iter().map(f32_round).collect();
+    let mut triangles = Vec::with_capacity(2 * n * (rows - 1) + lash_capacity(subject));
+    for j in 0..rows - 1 {
+        let part = if j == 0 {
+            FacePart::Margin
+        } else {
+            FacePart::Skin
+        };
+        for i in 0..n {
+            let i1 = (i + 1) % n;
+            let (a, b) = (verts[j * n + i], verts[j * n + i1]);
+            let (c, d) = (verts[(j + 1) * n + i], verts[(j + 1) * n + i1]);
+            triangles.push(([a, b, d], part));
+            triangles.push(([a, d, c], part));
+        }
+    }
+    lashes(geo, subject, &f, g, &mut triangles);
+    // The caruncle sits in the medial canthus on the globe; an epicanthic fold hides part of it.
+    let (ac, ec) = f.at(0.0, 0.85 * f.medial);
+    let wc = direction(ac, ec);
+    let caruncle = (
+        f32_round(geom::scale(wc, geo.eyeball_radius_m + 0.1e-3)),
+        (subject.caruncle_radius_m * (1.0 - 0.6 * subject.epicanthus)) as f32 as f64,
+    );
+    Face {
+        triangles,
+        caruncle,
+        fissure: f,
+    }
+}
+
+fn lash_capacity(s: &Subject) -> usize {
+    (s.lashes_upper + s.lashes_lower) as usize * LASH_SEGMENTS * 4
+}
+
+/// One lash's random shape, fixed per subject: where on the margin it grows and how it bends.
+struct LashShape {
+    /// Fraction along the lashed part of the margin (0 lateral … 1 medial).
+    u: f64,
+    /// Length (m).
+    len: f64,
+    /// Angle from the radial direction towards the side away from the fissure at the root (rad).
+    beta0: f64,
+    /// Extra bend from root to tip (rad).
+    curl: f64,
+    /// Sideways splay along the margin (fraction of the direction).
+    splay: f64,
+}
+
+fn lash_shapes(s: &Subject, upper: bool) -> Vec<LashShape> {
+    let mut rng = ChaCha8Rng::seed_from_u64(s.lash_seed ^ if upper { 0x11 } else { 0x22 });
+    let count = if upper {
+        s.lashes_upper
+    } else {
+        s.lashes_lower
+    } as usize;
+    let (len, beta, curl) = if upper {
+        (s.lash_length_upper_m, 0.55, 0.7)
+    } else {
+        (s.lash_length_lower_m, 0.45, 0.35)
+    };
+    (0..count)
+        .map(|k| {
+            // Stratified positions; lashes thin out towards the medial end.
+            let u0 = (k as f64 + rng.random::<f64>()) / count as f64;
+            let u = 1.0 - (1.0 - u0).sqrt() * 0.999;
+            LashShape {
+                u: u.clamp(0.0, 1.0),
+                len: len * (0.7 + 0.3 * rng.random::<f64>()) * (1.0 - 0.35 * u),
+                beta0: beta + 0.25 * (rng.random::<f64>() - 0.5),
+                curl: curl * (0.7 + 0.6 * rng.random::<f64>()),
+                splay: 0.3 * (rng.random::<f64>() - 0.5),
+            }
+        })
+        .collect()
+}
+
+/// Appends the upper and lower lashes as crossed ribbons (two quads per segment).
+fn lashes(
+    geo: &EyeGeometry,
+    s: &Subject,
+    f: &Fissure,
+    g: Vec3,
+    out: &mut Vec<([Vec3; 3], FacePart)>,
+) {
+    let margin_point = |theta: f64| {
+        let (a, e) = f.at(theta, f.margin_radius(theta));
+        let w = direction(a, e);
+        geom::scale(w, eye_radius(geo, g, w) + 0.7 * LID_MARGIN_THICKNESS_M)
+    };
+    for upper in [true, false] {
+        // Lashes grow from 5 % of the arc at the lateral canthus to 85 % (none medially,
+        // where the lacrimal part of the margin is).
+        let (th_lat, th_med) = if upper {
+            (PI - 0.05 * PI, 0.15 * PI)
+        } else {
+            (PI + 0.05 * PI, TAU - 0.15 * PI)
+        };
+        for l in lash_shapes(s, upper) {
+            let theta = th_lat + l.u * (th_med - th_lat);
+            let root = margin_point(theta);
+            let h = 1e-4;
+            let tangent =
+                geom::normalize(geom::sub(margin_point(theta + h), margin_point(theta - h)));
+            let radial = geom::normalize(root);
+            let mut away = geom::normalize(geom::cross(radial, tangent));
+            // Away from the fissure: up for the upper lid, down for the lower.
+            let want_up = upper;
+            if (away[1] > 0.0) != want_up {
+                away = geom::scale(away, -1.0);
+            }
+            let mut p = root;
+            let step = l.len / LASH_SEGMENTS as f64;
+            // Lower lashes are finer than upper ones.
+            let root_width = s.lash_width_m * if upper { 1.0 } else { 0.75 };
+            let width = |k: usize| {
+                let t = k as f64 / LASH_SEGMENTS as f64;
+                (root_width * (1.0 - 0.7 * t)) as f32 as f64
+            };
+            for k in 0..LASH_SEGMENTS {
+                let beta = l.beta0 + l.curl * (k as f64 + 0.5) / LASH_SEGMENTS as f64;
+                let dir = geom::normalize(geom::add(
+                    geom::add(
+                        geom::scale(radial, beta.cos()),
+                        geom::scale(away, beta.sin()),
+                    ),
+                    geom::scale(tangent, l.splay),
+                ));
+                let q = geom::add(p, geom::scale(dir, step));
+                let e1 = geom::normalize(geom::cross(dir, radial));
+                let e2 = geom::normalize(geom::cross(dir, e1));
+                for e in [e1, e2] {
+                    let (w0, w1) = (0.5 * width(k), 0.5 * width(k + 1));
+                    let v = [
+                        f32_round(geom::add(p, geom::scale(e, -w0))),
+                        f32_round(geom::add(p, geom::scale(e, w0))),
+                        f32_round(geom::add(q, geom::scale(e, w1))),
+                        f32_round(geom::add(q, geom::scale(e, -w1))),
+                    ];
+                    out.push(([v[0], v[1], v[2]], FacePart::Lash));
+                    out.push(([v[0], v[2], v[3]], FacePart::Lash));
+                }
+                p = q;
+            }
+        }
+    }
+}
+
+/// Elevation (rad) of the upper margin above the fissure's centre, before the canthal tilt.
+pub fn upper_margin_el(f: &Fissure) -> f64 {
+    f.center_el + f.upper
+}
+
+/// Elevation (rad) of the lower margin below the fissure's centre, before the canthal tilt.
+pub fn lower_margin_el(f: &Fissure) -> f64 {
+    f.center_el - f.lower
+}
