@@ -141,11 +141,7 @@ fn bvh_closest_hit_equals_brute_force() {
             layer: if k % 2 == 0 { LAYER_EYE } else { LAYER_SKIN },
         });
     }
-    let light = Light {
-        position_m: [0.0, 0.0, 5.0],
-        radius_m: 0.01,
-        intensity_w_per_sr: 1.0,
-    };
+    let light = Light::isotropic([0.0, 0.0, 5.0], 0.01, 1.0);
     let scene = Scene::new(prims.clone(), vec![skin(0.5)], light, 1.376).unwrap();
     assert!(scene.bvh.depth() > 3, "the BVH must actually split");
     for _ in 0..3000 {
@@ -282,11 +278,7 @@ fn lambertian_plane_radiance_matches_closed_form() {
         material: 0,
         layer: LAYER_SKIN,
     }];
-    let light = Light {
-        position_m: lp,
-        radius_m: 0.5e-6,
-        intensity_w_per_sr: intensity,
-    };
+    let light = Light::isotropic(lp, 0.5e-6, intensity);
     let scene = Scene::new(prims, vec![skin(rho)], light, 1.376).unwrap();
     let f = render(
         &scene,
@@ -339,11 +331,7 @@ fn shadowed_point_receives_no_direct_light() {
             layer: LAYER_SKIN,
         },
     ];
-    let light = Light {
-        position_m: [-3e-3, 0.0, 0.0],
-        radius_m: 1e-6,
-        intensity_w_per_sr: 1e-3,
-    };
+    let light = Light::isotropic([-3e-3, 0.0, 0.0], 1e-6, 1e-3);
     let scene = Scene::new(prims, vec![skin(0.5)], light, 1.376).unwrap();
     let f = render(
         &scene,

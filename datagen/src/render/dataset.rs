@@ -128,7 +128,9 @@ pub struct DatasetManifest {
     /// The rig at the rendered size: its camera is the native grid (pixel pitch, size,
     /// intrinsics) of every image in the dataset.
     pub rig: Rig,
-    /// Radiant intensity of the renderer's illuminator (W/sr); radiance scales linearly in it.
+    /// Radiant intensity of the renderer's illuminator towards the nominal corneal apex (W/sr;
+    /// its beam's on-axis value × cos⁴ of the apex's angle off the axis); radiance scales
+    /// linearly in it.
     pub light_intensity_w_per_sr: f64,
     /// Frames in the dataset.
     pub frames: usize,
@@ -469,7 +471,8 @@ pub fn manifest_for(opts: &DatasetOptions) -> Result<DatasetManifest, RenderErro
             SceneSource::Procedural => "procedural".into(),
             SceneSource::Mesh(m) => format!("mesh:{}:{:016x}", m.triangles.len(), mesh_hash(m)),
         },
-        light_intensity_w_per_sr: Light::near_camera(&rig.camera.nominal_pose()).intensity_w_per_sr,
+        light_intensity_w_per_sr: Light::near_camera(&rig.camera.nominal_pose())
+            .intensity_toward([0.0, 0.0, Subject::default().cornea_apex_m]),
         rig,
         frames,
     })

@@ -31,36 +31,98 @@ pub struct Prim {
     pub layer: u8,
 }
 
-/// The NIR illuminator: a small spherical emitter (m, W/sr).
+/// The NIR illuminator: a small spherical emitter (m, W/sr) with an optional beam pattern
+/// I(θ) = I₀ cosᵐθ about its axis (an LED aimed at the eye).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Light {
     /// Centre (m, world).
     pub position_m: Vec3,
     /// Emitter radius (m): sets the glint size and the shadow penumbra.
     pub radius_m: f64,
-    /// Radiant intensity (W/sr) towards the eye.
+    /// Radiant intensity I₀ (W/sr) on the beam axis (everywhere when isotropic).
     pub intensity_w_per_sr: f64,
+    /// Unit beam axis (world); zero for an isotropic emitter.
+    #[serde(default)]
+    pub axis: Vec3,
+    /// Beam exponent m of cosᵐθ (0: isotropic).
+    #[serde(default)]
+    pub beam_exponent: f64,
 }
 
+/// Beam exponent of the default illuminator: cos⁸θ falls to half at 24° off axis, a modelling
+/// choice for a NIR LED aimed at the eye (it keeps the skin next to the glasses from
+/// outshining the eye).
+pub const LED_BEAM_EXPONENT: f64 = 8.0;
+
+/// Where the default illuminator is aimed (m, eye frame): the corneal apex at primary gaze of
+/// the average eye.
+pub const LED_TARGET_M: Vec3 = [0.0, 0.0, 13.3e-3];
+
 impl Light {
+    /// An isotropic emitter.
+    pub fn isotropic(position_m: Vec3, radius_m: f64, intensity_w_per_sr: f64) -> Light {
+        Light {
+            position_m,
+            radius_m,
+            intensity_w_per_sr,
+            axis: [0.0; 3],
+            beam_exponent: 0.0,
+        }
+    }
+
     /// The default illuminator for a camera pose: 4 mm along the camera's +x axis, 0.5 mm
-    /// radius, 1 mW/sr (≈0.14 mW/cm² at 27 mm, far below the 10 mW/cm² IEC 62471 exempt limit).
+    /// radius, 1 mW/sr on its axis (≈0.14 mW/cm² at the cornea, far below the 10 mW/cm² IEC
+    /// 62471 exempt limit), a cos⁸ beam aimed at [`LED_TARGET_M`] (along the optical axis when
+    /// the camera does not face it). The aim follows the target when the glasses slip (a
+    /// mount-fixed aim would drift by a few degrees).
     pub fn near_camera(pose: &Pose) -> Light {
         let x = [
             pose.rotation[0][0],
             pose.rotation[1][0],
             pose.rotation[2][0],
         ];
+        let z = [
+            pose.rotation[0][2],
+            pose.rotation[1][2],
+            pose.rotation[2][2],
+        ];
+        let position_m = geom::add(pose.position, geom::scale(x, 4e-3));
+        let to = geom::sub(LED_TARGET_M, position_m);
+        // A camera that does not face the target (a test rig, a user mesh elsewhere) gets its
+        // LED along its own optical axis.
+        let axis = if geom::dot(to, z) > 0.0 {
+            geom::normalize(to)
+        } else {
+            geom::normalize(z)
+        };
         Light {
-            position_m: geom::add(pose.position, geom::scale(x, 4e-3)),
+            position_m,
             radius_m: 0.5e-3,
             intensity_w_per_sr: 1e-3,
+            axis,
+            beam_exponent: LED_BEAM_EXPONENT,
         }
     }
 
-    /// Emitted radiance (W/(m²·sr)) of the emitter's disc as seen from anywhere.
-    pub fn radiance(&self) -> f64 {
-        self.intensity_w_per_sr / (std::f64::consts::PI * self.radius_m * self.radius_m)
+    /// Radiant intensity (W/sr) emitted along unit direction `dir` (from the emitter outward).
+    #[inline]
+    pub fn intensity_along(&self, dir: Vec3) -> f64 {
+        if self.beam_exponent == 0.0 {
+            return self.intensity_w_per_sr;
+        }
+        let c = geom::dot(self.axis, dir).max(0.0);
+        self.intensity_w_per_sr * c.powf(self.beam_exponent)
+    }
+
+    /// Radiant intensity (W/sr) towards point `p` (m).
+    pub fn intensity_toward(&self, p: Vec3) -> f64 {
+        self.intensity_along(geom::normalize(geom::sub(p, self.position_m)))
+    }
+
+    /// Radiance (W/(m²·sr)) of the emitter's disc seen from point `p`.
+    #[inline]
+    pub fn radiance_toward(&self, p: Vec3) -> f64 {
+        self.intensity_toward(p) / (std::f64::consts::PI * self.radius_m * self.radius_m)
     }
 
     fn validate(&self) -> Result<(), RenderError> {
@@ -68,11 +130,18 @@ impl Light {
             && self.radius_m.is_finite()
             && self.radius_m > 0.0
             && self.intensity_w_per_sr.is_finite()
-            && self.intensity_w_per_sr >= 0.0)
+            && self.intensity_w_per_sr >= 0.0
+            && geom::is_finite(self.axis)
+            && (self.beam_exponent == 0.0
+                || ((geom::norm(self.axis) - 1.0).abs() < 1e-6
+                    && self.beam_exponent > 0.0
+                    && self.beam_exponent <= 1000.0)))
         {
             return Err(RenderError::Invalid {
                 what: "light",
-                reason: format!("{self:?}: position finite, radius > 0, intensity ≥ 0 required"),
+                reason: format!(
+                    "{self:?}: position finite, radius > 0, intensity ≥ 0, and for a beam a unit axis and 0 < exponent ≤ 1000 required"
+                ),
             });
         }
         Ok(())
@@ -488,7 +557,7 @@ fn validate_face(s: &Subject) -> Result<(), RenderError> {
         ("subject.lash_width_m", s.lash_width_m, 0.0, 0.5e-3),
     ];
     for (what, v, lo, hi) in checks {
-        if !(v >= lo && v <= hi) {
+        if !(lo..=hi).contains(&v) {
             return Err(RenderError::Invalid {
                 what,
                 reason: format!("{v} outside [{lo}, {hi}]"),
@@ -499,7 +568,7 @@ fn validate_face(s: &Subject) -> Result<(), RenderError> {
         ("subject.lash_length_upper_m", s.lash_length_upper_m),
         ("subject.lash_length_lower_m", s.lash_length_lower_m),
     ] {
-        if !(v > 0.0 && v <= 20e-3) {
+        if v.is_nan() || v <= 0.0 || v > 20e-3 {
             return Err(RenderError::Invalid {
                 what,
                 reason: format!("{v} outside (0, 0.02] m"),
@@ -617,7 +686,7 @@ pub fn procedural_parts(
             std::f64::consts::PI,
         ),
     ] {
-        if !(v.abs() < limit) {
+        if v.is_nan() || v.abs() >= limit {
             return Err(RenderError::Invalid {
                 what,
                 reason: format!("{v} outside (−{limit}, {limit})"),

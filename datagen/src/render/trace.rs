@@ -306,7 +306,7 @@ fn trace_sample(scene: &Scene, ray: &Ray, rng: &mut Rng64) -> Sample {
     );
     let t_limit = t_scene.map_or(f64::INFINITY, |h| h.t);
     if scene.light_hit(&refl, t_limit).is_some() {
-        radiance += f * scene.light.radiance();
+        radiance += f * scene.light.radiance_toward(p);
     } else if let Some(h2) = t_scene {
         radiance += f * diffuse(scene, &refl, &h2, rng);
     }
@@ -354,7 +354,9 @@ fn coat_glint(scene: &Scene, ray: &Ray, p: Vec3, n: Vec3, index: f64) -> (f64, f
     let f = fresnel(-geom::dot(ray.dir, n), 1.0, index);
     let refl = Ray::new(geom::add(p, geom::scale(n, OFFSET_M)), reflect(ray.dir, n));
     let glint = match scene.light_hit(&refl, f64::INFINITY) {
-        Some(t) if !scene.occluded(&refl, t, LAYER_EYE | LAYER_SKIN) => f * scene.light.radiance(),
+        Some(t) if !scene.occluded(&refl, t, LAYER_EYE | LAYER_SKIN) => {
+            f * scene.light.radiance_toward(p)
+        }
         _ => 0.0,
     };
     (f, glint)
@@ -397,7 +399,7 @@ fn lambert(scene: &Scene, albedo: f64, p: Vec3, n: Vec3, rng: &mut Rng64) -> f64
     if scene.occluded(&shadow, dist - OFFSET_M, LAYER_EYE | LAYER_SKIN) {
         return 0.0;
     }
-    // Disc facing p: E = I·cosθ/d² (the disc's cos on the emitter side is 1).
-    let e = light.intensity_w_per_sr * cos / (dist * dist);
+    // Disc facing p: E = I(−l)·cosθ/d² (the disc's cos on the emitter side is 1).
+    let e = light.intensity_along(geom::scale(l, -1.0)) * cos / (dist * dist);
     albedo / PI * e
 }
