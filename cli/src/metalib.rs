@@ -299,8 +299,12 @@ fn cell(a: CellArgs) -> Result<()> {
             "reflectance": r.reflectance, "transmitted_total": r.transmitted_total,
             "phase_rad": r.phase_rad, "harmonics": spec.harmonics, "rule": spec.rule.name(),
             "n_pillar": spec.materials.n_pillar, "k_pillar": spec.materials.k_pillar,
-            "material": a.solver.material,
         });
+        // `material` only when one was named (never a null).
+        let mut v = v;
+        if let Some(m) = &a.solver.material {
+            v["material"] = serde_json::json!(m);
+        }
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         println!(
@@ -633,12 +637,21 @@ fn study_cmd(a: StudyArgs) -> Result<()> {
     for m in &materials {
         dispersion::by_name(m).map_err(|e| anyhow!("--materials: {}", flagify(&e.to_string())))?;
     }
+    let fractions = range("--fractions", &a.fractions, 1.0)?;
+    let solves = (materials.len() + n_values.len() * k_values.len()) as f64
+        * fractions.values("fractions").map_or(0, |v| v.len()) as f64;
+    if solves > 1e6 {
+        bail!(
+            "--n-values/--k-values/--materials/--fractions: {solves:e} eigen-solves is more than 1e6 \
+             (the default study is 7728)"
+        );
+    }
     let cfg = nanoeye_metalib::study::StudyConfig {
         wavelength_m,
         pitch_m,
         target_height_m,
         heights_m: heights,
-        fractions: range("--fractions", &a.fractions, 1.0)?,
+        fractions,
         harmonics: a.harmonics,
         rule: a.rule.parse().map_err(|e| anyhow!("--rule: {e}"))?,
         n_values,

@@ -108,6 +108,10 @@ fn a_named_material_sets_the_pillar_index_and_explicit_flags_override_it() {
     assert_eq!(v["n_pillar"], 3.595);
     assert_eq!(v["k_pillar"], 1.3689e-3);
     assert_eq!(v["material"], "green-2008-csi");
+    assert!(
+        with(&[]).get("material").is_none(),
+        "no null key without --material"
+    );
     let v = with(&["--material", "green-2008-csi", "--k-pillar", "0"]);
     assert_eq!(
         (v["n_pillar"].as_f64(), v["k_pillar"].as_f64()),
@@ -209,4 +213,18 @@ fn a_tiny_material_study_reports_every_variant_for_every_point() {
     );
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--height-nm"));
+    // An absurd grid is refused up front instead of running for days.
+    let out = nanoeye(
+        &[
+            "metalib",
+            "material-study",
+            "--n-values",
+            "1:100:0.1",
+            "--k-values",
+            "0,1,2,3,4,5,6,7",
+        ],
+        d.path(),
+    );
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--n-values"));
 }
