@@ -3,6 +3,7 @@
 use anyhow::{Context, Result, anyhow, bail};
 use clap::{Args, Subcommand};
 use nanoeye_metalib::blueprint::{self, BlueprintOptions};
+use nanoeye_metalib::dispersion;
 use nanoeye_metalib::library::{PillarLibrary, TabulatedLibrary};
 use nanoeye_metalib::material::{DEFAULT_WAVELENGTH_M, Materials};
 use nanoeye_metalib::rcwa::{
@@ -23,6 +24,8 @@ pub enum MetalibCmd {
     Select(SelectArgs),
     /// Phase map (NPY) → diameter map, GDSII, preview PNG, RMS phase error.
     Blueprint(BlueprintArgs),
+    /// Issue 19 study: is (700 nm, 530 nm) viable for which pillar n + ik, under which criteria.
+    MaterialStudy(StudyArgs),
 }
 
 /// Material and solver flags shared by the commands.
@@ -34,6 +37,11 @@ pub struct SolverArgs {
     /// Factorisation rule: laurent | nv.
     #[arg(long, default_value = DEFAULT_RULE.name())]
     rule: String,
+    /// Tabulated pillar material (n, k interpolated at the wavelength), e.g.
+    /// pierce-spicer-1972, franta-2013-asih, karaman-2025-asi, green-2008-csi;
+    /// --n-pillar/--k-pillar, when given, override its n/k.
+    #[arg(long)]
+    material: Option<String>,
     /// Pillar refractive index (real part); default a-Si (Pierce & Spicer 1972).
     #[arg(long)]
     n_pillar: Option<f64>,
@@ -52,8 +60,31 @@ pub struct SolverArgs {
 }
 
 impl SolverArgs {
+    /// The named material's table, if `--material` was given (unknown names list the known).
+    fn material_table(&self) -> Result<Option<&'static dispersion::DispersionTable>> {
+        self.material
+            .as_deref()
+            .map(|name| {
+                dispersion::by_name(name).map_err(|e| anyhow!("--{}", flagify(&e.to_string())))
+            })
+            .transpose()
+    }
     fn materials(&self) -> Result<Materials> {
         let mut m = Materials::default();
+        if let Some(t) = self.material_table()? {
+            let (n, k) = t.nk_at(self.wavelength_m()?).map_err(|_| {
+                let (lo, hi) = t.range_m();
+                anyhow!(
+                    "--material: `{}` is tabulated over {:.1}–{:.1} nm; --wavelength-nm {} lies outside",
+                    t.name,
+                    lo * 1e9,
+                    hi * 1e9,
+                    self.wavelength_nm
+                )
+            })?;
+            m.n_pillar = n;
+            m.k_pillar = k;
+        }
         if let Some(v) = self.n_pillar {
             m.n_pillar = v;
         }
@@ -189,6 +220,44 @@ pub struct BlueprintArgs {
     json: bool,
 }
 
+#[derive(Args)]
+pub struct StudyArgs {
+    /// Lattice pitch in nm.
+    #[arg(long, default_value_t = 530.0)]
+    pitch_nm: f64,
+    /// Height in nm whose viability is reported (must lie on --heights-nm).
+    #[arg(long, default_value_t = 700.0)]
+    height_nm: f64,
+    /// Heights a:b:step in nm also evaluated (free: the same eigen-solves).
+    #[arg(long, default_value = "500:900:10")]
+    heights_nm: String,
+    /// Diameter fractions of the pitch a:b:step.
+    #[arg(long, default_value = "0.10:0.90:0.005")]
+    fractions: String,
+    /// Grid of pillar n, a:b:step.
+    #[arg(long, default_value = "3.0:4.0:0.1")]
+    n_values: String,
+    /// Grid of pillar k, comma-separated.
+    #[arg(long, default_value = "0,0.002,0.005,0.01")]
+    k_values: String,
+    /// Named materials, comma-separated, `all` or `none`.
+    #[arg(long, default_value = "all")]
+    materials: String,
+    /// Fourier orders −N..N per direction (docs/metalib.md: N = 6 is 9× cheaper but flips
+    /// verdicts near the thresholds).
+    #[arg(long, default_value_t = DEFAULT_HARMONICS)]
+    harmonics: usize,
+    /// Factorisation rule: laurent | nv.
+    #[arg(long, default_value = DEFAULT_RULE.name())]
+    rule: String,
+    /// Wavelength in nm.
+    #[arg(long, default_value_t = DEFAULT_WAVELENGTH_M * 1e9)]
+    wavelength_nm: f64,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
 /// Runs one `metalib` subcommand.
 pub fn run(cmd: MetalibCmd) -> Result<()> {
     match cmd {
@@ -196,6 +265,7 @@ pub fn run(cmd: MetalibCmd) -> Result<()> {
         MetalibCmd::Sweep(a) => sweep_cmd(a),
         MetalibCmd::Select(a) => select_cmd(a),
         MetalibCmd::Blueprint(a) => blueprint_cmd(a),
+        MetalibCmd::MaterialStudy(a) => study_cmd(a),
     }
 }
 
@@ -228,7 +298,13 @@ fn cell(a: CellArgs) -> Result<()> {
             "t_re": r.t.re, "t_im": r.t.im, "transmittance": r.transmittance,
             "reflectance": r.reflectance, "transmitted_total": r.transmitted_total,
             "phase_rad": r.phase_rad, "harmonics": spec.harmonics, "rule": spec.rule.name(),
+            "n_pillar": spec.materials.n_pillar, "k_pillar": spec.materials.k_pillar,
         });
+        // `material` only when one was named (never a null).
+        let mut v = v;
+        if let Some(m) = &a.solver.material {
+            v["material"] = serde_json::json!(m);
+        }
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         println!(
@@ -274,6 +350,7 @@ fn sweep_cmd(a: SweepArgs) -> Result<()> {
         materials: a.solver.materials()?,
         harmonics: a.solver.harmonics,
         rule: a.solver.rule()?,
+        material: a.solver.material.clone(),
     };
     let t0 = std::time::Instant::now();
     let m = sweep::run_sweep_with_progress(&config, &a.out)
@@ -432,6 +509,7 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
             materials,
             harmonics: a.solver.harmonics,
             rule: a.solver.rule()?,
+            material: a.solver.material.clone(),
         };
         let dir = a.out.join("library_sweep");
         sweep::run_sweep_with_progress(&cfg, &dir)?;
@@ -493,6 +571,166 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
             bp.rms_phase_error_rad,
             a.out.display()
         );
+    }
+    Ok(())
+}
+
+fn study_cmd(a: StudyArgs) -> Result<()> {
+    let (lo, hi) = WAVELENGTH_RANGE_M;
+    let wavelength_m = nm("--wavelength-nm", a.wavelength_nm)?;
+    if !(lo..=hi).contains(&wavelength_m) {
+        bail!(
+            "--wavelength-nm: must lie in [{}, {}] nm, got {}",
+            lo * 1e9,
+            hi * 1e9,
+            a.wavelength_nm
+        );
+    }
+    let pitch_m = nm("--pitch-nm", a.pitch_nm)?;
+    if pitch_m <= 0.0 {
+        bail!("--pitch-nm: must be > 0, got {}", a.pitch_nm);
+    }
+    let heights = range("--heights-nm", &a.heights_nm, 1e-9)?;
+    let target = nm("--height-nm", a.height_nm)?;
+    let on_grid = heights
+        .values("heights")
+        .map_err(|e| anyhow!("--heights-nm: {e}"))?
+        .into_iter()
+        .find(|h| (h - target).abs() <= 1e-6 * target.abs().max(1e-9));
+    let Some(target_height_m) = on_grid else {
+        bail!(
+            "--height-nm: {} nm is not on --heights-nm {}",
+            a.height_nm,
+            a.heights_nm
+        );
+    };
+    let n_range = range("--n-values", &a.n_values, 1.0)?;
+    let n_values = n_range
+        .values("n")
+        .map_err(|e| anyhow!("--n-values: {e}"))?;
+    if n_values.len() > 1000 {
+        bail!("--n-values: {} values is more than 1000", n_values.len());
+    }
+    let mut k_values = Vec::new();
+    for t in a
+        .k_values
+        .split(',')
+        .map(str::trim)
+        .filter(|t| !t.is_empty())
+    {
+        let k: f64 = t
+            .parse()
+            .map_err(|_| anyhow!("--k-values: `{t}` is not a number"))?;
+        if !(k.is_finite() && k >= 0.0) {
+            bail!("--k-values: {k} must be finite and >= 0");
+        }
+        k_values.push(k);
+    }
+    if k_values.len() > 1000 {
+        bail!("--k-values: {} values is more than 1000", k_values.len());
+    }
+    let materials: Vec<String> = match a.materials.trim() {
+        "all" => dispersion::names(),
+        "none" | "" => Vec::new(),
+        list => list.split(',').map(|s| s.trim().to_string()).collect(),
+    };
+    for m in &materials {
+        dispersion::by_name(m).map_err(|e| anyhow!("--materials: {}", flagify(&e.to_string())))?;
+    }
+    let fractions = range("--fractions", &a.fractions, 1.0)?;
+    let solves = (materials.len() + n_values.len() * k_values.len()) as f64
+        * fractions.values("fractions").map_or(0, |v| v.len()) as f64;
+    if solves > 1e6 {
+        bail!(
+            "--n-values/--k-values/--materials/--fractions: {solves:e} eigen-solves is more than 1e6 \
+             (the default study is 7728)"
+        );
+    }
+    let cfg = nanoeye_metalib::study::StudyConfig {
+        wavelength_m,
+        pitch_m,
+        target_height_m,
+        heights_m: heights,
+        fractions,
+        harmonics: a.harmonics,
+        rule: a.rule.parse().map_err(|e| anyhow!("--rule: {e}"))?,
+        n_values,
+        k_values,
+        materials,
+        ..Default::default()
+    };
+    let t0 = std::time::Instant::now();
+    let saved = faer::get_global_parallelism();
+    faer::set_global_parallelism(faer::Par::Seq);
+    let out = nanoeye_metalib::study::run_study(&cfg, &|done, total| {
+        eprintln!(
+            "material-study: {done}/{total} pillar indices, {:.0} s",
+            t0.elapsed().as_secs_f64()
+        );
+    });
+    faer::set_global_parallelism(saved);
+    let points = out.map_err(|e| anyhow!("--{}", flagify(&e.to_string())))?;
+    let secs = t0.elapsed().as_secs_f64();
+    let variants: Vec<serde_json::Value> = nanoeye_metalib::study::criteria_variants()
+        .iter()
+        .map(|v| serde_json::json!({"name": v.name, "description": v.description}))
+        .collect();
+    if a.json {
+        let v = serde_json::json!({
+            "pitch_nm": a.pitch_nm, "height_nm": target_height_m * 1e9,
+            "wavelength_nm": a.wavelength_nm, "harmonics": cfg.harmonics,
+            "rule": cfg.rule.name(),
+            "paper_range_nm": [cfg.paper_range_m.0 * 1e9, cfg.paper_range_m.1 * 1e9],
+            "range_tolerance_nm": cfg.range_tolerance_m * 1e9,
+            "variants": variants, "points": points, "seconds": secs,
+        });
+        println!("{}", serde_json::to_string(&v)?);
+    } else {
+        let names: Vec<&str> = nanoeye_metalib::study::criteria_variants()
+            .iter()
+            .map(|v| v.name)
+            .collect();
+        println!(
+            "(h, s) = ({:.0}, {:.0}) nm, N = {}, {:.1} s; per criteria variant: V = viable \
+             (* = range within {:.0} nm of {:.0}-{:.0} nm), - = not; coverage in rad",
+            target_height_m * 1e9,
+            a.pitch_nm,
+            cfg.harmonics,
+            secs,
+            cfg.range_tolerance_m * 1e9,
+            cfg.paper_range_m.0 * 1e9,
+            cfg.paper_range_m.1 * 1e9
+        );
+        println!(
+            "{:<20} {:>6} {:>7}  {}",
+            "source",
+            "n",
+            "k",
+            names.join(" ")
+        );
+        for p in &points {
+            let cells: Vec<String> = p
+                .variants
+                .iter()
+                .map(|v| {
+                    let mark = if v.near_paper_range {
+                        "V*"
+                    } else if v.viable {
+                        "V"
+                    } else {
+                        "-"
+                    };
+                    format!("{mark}{:.2}", v.coverage_rad)
+                })
+                .collect();
+            println!(
+                "{:<20} {:>6.3} {:>7.4}  {}",
+                p.source,
+                p.n,
+                p.k,
+                cells.join(" ")
+            );
+        }
     }
     Ok(())
 }

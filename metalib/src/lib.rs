@@ -7,6 +7,7 @@ pub mod library;
 
 pub use error::MetalibError;
 pub use library::{PillarLibrary, TabulatedLibrary};
+pub mod dispersion;
 pub mod material;
 pub mod rcwa;
 
@@ -15,4 +16,5 @@ pub use rcwa::{CellResult, CellSpec, LayerModes, Rule};
 pub mod blueprint;
 pub mod plot;
 pub mod select;
+pub mod study;
 pub mod sweep;

@@ -18,6 +18,10 @@ pub struct Criteria {
     pub buffer_m: f64,
     /// Required phase coverage (rad).
     pub min_coverage_rad: f64,
+    /// Injectivity: a usable run must be strictly monotonic in d (D.1). When false (only for
+    /// the criteria-sensitivity study), runs are limited by τ, buffer and slope alone and
+    /// their coverage is the span max φ − min φ.
+    pub require_monotonic: bool,
 }
 
 impl Default for Criteria {
@@ -27,6 +31,7 @@ impl Default for Criteria {
             max_slope_rad_per_m: 9.0_f64.to_radians() / 1e-9,
             buffer_m: 5e-9,
             min_coverage_rad: 2.0 * PI * 1.05,
+            require_monotonic: true,
         }
     }
 }
@@ -99,8 +104,14 @@ pub fn select_curve(
     let mut best: Option<(usize, usize, f64)> = None;
     let mut start = None::<usize>;
     let mut dir = 0.0_f64;
+    // Span of the unwrapped phase over the run (for a monotonic run, |φ_e − φ_s|).
     let close = |s: usize, e: usize, best: &mut Option<(usize, usize, f64)>| {
-        let cov = (uw[e] - uw[s]).abs();
+        let (lo, hi) = uw[s..=e]
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+                (a.min(v), b.max(v))
+            });
+        let cov = hi - lo;
         if best.is_none_or(|b| cov > b.2) {
             *best = Some((s, e, cov));
         }
@@ -122,7 +133,7 @@ pub fn select_curve(
                 let dd = diameters_m[i] - diameters_m[i - 1];
                 let slope_ok = (dphi / dd).abs() < c.max_slope_rad_per_m;
                 let sign = dphi.signum();
-                let mono_ok = dphi != 0.0 && (dir == 0.0 || sign == dir);
+                let mono_ok = !c.require_monotonic || (dphi != 0.0 && (dir == 0.0 || sign == dir));
                 if slope_ok && mono_ok {
                     dir = sign;
                 } else {

@@ -71,6 +71,11 @@ pub struct SweepConfig {
     pub harmonics: usize,
     /// Factorisation rule.
     pub rule: Rule,
+    /// Name of the tabulated pillar material (`dispersion::by_name`) that `materials` was
+    /// taken from, if any: part of the parameters a resumed sweep must match. Absent from
+    /// manifests of sweeps run with explicit or default indices (and from older manifests).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub material: Option<String>,
 }
 
 impl Default for SweepConfig {
@@ -95,6 +100,7 @@ impl Default for SweepConfig {
             materials: Materials::default(),
             harmonics: crate::rcwa::DEFAULT_HARMONICS,
             rule: crate::rcwa::DEFAULT_RULE,
+            material: None,
         }
     }
 }

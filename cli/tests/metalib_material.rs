@@ -1,0 +1,230 @@
+//! `--material` on `nanoeye metalib cell|sweep|blueprint` and `metalib material-study`
+//! (issue 19, section 2).
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn nanoeye(args: &[&str], cwd: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_nanoeye"))
+        .args(args)
+        .current_dir(cwd)
+        .output()
+        .expect("run nanoeye")
+}
+
+fn json(out: &Output) -> serde_json::Value {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("JSON on stdout")
+}
+
+#[test]
+fn an_unknown_material_is_refused_naming_the_flag_and_the_known_names() {
+    let d = tempfile::tempdir().unwrap();
+    for args in [
+        vec![
+            "metalib",
+            "cell",
+            "--height-nm",
+            "700",
+            "--pitch-nm",
+            "530",
+            "--diameter-nm",
+            "200",
+            "--material",
+            "unobtainium",
+        ],
+        vec![
+            "metalib",
+            "sweep",
+            "--out",
+            "s",
+            "--heights-nm",
+            "700:700:10",
+            "--pitches-nm",
+            "530:530:10",
+            "--material",
+            "unobtainium",
+        ],
+        vec!["metalib", "material-study", "--materials", "unobtainium"],
+    ] {
+        let out = nanoeye(&args, d.path());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?}");
+        assert!(!err.contains("panicked"), "{err}");
+        assert!(err.contains("--material"), "{args:?}: {err}");
+        for name in nanoeye_metalib::dispersion::names() {
+            assert!(err.contains(&name), "{args:?}: {err} lacks {name}");
+        }
+    }
+    assert!(!d.path().join("s").exists(), "nothing written on refusal");
+    // A wavelength outside the table is refused naming both flags.
+    let out = nanoeye(
+        &[
+            "metalib",
+            "cell",
+            "--height-nm",
+            "700",
+            "--pitch-nm",
+            "530",
+            "--diameter-nm",
+            "200",
+            "--material",
+            "green-2008-csi",
+            "--wavelength-nm",
+            "500",
+        ],
+        d.path(),
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--material") && err.contains("--wavelength-nm"));
+}
+
+#[test]
+fn a_named_material_sets_the_pillar_index_and_explicit_flags_override_it() {
+    let d = tempfile::tempdir().unwrap();
+    let base = [
+        "metalib",
+        "cell",
+        "--height-nm",
+        "700",
+        "--pitch-nm",
+        "530",
+        "--diameter-nm",
+        "200",
+        "--harmonics",
+        "1",
+        "--json",
+    ];
+    let with = |extra: &[&str]| {
+        let mut a: Vec<&str> = base.to_vec();
+        a.extend_from_slice(extra);
+        json(&nanoeye(&a, d.path()))
+    };
+    let v = with(&["--material", "green-2008-csi"]);
+    assert_eq!(v["n_pillar"], 3.595);
+    assert_eq!(v["k_pillar"], 1.3689e-3);
+    assert_eq!(v["material"], "green-2008-csi");
+    assert!(
+        with(&[]).get("material").is_none(),
+        "no null key without --material"
+    );
+    let v = with(&["--material", "green-2008-csi", "--k-pillar", "0"]);
+    assert_eq!(
+        (v["n_pillar"].as_f64(), v["k_pillar"].as_f64()),
+        (Some(3.595), Some(0.0))
+    );
+    // The same indices given explicitly give the same cell.
+    let a = with(&["--material", "karaman-2025-asi"]);
+    let b = with(&["--n-pillar", "3.979189", "--k-pillar", "0"]);
+    assert_eq!(a["t_re"], b["t_re"]);
+    assert_eq!(a["t_im"], b["t_im"]);
+}
+
+#[test]
+fn the_sweep_manifest_records_the_material_and_a_resume_with_another_is_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let sweep = |material: &str| {
+        nanoeye(
+            &[
+                "metalib",
+                "sweep",
+                "--out",
+                "s",
+                "--heights-nm",
+                "700:700:10",
+                "--pitches-nm",
+                "530:530:10",
+                "--fractions",
+                "0.3:0.4:0.1",
+                "--harmonics",
+                "1",
+                "--material",
+                material,
+            ],
+            d.path(),
+        )
+    };
+    assert!(sweep("karaman-2025-asi").status.success());
+    let m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(d.path().join("s/manifest.json")).unwrap()).unwrap();
+    assert_eq!(m["config"]["material"], "karaman-2025-asi");
+    assert_eq!(m["config"]["materials"]["n_pillar"], 3.979189);
+    assert!(
+        sweep("karaman-2025-asi").status.success(),
+        "same material resumes"
+    );
+    let out = sweep("green-2008-csi");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("different parameters"),
+        "{err}"
+    );
+}
+
+#[test]
+fn a_tiny_material_study_reports_every_variant_for_every_point() {
+    let d = tempfile::tempdir().unwrap();
+    let v = json(&nanoeye(
+        &[
+            "metalib",
+            "material-study",
+            "--json",
+            "--harmonics",
+            "1",
+            "--fractions",
+            "0.1:0.9:0.1",
+            "--heights-nm",
+            "690:710:10",
+            "--n-values",
+            "3.5:3.6:0.1",
+            "--k-values",
+            "0",
+            "--materials",
+            "green-2008-csi",
+        ],
+        d.path(),
+    ));
+    let points = v["points"].as_array().unwrap();
+    assert_eq!(points.len(), 3, "one material + two grid points");
+    assert_eq!(points[0]["source"], "green-2008-csi");
+    assert_eq!(points[0]["n"], 3.595);
+    let nv = v["variants"].as_array().unwrap().len();
+    assert!(nv >= 7);
+    for p in points {
+        assert_eq!(p["variants"].as_array().unwrap().len(), nv);
+        for o in p["variants"].as_array().unwrap() {
+            assert!(o["coverage_rad"].as_f64().unwrap().is_finite());
+        }
+    }
+    let out = nanoeye(
+        &[
+            "metalib",
+            "material-study",
+            "--height-nm",
+            "705",
+            "--heights-nm",
+            "690:710:10",
+        ],
+        d.path(),
+    );
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--height-nm"));
+    // An absurd grid is refused up front instead of running for days.
+    let out = nanoeye(
+        &[
+            "metalib",
+            "material-study",
+            "--n-values",
+            "1:100:0.1",
+            "--k-values",
+            "0,1,2,3,4,5,6,7",
+        ],
+        d.path(),
+    );
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--n-values"));
+}
