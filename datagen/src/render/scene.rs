@@ -161,6 +161,9 @@ pub struct Scene {
     pub light: Light,
     /// Refractive index of the cornea (and the aqueous behind it).
     pub cornea_index: f64,
+    /// A sphere (centre, radius; m) that every ray reaching the pupil enters, when known: rays
+    /// missing it skip the skin-free re-trace of the unoccluded pupil mask.
+    pub pupil_bound: Option<(Vec3, f64)>,
 }
 
 /// A ray–scene hit.
@@ -213,6 +216,7 @@ impl Scene {
             bvh,
             light,
             cornea_index,
+            pupil_bound: None,
         })
     }
 
@@ -843,5 +847,14 @@ pub fn procedural_scene(
         })
         .chain(parts.face)
         .collect();
-    Scene::new(prims, parts.materials, light, subject.cornea_index)
+    let mut scene = Scene::new(prims, parts.materials, light, subject.cornea_index)?;
+    // The pupil disc lies inside the cornea's sphere (its rim, the limbus, is on it), so a ray
+    // that misses the sphere cannot reach the pupil.
+    let g = EyeGeometry::new(rig, subject)?;
+    let gz = [r[0][2], r[1][2], r[2][2]];
+    scene.pupil_bound = Some((
+        geom::scale(gz, g.cornea_center_m),
+        g.cornea_radius_m * (1.0 + 1e-9),
+    ));
+    Ok(scene)
 }

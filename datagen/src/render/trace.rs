@@ -190,7 +190,9 @@ pub fn render(
                     }
                     // Only samples stopped by skin can differ once the skin is removed.
                     let unoccluded = if smp.skin_first {
-                        classify(scene, &ray, LAYER_ALL & !LAYER_SKIN) == Some(MaterialKind::Pupil)
+                        may_reach_pupil(scene, &ray)
+                            && classify(scene, &ray, LAYER_ALL & !LAYER_SKIN)
+                                == Some(MaterialKind::Pupil)
                     } else {
                         is_pupil
                     };
@@ -261,6 +263,19 @@ fn cornea_split(scene: &Scene, ray: &Ray, hit: &Hit) -> (f64, Vec3, Option<Ray>,
     let f = fresnel(-geom::dot(ray.dir, n), n1, n2);
     let t = refract(ray.dir, n, eta).map(|d| Ray::new(geom::add(p, geom::scale(n, -OFFSET_M)), d));
     (f, reflect(ray.dir, n), t, p)
+}
+
+/// False when `ray` misses the scene's pupil bound (then it cannot see the pupil).
+#[inline]
+fn may_reach_pupil(scene: &Scene, ray: &Ray) -> bool {
+    let Some((c, r)) = scene.pupil_bound else {
+        return true;
+    };
+    let oc = geom::sub(ray.origin, c);
+    let b = geom::dot(oc, ray.dir);
+    let q = geom::dot(oc, oc) - r * r;
+    // Inside the sphere, or it lies ahead and the line meets it.
+    q <= 0.0 || (b < 0.0 && b * b - q >= 0.0)
 }
 
 /// Class seen along `ray` through the cornea among `mask` (no shading).
