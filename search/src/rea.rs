@@ -359,9 +359,11 @@ impl<'a> Rea<'a> {
 
     /// Runs (or continues) the search with candidates evaluated by `pool`, with the result
     /// of [`Rea::run`] (same individuals, cycles and state files): each cycle's draws come
-    /// from its own stream, so cycle c's tournament is known ahead of time, and its child is
-    /// sent out as soon as every tournament member has been evaluated (the parent is then
-    /// the sequential one). Results are committed, and `save` called, in id order.
+    /// from its own stream and its population is known ahead (ids age out in order), so
+    /// cycle c's tournament is known early, and its child (id P + c) is sent out as soon as
+    /// every tournament member has been evaluated, possibly before earlier cycles' children
+    /// (the parent is then the sequential one). Results are committed, and `save` called, in
+    /// id order.
     pub fn run_pool(
         &mut self,
         pool: &mut dyn EvalPool,
@@ -379,6 +381,9 @@ impl<'a> Rea<'a> {
         let mut next_cycle = self.state.history.len();
         let mut back: std::collections::BTreeMap<usize, Individual> = Default::default();
         let mut sent: std::collections::BTreeMap<usize, Dispatched> = Default::default();
+        // Each pending cycle's population, tournament and generator after the draw, once drawn.
+        type Drawn = (Vec<usize>, Vec<usize>, ChaCha8Rng);
+        let mut drawn: std::collections::BTreeMap<usize, Drawn> = Default::default();
         let mut in_flight = 0usize;
         loop {
             // Commit every result whose predecessors are in, in id order.
@@ -423,10 +428,13 @@ impl<'a> Rea<'a> {
                     in_flight += 1;
                     continue;
                 }
-                if next_cycle >= cycles {
-                    break;
+                // The lowest cycle not sent yet; any cycle in the P cycles from it whose
+                // tournament is all evaluated goes out, in whatever order they become ready.
+                while next_cycle < cycles
+                    && (next_cycle < self.state.history.len() || sent.contains_key(&next_cycle))
+                {
+                    next_cycle += 1;
                 }
-                let c = next_cycle;
                 let fitness = |id: usize| {
                     self.state
                         .evaluated
@@ -434,17 +442,33 @@ impl<'a> Rea<'a> {
                         .or_else(|| back.get(&id))
                         .map(|i| i.fitness)
                 };
-                let mut rng = self.rng(c as u64 + 1);
-                let pop = self.population_at(c);
-                let k = self.state.config.tournament.min(pop.len());
-                let tour: Vec<usize> = sample(&mut rng, pop.len(), k)
-                    .into_iter()
-                    .map(|i| pop[i])
-                    .collect();
-                if tour.iter().any(|&id| fitness(id).is_none()) {
-                    // A member is still being evaluated: its fitness may pick the parent.
-                    break;
+                let mut ready = None;
+                for c in next_cycle..cycles.min(next_cycle + p) {
+                    if sent.contains_key(&c) {
+                        continue;
+                    }
+                    let (_, tour, _) = drawn.entry(c).or_insert_with(|| {
+                        let mut rng = self.rng(c as u64 + 1);
+                        let pop = self.population_at(c);
+                        let k = self.state.config.tournament.min(pop.len());
+                        let tour: Vec<usize> = sample(&mut rng, pop.len(), k)
+                            .into_iter()
+                            .map(|i| pop[i])
+                            .collect();
+                        (pop, tour, rng)
+                    });
+                    // A member still being evaluated may be the parent: wait for it.
+                    if tour.iter().all(|&id| fitness(id).is_some()) {
+                        ready = Some(c);
+                        break;
+                    }
                 }
+                let Some(c) = ready else {
+                    break;
+                };
+                let Some((pop, tour, mut rng)) = drawn.remove(&c) else {
+                    break;
+                };
                 // argmax of fitness; ties go to the earlier tournament member.
                 let parent = *tour
                     .iter()
@@ -464,7 +488,6 @@ impl<'a> Rea<'a> {
                         parent,
                     },
                 );
-                next_cycle += 1;
                 in_flight += 1;
             }
             if in_flight == 0 {

@@ -233,6 +233,7 @@ struct NewestFirst<'a> {
     queue: Vec<(usize, Arch)>,
     slots: usize,
     most_in_flight: usize,
+    submitted: Vec<usize>,
 }
 
 impl nanoeye_search::EvalPool for NewestFirst<'_> {
@@ -241,6 +242,7 @@ impl nanoeye_search::EvalPool for NewestFirst<'_> {
     }
     fn submit(&mut self, id: usize, arch: &Arch) -> nanoeye_search::Result<()> {
         self.queue.push((id, arch.clone()));
+        self.submitted.push(id);
         self.most_in_flight = self.most_in_flight.max(self.queue.len());
         Ok(())
     }
@@ -260,7 +262,7 @@ fn a_pool_answering_out_of_order_gives_the_sequential_search() {
     let cfg = nanoeye_search::ReaConfig {
         epochs: 0.0,
         population: 4,
-        cycles: 4,
+        cycles: 8,
         ..rea_cfg()
     };
     let mut seq = Rea::new(&c, &ds, &ds, &run, cfg.clone()).unwrap();
@@ -276,6 +278,7 @@ fn a_pool_answering_out_of_order_gives_the_sequential_search() {
         queue: Vec::new(),
         slots: 3,
         most_in_flight: 0,
+        submitted: Vec::new(),
     };
     let mut par_saves = Vec::new();
     par.run_pool(&mut pool, &mut |s| {
@@ -284,6 +287,12 @@ fn a_pool_answering_out_of_order_gives_the_sequential_search() {
     })
     .unwrap();
     assert_eq!(pool.most_in_flight, 3, "the pool was kept busy");
+    // Some cycle's child went out before an earlier cycle's (its tournament was ready first).
+    assert!(
+        pool.submitted.windows(2).any(|w| w[1] < w[0]),
+        "{:?}",
+        pool.submitted
+    );
     // Every saved state, not only the last, is the sequential one: a resume sees no
     // difference either.
     assert_eq!(par_saves, seq_saves);
