@@ -40,6 +40,8 @@ fn mpirun(n: usize, args: &[&str], cwd: &Path) -> Output {
         .args(args)
         .current_dir(cwd)
         .env("RAYON_NUM_THREADS", "1")
+        // Containers often forbid the cross-memory attach OpenMPI's shared memory tries first.
+        .env("OMPI_MCA_btl_vader_single_copy_mechanism", "none")
         .output()
         .expect("mpirun on PATH (apt-get install openmpi-bin)")
 }
