@@ -124,16 +124,19 @@ fn main() -> ExitCode {
     let _session = dist::init();
     let w = dist::world();
     let cli = Cli::parse();
-    let result = if w.is_distributed() && !distributes(&cli.command) {
-        Err(anyhow::anyhow!(
-            "this command runs on one process ({} ranks started): only metalib sweep, datagen \
-             render, optics psf and search rea split across MPI ranks (docs/mpi.md)",
-            w.size()
-        ))
-    } else {
-        dispatch(cli.command)
-    };
-    match result {
+    if w.is_distributed() && !distributes(&cli.command) {
+        // Nothing started yet: every rank stops, rank 0 says why.
+        if w.is_root() {
+            eprintln!(
+                "error: this command runs on one process ({} ranks started): only metalib \
+                 sweep, datagen render, optics psf and search rea split across MPI ranks \
+                 (docs/mpi.md)",
+                w.size()
+            );
+        }
+        return ExitCode::FAILURE;
+    }
+    match dispatch(cli.command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) if w.is_distributed() => {
             // One rank's failure ends every rank: the others may wait on it in a collective.

@@ -193,6 +193,13 @@ fn render_and_psf_on_two_ranks_are_byte_identical() {
         "--out",
     ];
     single(&[&psf[..], &["one_psf"]].concat(), p);
+    // A command that does not split its work refuses to run on two ranks.
+    let o = mpirun(2, &["rig", "show"], p);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("runs on one process"),
+        "{err}"
+    );
     ok(
         mpirun(2, &[&psf[..], &["two_psf"]].concat(), p),
         "mpirun psf",
