@@ -2,7 +2,8 @@
 
 use anyhow::{Context, Result, bail};
 use nanoeye_datagen::render::{
-    DatasetOptions, LayerSpec, Mesh, MeshUnits, RenderSet, SceneSource, write_dataset,
+    DatasetOptions, DatasetSummary, LayerSpec, Mesh, MeshUnits, RenderError, RenderSet,
+    SceneSource, finish_dataset, open_dataset, plan_dataset, render_frames, write_dataset,
 };
 use nanoeye_gaze::Rig;
 use std::path::PathBuf;
@@ -114,7 +115,13 @@ pub fn run(args: RenderArgs) -> Result<()> {
         progress: true,
         layers: LayerSpec::default(),
     };
-    let summary = write_dataset(&opts).map_err(|e| {
+    let w = crate::dist::world();
+    let result = if w.is_distributed() {
+        render_distributed(&opts, w)
+    } else {
+        write_dataset(&opts).map(Some)
+    };
+    let summary = result.map_err(|e| {
         let msg = e.to_string();
         // Name the flag behind a size or sample error.
         let flag = if msg.contains("requested, at most") {
@@ -130,6 +137,10 @@ pub fn run(args: RenderArgs) -> Result<()> {
         };
         anyhow::anyhow!("{flag}: {msg}")
     })?;
+    // Rank 0 prints; the other ranks are done.
+    let Some(summary) = summary else {
+        return Ok(());
+    };
     println!(
         "{}",
         serde_json::json!({
@@ -141,4 +152,45 @@ pub fn run(args: RenderArgs) -> Result<()> {
         })
     );
     Ok(())
+}
+
+/// The dataset over MPI ranks: rank 0 opens the directory, every rank renders frames
+/// i ≡ rank (mod ranks) into it (a filesystem all ranks share), and rank 0 writes
+/// frames.jsonl and the contact sheet once all are done. The summary over all ranks on rank
+/// 0, None elsewhere.
+fn render_distributed(
+    opts: &DatasetOptions,
+    w: crate::dist::World,
+) -> Result<Option<DatasetSummary>, RenderError> {
+    // Rank 0 refuses another dataset's directory before anyone renders; a refusal ends the
+    // run there (the others wait in the broadcast).
+    let plan = if w.is_root() {
+        let p = open_dataset(opts)?;
+        w.broadcast(Vec::new());
+        p
+    } else {
+        w.broadcast(Vec::new());
+        plan_dataset(opts)?
+    };
+    let mine = crate::dist::round_robin(plan.planned.len(), w);
+    let s = render_frames(opts, &plan, &mine, w.is_root() && opts.progress)?;
+    let mut counts = (s.written as u64).to_le_bytes().to_vec();
+    counts.extend((s.skipped as u64).to_le_bytes());
+    let Some(all) = w.gather(counts) else {
+        return Ok(None);
+    };
+    let mut total = DatasetSummary {
+        written: 0,
+        skipped: 0,
+    };
+    for c in all {
+        let v: Vec<u64> = c
+            .chunks_exact(8)
+            .map(|b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])))
+            .collect();
+        total.written += v.first().copied().unwrap_or(0) as usize;
+        total.skipped += v.get(1).copied().unwrap_or(0) as usize;
+    }
+    finish_dataset(opts, &plan)?;
+    Ok(Some(total))
 }

@@ -5,6 +5,7 @@
 
 mod datagen;
 mod datagen_render;
+mod dist;
 mod figures;
 mod fisher;
 mod gaze;
@@ -106,11 +107,47 @@ fn keep_freed_memory() {
 #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
 fn keep_freed_memory() {}
 
+/// Whether `command` splits its work across MPI ranks; the others refuse to run on more
+/// than one, since every rank would write the same outputs.
+fn distributes(command: &Command) -> bool {
+    matches!(
+        command,
+        Command::Metalib(metalib::MetalibCmd::Sweep(_))
+            | Command::Datagen(datagen::Cmd::Render(_))
+            | Command::Optics(optics::Cmd::Psf(_))
+            | Command::Search(sim::SearchCmd::Rea(_))
+    )
+}
+
 fn main() -> ExitCode {
     keep_freed_memory();
+    let _session = dist::init();
+    let w = dist::world();
     let cli = Cli::parse();
+    if w.is_distributed() && !distributes(&cli.command) {
+        // Nothing started yet: every rank stops, rank 0 says why.
+        if w.is_root() {
+            eprintln!(
+                "error: this command runs on one process ({} ranks started): only metalib \
+                 sweep, datagen render, optics psf and search rea split across MPI ranks \
+                 (docs/mpi.md)",
+                w.size()
+            );
+        }
+        return ExitCode::FAILURE;
+    }
     match dispatch(cli.command) {
         Ok(()) => ExitCode::SUCCESS,
+        Err(e) if w.is_distributed() => {
+            // One rank's failure ends every rank: the others may wait on it in a collective.
+            eprintln!(
+                "error (rank {} of {}): {e:#}\nthe run is aborted; finished shares stay on disk \
+                 and a rerun of the same command resumes them",
+                w.rank(),
+                w.size()
+            );
+            w.abort(1)
+        }
         Err(e) => {
             eprintln!("error: {e:#}");
             ExitCode::FAILURE

@@ -147,8 +147,8 @@ pub struct CellArgs {
 #[derive(Args)]
 pub struct SweepArgs {
     /// Output directory (resumes a matching interrupted sweep).
-    #[arg(long)]
-    out: PathBuf,
+    #[arg(long, required_unless_present = "plan_ranks")]
+    out: Option<PathBuf>,
     /// Heights a:b:step in nm.
     #[arg(long, default_value = "100:1500:10")]
     heights_nm: String,
@@ -163,6 +163,10 @@ pub struct SweepArgs {
     /// Print the manifest as JSON.
     #[arg(long)]
     json: bool,
+    /// Print the pitches each of N processes would solve (`mpirun -np N`) and the share
+    /// imbalance (largest share's cost over the mean), then exit without solving.
+    #[arg(long)]
+    plan_ranks: Option<usize>,
 }
 
 #[derive(Args)]
@@ -352,24 +356,155 @@ fn sweep_cmd(a: SweepArgs) -> Result<()> {
         rule: a.solver.rule()?,
         material: a.solver.material.clone(),
     };
+    let out = match (a.plan_ranks, &a.out) {
+        (Some(n), _) => return plan_cmd(&config, n),
+        (None, Some(out)) => out.clone(),
+        (None, None) => bail!("--out: required"),
+    };
     let t0 = std::time::Instant::now();
-    let m = sweep::run_sweep_with_progress(&config, &a.out)
-        .with_context(|| format!("--out {}", a.out.display()))?;
+    let w = crate::dist::world();
+    let m = if w.is_distributed() {
+        sweep_distributed(&config, &out, w)
+    } else {
+        sweep::run_sweep_with_progress(&config, &out)
+            .map(|m| Some((m, serde_json::Value::Null)))
+            .map_err(Into::into)
+    }
+    .with_context(|| format!("--out {}", out.display()))?;
+    // Rank 0 prints; the other ranks are done.
+    let Some((m, timing)) = m else {
+        return Ok(());
+    };
     let secs = t0.elapsed().as_secs_f64();
     let cells = m.shape.iter().product::<usize>();
     if a.json {
         let mut v = serde_json::to_value(&m)?;
         v["seconds"] = serde_json::json!(secs);
+        if !timing.is_null() {
+            v["mpi"] = timing;
+        }
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         println!(
             "{cells} cells ({:?}) in {secs:.1} s, {} failed → {}",
             m.shape,
             m.failed_cells,
-            a.out.display()
+            out.display()
         );
     }
     Ok(())
+}
+
+/// `--plan-ranks N`: the shares N processes would get, and their balance, without solving.
+fn plan_cmd(config: &SweepConfig, n: usize) -> Result<()> {
+    if n == 0 || n > 1_000_000 {
+        bail!("--plan-ranks: must be 1..=1000000, got {n}");
+    }
+    let grid = sweep::sweep_grid(config)?;
+    let shares = sweep::plan_shares(&grid, n);
+    let pitches: Vec<Vec<f64>> = shares
+        .iter()
+        .map(|s| {
+            s.iter()
+                .map(|&i| (grid.pitches_m[i] * 1e9).round())
+                .collect()
+        })
+        .collect();
+    let v = serde_json::json!({
+        "ranks": n,
+        "imbalance": sweep::share_imbalance(&grid, &shares),
+        "pitches_nm": pitches,
+    });
+    println!("{}", serde_json::to_string(&v)?);
+    Ok(())
+}
+
+/// The sweep over MPI ranks: rank 0 opens the directory, each rank solves (or restores) its
+/// load-balanced share of pitches, checkpointing every block, and rank 0 gathers the blocks
+/// and writes the same files a single process writes. On rank 0 the manifest and the timing
+/// (seconds each rank spent on its share, and in the gather and the writing), None elsewhere.
+fn sweep_distributed(
+    config: &SweepConfig,
+    dir: &std::path::Path,
+    w: crate::dist::World,
+) -> Result<Option<(sweep::Manifest, serde_json::Value)>> {
+    use crate::dist::{bytes_f64, f64_bytes, frame, unframe};
+    let grid = sweep::sweep_grid(config)?;
+    // Rank 0 refuses another sweep's directory before anyone computes.
+    let vouched = if w.is_root() {
+        serde_json::to_vec(&sweep::open_sweep(config, dir)?.block_fnv1a64)?
+    } else {
+        Vec::new()
+    };
+    let vouched: std::collections::BTreeMap<usize, String> =
+        serde_json::from_slice(&w.broadcast(vouched))?;
+    let shares = sweep::plan_shares(&grid, w.size());
+    let mine = &shares[w.rank()];
+    let cells = (mine.len() * grid.heights_m.len() * grid.fractions.len()) as u64;
+    // Rank 0 reports its own share's progress; the others stay quiet.
+    let total = if w.is_root() { cells } else { 0 };
+    let t_share = std::time::Instant::now();
+    let blocks = sweep::with_progress(total, |report| {
+        sweep::solve_share(config, dir, mine, &vouched, report)
+    })?;
+    let share_s = t_share.elapsed().as_secs_f64();
+    let shares_s = w.gather(share_s.to_le_bytes().to_vec());
+    // Every rank is done here, so the time below is the transfer's and the writing's alone.
+    w.barrier();
+    let t_gather = std::time::Instant::now();
+    let parts: Vec<Vec<u8>> = blocks
+        .iter()
+        .map(|(is, b)| {
+            let flat: Vec<f64> = b.iter().flatten().copied().collect();
+            let mut bytes = (*is as u64).to_le_bytes().to_vec();
+            bytes.extend(f64_bytes(&flat));
+            bytes
+        })
+        .collect();
+    let gathered = w.gather(frame(&parts));
+    let manifest = match gathered {
+        Some(all) => {
+            let mut blocks = Vec::new();
+            for rank_bytes in all {
+                for part in unframe(&rank_bytes) {
+                    let (head, body) = part.split_at(8.min(part.len()));
+                    let is = u64::from_le_bytes(head.try_into().unwrap_or([0xff; 8])) as usize;
+                    let block: Vec<[f64; 4]> = bytes_f64(body)
+                        .chunks_exact(4)
+                        .map(|c| [c[0], c[1], c[2], c[3]])
+                        .collect();
+                    blocks.push((is, block));
+                }
+            }
+            let gather_s = t_gather.elapsed().as_secs_f64();
+            let m = sweep::finish_sweep(config, dir, blocks)?;
+            let rank_s: Vec<f64> = shares_s
+                .unwrap_or_default()
+                .iter()
+                .flat_map(|b| crate::dist::bytes_f64(b))
+                .collect();
+            let timing = serde_json::json!({
+                "ranks": w.size(),
+                "share_seconds": rank_s,
+                "gather_seconds": gather_s,
+                "write_seconds": t_gather.elapsed().as_secs_f64() - gather_s,
+            });
+            Some((m, timing))
+        }
+        None => None,
+    };
+    w.barrier();
+    if !w.is_root() {
+        // Without a shared filesystem this rank's checkpoints are its own; they are in the
+        // arrays now (on a shared one, rank 0 already removed them).
+        for &is in mine {
+            for ext in ["bin", "fnv"] {
+                let _ = std::fs::remove_file(dir.join(format!("partial/pitch_{is:04}.{ext}")));
+            }
+        }
+        let _ = std::fs::remove_dir(dir.join("partial"));
+    }
+    Ok(manifest)
 }
 
 fn select_cmd(a: SelectArgs) -> Result<()> {

@@ -216,7 +216,16 @@ fn psf(a: PsfArgs) -> Result<()> {
         ..PsfConfig::default()
     };
     let model = AsmPsf::new(cfg, grid).context("--pitch-um/--window-px/--period-mm")?;
-    let stack = model.forward(&map, &depths, None)?;
+    let w = crate::dist::world();
+    let (stack, timing) = if w.is_distributed() {
+        psf_distributed(&model, &map, &depths, w)?
+    } else {
+        (model.forward(&map, &depths, None)?, serde_json::Value::Null)
+    };
+    // Every rank holds the whole stack (the AllGather); rank 0 writes it.
+    if !w.is_root() {
+        return Ok(());
+    }
     if let Some(k) = stack
         .planes
         .iter()
@@ -251,11 +260,80 @@ fn psf(a: PsfArgs) -> Result<()> {
                 })
             })
             .collect();
-        print_json(&serde_json::json!({
+        let mut v = serde_json::json!({
             "pitch_m": stack.pitch_m, "depths_m": stack.depths_m, "planes": planes,
-        }))?;
+        });
+        if !timing.is_null() {
+            v["mpi"] = timing;
+        }
+        print_json(&v)?;
     }
     Ok(())
+}
+
+/// The stack over MPI ranks: rank r computes depths k ≡ r (mod ranks), and the planes are
+/// all-gathered into the stack one process computes (each plane depends on its depth only).
+/// With the stack, the timing: each rank's seconds on its planes, and the AllGather's.
+fn psf_distributed(
+    model: &AsmPsf,
+    map: &PhaseMap,
+    depths: &[f64],
+    w: crate::dist::World,
+) -> Result<(nanoeye_optics::PsfStack, serde_json::Value)> {
+    use crate::dist::{bytes_f64, f64_bytes, frame, round_robin, unframe};
+    let mine = round_robin(depths.len(), w);
+    let active: Vec<bool> = (0..depths.len()).map(|k| mine.contains(&k)).collect();
+    let t0 = std::time::Instant::now();
+    let own = model.planes_f64(map, depths, Some(&active))?;
+    let own_s = t0.elapsed().as_secs_f64();
+    let n = model.config().window_px;
+    let parts: Vec<Vec<u8>> = mine
+        .iter()
+        .filter_map(|&k| {
+            let p = own[k].as_ref()?;
+            // Column-major, as faer stores it.
+            let flat: Vec<f64> = (0..n)
+                .flat_map(|j| (0..n).map(move |i| p[(i, j)]))
+                .collect();
+            let mut bytes = (k as u64).to_le_bytes().to_vec();
+            bytes.extend(f64_bytes(&flat));
+            Some(bytes)
+        })
+        .collect();
+    let mut planes: Vec<Option<Mat<f64>>> = vec![None; depths.len()];
+    // Wait for the slowest rank first, so the time below is the transfer's alone.
+    w.barrier();
+    let t1 = std::time::Instant::now();
+    let gathered = w.all_gather(frame(&parts));
+    let gather_s = t1.elapsed().as_secs_f64();
+    let rank_s: Vec<f64> = w
+        .all_gather(own_s.to_le_bytes().to_vec())
+        .iter()
+        .flat_map(|b| bytes_f64(b))
+        .collect();
+    for rank_bytes in gathered {
+        for part in unframe(&rank_bytes) {
+            let (head, body) = part.split_at(8.min(part.len()));
+            let k = u64::from_le_bytes(head.try_into().unwrap_or([0xff; 8])) as usize;
+            let v = bytes_f64(body);
+            if k < depths.len() && v.len() == n * n {
+                planes[k] = Some(Mat::from_fn(n, n, |i, j| v[j * n + i]));
+            }
+        }
+    }
+    if let Some(k) = planes.iter().position(Option::is_none) {
+        bail!(
+            "the PSF at depth {} mm did not arrive from its rank",
+            depths[k] * 1e3
+        );
+    }
+    let timing = serde_json::json!({
+        "ranks": w.size(), "plane_seconds": rank_s, "allgather_seconds": gather_s,
+    });
+    Ok((
+        nanoeye_optics::PsfStack::from_planes(depths, model.config().pitch_m, n, &planes),
+        timing,
+    ))
 }
 
 /// One tile per depth, left to right, each scaled to its own peak (as in Fig. S10), as PNG.

@@ -364,6 +364,11 @@ pub fn rea(a: ReaArgs) -> Result<()> {
     let v = val.as_ref().unwrap_or(&ds);
     let mut r =
         Rea::new(&chain, &ds, v, &ck, cfg).with_context(|| format!("--run {}", a.run.display()))?;
+    let w = crate::dist::world();
+    if w.is_distributed() && !w.is_root() {
+        // Ranks 1.. evaluate the candidates rank 0 sends them until it says stop.
+        return rea_worker(&r.evaluator(), w);
+    }
     let state_path = a.run.join("rea_state.json");
     util::check_output_target(&state_path)?;
     if state_path.exists() {
@@ -405,7 +410,14 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         }
         Ok(())
     };
-    r.run(&mut save)?;
+    if w.is_distributed() {
+        let mut pool = RankPool::new(w);
+        let done = r.run_pool(&mut pool, &mut save);
+        pool.stop();
+        done?;
+    } else {
+        r.run(&mut save)?;
+    }
     bar.finish_and_clear();
     let best = r.best().context("the search evaluated nothing")?;
     let out = serde_json::json!({
@@ -429,6 +441,89 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// The search's candidates evaluated by MPI ranks 1..N (rank 0 runs the evolution): one
+/// candidate per rank at a time, results taken in the order they finish.
+struct RankPool {
+    w: crate::dist::World,
+    idle: Vec<usize>,
+    /// Candidate id each busy rank is evaluating.
+    busy: std::collections::BTreeMap<usize, usize>,
+}
+
+impl RankPool {
+    fn new(w: crate::dist::World) -> RankPool {
+        RankPool {
+            w,
+            idle: (1..w.size()).rev().collect(),
+            busy: Default::default(),
+        }
+    }
+    /// Tells every worker rank to leave its loop.
+    fn stop(&mut self) {
+        for r in 1..self.w.size() {
+            self.w.send(r, crate::dist::TAG_STOP, &[]);
+        }
+    }
+}
+
+fn pool_err(reason: String) -> nanoeye_search::SearchError {
+    nanoeye_search::SearchError::Param {
+        name: "pool",
+        reason,
+    }
+}
+
+impl nanoeye_search::EvalPool for RankPool {
+    fn slots(&self) -> usize {
+        self.w.size() - 1
+    }
+    fn submit(&mut self, id: usize, arch: &Arch) -> nanoeye_search::Result<()> {
+        let r = self
+            .idle
+            .pop()
+            .ok_or_else(|| pool_err("every worker rank is busy".into()))?;
+        let task = serde_json::to_vec(&serde_json::json!({"id": id, "arch": arch}))
+            .map_err(|e| pool_err(e.to_string()))?;
+        self.w.send(r, crate::dist::TAG_TASK, &task);
+        self.busy.insert(r, id);
+        Ok(())
+    }
+    fn next(&mut self) -> nanoeye_search::Result<nanoeye_search::Individual> {
+        let (r, _, bytes) = self.w.receive_any();
+        let id = self.busy.remove(&r).ok_or_else(|| {
+            pool_err(format!("rank {r} answered without a candidate to evaluate"))
+        })?;
+        self.idle.push(r);
+        let reply: std::result::Result<nanoeye_search::Individual, String> =
+            serde_json::from_slice(&bytes).map_err(|e| pool_err(format!("rank {r}: {e}")))?;
+        reply.map_err(|e| pool_err(format!("rank {r} evaluating candidate {id}: {e}")))
+    }
+}
+
+/// A worker rank's loop: evaluate each candidate rank 0 sends, reply with the individual (or
+/// the error), until told to stop.
+fn rea_worker(eval: &nanoeye_search::Evaluator, w: crate::dist::World) -> Result<()> {
+    #[derive(serde::Deserialize)]
+    struct Task {
+        id: usize,
+        arch: Arch,
+    }
+    loop {
+        let (from, tag, bytes) = w.receive_any();
+        if tag == crate::dist::TAG_STOP {
+            return Ok(());
+        }
+        if from != 0 || tag != crate::dist::TAG_TASK {
+            bail!("unexpected message (tag {tag}) from rank {from}");
+        }
+        let task: Task = serde_json::from_slice(&bytes).context("a task from rank 0")?;
+        let reply: std::result::Result<nanoeye_search::Individual, String> = eval
+            .evaluate(task.id, &task.arch)
+            .map_err(|e| e.to_string());
+        w.send(0, crate::dist::TAG_RESULT, &serde_json::to_vec(&reply)?);
+    }
 }
 
 /// `nanoeye search pareto` options.

@@ -5,7 +5,7 @@ cd "$(dirname "$0")"
 tmp=$(mktemp ../benchmarks.md.XXXXXX)
 {
   cat summary.md
-  for s in gaze renderer optics chain sensor fisher nets metalib; do
+  for s in gaze renderer optics chain sensor fisher nets metalib mpi; do
     [ -f "$s.md" ] || continue
     printf '\n---\n\n'
     # Demote each section's headings one level under the summary's title.

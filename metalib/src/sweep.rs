@@ -311,13 +311,22 @@ fn solve_column(spec: &CellSpec, heights: &[f64]) -> Vec<[f64; 4]> {
     }
 }
 
-/// Runs (or resumes) a sweep into `dir`, reporting completed cells to `progress` as
-/// (cells, restored): `restored` is true for cells read back from a checkpoint.
-pub fn run_sweep(
-    config: &SweepConfig,
-    dir: &Path,
-    progress: &(dyn Fn(u64, bool) + Sync),
-) -> Result<Manifest, MetalibError> {
+/// One pitch's results: (pitch index, [fraction][height] of (phase rad, τ, Re t, Im t)).
+pub type PitchBlock = (usize, Vec<[f64; 4]>);
+
+/// The sampled axes of a validated sweep configuration.
+#[derive(Debug, Clone)]
+pub struct SweepGrid {
+    /// Heights (m).
+    pub heights_m: Vec<f64>,
+    /// Pitches (m).
+    pub pitches_m: Vec<f64>,
+    /// Diameter fractions of the pitch.
+    pub fractions: Vec<f64>,
+}
+
+/// Validates `config` (ranges, materials, harmonics) and returns its axes.
+pub fn sweep_grid(config: &SweepConfig) -> Result<SweepGrid, MetalibError> {
     let heights = config.heights_m.values("heights")?;
     let pitches = config.pitches_m.values("pitches")?;
     let fractions = config.fractions.values("fractions")?;
@@ -349,13 +358,154 @@ pub fn run_sweep(
         rule: config.rule,
     }
     .validate()?;
-    let (nh, ns, nf) = (heights.len(), pitches.len(), fractions.len());
-    std::fs::create_dir_all(dir.join("partial")).map_err(|e| io_err(dir, e))?;
-    let mut manifest = Manifest {
+    Ok(SweepGrid {
+        heights_m: heights,
+        pitches_m: pitches,
+        fractions,
+    })
+}
+
+/// Relative cost of solving one pitch's block (one eigen-solve per fraction, then every
+/// height), for splitting a sweep across processes. Per (pitch, fraction) the eigen-solve
+/// costs about the same at every pitch (~31 ms at N = 10) while the 141-height solve grows
+/// from 0.7 ms at 100 nm to 19.6 ms at 1000 nm (docs/bench/metalib.md): about 0.5 ms +
+/// 19.6 ms × (s / 1 µm)², scaled by the number of heights.
+pub fn pitch_cost(pitch_m: f64, heights: usize, fractions: usize) -> f64 {
+    let s_um = pitch_m * 1e6;
+    fractions as f64 * (31.0 + heights as f64 / 141.0 * (0.5 + 19.6 * s_um * s_um))
+}
+
+/// Splits the pitches of `grid` into `ranks` shares of about equal [`pitch_cost`]: longest
+/// processing time first (costliest pitch to the least-loaded share, ties to the lower
+/// share). Deterministic; every pitch index appears in exactly one share, each share sorted.
+pub fn plan_shares(grid: &SweepGrid, ranks: usize) -> Vec<Vec<usize>> {
+    let ranks = ranks.max(1);
+    let (nh, nf) = (grid.heights_m.len(), grid.fractions.len());
+    let cost: Vec<f64> = grid
+        .pitches_m
+        .iter()
+        .map(|&s| pitch_cost(s, nh, nf))
+        .collect();
+    let mut order: Vec<usize> = (0..cost.len()).collect();
+    // Costliest first; equal costs keep pitch order.
+    order.sort_by(|&a, &b| cost[b].total_cmp(&cost[a]).then(a.cmp(&b)));
+    let mut load = vec![0.0f64; ranks];
+    let mut shares = vec![Vec::new(); ranks];
+    for is in order {
+        let r = (0..ranks)
+            .min_by(|&a, &b| load[a].total_cmp(&load[b]).then(a.cmp(&b)))
+            .unwrap_or(0);
+        load[r] += cost[is];
+        shares[r].push(is);
+    }
+    for s in &mut shares {
+        s.sort_unstable();
+    }
+    shares
+}
+
+/// Largest share's [`pitch_cost`] over the mean share's: the run time of a split sweep
+/// relative to a perfect split (1 = perfect).
+pub fn share_imbalance(grid: &SweepGrid, shares: &[Vec<usize>]) -> f64 {
+    let (nh, nf) = (grid.heights_m.len(), grid.fractions.len());
+    let loads: Vec<f64> = shares
+        .iter()
+        .map(|s| {
+            s.iter()
+                .map(|&is| pitch_cost(grid.pitches_m[is], nh, nf))
+                .sum()
+        })
+        .collect();
+    let total: f64 = loads.iter().sum();
+    let max = loads.iter().copied().fold(0.0, f64::max);
+    if total > 0.0 {
+        max * loads.len() as f64 / total
+    } else {
+        1.0
+    }
+}
+
+/// FNV-1a 64-bit (hex) of the configuration's JSON: ties a checkpoint block's side file to
+/// the sweep that wrote it.
+fn config_fnv(config: &SweepConfig) -> String {
+    format!(
+        "{:016x}",
+        fnv1a64(&serde_json::to_vec(config).unwrap_or_default())
+    )
+}
+
+fn sidecar_path(dir: &Path, is: usize) -> PathBuf {
+    dir.join("partial").join(format!("pitch_{is:04}.fnv"))
+}
+
+/// Reads pitch `is`'s checkpoint block back if something vouches for exactly its bytes:
+/// the manifest's record (`vouched`, a single-process run) or the block's side file written
+/// by a distributed run for the same configuration. A corrupted or unrecorded block is None.
+fn restore_block(
+    dir: &Path,
+    is: usize,
+    cells: usize,
+    vouched: &std::collections::BTreeMap<usize, String>,
+    config_hash: &str,
+) -> Option<(Vec<[f64; 4]>, String)> {
+    let bytes = std::fs::read(checkpoint_path(dir, is)).ok()?;
+    let have = format!("{:016x}", fnv1a64(&bytes));
+    let by_manifest = vouched.get(&is).is_some_and(|w| *w == have);
+    let by_sidecar = || {
+        std::fs::read_to_string(sidecar_path(dir, is))
+            .ok()
+            .is_some_and(|t| t.trim() == format!("{config_hash} {have}"))
+    };
+    if by_manifest || by_sidecar() {
+        decode_block(&bytes, cells).map(|b| (b, have))
+    } else {
+        None
+    }
+}
+
+/// Solves one pitch's block: per fraction (rayon-parallel) the column of every height.
+fn solve_block(
+    config: &SweepConfig,
+    grid: &SweepGrid,
+    is: usize,
+    progress: &(dyn Fn(u64, bool) + Sync),
+) -> Vec<[f64; 4]> {
+    let s = grid.pitches_m[is];
+    let nh = grid.heights_m.len();
+    let cols: Vec<Vec<[f64; 4]>> = grid
+        .fractions
+        .par_iter()
+        .map(|&f| {
+            let spec = CellSpec {
+                wavelength_m: config.wavelength_m,
+                pitch_m: s,
+                diameter_m: (f * s).min(s),
+                materials: config.materials,
+                harmonics: config.harmonics,
+                rule: config.rule,
+            };
+            let out = solve_column(&spec, &grid.heights_m);
+            progress(nh as u64, false);
+            out
+        })
+        .collect();
+    let mut block = Vec::with_capacity(nh * grid.fractions.len());
+    for col in cols {
+        block.extend(col);
+    }
+    block
+}
+
+fn fresh_manifest(config: &SweepConfig, grid: &SweepGrid) -> Manifest {
+    Manifest {
         version: SWEEP_FORMAT_VERSION,
         crate_version: env!("CARGO_PKG_VERSION").to_string(),
         config: config.clone(),
-        shape: [nh, ns, nf],
+        shape: [
+            grid.heights_m.len(),
+            grid.pitches_m.len(),
+            grid.fractions.len(),
+        ],
         index_order: "[height, pitch, diameter_fraction], C order".into(),
         phase_convention: "time dependence exp(-i omega t); t = Ex(z = h+, zero order) / Ex_inc(z = 0-); \
                            phase = arg t in (-pi, pi]; z = 0 is the pillar top, z = h the substrate surface"
@@ -363,7 +513,22 @@ pub fn run_sweep(
         failed_cells: 0,
         complete: false,
         block_fnv1a64: Default::default(),
-    };
+    }
+}
+
+fn write_manifest(dir: &Path, manifest: &Manifest) -> Result<(), MetalibError> {
+    let json =
+        serde_json::to_vec_pretty(manifest).map_err(|e| MetalibError::Numerical(e.to_string()))?;
+    write_atomic(&dir.join("manifest.json"), &json)
+}
+
+/// Opens `dir` for `config`: refuses a directory holding another sweep, keeps the block
+/// hashes an interrupted run recorded, and writes the (incomplete) manifest. The first step
+/// of [`run_sweep`]; a distributed run calls it on one process only.
+pub fn open_sweep(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibError> {
+    let grid = sweep_grid(config)?;
+    std::fs::create_dir_all(dir.join("partial")).map_err(|e| io_err(dir, e))?;
+    let mut manifest = fresh_manifest(config, &grid);
     let mpath = dir.join("manifest.json");
     if mpath.exists() {
         let old: Manifest =
@@ -383,66 +548,88 @@ pub fn run_sweep(
         }
         manifest.block_fnv1a64 = old.block_fnv1a64;
     }
-    let mut blocks: Vec<Option<Vec<[f64; 4]>>> = vec![None; ns];
-    for (is, b) in blocks.iter_mut().enumerate() {
-        let p = checkpoint_path(dir, is);
-        if let Ok(bytes) = std::fs::read(&p) {
-            // A block is reused only if the manifest vouches for exactly these bytes; a
-            // corrupted or unrecorded block is solved again.
-            let want = manifest.block_fnv1a64.get(&is);
-            if want.is_some_and(|w| *w == format!("{:016x}", fnv1a64(&bytes))) {
-                *b = decode_block(&bytes, nh * nf);
-            }
-            if b.is_some() {
-                progress((nh * nf) as u64, true);
-            }
+    // Keep only the records whose block is still there and intact.
+    let cells = grid.heights_m.len() * grid.fractions.len();
+    let chash = config_fnv(config);
+    let vouched = manifest.block_fnv1a64.clone();
+    manifest
+        .block_fnv1a64
+        .retain(|is, _| restore_block(dir, *is, cells, &vouched, &chash).is_some());
+    write_manifest(dir, &manifest)?;
+    Ok(manifest)
+}
+
+/// Solves (or restores) the pitch blocks `share` of a sweep opened by [`open_sweep`] and
+/// returns them as (pitch index, block [fraction][height] of (phase, τ, Re t, Im t)).
+/// Each block solved is checkpointed at once to `partial/pitch_XXXX.bin` with a side file
+/// `pitch_XXXX.fnv` (configuration hash and block hash), so an interrupted share resumes on
+/// any number of processes. `vouched` is the manifest's block record.
+pub fn solve_share(
+    config: &SweepConfig,
+    dir: &Path,
+    share: &[usize],
+    vouched: &std::collections::BTreeMap<usize, String>,
+    progress: &(dyn Fn(u64, bool) + Sync),
+) -> Result<Vec<PitchBlock>, MetalibError> {
+    let grid = sweep_grid(config)?;
+    let ns = grid.pitches_m.len();
+    if let Some(is) = share.iter().find(|&&is| is >= ns) {
+        return Err(MetalibError::param(
+            "share",
+            format!("pitch index {is} out of 0..{ns}"),
+        ));
+    }
+    std::fs::create_dir_all(dir.join("partial")).map_err(|e| io_err(dir, e))?;
+    let cells = grid.heights_m.len() * grid.fractions.len();
+    let chash = config_fnv(config);
+    let mut out = Vec::with_capacity(share.len());
+    for &is in share {
+        if let Some((b, _)) = restore_block(dir, is, cells, vouched, &chash) {
+            progress(cells as u64, true);
+            out.push((is, b));
         }
     }
-    manifest.block_fnv1a64.retain(|is, _| blocks[*is].is_some());
-    let json =
-        serde_json::to_vec_pretty(&manifest).map_err(|e| MetalibError::Numerical(e.to_string()))?;
-    write_atomic(&mpath, &json)?;
-    for (is, &s) in pitches.iter().enumerate() {
-        if blocks[is].is_some() {
+    for &is in share {
+        if out.iter().any(|(j, _)| *j == is) {
             continue;
         }
-        let cols: Vec<Vec<[f64; 4]>> = fractions
-            .par_iter()
-            .map(|&f| {
-                let spec = CellSpec {
-                    wavelength_m: config.wavelength_m,
-                    pitch_m: s,
-                    diameter_m: (f * s).min(s),
-                    materials: config.materials,
-                    harmonics: config.harmonics,
-                    rule: config.rule,
-                };
-                let out = solve_column(&spec, &heights);
-                progress(nh as u64, false);
-                out
-            })
-            .collect();
-        let mut block = Vec::with_capacity(nh * nf);
-        for col in cols {
-            block.extend(col);
-        }
+        let block = solve_block(config, &grid, is, progress);
         let bytes = encode_block(&block);
         write_atomic(&checkpoint_path(dir, is), &bytes)?;
-        manifest
-            .block_fnv1a64
-            .insert(is, format!("{:016x}", fnv1a64(&bytes)));
-        let json = serde_json::to_vec_pretty(&manifest)
-            .map_err(|e| MetalibError::Numerical(e.to_string()))?;
-        write_atomic(&mpath, &json)?;
-        blocks[is] = Some(block);
+        let side = format!("{chash} {:016x}\n", fnv1a64(&bytes));
+        write_atomic(&sidecar_path(dir, is), side.as_bytes())?;
+        out.push((is, block));
+    }
+    out.sort_by_key(|(is, _)| *is);
+    Ok(out)
+}
+
+/// Writes the arrays and the complete manifest of a sweep from all of its pitch blocks
+/// (any order) and removes the checkpoints: the last step of [`run_sweep`].
+pub fn finish_sweep(
+    config: &SweepConfig,
+    dir: &Path,
+    blocks: Vec<PitchBlock>,
+) -> Result<Manifest, MetalibError> {
+    let grid = sweep_grid(config)?;
+    let (nh, ns, nf) = (
+        grid.heights_m.len(),
+        grid.pitches_m.len(),
+        grid.fractions.len(),
+    );
+    let mut by_pitch: Vec<Option<Vec<[f64; 4]>>> = vec![None; ns];
+    for (is, b) in blocks {
+        if is < ns && b.len() == nh * nf {
+            by_pitch[is] = Some(b);
+        }
     }
     // Assemble [h, s, f] arrays from the per-pitch blocks (stored [f][h]).
     let total = nh * ns * nf;
     let mut arrays = vec![vec![0.0; total]; 4];
-    for (is, b) in blocks.iter().enumerate() {
+    for (is, b) in by_pitch.iter().enumerate() {
         let b = b
             .as_ref()
-            .ok_or_else(|| MetalibError::Numerical("missing pitch block".into()))?;
+            .ok_or_else(|| MetalibError::Numerical(format!("missing pitch block {is}")))?;
         for id in 0..nf {
             for ih in 0..nh {
                 let c = b[id * nh + ih];
@@ -453,6 +640,7 @@ pub fn run_sweep(
             }
         }
     }
+    let mut manifest = fresh_manifest(config, &grid);
     manifest.failed_cells = arrays[0].iter().filter(|v| v.is_nan()).count();
     let shape = [nh as u64, ns as u64, nf as u64];
     for (name, a) in ["phase", "transmittance", "t_re", "t_im"]
@@ -462,22 +650,41 @@ pub fn run_sweep(
         write_atomic(&dir.join(format!("{name}.npy")), &npy_bytes(&shape, a)?)?;
     }
     manifest.complete = true;
-    manifest.block_fnv1a64.clear();
-    let json =
-        serde_json::to_vec_pretty(&manifest).map_err(|e| MetalibError::Numerical(e.to_string()))?;
-    write_atomic(&mpath, &json)?;
+    write_manifest(dir, &manifest)?;
     let _ = std::fs::remove_dir_all(dir.join("partial"));
     Ok(manifest)
 }
 
-/// [`run_sweep`] with an indicatif progress bar on stderr when stderr is a terminal, and a
-/// plain line per 10 % of the cells otherwise (logs of long runs under nohup or CI).
-/// The faer global parallelism is set to sequential for the duration, since the sweep already
-/// runs one cell per rayon task, and restored afterwards.
-pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibError> {
-    let total = (config.heights_m.values("heights")?.len()
-        * config.pitches_m.values("pitches")?.len()
-        * config.fractions.values("fractions")?.len()) as u64;
+/// Runs (or resumes) a sweep into `dir`, reporting completed cells to `progress` as
+/// (cells, restored): `restored` is true for cells read back from a checkpoint.
+pub fn run_sweep(
+    config: &SweepConfig,
+    dir: &Path,
+    progress: &(dyn Fn(u64, bool) + Sync),
+) -> Result<Manifest, MetalibError> {
+    let grid = sweep_grid(config)?;
+    let mut manifest = open_sweep(config, dir)?;
+    let vouched = manifest.block_fnv1a64.clone();
+    let mut blocks = Vec::with_capacity(grid.pitches_m.len());
+    for is in 0..grid.pitches_m.len() {
+        // One pitch at a time, each recorded in the manifest as soon as it is on disk.
+        let mut b = solve_share(config, dir, &[is], &vouched, progress)?;
+        if let Ok(bytes) = std::fs::read(checkpoint_path(dir, is)) {
+            manifest
+                .block_fnv1a64
+                .insert(is, format!("{:016x}", fnv1a64(&bytes)));
+        }
+        write_manifest(dir, &manifest)?;
+        blocks.append(&mut b);
+    }
+    finish_sweep(config, dir, blocks)
+}
+
+/// Calls `work` with a progress reporter for `total` cells: an indicatif bar on stderr when
+/// stderr is a terminal, a plain line per 10 % of the cells otherwise (logs of long runs
+/// under nohup, CI or mpirun). The faer global parallelism is set to sequential for the
+/// duration, since the sweep already runs one cell per rayon task, and restored afterwards.
+pub fn with_progress<R>(total: u64, work: impl FnOnce(&(dyn Fn(u64, bool) + Sync)) -> R) -> R {
     let bar = indicatif::ProgressBar::with_draw_target(
         Some(total),
         indicatif::ProgressDrawTarget::stderr(),
@@ -528,10 +735,17 @@ pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manif
     };
     let saved = faer::get_global_parallelism();
     faer::set_global_parallelism(faer::Par::Seq);
-    let out = run_sweep(config, dir, &report);
+    let out = work(&report);
     faer::set_global_parallelism(saved);
     bar.finish_and_clear();
     out
+}
+
+/// [`run_sweep`] with [`with_progress`]'s reporting.
+pub fn run_sweep_with_progress(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibError> {
+    let g = sweep_grid(config)?;
+    let total = (g.heights_m.len() * g.pitches_m.len() * g.fractions.len()) as u64;
+    with_progress(total, |report| run_sweep(config, dir, report))
 }
 
 /// Largest τ a loaded sweep may hold: energy conservation gives τ ≤ 1; the margin covers
@@ -688,6 +902,83 @@ mod bad_input_tests {
             redone.transmittance, real.transmittance,
             "corrupt block is recomputed"
         );
+    }
+
+    #[test]
+    fn shares_cover_every_pitch_once_and_balance_the_full_sweep() {
+        let grid = sweep_grid(&SweepConfig::default()).unwrap();
+        for ranks in [1, 2, 3, 8, 64, 200] {
+            let shares = plan_shares(&grid, ranks);
+            assert_eq!(shares.len(), ranks);
+            let mut all: Vec<usize> = shares.iter().flatten().copied().collect();
+            all.sort_unstable();
+            assert_eq!(all, (0..grid.pitches_m.len()).collect::<Vec<_>>());
+            // LPT is within 4/3 of the best split, and never below the costliest pitch.
+            let imb = share_imbalance(&grid, &shares);
+            let (nh, nf) = (grid.heights_m.len(), grid.fractions.len());
+            let costs: Vec<f64> = grid
+                .pitches_m
+                .iter()
+                .map(|&s| pitch_cost(s, nh, nf))
+                .collect();
+            let total: f64 = costs.iter().sum();
+            let biggest = costs.iter().copied().fold(0.0, f64::max);
+            let bound = (total / ranks as f64).max(biggest) * 4.0 / 3.0;
+            assert!(imb * total / ranks as f64 <= bound + 1e-9, "{ranks}: {imb}");
+        }
+        // Two ranks split the 91 pitches to within 1 % of even.
+        assert!(share_imbalance(&grid, &plan_shares(&grid, 2)) < 1.01);
+        // The costliest (largest) pitch comes first, to share 0.
+        assert!(plan_shares(&grid, 2)[0].contains(&(grid.pitches_m.len() - 1)));
+    }
+
+    #[test]
+    fn shares_solved_apart_resume_and_assemble_to_the_single_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = tiny(dir.path());
+        let one = tempfile::tempdir().unwrap();
+        run_sweep(&cfg, one.path(), &|_, _| {}).unwrap();
+        let m = open_sweep(&cfg, dir.path()).unwrap();
+        let none = std::collections::BTreeMap::new();
+        let solved = |share: &[usize]| {
+            let restored = std::sync::atomic::AtomicU64::new(0);
+            let b = solve_share(&cfg, dir.path(), share, &none, &|n, r| {
+                if r {
+                    restored.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+                }
+            })
+            .unwrap();
+            (b, restored.into_inner())
+        };
+        let (b1, r1) = solved(&[1]);
+        assert_eq!(r1, 0);
+        // A later run (any share holding pitch 1) restores pitch 1 from its side file.
+        let (mut b0, r0) = solved(&[0, 1]);
+        assert_eq!(r0, 2, "pitch 1's two cells come back from disk");
+        assert_eq!(b0[1], b1[0]);
+        // A side file of another configuration vouches for nothing.
+        let other = SweepConfig {
+            harmonics: 2,
+            ..cfg.clone()
+        };
+        assert!(restore_block(dir.path(), 1, 2, &none, &config_fnv(&other)).is_none());
+        b0.reverse();
+        let done = finish_sweep(&cfg, dir.path(), b0).unwrap();
+        assert!(done.complete && m.shape == done.shape);
+        assert!(!dir.path().join("partial").exists());
+        for f in [
+            "manifest.json",
+            "phase.npy",
+            "transmittance.npy",
+            "t_re.npy",
+            "t_im.npy",
+        ] {
+            assert_eq!(
+                std::fs::read(dir.path().join(f)).unwrap(),
+                std::fs::read(one.path().join(f)).unwrap(),
+                "{f}"
+            );
+        }
     }
 
     #[test]

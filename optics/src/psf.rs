@@ -79,6 +79,30 @@ pub struct PsfStack {
     pub computed: Vec<bool>,
 }
 
+impl PsfStack {
+    /// The stack of f64 planes (`None`: not computed, stored as zeros) at `depths_m` (m) for
+    /// pitch `pitch_m` (m) and window `window_px`: f32 planes and their depth derivative.
+    /// Planes computed in pieces (by depth, on several processes) and put back in order give
+    /// the stack [`PsfModel::forward`] gives.
+    pub fn from_planes(
+        depths_m: &[f64],
+        pitch_m: f64,
+        window_px: usize,
+        planes: &[Option<Mat<f64>>],
+    ) -> PsfStack {
+        let dz = depth_derivative(depths_m, planes);
+        let w = window_px;
+        let conv = |v: &Option<Mat<f64>>| v.as_ref().map_or_else(|| Mat::zeros(w, w), to_f32);
+        PsfStack {
+            depths_m: depths_m.to_vec(),
+            pitch_m,
+            computed: planes.iter().map(Option::is_some).collect(),
+            planes: planes.iter().map(conv).collect(),
+            dz_planes: dz.iter().map(conv).collect(),
+        }
+    }
+}
+
 /// Gradient of a scalar loss w.r.t. a [`PhaseMap`].
 #[derive(Clone, Debug)]
 pub struct PhaseMapGrad {
@@ -837,16 +861,12 @@ impl PsfModel for AsmPsf {
         active: Option<&[bool]>,
     ) -> Result<PsfStack> {
         let planes = self.planes_f64(map, depths_m, active)?;
-        let dz = depth_derivative(depths_m, &planes);
-        let w = self.cfg.window_px;
-        let conv = |v: &Option<Mat<f64>>| v.as_ref().map_or_else(|| Mat::zeros(w, w), to_f32);
-        Ok(PsfStack {
-            depths_m: depths_m.to_vec(),
-            pitch_m: self.cfg.pitch_m,
-            computed: planes.iter().map(Option::is_some).collect(),
-            planes: planes.iter().map(conv).collect(),
-            dz_planes: dz.iter().map(conv).collect(),
-        })
+        Ok(PsfStack::from_planes(
+            depths_m,
+            self.cfg.pitch_m,
+            self.cfg.window_px,
+            &planes,
+        ))
     }
 
     fn vjp(

@@ -20,7 +20,7 @@ pub use error::{Result, SearchError};
 pub use geometry::{NativeGrid, PitchGrid};
 pub use lens::LensSpec;
 pub use radiometry::Radiometry;
-pub use rea::{CycleRecord, Individual, Rea, ReaConfig, ReaState};
+pub use rea::{CycleRecord, EvalPool, Evaluator, Individual, Rea, ReaConfig, ReaState};
 pub use task::{TaskLoss, task_loss};
 pub use train::{
     EvalSetup, FrameEval, Metrics, SolverInput, StepRecord, TrainConfig, Trainer, evaluate_frames,

@@ -171,6 +171,58 @@ pub struct ReaState {
     pub history: Vec<CycleRecord>,
 }
 
+/// Scores candidates with the inner loop; what a process evaluating candidates for a
+/// search needs (cheap to clone: references and the configuration).
+#[derive(Clone)]
+pub struct Evaluator<'a> {
+    chain: &'a CameraChain,
+    train: &'a Dataset,
+    val: &'a Dataset,
+    run: PathBuf,
+    config: ReaConfig,
+}
+
+/// Evaluates the candidates of [`Rea::run_pool`], possibly several at once and elsewhere
+/// (other threads, processes or machines). Results may come back in any order.
+pub trait EvalPool {
+    /// Candidates it evaluates at once (at least 1).
+    fn slots(&self) -> usize;
+    /// Starts evaluating candidate `id` with architecture `arch`.
+    fn submit(&mut self, id: usize, arch: &Arch) -> Result<()>;
+    /// Waits for a submitted candidate to finish and returns it.
+    fn next(&mut self) -> Result<Individual>;
+}
+
+/// The pool of one: evaluates each candidate when its result is asked for.
+struct Inline<'a> {
+    eval: Evaluator<'a>,
+    queue: VecDeque<(usize, Arch)>,
+}
+
+impl EvalPool for Inline<'_> {
+    fn slots(&self) -> usize {
+        1
+    }
+    fn submit(&mut self, id: usize, arch: &Arch) -> Result<()> {
+        self.queue.push_back((id, arch.clone()));
+        Ok(())
+    }
+    fn next(&mut self) -> Result<Individual> {
+        let (id, arch) = self
+            .queue
+            .pop_front()
+            .ok_or_else(|| param("pool", "next() with nothing submitted"))?;
+        self.eval.evaluate(id, &arch)
+    }
+}
+
+/// A cycle whose child was sent out: what its record needs once the child is back.
+struct Dispatched {
+    population: Vec<usize>,
+    tournament: Vec<usize>,
+    parent: usize,
+}
+
 /// The search over one trained run.
 pub struct Rea<'a> {
     chain: &'a CameraChain,
@@ -179,6 +231,36 @@ pub struct Rea<'a> {
     run: PathBuf,
     /// State.
     pub state: ReaState,
+}
+
+impl Evaluator<'_> {
+    /// The inner loop for `arch`: inherit, fine-tune `epochs`, recalibrate BN, validate.
+    pub fn evaluate(&self, id: usize, arch: &Arch) -> Result<Individual> {
+        let c = &self.config;
+        let mut t = Trainer::from_checkpoint(self.chain, self.train, &self.run)?;
+        let steps = (c.epochs * t.batches_per_epoch() as f64).round() as usize;
+        let mut macs = 0;
+        for _ in 0..steps {
+            macs = t
+                .finetune_step(arch, c.budget_macs, c.lambda_budget, c.lr_scale)?
+                .1;
+        }
+        let m = t.evaluate(self.val, arch, c.recal_batches)?;
+        if steps == 0 {
+            let (h, w) = self.chain.native().at(t.pitch_um * 1e-6)?.shape();
+            macs = nanoeye_nets::cost::subnet_cost(&t.config().supernet, arch, h, w)?.macs;
+        }
+        let over = c.budget_macs > 0 && macs > c.budget_macs;
+        Ok(Individual {
+            id,
+            arch: arch.clone(),
+            macs,
+            v: m.v_deg,
+            fitness: -m.v_deg - if over { c.gamma } else { 0.0 },
+            pitch_um: t.pitch_um,
+            metrics: m,
+        })
+    }
 }
 
 impl<'a> Rea<'a> {
@@ -231,95 +313,199 @@ impl<'a> Rea<'a> {
         r
     }
 
+    /// The evaluator of this search's candidates.
+    pub fn evaluator(&self) -> Evaluator<'a> {
+        Evaluator {
+            chain: self.chain,
+            train: self.train,
+            val: self.val,
+            run: self.run.clone(),
+            config: self.state.config.clone(),
+        }
+    }
+
     /// The inner loop for `arch`: inherit, fine-tune `epochs`, recalibrate BN, validate.
     pub fn evaluate(&self, id: usize, arch: &Arch) -> Result<Individual> {
-        let c = &self.state.config;
-        let mut t = Trainer::from_checkpoint(self.chain, self.train, &self.run)?;
-        let steps = (c.epochs * t.batches_per_epoch() as f64).round() as usize;
-        let mut macs = 0;
-        for _ in 0..steps {
-            macs = t
-                .finetune_step(arch, c.budget_macs, c.lambda_budget, c.lr_scale)?
-                .1;
-        }
-        let m = t.evaluate(self.val, arch, c.recal_batches)?;
-        if steps == 0 {
-            let (h, w) = self.chain.native().at(t.pitch_um * 1e-6)?.shape();
-            macs = nanoeye_nets::cost::subnet_cost(&t.config().supernet, arch, h, w)?.macs;
-        }
-        let over = c.budget_macs > 0 && macs > c.budget_macs;
-        Ok(Individual {
-            id,
-            arch: arch.clone(),
-            macs,
-            v: m.v_deg,
-            fitness: -m.v_deg - if over { c.gamma } else { 0.0 },
-            pitch_um: t.pitch_um,
-            metrics: m,
-        })
+        self.evaluator().evaluate(id, arch)
     }
 
     /// Runs (or continues) the search; `save` is called after every evaluation with the state.
     pub fn run(&mut self, save: &mut dyn FnMut(&ReaState) -> Result<()>) -> Result<()> {
+        let mut pool = Inline {
+            eval: self.evaluator(),
+            queue: VecDeque::new(),
+        };
+        self.run_pool(&mut pool, save)
+    }
+
+    /// Population ids, oldest first, at the start of cycle `c` (≥ cycles done): the current
+    /// population aged by the cycles in between, each of which adds its child (id P + cycle)
+    /// and removes the oldest.
+    fn population_at(&self, c: usize) -> Vec<usize> {
         let p = self.state.config.population;
+        let h = self.state.history.len();
+        let ahead = c - h;
+        // Before the initial population is all in, the population of cycle 0 is ids 0..P.
+        let base: Vec<usize> = if h == 0 && self.state.population.len() < p {
+            (0..p).collect()
+        } else {
+            self.state.population.iter().copied().collect()
+        };
+        base.into_iter()
+            .skip(ahead)
+            .chain((h..c).map(|cc| p + cc).skip(ahead.saturating_sub(p)))
+            .collect()
+    }
+
+    /// Runs (or continues) the search with candidates evaluated by `pool`, with the result
+    /// of [`Rea::run`] (same individuals, cycles and state files): each cycle's draws come
+    /// from its own stream and its population is known ahead (ids age out in order), so
+    /// cycle c's tournament is known early, and its child (id P + c) is sent out as soon as
+    /// every tournament member has been evaluated, possibly before earlier cycles' children
+    /// (the parent is then the sequential one). Results are committed, and `save` called, in
+    /// id order.
+    pub fn run_pool(
+        &mut self,
+        pool: &mut dyn EvalPool,
+        save: &mut dyn FnMut(&ReaState) -> Result<()>,
+    ) -> Result<()> {
+        let p = self.state.config.population;
+        let cycles = self.state.config.cycles;
+        let slots = pool.slots().max(1);
         // Initial population: P uniform draws (stream 0), evaluated in id order.
         let initial: Vec<Arch> = {
             let mut rng = self.rng(0);
             (0..p).map(|_| Arch::sample(&mut rng)).collect()
         };
-        while self.state.evaluated.len() < p {
-            let id = self.state.evaluated.len();
-            let ind = self.evaluate(id, &initial[id])?;
-            self.state.evaluated.push(ind);
-            self.state.population.push_back(id);
-            save(&self.state)?;
-        }
-        while self.state.history.len() < self.state.config.cycles {
-            let c = self.state.history.len();
-            let mut rng = self.rng(c as u64 + 1);
-            let pop: Vec<usize> = self.state.population.iter().copied().collect();
-            let k = self.state.config.tournament.min(pop.len());
-            let tour: Vec<usize> = sample(&mut rng, pop.len(), k)
-                .into_iter()
-                .map(|i| pop[i])
-                .collect();
-            // argmax of fitness; ties go to the earlier tournament member.
-            let parent = *tour
-                .iter()
-                .reduce(|a, b| {
-                    if self.state.evaluated[*b].fitness > self.state.evaluated[*a].fitness {
-                        b
-                    } else {
-                        a
+        let mut next_initial = self.state.evaluated.len().min(p);
+        let mut next_cycle = self.state.history.len();
+        let mut back: std::collections::BTreeMap<usize, Individual> = Default::default();
+        let mut sent: std::collections::BTreeMap<usize, Dispatched> = Default::default();
+        // Each pending cycle's population, tournament and generator after the draw, once drawn.
+        type Drawn = (Vec<usize>, Vec<usize>, ChaCha8Rng);
+        let mut drawn: std::collections::BTreeMap<usize, Drawn> = Default::default();
+        let mut in_flight = 0usize;
+        loop {
+            // Commit every result whose predecessors are in, in id order.
+            while let Some(ind) = back.remove(&self.state.evaluated.len()) {
+                let id = ind.id;
+                if id < p {
+                    self.state.evaluated.push(ind);
+                    self.state.population.push_back(id);
+                } else {
+                    let d = sent
+                        .remove(&(id - p))
+                        .ok_or_else(|| param("pool", format!("candidate {id} was never sent")))?;
+                    let rec = CycleRecord {
+                        cycle: id - p,
+                        removed: d.population[0],
+                        population: d.population,
+                        tournament: d.tournament,
+                        parent: d.parent,
+                        child: ChildRecord {
+                            id,
+                            arch: ind.arch.clone(),
+                            macs: ind.macs,
+                            fitness: ind.fitness,
+                            v: ind.v,
+                        },
+                    };
+                    self.state.evaluated.push(ind);
+                    self.state.population.push_back(id);
+                    self.state.population.pop_front();
+                    self.state.history.push(rec);
+                }
+                save(&self.state)?;
+            }
+            if self.state.evaluated.len() >= p && self.state.history.len() >= cycles {
+                return Ok(());
+            }
+            // Send out every candidate whose architecture is known, while slots are free.
+            while in_flight < slots {
+                if next_initial < p {
+                    pool.submit(next_initial, &initial[next_initial])?;
+                    next_initial += 1;
+                    in_flight += 1;
+                    continue;
+                }
+                // The lowest cycle not sent yet; any cycle in the P cycles from it whose
+                // tournament is all evaluated goes out, in whatever order they become ready.
+                while next_cycle < cycles
+                    && (next_cycle < self.state.history.len() || sent.contains_key(&next_cycle))
+                {
+                    next_cycle += 1;
+                }
+                let fitness = |id: usize| {
+                    self.state
+                        .evaluated
+                        .get(id)
+                        .or_else(|| back.get(&id))
+                        .map(|i| i.fitness)
+                };
+                let mut ready = None;
+                for c in next_cycle..cycles.min(next_cycle + p) {
+                    if sent.contains_key(&c) {
+                        continue;
                     }
-                })
-                .expect("k ≥ 1");
-            let child_arch = self.state.evaluated[parent]
-                .arch
-                .mutate(&mut rng, self.state.config.mutation_rate)?;
-            let id = self.state.evaluated.len();
-            let child = self.evaluate(id, &child_arch)?;
-            let rec = CycleRecord {
-                cycle: c,
-                population: pop,
-                tournament: tour,
-                parent,
-                child: ChildRecord {
-                    id,
-                    arch: child.arch.clone(),
-                    macs: child.macs,
-                    fitness: child.fitness,
-                    v: child.v,
-                },
-                removed: *self.state.population.front().expect("P ≥ 1"),
-            };
-            self.state.evaluated.push(child);
-            self.state.population.push_back(id);
-            self.state.population.pop_front();
-            self.state.history.push(rec);
-            save(&self.state)?;
+                    let (_, tour, _) = drawn.entry(c).or_insert_with(|| {
+                        let mut rng = self.rng(c as u64 + 1);
+                        let pop = self.population_at(c);
+                        let k = self.state.config.tournament.min(pop.len());
+                        let tour: Vec<usize> = sample(&mut rng, pop.len(), k)
+                            .into_iter()
+                            .map(|i| pop[i])
+                            .collect();
+                        (pop, tour, rng)
+                    });
+                    // A member still being evaluated may be the parent: wait for it.
+                    if tour.iter().all(|&id| fitness(id).is_some()) {
+                        ready = Some(c);
+                        break;
+                    }
+                }
+                let Some(c) = ready else {
+                    break;
+                };
+                let Some((pop, tour, mut rng)) = drawn.remove(&c) else {
+                    break;
+                };
+                // argmax of fitness; ties go to the earlier tournament member.
+                let parent = *tour
+                    .iter()
+                    .reduce(|a, b| if fitness(*b) > fitness(*a) { b } else { a })
+                    .expect("k ≥ 1");
+                let parent_arch = match self.state.evaluated.get(parent) {
+                    Some(i) => &i.arch,
+                    None => &back[&parent].arch,
+                };
+                let child_arch = parent_arch.mutate(&mut rng, self.state.config.mutation_rate)?;
+                pool.submit(p + c, &child_arch)?;
+                sent.insert(
+                    c,
+                    Dispatched {
+                        population: pop,
+                        tournament: tour,
+                        parent,
+                    },
+                );
+                in_flight += 1;
+            }
+            if in_flight == 0 {
+                return Err(param(
+                    "pool",
+                    "nothing to evaluate and the search is not done",
+                ));
+            }
+            let ind = pool.next()?;
+            in_flight -= 1;
+            if ind.id >= p + cycles || ind.id < self.state.evaluated.len() {
+                return Err(param(
+                    "pool",
+                    format!("candidate {} came back unexpectedly", ind.id),
+                ));
+            }
+            back.insert(ind.id, ind);
         }
-        Ok(())
     }
 
     /// The best individual ever evaluated under the S19 fitness.

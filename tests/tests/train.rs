@@ -225,3 +225,75 @@ fn regularized_evolution_ages_out_the_oldest_and_resumes_exactly() {
     .unwrap();
     assert!(other.resume(&state_path).is_err());
 }
+
+/// Evaluates up to `slots` candidates "at once" and hands back the newest first, as a pool of
+/// remote workers may.
+struct NewestFirst<'a> {
+    eval: nanoeye_search::Evaluator<'a>,
+    queue: Vec<(usize, Arch)>,
+    slots: usize,
+    most_in_flight: usize,
+    submitted: Vec<usize>,
+}
+
+impl nanoeye_search::EvalPool for NewestFirst<'_> {
+    fn slots(&self) -> usize {
+        self.slots
+    }
+    fn submit(&mut self, id: usize, arch: &Arch) -> nanoeye_search::Result<()> {
+        self.queue.push((id, arch.clone()));
+        self.submitted.push(id);
+        self.most_in_flight = self.most_in_flight.max(self.queue.len());
+        Ok(())
+    }
+    fn next(&mut self) -> nanoeye_search::Result<nanoeye_search::Individual> {
+        let (id, arch) = self.queue.pop().expect("something submitted");
+        self.eval.evaluate(id, &arch)
+    }
+}
+
+#[test]
+fn a_pool_answering_out_of_order_gives_the_sequential_search() {
+    use nanoeye_search::Rea;
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 5);
+    let c = chain(&ds);
+    let run = trained_run(d.path(), &c, &ds);
+    let cfg = nanoeye_search::ReaConfig {
+        epochs: 0.0,
+        population: 4,
+        cycles: 8,
+        ..rea_cfg()
+    };
+    let mut seq = Rea::new(&c, &ds, &ds, &run, cfg.clone()).unwrap();
+    let mut seq_saves = Vec::new();
+    seq.run(&mut |s| {
+        seq_saves.push(serde_json::to_string(s).unwrap());
+        Ok(())
+    })
+    .unwrap();
+    let mut par = Rea::new(&c, &ds, &ds, &run, cfg).unwrap();
+    let mut pool = NewestFirst {
+        eval: par.evaluator(),
+        queue: Vec::new(),
+        slots: 3,
+        most_in_flight: 0,
+        submitted: Vec::new(),
+    };
+    let mut par_saves = Vec::new();
+    par.run_pool(&mut pool, &mut |s| {
+        par_saves.push(serde_json::to_string(s).unwrap());
+        Ok(())
+    })
+    .unwrap();
+    assert_eq!(pool.most_in_flight, 3, "the pool was kept busy");
+    // Some cycle's child went out before an earlier cycle's (its tournament was ready first).
+    assert!(
+        pool.submitted.windows(2).any(|w| w[1] < w[0]),
+        "{:?}",
+        pool.submitted
+    );
+    // Every saved state, not only the last, is the sequential one: a resume sees no
+    // difference either.
+    assert_eq!(par_saves, seq_saves);
+}

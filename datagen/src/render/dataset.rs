@@ -583,52 +583,101 @@ fn npy_stack(planes: &[&Mat<f32>], groups: Option<usize>) -> Result<Vec<u8>, Ren
     Ok(buf)
 }
 
-/// Renders the set into `opts.out_dir`; frames whose record file exists are skipped. A
-/// directory holding a dataset rendered with other parameters is refused.
-pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderError> {
+/// A dataset's manifest and its frames in file order: what every process rendering a share of
+/// it needs.
+#[derive(Debug, Clone)]
+pub struct DatasetPlan {
+    /// The manifest (dataset.json).
+    pub manifest: DatasetManifest,
+    /// The frames, in file order.
+    pub planned: Vec<PlannedFrame>,
+}
+
+/// The manifest and frames `write_dataset` renders for `opts`, without touching the disk.
+pub fn plan_dataset(opts: &DatasetOptions) -> Result<DatasetPlan, RenderError> {
     let manifest = manifest_for(opts)?;
-    let rig = manifest.rig.clone();
     if opts.spp == 0 {
         return Err(RenderError::Invalid {
             what: "spp",
             reason: "must be ≥ 1".into(),
         });
     }
-    let planned = plan(opts.set, &rig, &opts.source, opts.n, opts.seed)?;
+    let planned = plan(opts.set, &manifest.rig, &opts.source, opts.n, opts.seed)?;
     let manifest = DatasetManifest {
         frames: planned.len(),
         ..manifest
     };
-    check_existing(&opts.out_dir, &manifest)?;
+    Ok(DatasetPlan { manifest, planned })
+}
+
+/// [`plan_dataset`], then opens `opts.out_dir` for it: refuses a directory holding a dataset
+/// rendered with other parameters and writes dataset.json. A distributed run calls it on one
+/// process only.
+pub fn open_dataset(opts: &DatasetOptions) -> Result<DatasetPlan, RenderError> {
+    let p = plan_dataset(opts)?;
+    check_existing(&opts.out_dir, &p.manifest)?;
     let fdir = opts.out_dir.join("frames");
     std::fs::create_dir_all(&fdir).map_err(|e| io_err(&fdir, e))?;
-    let mtext = serde_json::to_string_pretty(&manifest).map_err(|e| RenderError::Encode {
+    let mtext = serde_json::to_string_pretty(&p.manifest).map_err(|e| RenderError::Encode {
         path: "dataset.json".into(),
         reason: e.to_string(),
     })?;
     write_atomic(&opts.out_dir.join("dataset.json"), mtext.as_bytes())?;
-    let bar = if opts.progress {
-        indicatif::ProgressBar::new(planned.len() as u64)
+    Ok(p)
+}
+
+/// Renders the set into `opts.out_dir`; frames whose record file exists are skipped. A
+/// directory holding a dataset rendered with other parameters is refused.
+pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderError> {
+    let p = open_dataset(opts)?;
+    let all: Vec<usize> = (0..p.planned.len()).collect();
+    let summary = render_frames(opts, &p, &all, opts.progress)?;
+    finish_dataset(opts, &p)?;
+    Ok(summary)
+}
+
+/// The complete record of frame `i` in `dir`, if its record file exists and parses.
+fn finished_record(dir: &Path, i: usize) -> Option<String> {
+    std::fs::read_to_string(dir.join(format!("frames/{i:06}.json")))
+        .ok()
+        .filter(|t| serde_json::from_str::<FrameRecord>(t).is_ok())
+}
+
+/// Renders frames `frames` (indices into `plan.planned`) of a dataset opened by
+/// [`open_dataset`], skipping those whose record file exists. Each frame's files depend only
+/// on its index, so shares rendered by different processes make the same dataset.
+pub fn render_frames(
+    opts: &DatasetOptions,
+    plan: &DatasetPlan,
+    frames: &[usize],
+    progress: bool,
+) -> Result<DatasetSummary, RenderError> {
+    let rig = &plan.manifest.rig;
+    let fdir = opts.out_dir.join("frames");
+    std::fs::create_dir_all(&fdir).map_err(|e| io_err(&fdir, e))?;
+    if let Some(&i) = frames.iter().find(|&&i| i >= plan.planned.len()) {
+        return Err(RenderError::Invalid {
+            what: "frames",
+            reason: format!("frame {i} out of 0..{}", plan.planned.len()),
+        });
+    }
+    let bar = if progress {
+        indicatif::ProgressBar::new(frames.len() as u64)
     } else {
         indicatif::ProgressBar::hidden()
     };
     let (mut written, mut skipped) = (0, 0);
-    let mut lines = String::new();
-    for (i, f) in planned.iter().enumerate() {
+    for &i in frames {
+        let f = &plan.planned[i];
         let stem = format!("frames/{i:06}");
         let record_path = opts.out_dir.join(format!("{stem}.json"));
-        let done = std::fs::read_to_string(&record_path)
-            .ok()
-            .filter(|t| serde_json::from_str::<FrameRecord>(t).is_ok());
-        if let Some(text) = done {
-            lines.push_str(text.trim_end());
-            lines.push('\n');
+        if finished_record(&opts.out_dir, i).is_some() {
             skipped += 1;
             bar.inc(1);
             continue;
         }
         let pixel_seed = opts.seed ^ (i as u64).wrapping_mul(0xA076_1D64_78BD_642F);
-        let (frame, lm) = render_planned(&rig, &opts.source, f, opts.spp, pixel_seed, opts.layers)?;
+        let (frame, lm) = render_planned(rig, &opts.source, f, opts.spp, pixel_seed, opts.layers)?;
         let files = FrameFiles {
             preview: format!("{stem}_preview.png"),
             radiance: format!("{stem}_radiance.npy"),
@@ -695,20 +744,36 @@ pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderErro
         })?;
         // The record is written last: its presence marks the frame complete.
         write_atomic(&record_path, line.as_bytes())?;
-        lines.push_str(&line);
-        lines.push('\n');
         written += 1;
         bar.inc(1);
     }
     bar.finish_and_clear();
+    Ok(DatasetSummary { written, skipped })
+}
+
+/// Writes frames.jsonl (every frame's record, in order) and the contact sheet once every
+/// frame of the plan is on disk; names the first frame that is not.
+pub fn finish_dataset(opts: &DatasetOptions, plan: &DatasetPlan) -> Result<(), RenderError> {
+    let mut lines = String::new();
+    for i in 0..plan.planned.len() {
+        let text = finished_record(&opts.out_dir, i).ok_or_else(|| RenderError::Invalid {
+            what: "out",
+            reason: format!(
+                "frame {i}'s record {} is missing or unreadable (every process must write to \
+                 the same directory)",
+                opts.out_dir.join(format!("frames/{i:06}.json")).display()
+            ),
+        })?;
+        lines.push_str(text.trim_end());
+        lines.push('\n');
+    }
     write_atomic(&opts.out_dir.join("frames.jsonl"), lines.as_bytes())?;
     contact_sheet(
         &opts.out_dir,
-        planned.len(),
-        rig.camera.width_px,
-        rig.camera.height_px,
-    )?;
-    Ok(DatasetSummary { written, skipped })
+        plan.planned.len(),
+        plan.manifest.rig.camera.width_px,
+        plan.manifest.rig.camera.height_px,
+    )
 }
 
 /// contact_sheet.png: the first ≤ 64 previews, 8 per row, each downsampled to ≤ 160 px wide.
