@@ -252,3 +252,51 @@ fn subjects_vary_over_the_documented_ranges_and_validate() {
     let light = Light::near_camera(&rig.camera.nominal_pose());
     assert!(procedural_scene(&rig, &st, &Subject::default(), light).is_err());
 }
+
+mod stress {
+    use super::*;
+    use nanoeye_datagen::render::prim::Shape;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(24))]
+
+        /// Extreme but legal subjects and states (gaze to ±60°, full closure, the subject
+        /// ranges' ends, any seed) give a finite face whose margin stays on or outside the eye.
+        #[test]
+        fn face_is_finite_for_extreme_legal_inputs(
+            seed in any::<u64>(),
+            az in -60.0f64..60.0,
+            el in -60.0f64..60.0,
+            closure in 0.0f64..=1.0,
+            exponent in 1.2f64..4.0,
+            upper in 0.05f64..0.8,
+            lower in 0.05f64..0.8,
+        ) {
+            let rig = Rig::default();
+            let subject = Subject {
+                fissure_exponent: exponent,
+                fissure_upper_rad: upper,
+                fissure_lower_rad: lower,
+                ..Subject::from_seed(seed)
+            };
+            let st = state(az, el, closure);
+            let parts = procedural_parts(&rig, &st, &subject).unwrap();
+            let geo = nanoeye_datagen::render::EyeGeometry::new(&rig, &subject).unwrap();
+            for p in &parts.face {
+                if let Shape::Triangle { v } = p.shape {
+                    for q in v {
+                        prop_assert!(geom::is_finite(q), "{q:?}");
+                        // Skin and lashes never reach inside the eyeball.
+                        prop_assert!(geom::norm(q) >= geo.eyeball_radius_m * (1.0 - 1e-6));
+                    }
+                }
+            }
+            let f = &parts.fissure;
+            for k in 0..64 {
+                let r = f.margin_radius(std::f64::consts::TAU * k as f64 / 64.0);
+                prop_assert!(r.is_finite() && r >= 0.0, "margin radius {r}");
+            }
+        }
+    }
+}
