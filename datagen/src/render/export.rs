@@ -164,13 +164,7 @@ fn tessellate(shape: &Shape) -> Vec<[Vec3; 3]> {
             r_in_m,
             r_out_m,
         } => {
-            let a = if normal[0].abs() > 0.9 {
-                [0.0, 1.0, 0.0]
-            } else {
-                [1.0, 0.0, 0.0]
-            };
-            let e1 = geom::normalize(geom::cross(normal, a));
-            let e2 = geom::cross(normal, e1);
+            let (e1, e2) = super::prim::perpendicular_basis(normal);
             let pt = |r: f64, k: usize| {
                 let ph = TAU * k as f64 / DISC_SEGMENTS as f64;
                 geom::add(

@@ -260,3 +260,15 @@ impl Shape {
         }
     }
 }
+
+/// Two unit vectors that complete unit `n` to a right-handed orthonormal basis (e1, e2, n).
+#[inline]
+pub fn perpendicular_basis(n: Vec3) -> (Vec3, Vec3) {
+    let a = if n[0].abs() > 0.9 {
+        [0.0, 1.0, 0.0]
+    } else {
+        [1.0, 0.0, 0.0]
+    };
+    let e1 = geom::normalize(geom::cross(n, a));
+    (e1, geom::cross(n, e1))
+}

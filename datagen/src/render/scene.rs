@@ -630,6 +630,8 @@ pub struct ProceduralParts {
     pub rotation: Mat3,
     /// The posed fissure.
     pub fissure: face::Fissure,
+    /// The eye geometry the parts were built from.
+    pub geometry: EyeGeometry,
 }
 
 /// Rotates an eye part about the rotation centre.
@@ -824,6 +826,7 @@ pub fn procedural_parts(
         materials,
         rotation: r,
         fissure,
+        geometry: g,
     })
 }
 
@@ -837,7 +840,7 @@ pub fn procedural_scene(
     light: Light,
 ) -> Result<Scene, RenderError> {
     let parts = procedural_parts(rig, state, subject)?;
-    let r = parts.rotation;
+    let (r, g) = (parts.rotation, parts.geometry);
     let prims = parts
         .eye_rest
         .iter()
@@ -850,7 +853,6 @@ pub fn procedural_scene(
     let mut scene = Scene::new(prims, parts.materials, light, subject.cornea_index)?;
     // The pupil disc lies inside the cornea's sphere (its rim, the limbus, is on it), so a ray
     // that misses the sphere cannot reach the pupil.
-    let g = EyeGeometry::new(rig, subject)?;
     let gz = [r[0][2], r[1][2], r[2][2]];
     scene.pupil_bound = Some((
         geom::scale(gz, g.cornea_center_m),

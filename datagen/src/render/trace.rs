@@ -388,13 +388,7 @@ fn lambert(scene: &Scene, albedo: f64, p: Vec3, n: Vec3, rng: &mut Rng64) -> f64
     }
     let w = geom::scale(to_c, 1.0 / dist_c);
     // Uniform point on the emitter's disc facing p (concentric-free polar sampling).
-    let a = if w[0].abs() > 0.9 {
-        [0.0, 1.0, 0.0]
-    } else {
-        [1.0, 0.0, 0.0]
-    };
-    let e1 = geom::normalize(geom::cross(w, a));
-    let e2 = geom::cross(w, e1);
+    let (e1, e2) = super::prim::perpendicular_basis(w);
     let (r, phi) = (light.radius_m * rng.f().sqrt(), 2.0 * PI * rng.f());
     let q = geom::add(
         light.position_m,
