@@ -148,6 +148,47 @@ pub(crate) fn sensor_noise(photons: f64) -> FisherNoise {
     }
 }
 
+/// Fisher initialization of a co-design lens on `chain` (A.2): `iterations` steps of `fisher
+/// init`'s L_init from the hyperbolic phase, on the chain's PSF model and depth slabs, at the
+/// initial effective pitch `pitch_init_um` (µm) with `photons` through the aperture. Returns φ
+/// (rad) on the chain's aperture grid. Used by `nanoeye run` and `search train --lens init`.
+pub(crate) fn chain_init_phase(
+    chain: &nanoeye_search::CameraChain,
+    pitch_init_um: f64,
+    iterations: usize,
+    photons: f64,
+) -> Result<Mat<f64>> {
+    let grid = *chain.aperture_grid();
+    let r = &chain.config().radiometry;
+    let hyper = nanoeye_search::LensSpec::Hyperbolic
+        .phase_map(&grid, r.wavelength_m, r.sensor_distance_m)?
+        .phase_rad;
+    let icfg = InitConfig {
+        depths_m: chain.depths_m().to_vec(),
+        sensor_pitch_m: pitch_init_um * 1e-6,
+        noise: sensor_noise(photons),
+        ..InitConfig::default()
+    };
+    let mut st = InitState::new(hyper);
+    while st.iteration < iterations {
+        init_step(chain.psf_model(), &grid, &icfg, &mut st).context("Fisher initialization")?;
+    }
+    Ok(st.phase)
+}
+
+/// Checks the Fisher initialization's iteration count and photon budget, naming `flags`
+/// (iterations, photons) in the error.
+pub(crate) fn check_init_budget(iterations: usize, photons: f64, flags: [&str; 2]) -> Result<()> {
+    if iterations > 100_000 {
+        bail!("{}: must be at most 100000, got {iterations}", flags[0]);
+    }
+    // 1e20 photons: beyond it the Fisher sums overflow (as `fisher init --photons`).
+    if !(photons.is_finite() && photons > 0.0 && photons <= 1e20) {
+        bail!("{}: must lie in (0, 1e20], got {photons:e}", flags[1]);
+    }
+    Ok(())
+}
+
 /// Gray montage: one row per entry, one tile per plane, each tile scaled to its own maximum
 /// and upscaled by `up` (nearest) so that all rows show the same sensor area.
 fn montage(rows: &[(Vec<Mat<f32>>, usize)]) -> Result<Vec<u8>> {

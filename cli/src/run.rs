@@ -225,16 +225,14 @@ fn check(cfg: &RunConfig) -> Result<()> {
     if cfg.sequence_frames == 0 || cfg.sequence_frames > 100_000 {
         bail!("--config: sequence_frames must be 1..=100000");
     }
-    if cfg.fisher_iterations > 100_000 || cfg.final_steps > 1_000_000 {
-        bail!("--config: fisher_iterations must be at most 100000 and final_steps 1000000");
+    if cfg.final_steps > 1_000_000 {
+        bail!("--config: final_steps must be at most 1000000");
     }
-    // 1e20 photons: beyond it the Fisher sums overflow (as `fisher init --photons`).
-    if !(cfg.fisher_photons.is_finite() && cfg.fisher_photons > 0.0 && cfg.fisher_photons <= 1e20) {
-        bail!(
-            "--config: fisher_photons must lie in (0, 1e20], got {:e}",
-            cfg.fisher_photons
-        );
-    }
+    crate::fisher::check_init_budget(
+        cfg.fisher_iterations,
+        cfg.fisher_photons,
+        ["--config: fisher_iterations", "--config: fisher_photons"],
+    )?;
     // Everything a later stage would refuse is refused here, before any work or output.
     let native = nanoeye_datagen::render::dataset::rig_at_size(
         &cfg.rig.clone().unwrap_or_default(),
@@ -485,25 +483,15 @@ pub fn run(a: RunArgs) -> Result<()> {
             "Fisher initialization of the learned lens ({} iterations)",
             cfg.fisher_iterations
         ));
-        let grid = *chain.aperture_grid();
-        let r = &chain.config().radiometry;
-        let hyper = LensSpec::Hyperbolic
-            .phase_map(&grid, r.wavelength_m, r.sensor_distance_m)?
-            .phase_rad;
-        let icfg = nanoeye_fisher::InitConfig {
-            depths_m: chain.depths_m().to_vec(),
-            sensor_pitch_m: cfg.pitch_init_um * 1e-6,
-            noise: crate::fisher::sensor_noise(cfg.fisher_photons),
-            ..nanoeye_fisher::InitConfig::default()
-        };
-        let mut st = nanoeye_fisher::InitState::new(hyper);
-        while st.iteration < cfg.fisher_iterations {
-            nanoeye_fisher::init_step(chain.psf_model(), &grid, &icfg, &mut st)
-                .context("Fisher initialization")?;
-        }
+        let phase = crate::fisher::chain_init_phase(
+            &chain,
+            cfg.pitch_init_um,
+            cfg.fisher_iterations,
+            cfg.fisher_photons,
+        )?;
         std::fs::create_dir_all(out.join("runs/learned"))?;
-        util::write_atomic(&fisher_path, &crate::sim::npy_mat64(&st.phase)?)?;
-        Some(st.phase)
+        util::write_atomic(&fisher_path, &crate::sim::npy_mat64(&phase)?)?;
+        Some(phase)
     };
     stage("fisher", t.elapsed().as_secs_f64(), &mut stages)?;
 

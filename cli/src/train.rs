@@ -20,10 +20,17 @@ pub struct TrainArgs {
     /// Held-out dataset for validation (default: the training set).
     #[arg(long)]
     val: Option<PathBuf>,
-    /// Initial lens: hyperbolic, double-helix, flat (no lens) or file:PHASE.npy (e.g. `fisher init`'s
-    /// DIR/phase.npy, the Fisher initialization of A.2).
+    /// Initial lens: init (the Fisher initialization of A.2 on this chain, from the hyperbolic
+    /// phase), hyperbolic, double-helix, flat (no lens) or file:PHASE.npy (e.g. `fisher init`'s
+    /// DIR/phase.npy).
     #[arg(long, default_value = "hyperbolic")]
-    lens: LensSpec,
+    lens: String,
+    /// Fisher-initialization iterations of `--lens init`.
+    #[arg(long, default_value_t = 40)]
+    fisher_iterations: usize,
+    /// Photons through the aperture in `--lens init`'s Fisher loss.
+    #[arg(long, default_value_t = 1e5)]
+    fisher_photons: f64,
     /// Keep the lens fixed (baselines).
     #[arg(long)]
     fixed_lens: bool,
@@ -131,6 +138,67 @@ pub fn svg_curves(h: &[StepRecord]) -> String {
     )
 }
 
+/// Fitness curve of a search as a self-contained SVG: per cycle the child's V (degrees) and its
+/// penalized error −fitness = V + γ·𝕀(C > budget) (S19), and the best penalized error so far.
+pub fn svg_fitness(h: &[nanoeye_search::CycleRecord]) -> String {
+    let (w, ht, m) = (640.0, 360.0, 40.0);
+    let n = h.len().max(2) as f64;
+    let ymax = h
+        .iter()
+        .flat_map(|c| [c.child.v, -c.child.fitness])
+        .filter(|v| v.is_finite())
+        .fold(1e-9f64, f64::max);
+    let xy = |i: usize, v: f64| {
+        (
+            m + (w - 2.0 * m) * i as f64 / (n - 1.0),
+            ht - m - (ht - 2.0 * m) * (v / ymax).clamp(0.0, 1.0),
+        )
+    };
+    let mut dots = String::new();
+    let mut best = f64::INFINITY;
+    let mut line = Vec::new();
+    for (i, c) in h.iter().enumerate() {
+        let pen = -c.child.fitness;
+        if pen > c.child.v {
+            let (x, y) = xy(i, pen);
+            dots += &format!(
+                r##"<circle cx="{x:.1}" cy="{y:.1}" r="2.5" fill="none" stroke="#c0392b"/>"##
+            );
+        }
+        let (x, y) = xy(i, c.child.v);
+        dots += &format!(r##"<circle cx="{x:.1}" cy="{y:.1}" r="2.5" fill="#2471a3"/>"##);
+        if pen.is_finite() {
+            best = best.min(pen);
+        }
+        if best.is_finite() {
+            let (x, y) = xy(i, best);
+            line.push(format!("{x:.1},{y:.1}"));
+        }
+    }
+    format!(
+        r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{ht}" font-family="sans-serif" font-size="12">
+<rect width="100%" height="100%" fill="white"/>
+<line x1="{m}" y1="{b}" x2="{r}" y2="{b}" stroke="black"/><line x1="{m}" y1="{m}" x2="{m}" y2="{b}" stroke="black"/>
+<text x="{cx}" y="{tb}" text-anchor="middle">cycle (0 … {last})</text>
+<text x="12" y="{cy}" transform="rotate(-90 12 {cy})" text-anchor="middle">degrees (0 … {ymax:.2})</text>
+{dots}
+<polyline fill="none" stroke="black" stroke-width="1.5" points="{pts}"/>
+<text x="{lx}" y="{m}" fill="#2471a3">child V</text><text x="{lx}" y="{l2}" fill="#c0392b">V + γ (over budget)</text><text x="{lx}" y="{l3}">best so far</text>
+</svg>
+"##,
+        b = ht - m,
+        r = w - m,
+        cx = w / 2.0,
+        tb = ht - 8.0,
+        cy = ht / 2.0,
+        last = h.len().saturating_sub(1),
+        pts = line.join(" "),
+        lx = w - m - 150.0,
+        l2 = m + 16.0,
+        l3 = m + 32.0,
+    )
+}
+
 fn write_outputs(t: &mut Trainer, out: &std::path::Path) -> Result<()> {
     t.save(&out.join("checkpoint.bin"))
         .context("--out: writing checkpoint.bin")?;
@@ -196,19 +264,76 @@ pub fn train(a: TrainArgs) -> Result<()> {
         Some(p) => Some(Dataset::open(p).with_context(|| format!("--val {}", p.display()))?),
         None => None,
     };
-    let r = &chain.config().radiometry;
-    let map = a
-        .lens
-        .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)
-        .context("--lens")?;
-    let mut t = Trainer::new(&chain, &ds, cfg, map.phase_rad).context("--lens / --pitch-um")?;
+    let init = a.lens == "init";
+    let spec = if init {
+        crate::fisher::check_init_budget(
+            a.fisher_iterations,
+            a.fisher_photons,
+            ["--fisher-iterations", "--fisher-photons"],
+        )?;
+        LensSpec::Hyperbolic
+    } else {
+        a.lens
+            .parse::<LensSpec>()
+            .map_err(|e| anyhow::anyhow!("--lens: {e} (or init)"))?
+    };
     util::check_output_target(&a.out.join("checkpoint.bin"))?;
     let ck = a.out.join("checkpoint.bin");
+    // The lens a run started from is part of its parameters: a resume from another is refused.
+    let lens_json = serde_json::to_string(&if init {
+        serde_json::json!({"lens": "init", "fisher_iterations": a.fisher_iterations,
+            "fisher_photons": a.fisher_photons})
+    } else {
+        serde_json::json!({"lens": a.lens})
+    })?;
+    let lens_path = a.out.join("lens.json");
+    if ck.exists() && lens_path.exists() {
+        let had = std::fs::read_to_string(&lens_path).context("--out (resume): lens.json")?;
+        if had.trim() != lens_json {
+            bail!(
+                "--lens: {} was started from {}, not {lens_json}; use another --out",
+                a.out.display(),
+                had.trim()
+            );
+        }
+    }
+    let r = &chain.config().radiometry;
+    let mut phase0 = spec
+        .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)
+        .context("--lens")?
+        .phase_rad;
+    // A checkpoint holds φ itself; before the first one, `--lens init` starts from the Fisher
+    // phase, computed once and kept beside the checkpoint.
+    let fisher_path = a.out.join("fisher_phase.npy");
+    let mut fisher_new = None;
+    if init && !ck.exists() {
+        if fisher_path.exists() {
+            phase0 = nanoeye_fisher::nanoeye_optics::io::read_phase_npy(&fisher_path)
+                .context("--out (resume): fisher_phase.npy")?;
+        } else {
+            eprintln!(
+                "Fisher initialization of the lens ({} iterations)",
+                a.fisher_iterations
+            );
+            phase0 = crate::fisher::chain_init_phase(
+                &chain,
+                a.chain.pitch_um,
+                a.fisher_iterations,
+                a.fisher_photons,
+            )?;
+            fisher_new = Some(phase0.clone());
+        }
+    }
+    let mut t = Trainer::new(&chain, &ds, cfg, phase0).context("--lens / --pitch-um")?;
     if ck.exists() {
         t.load(&ck).context("--out (resume)")?;
         eprintln!("resuming {} at step {}", a.out.display(), t.step);
     }
     std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+    util::write_atomic(&lens_path, format!("{lens_json}\n").as_bytes())?;
+    if let Some(p) = &fisher_new {
+        util::write_atomic(&fisher_path, &crate::sim::npy_mat64(p)?)?;
+    }
     // The native rig: with p̂ it gives the camera the tracker must use.
     util::write_atomic(
         &a.out.join("rig.json"),
@@ -400,6 +525,11 @@ pub fn rea(a: ReaArgs) -> Result<()> {
             .map(|c| serde_json::to_string(c).unwrap_or_default() + "\n")
             .collect();
         util::write_atomic(&run_dir.join("rea.jsonl"), lines.as_bytes()).map_err(io)?;
+        util::write_atomic(
+            &run_dir.join("fitness.svg"),
+            svg_fitness(&s.history).as_bytes(),
+        )
+        .map_err(io)?;
         bar.set_position((s.evaluated.len()) as u64);
         if !tty && s.evaluated.len() % (total / 10).max(1) == 0 {
             eprintln!(
@@ -714,4 +844,46 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         println!("plot: {}", a.plot.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nanoeye_search::CycleRecord;
+    use nanoeye_search::rea::ChildRecord;
+
+    fn cycle(c: usize, v: f64, over: bool) -> CycleRecord {
+        CycleRecord {
+            cycle: c,
+            population: vec![],
+            tournament: vec![],
+            parent: 0,
+            child: ChildRecord {
+                id: c,
+                arch: Arch::min(),
+                macs: 0,
+                fitness: -v - if over { 10.0 } else { 0.0 },
+                v,
+            },
+            removed: 0,
+        }
+    }
+
+    #[test]
+    fn the_fitness_plot_marks_penalized_children_and_keeps_the_best_so_far() {
+        let h = [
+            cycle(0, 20.0, false),
+            cycle(1, 5.0, true),
+            cycle(2, 12.0, false),
+        ];
+        let s = svg_fitness(&h);
+        // Three children's V, one penalty mark (the over-budget child's V + γ).
+        assert_eq!(s.matches("fill=\"#2471a3\"/>").count(), 3);
+        assert_eq!(s.matches("stroke=\"#c0392b\"/>").count(), 1);
+        // Best penalized error so far: 20, 15, 12 on a 0 … 20 axis (y = 40 + 280·(1 − v/20)).
+        assert!(
+            s.contains("points=\"40.0,40.0 320.0,110.0 600.0,152.0\""),
+            "{s}"
+        );
+    }
 }

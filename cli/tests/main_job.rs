@@ -191,3 +191,94 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--out"));
 }
+
+/// `search train --lens init` starts from the same Fisher initialization as `nanoeye run`'s
+/// learned lens (same chain, pitch and iterations give the same bytes), and a resume from
+/// another initialization is refused.
+#[test]
+fn search_train_lens_init_is_the_main_jobs_fisher_phase() {
+    let d = tempfile::tempdir().unwrap();
+    let bin = env!("CARGO_BIN_EXE_nanoeye");
+    let cfg = d.path().join("tiny.json");
+    std::fs::write(
+        &cfg,
+        r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items": 3, "val_items": 2,
+            "protocol_subjects": 1, "train_steps": 2, "batch": 3, "random_subnets": 0,
+            "pitch_init_um": 60.0, "pitch_range_um": [48.0, 120.0], "rea_cycles": 1,
+            "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0, "final_steps": 2,
+            "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16],
+            "fisher_iterations": 3, "sequence_frames": 5}"#,
+    )
+    .unwrap();
+    let out = d.path().join("run");
+    let o = Command::new(bin)
+        .args(["run", "--json", "--config"])
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let train = |iters: &str, run: &std::path::Path| {
+        Command::new(bin)
+            .args([
+                "search",
+                "train",
+                "--lens",
+                "init",
+                "--fisher-iterations",
+                iters,
+            ])
+            .args(["--steps", "1", "--batch", "3", "--random-subnets", "0"])
+            .args(["--pitch-um", "60", "--pitch-range-um", "48:120"])
+            .args([
+                "--aperture-step-um",
+                "10",
+                "--exposure-ms",
+                "0.0004",
+                "--dataset",
+            ])
+            .arg(out.join("data/train"))
+            .arg("--out")
+            .arg(run)
+            .output()
+            .unwrap()
+    };
+    let run = d.path().join("train");
+    let o = train("3", &run);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mine = std::fs::read(run.join("fisher_phase.npy")).unwrap();
+    let main_job = std::fs::read(out.join("runs/learned/fisher_phase.npy")).unwrap();
+    assert!(mine == main_job, "the two Fisher initializations differ");
+    // Not the hyperbolic phase it started from.
+    let hyp = d.path().join("hyp");
+    let o = Command::new(bin)
+        .args([
+            "search",
+            "train",
+            "--lens",
+            "hyperbolic",
+            "--fixed-lens",
+            "--steps",
+            "1",
+        ])
+        .args(["--pitch-um", "60", "--pitch-range-um", "48:120"])
+        .args([
+            "--aperture-step-um",
+            "10",
+            "--exposure-ms",
+            "0.0004",
+            "--dataset",
+        ])
+        .arg(out.join("data/train"))
+        .arg("--out")
+        .arg(&hyp)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(std::fs::read(hyp.join("phase.npy")).unwrap() != mine);
+    let o = train("4", &run);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--lens"), "{err}");
+}
