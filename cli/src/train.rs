@@ -95,107 +95,133 @@ fn with_flag(
     anyhow::anyhow!("{flag}: {e}")
 }
 
-/// Loss curves of N_max and N_min as a self-contained SVG.
-pub fn svg_curves(h: &[StepRecord]) -> String {
-    let (w, ht, m) = (640.0, 360.0, 40.0);
-    let n = h.len().max(2) as f64;
-    let ymax = h
-        .iter()
-        .flat_map(|r| [r.loss_max, r.loss_min])
-        .fold(1e-9f64, f64::max);
-    let pts = |f: &dyn Fn(&StepRecord) -> f64| {
-        h.iter()
+/// A 640×360 line plot of `n` points over x = 0 … n − 1 and y = 0 … `ymax`.
+struct Plot {
+    n: f64,
+    ymax: f64,
+}
+
+impl Plot {
+    const W: f64 = 640.0;
+    const H: f64 = 360.0;
+    const M: f64 = 40.0;
+
+    /// SVG coordinates of point `i` at value `v` (clamped to the axes).
+    fn xy(&self, i: usize, v: f64) -> (f64, f64) {
+        let (w, h, m) = (Self::W, Self::H, Self::M);
+        (
+            m + (w - 2.0 * m) * i as f64 / (self.n - 1.0).max(1.0),
+            h - m - (h - 2.0 * m) * (v / self.ymax).clamp(0.0, 1.0),
+        )
+    }
+
+    /// "x,y x,y …" of `values`.
+    fn polyline(&self, values: impl Iterator<Item = f64>) -> String {
+        values
             .enumerate()
-            .map(|(i, r)| {
-                let x = m + (w - 2.0 * m) * i as f64 / (n - 1.0);
-                let y = ht - m - (ht - 2.0 * m) * (f(r) / ymax).clamp(0.0, 1.0);
+            .map(|(i, v)| {
+                let (x, y) = self.xy(i, v);
                 format!("{x:.1},{y:.1}")
             })
             .collect::<Vec<_>>()
             .join(" ")
-    };
-    format!(
-        r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{ht}" font-family="sans-serif" font-size="12">
+    }
+
+    /// The self-contained SVG: axes, labels, `body`, and `legend` as (text, colour) lines.
+    fn svg(&self, xlabel: &str, ylabel: &str, body: &str, legend: &[(&str, &str)]) -> String {
+        let (w, ht, m) = (Self::W, Self::H, Self::M);
+        let (b, r, cx, tb, cy) = (ht - m, w - m, w / 2.0, ht - 8.0, ht / 2.0);
+        let last = (self.n as usize).saturating_sub(1);
+        let legend: String = legend
+            .iter()
+            .enumerate()
+            .map(|(k, (t, c))| {
+                format!(
+                    r##"<text x="{}" y="{}" fill="{c}">{t}</text>"##,
+                    w - m - 150.0,
+                    m + 16.0 * k as f64
+                )
+            })
+            .collect();
+        format!(
+            r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{ht}" font-family="sans-serif" font-size="12">
 <rect width="100%" height="100%" fill="white"/>
 <line x1="{m}" y1="{b}" x2="{r}" y2="{b}" stroke="black"/><line x1="{m}" y1="{m}" x2="{m}" y2="{b}" stroke="black"/>
-<text x="{cx}" y="{tb}" text-anchor="middle">step (0 … {last})</text>
-<text x="12" y="{cy}" transform="rotate(-90 12 {cy})" text-anchor="middle">task loss (0 … {ymax:.3})</text>
-<polyline fill="none" stroke="#c0392b" stroke-width="1.5" points="{pmax}"/>
-<polyline fill="none" stroke="#2471a3" stroke-width="1.5" points="{pmin}"/>
-<text x="{lx}" y="{m}" fill="#c0392b">N_max</text><text x="{lx}" y="{l2}" fill="#2471a3">N_min</text>
+<text x="{cx}" y="{tb}" text-anchor="middle">{xlabel} (0 … {last})</text>
+<text x="12" y="{cy}" transform="rotate(-90 12 {cy})" text-anchor="middle">{ylabel} (0 … {ymax:.3})</text>
+{body}
+{legend}
 </svg>
 "##,
-        b = ht - m,
-        r = w - m,
-        cx = w / 2.0,
-        tb = ht - 8.0,
-        cy = ht / 2.0,
-        last = h.len().saturating_sub(1),
-        pmax = pts(&|r| r.loss_max),
-        pmin = pts(&|r| r.loss_min),
-        lx = w - m - 60.0,
-        l2 = m + 16.0,
+            ymax = self.ymax
+        )
+    }
+}
+
+/// Loss curves of N_max and N_min as a self-contained SVG.
+pub fn svg_curves(h: &[StepRecord]) -> String {
+    let p = Plot {
+        n: h.len().max(2) as f64,
+        ymax: h
+            .iter()
+            .flat_map(|r| [r.loss_max, r.loss_min])
+            .fold(1e-9f64, f64::max),
+    };
+    let body = format!(
+        r##"<polyline fill="none" stroke="#c0392b" stroke-width="1.5" points="{}"/>
+<polyline fill="none" stroke="#2471a3" stroke-width="1.5" points="{}"/>"##,
+        p.polyline(h.iter().map(|r| r.loss_max)),
+        p.polyline(h.iter().map(|r| r.loss_min)),
+    );
+    p.svg(
+        "step",
+        "task loss",
+        &body,
+        &[("N_max", "#c0392b"), ("N_min", "#2471a3")],
     )
 }
 
 /// Fitness curve of a search as a self-contained SVG: per cycle the child's V (degrees) and its
 /// penalized error −fitness = V + γ·𝕀(C > budget) (S19), and the best penalized error so far.
 pub fn svg_fitness(h: &[nanoeye_search::CycleRecord]) -> String {
-    let (w, ht, m) = (640.0, 360.0, 40.0);
-    let n = h.len().max(2) as f64;
-    let ymax = h
-        .iter()
-        .flat_map(|c| [c.child.v, -c.child.fitness])
-        .filter(|v| v.is_finite())
-        .fold(1e-9f64, f64::max);
-    let xy = |i: usize, v: f64| {
-        (
-            m + (w - 2.0 * m) * i as f64 / (n - 1.0),
-            ht - m - (ht - 2.0 * m) * (v / ymax).clamp(0.0, 1.0),
-        )
+    let p = Plot {
+        n: h.len().max(2) as f64,
+        ymax: h
+            .iter()
+            .flat_map(|c| [c.child.v, -c.child.fitness])
+            .filter(|v| v.is_finite())
+            .fold(1e-9f64, f64::max),
     };
-    let mut dots = String::new();
-    let mut best = f64::INFINITY;
-    let mut line = Vec::new();
+    let mut body = String::new();
     for (i, c) in h.iter().enumerate() {
         let pen = -c.child.fitness;
         if pen > c.child.v {
-            let (x, y) = xy(i, pen);
-            dots += &format!(
+            let (x, y) = p.xy(i, pen);
+            body += &format!(
                 r##"<circle cx="{x:.1}" cy="{y:.1}" r="2.5" fill="none" stroke="#c0392b"/>"##
             );
         }
-        let (x, y) = xy(i, c.child.v);
-        dots += &format!(r##"<circle cx="{x:.1}" cy="{y:.1}" r="2.5" fill="#2471a3"/>"##);
-        if pen.is_finite() {
-            best = best.min(pen);
-        }
-        if best.is_finite() {
-            let (x, y) = xy(i, best);
-            line.push(format!("{x:.1},{y:.1}"));
-        }
+        let (x, y) = p.xy(i, c.child.v);
+        body += &format!(r##"<circle cx="{x:.1}" cy="{y:.1}" r="2.5" fill="#2471a3"/>"##);
     }
-    format!(
-        r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{ht}" font-family="sans-serif" font-size="12">
-<rect width="100%" height="100%" fill="white"/>
-<line x1="{m}" y1="{b}" x2="{r}" y2="{b}" stroke="black"/><line x1="{m}" y1="{m}" x2="{m}" y2="{b}" stroke="black"/>
-<text x="{cx}" y="{tb}" text-anchor="middle">cycle (0 … {last})</text>
-<text x="12" y="{cy}" transform="rotate(-90 12 {cy})" text-anchor="middle">degrees (0 … {ymax:.2})</text>
-{dots}
-<polyline fill="none" stroke="black" stroke-width="1.5" points="{pts}"/>
-<text x="{lx}" y="{m}" fill="#2471a3">child V</text><text x="{lx}" y="{l2}" fill="#c0392b">V + γ (over budget)</text><text x="{lx}" y="{l3}">best so far</text>
-</svg>
-"##,
-        b = ht - m,
-        r = w - m,
-        cx = w / 2.0,
-        tb = ht - 8.0,
-        cy = ht / 2.0,
-        last = h.len().saturating_sub(1),
-        pts = line.join(" "),
-        lx = w - m - 150.0,
-        l2 = m + 16.0,
-        l3 = m + 32.0,
+    let best = h.iter().scan(f64::INFINITY, |b, c| {
+        *b = b.min(-c.child.fitness);
+        Some(*b)
+    });
+    body += &format!(
+        r##"
+<polyline fill="none" stroke="black" stroke-width="1.5" points="{}"/>"##,
+        p.polyline(best)
+    );
+    p.svg(
+        "cycle",
+        "degrees",
+        &body,
+        &[
+            ("child V", "#2471a3"),
+            ("V + γ (over budget)", "#c0392b"),
+            ("best so far", "black"),
+        ],
     )
 }
 

@@ -219,25 +219,15 @@ fn search_train_lens_init_is_the_main_jobs_fisher_phase() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let train = |iters: &str, run: &std::path::Path| {
+    // `search train` on the run's training set with the run's chain and pitch.
+    let train = |lens: &[&str], run: &std::path::Path| {
         Command::new(bin)
-            .args([
-                "search",
-                "train",
-                "--lens",
-                "init",
-                "--fisher-iterations",
-                iters,
-            ])
-            .args(["--steps", "1", "--batch", "3", "--random-subnets", "0"])
-            .args(["--pitch-um", "60", "--pitch-range-um", "48:120"])
-            .args([
-                "--aperture-step-um",
-                "10",
-                "--exposure-ms",
-                "0.0004",
-                "--dataset",
-            ])
+            .args(["search", "train", "--steps", "1", "--batch", "3"])
+            .args(["--random-subnets", "0", "--pitch-um", "60"])
+            .args(["--pitch-range-um", "48:120", "--aperture-step-um", "10"])
+            .args(["--exposure-ms", "0.0004", "--lens"])
+            .args(lens)
+            .arg("--dataset")
             .arg(out.join("data/train"))
             .arg("--out")
             .arg(run)
@@ -245,39 +235,17 @@ fn search_train_lens_init_is_the_main_jobs_fisher_phase() {
             .unwrap()
     };
     let run = d.path().join("train");
-    let o = train("3", &run);
+    let o = train(&["init", "--fisher-iterations", "3"], &run);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let mine = std::fs::read(run.join("fisher_phase.npy")).unwrap();
     let main_job = std::fs::read(out.join("runs/learned/fisher_phase.npy")).unwrap();
     assert!(mine == main_job, "the two Fisher initializations differ");
     // Not the hyperbolic phase it started from.
     let hyp = d.path().join("hyp");
-    let o = Command::new(bin)
-        .args([
-            "search",
-            "train",
-            "--lens",
-            "hyperbolic",
-            "--fixed-lens",
-            "--steps",
-            "1",
-        ])
-        .args(["--pitch-um", "60", "--pitch-range-um", "48:120"])
-        .args([
-            "--aperture-step-um",
-            "10",
-            "--exposure-ms",
-            "0.0004",
-            "--dataset",
-        ])
-        .arg(out.join("data/train"))
-        .arg("--out")
-        .arg(&hyp)
-        .output()
-        .unwrap();
+    let o = train(&["hyperbolic", "--fixed-lens"], &hyp);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(std::fs::read(hyp.join("phase.npy")).unwrap() != mine);
-    let o = train("4", &run);
+    let o = train(&["init", "--fisher-iterations", "4"], &run);
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--lens"), "{err}");
