@@ -4,20 +4,19 @@
 
 use std::process::Command;
 
+/// The smallest configuration that runs every stage.
+const TINY: &str = r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items": 3, "val_items": 2,
+    "protocol_subjects": 1, "train_steps": 2, "batch": 3, "random_subnets": 0,
+    "pitch_init_um": 60.0, "pitch_range_um": [48.0, 120.0], "rea_cycles": 1,
+    "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0, "final_steps": 2,
+    "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16],
+    "sequence_frames": 5}"#;
+
 #[test]
 fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     let d = tempfile::tempdir().unwrap();
     let cfg = d.path().join("tiny.json");
-    std::fs::write(
-        &cfg,
-        r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items": 3, "val_items": 2,
-            "protocol_subjects": 1, "train_steps": 2, "batch": 3, "random_subnets": 0,
-            "pitch_init_um": 60.0, "pitch_range_um": [48.0, 120.0], "rea_cycles": 1,
-            "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0, "final_steps": 2,
-            "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16],
-            "sequence_frames": 5}"#,
-    )
-    .unwrap();
+    std::fs::write(&cfg, TINY).unwrap();
     let out = d.path().join("run");
     let run = || {
         Command::new(env!("CARGO_BIN_EXE_nanoeye"))
@@ -200,16 +199,7 @@ fn search_train_lens_init_is_the_main_jobs_fisher_phase() {
     let d = tempfile::tempdir().unwrap();
     let bin = env!("CARGO_BIN_EXE_nanoeye");
     let cfg = d.path().join("tiny.json");
-    std::fs::write(
-        &cfg,
-        r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items": 3, "val_items": 2,
-            "protocol_subjects": 1, "train_steps": 2, "batch": 3, "random_subnets": 0,
-            "pitch_init_um": 60.0, "pitch_range_um": [48.0, 120.0], "rea_cycles": 1,
-            "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0, "final_steps": 2,
-            "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16],
-            "fisher_iterations": 3, "sequence_frames": 5}"#,
-    )
-    .unwrap();
+    std::fs::write(&cfg, TINY.replacen('{', r#"{"fisher_iterations": 3, "#, 1)).unwrap();
     let out = d.path().join("run");
     let o = Command::new(bin)
         .args(["run", "--json", "--config"])
