@@ -1,0 +1,111 @@
+//! Where one sandwich step's time goes (S22): the PSF stack, the chain forward (S1 + sensor),
+//! the network forward + backward of N_max, N_min and n random subnets, the chain backward and
+//! the one PSF VJP — the parts of `Trainer::train_step`, timed apart. Usage:
+//! `cargo run --release -p nanoeye-search --example step_time -- DATASET [PITCH_UM] [BATCH]
+//! [N_RANDOM] [REPS]` (docs/run.md, "Time per step and per candidate").
+
+use nanoeye_datagen::render::Dataset;
+use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig};
+use nanoeye_search::{CameraChain, ChainConfig, LensSpec, task_loss};
+use nanoeye_sensor::NoiseMode;
+use rand::SeedableRng;
+use std::time::Instant;
+
+fn arg<T: std::str::FromStr>(args: &[String], i: usize, default: T) -> T {
+    args.get(i).and_then(|s| s.parse().ok()).unwrap_or(default)
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let Some(dir) = args.get(1) else {
+        eprintln!("usage: step_time DATASET [PITCH_UM] [BATCH] [N_RANDOM] [REPS]");
+        std::process::exit(2);
+    };
+    let pitch_um: f64 = arg(&args, 2, 14.0);
+    let batch: usize = arg(&args, 3, 4);
+    let n_random: usize = arg(&args, 4, 2);
+    let reps: usize = arg(&args, 5, 3);
+    let ds = Dataset::open(std::path::Path::new(dir)).expect("dataset");
+    let chain = CameraChain::for_dataset(&ds, ChainConfig::default()).expect("chain");
+    let map = LensSpec::Hyperbolic
+        .phase_map(chain.aperture_grid(), 940e-9, 2e-3)
+        .expect("lens");
+    let ids: Vec<usize> = (0..batch).map(|i| i % ds.len()).collect();
+    let mut net = Supernet::new(SupernetConfig::default(), 0).expect("supernet");
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+    let mut archs = vec![Arch::max(), Arch::min()];
+    archs.extend((0..n_random).map(|_| Arch::sample(&mut rng)));
+    // [load, psf stack, chain forward, network, chain backward, psf vjp]
+    let mut t = [0.0f64; 6];
+    let mut shape = (0, 0);
+    for rep in 0..=reps {
+        let mut lap = [0.0f64; 6];
+        let mut clock = Instant::now();
+        let mut tick = |k: usize, clock: &mut Instant| {
+            lap[k] = clock.elapsed().as_secs_f64();
+            *clock = Instant::now();
+        };
+        let frames = chain.load(&ds, &ids).expect("load");
+        tick(0, &mut clock);
+        let psfs = chain.psfs(&map, &chain.active(&frames)).expect("psfs");
+        tick(1, &mut clock);
+        let fwd = chain
+            .forward(&frames, &psfs, pitch_um * 1e-6, NoiseMode::Gaussian, 7)
+            .expect("forward");
+        shape = (fwd.input.h, fwd.input.w);
+        tick(2, &mut clock);
+        net.zero_grad();
+        let mut dx = nanoeye_nets::Tensor::zeros(fwd.input.n, 1, fwd.input.h, fwd.input.w);
+        for a in &archs {
+            let (_, g) = task_loss(
+                &mut net,
+                std::slice::from_ref(a),
+                &fwd.input,
+                &fwd.mask,
+                &fwd.slip_mm,
+                0.1,
+                BnMode::Train,
+            )
+            .expect("task loss");
+            dx.add_assign(&g);
+        }
+        tick(3, &mut clock);
+        let mut acc = chain.accumulator();
+        chain
+            .backward(&frames, &psfs, &fwd, &dx, &mut acc)
+            .expect("backward");
+        tick(4, &mut clock);
+        let g = chain.finish(&map, &psfs, acc).expect("finish");
+        std::hint::black_box(g);
+        tick(5, &mut clock);
+        // The first pass warms caches and plans.
+        if rep > 0 {
+            t.iter_mut()
+                .zip(lap)
+                .for_each(|(a, b)| *a += b / reps as f64);
+        }
+    }
+    let (h, w) = chain.native().shape();
+    let total: f64 = t.iter().sum();
+    println!(
+        "native {w}x{h} at {:.1} um, p_hat {pitch_um} um -> network input {}x{}, batch {batch}, \
+         {} subnets, {} depth slabs",
+        chain.native().pitch_m() * 1e6,
+        shape.1,
+        shape.0,
+        archs.len(),
+        chain.depths_m().len()
+    );
+    let names = [
+        "load layers",
+        "PSF stack",
+        "chain forward (S1 + sensor)",
+        "network fwd + bwd",
+        "chain backward",
+        "PSF VJP",
+    ];
+    for (n, s) in names.iter().zip(t) {
+        println!("{n:<28} {s:>8.3} s  {:>5.1} %", 100.0 * s / total);
+    }
+    println!("{:<28} {total:>8.3} s per step", "sandwich step");
+}
