@@ -272,8 +272,7 @@ fn subcell_weights(xb: f64, t: usize) -> (Vec<f64>, f64) {
         if n == 0 { c } else { 2.0 * c }
     });
     let mut c = vec![0.0; t + 1];
-    if let Ok(svd) = a.svd() {
-        let (u, sv, v) = (svd.U(), svd.S().column_vector(), svd.V());
+    if let Some((u, sv, v)) = svd_seq(&a) {
         let smax = sv[0];
         for i in 0..=t {
             if sv[i] < 1e-14 * smax {
@@ -297,6 +296,32 @@ fn subcell_weights(xb: f64, t: usize) -> (Vec<f64>, f64) {
         })
         .fold(0.0, f64::max);
     (c, err)
+}
+
+/// Full SVD (U, singular values, V) on this thread: faer's default runs on the rayon pool and
+/// its last bits depend on the pool's size, and the quadrature weights reach every PSF and
+/// PSF VJP (runs with different thread counts, e.g. MPI ranks with one thread each, must agree).
+fn svd_seq(a: &Mat<f64>) -> Option<(Mat<f64>, Vec<f64>, Mat<f64>)> {
+    use faer::dyn_stack::{MemBuffer, MemStack};
+    use faer::linalg::svd::{ComputeSvdVectors, svd, svd_scratch};
+    let (m, n) = a.shape();
+    let mut u = Mat::<f64>::zeros(m, m);
+    let mut v = Mat::<f64>::zeros(n, n);
+    let mut sv = faer::diag::Diag::<f64>::zeros(m.min(n));
+    let full = ComputeSvdVectors::Full;
+    let req = svd_scratch::<f64>(m, n, full, full, faer::Par::Seq, Default::default());
+    svd(
+        a.as_ref(),
+        sv.as_mut(),
+        Some(u.as_mut()),
+        Some(v.as_mut()),
+        faer::Par::Seq,
+        MemStack::new(&mut MemBuffer::new(req)),
+        Default::default(),
+    )
+    .ok()?;
+    let sv = (0..m.min(n)).map(|i| sv[i]).collect();
+    Some((u, sv, v))
 }
 
 /// The shortest sub-cell quadrature (T ≤ 160) whose error is ≤ [`QUAD_TOL`], or the best found.
