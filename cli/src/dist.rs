@@ -205,6 +205,28 @@ impl World {
     }
 }
 
+/// The ranks sharing the depth planes of a camera chain's PSF stacks and PSF VJPs
+/// (`search train`): each computes its share of the depths, and [`World::all_gather`] gives
+/// every rank every plane (f64, exact). Every rank must run the same training.
+pub struct RankSplit(pub World);
+
+impl nanoeye_search::DepthSplit for RankSplit {
+    fn parts(&self) -> usize {
+        self.0.size
+    }
+    fn part(&self) -> usize {
+        self.0.rank
+    }
+    fn all_gather(&self, values: Vec<f64>) -> nanoeye_search::Result<Vec<Vec<f64>>> {
+        Ok(self
+            .0
+            .all_gather(f64_bytes(&values))
+            .iter()
+            .map(|b| bytes_f64(b))
+            .collect())
+    }
+}
+
 /// A gather's messages carry this tag, so they never match a worker-pool message.
 #[cfg(feature = "mpi")]
 const TAG_GATHER: i32 = 100;

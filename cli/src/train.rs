@@ -145,10 +145,17 @@ fn write_outputs(t: &mut Trainer, out: &std::path::Path) -> Result<()> {
     Ok(())
 }
 
-/// Runs `nanoeye search train`.
+/// Runs `nanoeye search train`. Under `mpirun -np N` every rank runs the same training and
+/// each step's PSF stack and PSF VJP are split over depth across the ranks and all-gathered
+/// (`dist::RankSplit`): the same bits on every rank as on one process; rank 0 alone reads the
+/// checkpoint (and sends it), writes the outputs and prints.
 pub fn train(a: TrainArgs) -> Result<()> {
     let t0 = Instant::now();
-    let (ds, chain) = a.chain.build()?;
+    let w = crate::dist::world();
+    let (ds, mut chain) = a.chain.build()?;
+    if w.is_distributed() {
+        chain.set_split(std::sync::Arc::new(crate::dist::RankSplit(w)));
+    }
     let range = util::parse_list("--pitch-range-um", &a.pitch_range_um.replace(':', ","))?;
     let [lo, hi] = range[..] else {
         bail!(
@@ -202,19 +209,34 @@ pub fn train(a: TrainArgs) -> Result<()> {
         .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)
         .context("--lens")?;
     let mut t = Trainer::new(&chain, &ds, cfg, map.phase_rad).context("--lens / --pitch-um")?;
-    util::check_output_target(&a.out.join("checkpoint.bin"))?;
     let ck = a.out.join("checkpoint.bin");
-    if ck.exists() {
-        t.load(&ck).context("--out (resume)")?;
-        eprintln!("resuming {} at step {}", a.out.display(), t.step);
+    // Rank 0 reads the checkpoint and sends it (empty: none), so --out need not be shared.
+    let resume = if w.is_root() {
+        util::check_output_target(&ck)?;
+        if ck.exists() {
+            std::fs::read(&ck).with_context(|| format!("--out (resume): {}", ck.display()))?
+        } else {
+            Vec::new()
+        }
+    } else {
+        Vec::new()
+    };
+    let resume = w.broadcast(resume);
+    if !resume.is_empty() {
+        t.load_bytes(resume, &ck).context("--out (resume)")?;
+        if w.is_root() {
+            eprintln!("resuming {} at step {}", a.out.display(), t.step);
+        }
     }
-    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
-    // The native rig: with p̂ it gives the camera the tracker must use.
-    util::write_atomic(
-        &a.out.join("rig.json"),
-        serde_json::to_string_pretty(&ds.manifest.rig)?.as_bytes(),
-    )?;
-    let tty = std::io::stderr().is_terminal();
+    if w.is_root() {
+        std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+        // The native rig: with p̂ it gives the camera the tracker must use.
+        util::write_atomic(
+            &a.out.join("rig.json"),
+            serde_json::to_string_pretty(&ds.manifest.rig)?.as_bytes(),
+        )?;
+    }
+    let tty = w.is_root() && std::io::stderr().is_terminal();
     let bar = if tty {
         indicatif::ProgressBar::new(a.steps as u64)
     } else {
@@ -229,7 +251,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
             "L_max {:.3} L_min {:.3}",
             rec.loss_max, rec.loss_min
         ));
-        if !tty && (rec.step + 1) % tick == 0 {
+        if w.is_root() && !tty && (rec.step + 1) % tick == 0 {
             eprintln!(
                 "step {}/{}: L_max {:.4}, L_min {:.4}, p̂ {:.3} µm, {:.0} s",
                 rec.step + 1,
@@ -240,12 +262,15 @@ pub fn train(a: TrainArgs) -> Result<()> {
                 t0.elapsed().as_secs_f64()
             );
         }
-        if t.step % a.checkpoint_every == 0 || t.step == a.steps {
+        if w.is_root() && (t.step % a.checkpoint_every == 0 || t.step == a.steps) {
             write_outputs(&mut t, &a.out)?;
         }
     }
     bar.finish_and_clear();
-    write_outputs(&mut t, &a.out)?;
+    if w.is_root() {
+        write_outputs(&mut t, &a.out)?;
+    }
+    // Every rank evaluates: the chain's PSF stacks are shared out among them.
     let v = val.as_ref().unwrap_or(&ds);
     let m = t.evaluate(v, &Arch::min(), 2)?;
     let mmax = t.evaluate(v, &Arch::max(), 2)?;
@@ -264,6 +289,9 @@ pub fn train(a: TrainArgs) -> Result<()> {
         if !out[k].as_f64().is_some_and(f64::is_finite) {
             bail!("{k} is not finite: training diverged; lower the learning rates");
         }
+    }
+    if !w.is_root() {
+        return Ok(());
     }
     util::write_atomic(
         &a.out.join("metrics.json"),
