@@ -153,8 +153,9 @@ pub fn train(a: TrainArgs) -> Result<()> {
     let t0 = Instant::now();
     let w = crate::dist::world();
     let (ds, mut chain) = a.chain.build()?;
+    let split = std::sync::Arc::new(crate::dist::RankSplit::new(w));
     if w.is_distributed() {
-        chain.set_split(std::sync::Arc::new(crate::dist::RankSplit(w)));
+        chain.set_split(split.clone());
     }
     let range = util::parse_list("--pitch-range-um", &a.pitch_range_um.replace(':', ","))?;
     let [lo, hi] = range[..] else {
@@ -244,6 +245,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
     };
     bar.set_position(t.step as u64);
     let tick = (a.steps / 10).max(1);
+    let t_train = Instant::now();
+    let step0 = t.step;
     while t.step < a.steps {
         let rec = t.train_step()?;
         bar.inc(1);
@@ -267,6 +270,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
         }
     }
     bar.finish_and_clear();
+    let train_s = t_train.elapsed().as_secs_f64();
+    let (step_gathers, step_gather_s) = split.gather_time();
     if w.is_root() {
         write_outputs(&mut t, &a.out)?;
     }
@@ -284,6 +289,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
         "max_subnet": {"v_deg": mmax.v_deg, "dice": mmax.dice, "slip_mse": mmax.slip_mse},
         "pitch_um": t.pitch_um,
         "seconds": t0.elapsed().as_secs_f64(),
+        // Wall time of the steps this invocation ran (checkpoints included), per step.
+        "seconds_per_step": train_s / (t.step - step0).max(1) as f64,
     });
     for k in ["v_deg", "dice", "slip_mse", "pitch_um"] {
         if !out[k].as_f64().is_some_and(f64::is_finite) {
@@ -292,6 +299,19 @@ pub fn train(a: TrainArgs) -> Result<()> {
     }
     if !w.is_root() {
         return Ok(());
+    }
+    let mut out = out;
+    if w.is_distributed() {
+        // Rank 0's time in the PSF all-gathers of the steps (its wait for rank 1's share
+        // included), then of the whole run.
+        let (gathers, gather_s) = split.gather_time();
+        out["mpi"] = serde_json::json!({
+            "ranks": w.size(),
+            "step_all_gathers": step_gathers,
+            "step_all_gather_seconds": step_gather_s,
+            "all_gathers": gathers,
+            "all_gather_seconds": gather_s,
+        });
     }
     util::write_atomic(
         &a.out.join("metrics.json"),

@@ -264,10 +264,13 @@ fn train_args(out: &str) -> Vec<&str> {
     .concat()
 }
 
-/// A run's metrics.json (or printed JSON) without its wall time.
+/// A run's metrics.json (or printed JSON) without its timings (and the ranks' timings).
 fn without_timing(bytes: &[u8]) -> serde_json::Value {
     let mut v: serde_json::Value = serde_json::from_slice(bytes).unwrap();
-    v.as_object_mut().unwrap().remove("seconds").unwrap();
+    let m = v.as_object_mut().unwrap();
+    m.remove("seconds").unwrap();
+    m.remove("seconds_per_step").unwrap();
+    m.remove("mpi");
     v
 }
 
@@ -300,8 +303,11 @@ fn train_on_two_ranks_is_byte_identical() {
     for f in ["checkpoint.bin", "phase.npy", "history.jsonl"] {
         assert!(p.join("two").join(f).is_file(), "{f}");
     }
-    // Rank 0 alone prints.
+    // Rank 0 alone prints; each step all-gathered its PSF stack and its PSF VJP.
     assert_eq!(without_timing(&one.stdout), without_timing(&two.stdout));
+    let m: serde_json::Value = serde_json::from_slice(&two.stdout).unwrap();
+    assert_eq!(m["mpi"]["ranks"], 2);
+    assert_eq!(m["mpi"]["step_all_gathers"], 4);
     // The finished run again on two ranks: rank 0 reads the checkpoint and sends it to rank 1
     // (which would otherwise compute its share of the validation's PSFs from the initial lens).
     let again = ok(mpirun(2, &train_args("two"), p), "mpirun train (resume)");
