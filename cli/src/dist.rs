@@ -205,6 +205,60 @@ impl World {
     }
 }
 
+/// The ranks sharing the depth planes of a camera chain's PSF stacks and PSF VJPs
+/// (`search train`): each computes its share of the depths, and [`World::all_gather`] gives
+/// every rank every plane (f64, exact). Every rank must run the same training.
+pub struct RankSplit {
+    w: World,
+    /// Nanoseconds spent in the all-gathers (waiting for the slowest rank included).
+    gather_ns: std::sync::atomic::AtomicU64,
+    gathers: std::sync::atomic::AtomicU64,
+}
+
+impl RankSplit {
+    /// The split over the ranks of `w`.
+    pub fn new(w: World) -> RankSplit {
+        RankSplit {
+            w,
+            gather_ns: Default::default(),
+            gathers: Default::default(),
+        }
+    }
+
+    /// (all-gathers so far, seconds spent in them on this rank, the wait for the slowest
+    /// rank's share included).
+    pub fn gather_time(&self) -> (u64, f64) {
+        use std::sync::atomic::Ordering::Relaxed;
+        (
+            self.gathers.load(Relaxed),
+            self.gather_ns.load(Relaxed) as f64 * 1e-9,
+        )
+    }
+}
+
+impl nanoeye_search::DepthSplit for RankSplit {
+    fn parts(&self) -> usize {
+        self.w.size
+    }
+    fn part(&self) -> usize {
+        self.w.rank
+    }
+    fn all_gather(&self, values: Vec<f64>) -> nanoeye_search::Result<Vec<Vec<f64>>> {
+        use std::sync::atomic::Ordering::Relaxed;
+        let t = std::time::Instant::now();
+        let all = self
+            .w
+            .all_gather(f64_bytes(&values))
+            .iter()
+            .map(|b| bytes_f64(b))
+            .collect();
+        self.gather_ns
+            .fetch_add(t.elapsed().as_nanos() as u64, Relaxed);
+        self.gathers.fetch_add(1, Relaxed);
+        Ok(all)
+    }
+}
+
 /// A gather's messages carry this tag, so they never match a worker-pool message.
 #[cfg(feature = "mpi")]
 const TAG_GATHER: i32 = 100;

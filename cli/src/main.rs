@@ -116,6 +116,7 @@ fn distributes(command: &Command) -> bool {
             | Command::Datagen(datagen::Cmd::Render(_))
             | Command::Optics(optics::Cmd::Psf(_))
             | Command::Search(sim::SearchCmd::Rea(_))
+            | Command::Search(sim::SearchCmd::Train(_))
     )
 }
 
@@ -129,8 +130,8 @@ fn main() -> ExitCode {
         if w.is_root() {
             eprintln!(
                 "error: this command runs on one process ({} ranks started): only metalib \
-                 sweep, datagen render, optics psf and search rea split across MPI ranks \
-                 (docs/mpi.md)",
+                 sweep, datagen render, optics psf, search train and search rea split across \
+                 MPI ranks (docs/mpi.md)",
                 w.size()
             );
         }

@@ -239,10 +239,18 @@ fn write_outputs(t: &mut Trainer, out: &std::path::Path) -> Result<()> {
     Ok(())
 }
 
-/// Runs `nanoeye search train`.
+/// Runs `nanoeye search train`. Under `mpirun -np N` every rank runs the same training and
+/// each step's PSF stack and PSF VJP are split over depth across the ranks and all-gathered
+/// (`dist::RankSplit`): the same bits on every rank as on one process; rank 0 alone reads the
+/// checkpoint (and sends it), writes the outputs and prints.
 pub fn train(a: TrainArgs) -> Result<()> {
     let t0 = Instant::now();
-    let (ds, chain) = a.chain.build()?;
+    let w = crate::dist::world();
+    let (ds, mut chain) = a.chain.build()?;
+    let split = std::sync::Arc::new(crate::dist::RankSplit::new(w));
+    if w.is_distributed() {
+        chain.set_split(split.clone());
+    }
     let range = util::parse_list("--pitch-range-um", &a.pitch_range_um.replace(':', ","))?;
     let [lo, hi] = range[..] else {
         bail!(
@@ -303,7 +311,6 @@ pub fn train(a: TrainArgs) -> Result<()> {
             .parse::<LensSpec>()
             .map_err(|e| anyhow::anyhow!("--lens: {e} (or init)"))?
     };
-    util::check_output_target(&a.out.join("checkpoint.bin"))?;
     let ck = a.out.join("checkpoint.bin");
     // The lens a run started from is part of its parameters: a resume from another is refused.
     let lens_json = serde_json::to_string(&if init {
@@ -313,59 +320,92 @@ pub fn train(a: TrainArgs) -> Result<()> {
         serde_json::json!({"lens": a.lens})
     })?;
     let lens_path = a.out.join("lens.json");
-    if ck.exists() && lens_path.exists() {
-        let had = std::fs::read_to_string(&lens_path).context("--out (resume): lens.json")?;
-        if had.trim() != lens_json {
-            bail!(
-                "--lens: {} was started from {}, not {lens_json}; use another --out",
-                a.out.display(),
-                had.trim()
-            );
+    // Rank 0 reads the checkpoint and sends it (empty: none), so --out need not be shared.
+    let resume = if w.is_root() {
+        util::check_output_target(&ck)?;
+        if ck.exists() && lens_path.exists() {
+            let had = std::fs::read_to_string(&lens_path).context("--out (resume): lens.json")?;
+            if had.trim() != lens_json {
+                bail!(
+                    "--lens: {} was started from {}, not {lens_json}; use another --out",
+                    a.out.display(),
+                    had.trim()
+                );
+            }
         }
-    }
+        if ck.exists() {
+            std::fs::read(&ck).with_context(|| format!("--out (resume): {}", ck.display()))?
+        } else {
+            Vec::new()
+        }
+    } else {
+        Vec::new()
+    };
+    let resume = w.broadcast(resume);
     let r = &chain.config().radiometry;
     let mut phase0 = spec
         .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)
         .context("--lens")?
         .phase_rad;
     // A checkpoint holds φ itself; before the first one, `--lens init` starts from the Fisher
-    // phase, computed once and kept beside the checkpoint.
+    // phase, computed once (by rank 0, sent to the others) and kept beside the checkpoint.
     let fisher_path = a.out.join("fisher_phase.npy");
     let mut fisher_new = None;
-    if init && !ck.exists() {
-        if fisher_path.exists() {
-            phase0 = nanoeye_fisher::nanoeye_optics::io::read_phase_npy(&fisher_path)
-                .context("--out (resume): fisher_phase.npy")?;
-        } else {
-            eprintln!(
-                "Fisher initialization of the lens ({} iterations)",
-                a.fisher_iterations
-            );
-            phase0 = crate::fisher::chain_init_phase(
-                &chain,
-                a.chain.pitch_um,
-                a.fisher_iterations,
-                a.fisher_photons,
-            )?;
-            fisher_new = Some(phase0.clone());
+    if init && resume.is_empty() {
+        let mut bytes = Vec::new();
+        if w.is_root() {
+            let phase = if fisher_path.exists() {
+                nanoeye_fisher::nanoeye_optics::io::read_phase_npy(&fisher_path)
+                    .context("--out (resume): fisher_phase.npy")?
+            } else {
+                eprintln!(
+                    "Fisher initialization of the lens ({} iterations)",
+                    a.fisher_iterations
+                );
+                let p = crate::fisher::chain_init_phase(
+                    &chain,
+                    a.chain.pitch_um,
+                    a.fisher_iterations,
+                    a.fisher_photons,
+                )?;
+                fisher_new = Some(p.clone());
+                p
+            };
+            bytes = (0..phase.ncols())
+                .flat_map(|j| (0..phase.nrows()).map(move |i| (i, j)))
+                .flat_map(|(i, j)| phase[(i, j)].to_le_bytes())
+                .collect();
         }
+        let bytes = w.broadcast(bytes);
+        let n = phase0.nrows();
+        if bytes.len() != n * n * 8 {
+            bail!("--lens init: the Fisher phase is not {n}×{n}");
+        }
+        phase0 = faer::Mat::from_fn(n, n, |i, j| {
+            let k = 8 * (j * n + i);
+            f64::from_le_bytes(bytes[k..k + 8].try_into().unwrap_or([0; 8]))
+        });
     }
     let mut t = Trainer::new(&chain, &ds, cfg, phase0).context("--lens / --pitch-um")?;
-    if ck.exists() {
-        t.load(&ck).context("--out (resume)")?;
-        eprintln!("resuming {} at step {}", a.out.display(), t.step);
+    if !resume.is_empty() {
+        t.load_bytes(resume, &ck).context("--out (resume)")?;
+        if w.is_root() {
+            eprintln!("resuming {} at step {}", a.out.display(), t.step);
+        }
     }
-    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
-    util::write_atomic(&lens_path, format!("{lens_json}\n").as_bytes())?;
-    if let Some(p) = &fisher_new {
-        util::write_atomic(&fisher_path, &crate::sim::npy_mat64(p)?)?;
+    if w.is_root() {
+        std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+        util::write_atomic(&lens_path, format!("{lens_json}\n").as_bytes())?;
+        if let Some(p) = &fisher_new {
+            util::write_atomic(&fisher_path, &crate::sim::npy_mat64(p)?)?;
+        }
+        // The native rig: with p̂ it gives the camera the tracker must use.
+        util::write_atomic(
+            &a.out.join("rig.json"),
+            serde_json::to_string_pretty(&ds.manifest.rig)?.as_bytes(),
+        )?;
     }
-    // The native rig: with p̂ it gives the camera the tracker must use.
-    util::write_atomic(
-        &a.out.join("rig.json"),
-        serde_json::to_string_pretty(&ds.manifest.rig)?.as_bytes(),
-    )?;
-    let tty = std::io::stderr().is_terminal();
+    let tty = w.is_root() && std::io::stderr().is_terminal();
     let bar = if tty {
         indicatif::ProgressBar::new(a.steps as u64)
     } else {
@@ -373,6 +413,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
     };
     bar.set_position(t.step as u64);
     let tick = (a.steps / 10).max(1);
+    let t_train = Instant::now();
+    let step0 = t.step;
     while t.step < a.steps {
         let rec = t.train_step()?;
         bar.inc(1);
@@ -380,7 +422,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
             "L_max {:.3} L_min {:.3}",
             rec.loss_max, rec.loss_min
         ));
-        if !tty && (rec.step + 1) % tick == 0 {
+        if w.is_root() && !tty && (rec.step + 1) % tick == 0 {
             eprintln!(
                 "step {}/{}: L_max {:.4}, L_min {:.4}, p̂ {:.3} µm, {:.0} s",
                 rec.step + 1,
@@ -391,12 +433,17 @@ pub fn train(a: TrainArgs) -> Result<()> {
                 t0.elapsed().as_secs_f64()
             );
         }
-        if t.step % a.checkpoint_every == 0 || t.step == a.steps {
+        if w.is_root() && (t.step % a.checkpoint_every == 0 || t.step == a.steps) {
             write_outputs(&mut t, &a.out)?;
         }
     }
     bar.finish_and_clear();
-    write_outputs(&mut t, &a.out)?;
+    let train_s = t_train.elapsed().as_secs_f64();
+    let (step_gathers, step_gather_s) = split.gather_time();
+    if w.is_root() {
+        write_outputs(&mut t, &a.out)?;
+    }
+    // Every rank evaluates: the chain's PSF stacks are shared out among them.
     let v = val.as_ref().unwrap_or(&ds);
     let m = t.evaluate(v, &Arch::min(), 2)?;
     let mmax = t.evaluate(v, &Arch::max(), 2)?;
@@ -410,11 +457,29 @@ pub fn train(a: TrainArgs) -> Result<()> {
         "max_subnet": {"v_deg": mmax.v_deg, "dice": mmax.dice, "slip_mse": mmax.slip_mse},
         "pitch_um": t.pitch_um,
         "seconds": t0.elapsed().as_secs_f64(),
+        // Wall time of the steps this invocation ran (checkpoints included), per step.
+        "seconds_per_step": train_s / (t.step - step0).max(1) as f64,
     });
     for k in ["v_deg", "dice", "slip_mse", "pitch_um"] {
         if !out[k].as_f64().is_some_and(f64::is_finite) {
             bail!("{k} is not finite: training diverged; lower the learning rates");
         }
+    }
+    if !w.is_root() {
+        return Ok(());
+    }
+    let mut out = out;
+    if w.is_distributed() {
+        // Rank 0's time in the PSF all-gathers of the steps (its wait for rank 1's share
+        // included), then of the whole run.
+        let (gathers, gather_s) = split.gather_time();
+        out["mpi"] = serde_json::json!({
+            "ranks": w.size(),
+            "step_all_gathers": step_gathers,
+            "step_all_gather_seconds": step_gather_s,
+            "all_gathers": gathers,
+            "all_gather_seconds": gather_s,
+        });
     }
     util::write_atomic(
         &a.out.join("metrics.json"),

@@ -272,8 +272,7 @@ fn subcell_weights(xb: f64, t: usize) -> (Vec<f64>, f64) {
         if n == 0 { c } else { 2.0 * c }
     });
     let mut c = vec![0.0; t + 1];
-    if let Ok(svd) = a.svd() {
-        let (u, sv, v) = (svd.U(), svd.S().column_vector(), svd.V());
+    if let Some((u, sv, v)) = svd_seq(&a) {
         let smax = sv[0];
         for i in 0..=t {
             if sv[i] < 1e-14 * smax {
@@ -297,6 +296,32 @@ fn subcell_weights(xb: f64, t: usize) -> (Vec<f64>, f64) {
         })
         .fold(0.0, f64::max);
     (c, err)
+}
+
+/// Full SVD (U, singular values, V) on this thread: faer's default runs on the rayon pool and
+/// its last bits depend on the pool's size, and the quadrature weights reach every PSF and
+/// PSF VJP (runs with different thread counts, e.g. MPI ranks with one thread each, must agree).
+fn svd_seq(a: &Mat<f64>) -> Option<(Mat<f64>, Vec<f64>, Mat<f64>)> {
+    use faer::dyn_stack::{MemBuffer, MemStack};
+    use faer::linalg::svd::{ComputeSvdVectors, svd, svd_scratch};
+    let (m, n) = a.shape();
+    let mut u = Mat::<f64>::zeros(m, m);
+    let mut v = Mat::<f64>::zeros(n, n);
+    let mut sv = faer::diag::Diag::<f64>::zeros(m.min(n));
+    let full = ComputeSvdVectors::Full;
+    let req = svd_scratch::<f64>(m, n, full, full, faer::Par::Seq, Default::default());
+    svd(
+        a.as_ref(),
+        sv.as_mut(),
+        Some(u.as_mut()),
+        Some(v.as_mut()),
+        faer::Par::Seq,
+        MemStack::new(&mut MemBuffer::new(req)),
+        Default::default(),
+    )
+    .ok()?;
+    let sv = (0..m.min(n)).map(|i| sv[i]).collect();
+    Some((u, sv, v))
 }
 
 /// The shortest sub-cell quadrature (T ≤ 160) whose error is ≤ [`QUAD_TOL`], or the best found.
@@ -878,63 +903,137 @@ impl PsfModel for AsmPsf {
     ) -> Result<PhaseMapGrad> {
         self.check_map(map)?;
         Self::check_depths(depths_m)?;
-        let w = self.cfg.window_px;
-        let nz = depths_m.len();
-        let check = |name: &str, g: &[Mat<f64>]| -> Result<()> {
-            if g.len() != nz || g.iter().any(|m| m.nrows() != w || m.ncols() != w) {
-                return Err(OpticsError::Shape(format!(
-                    "{name} must hold {nz} planes of {w}×{w}"
-                )));
-            }
-            if g.iter()
-                .any(|m| m.col_iter().any(|c| c.iter().any(|v| !v.is_finite())))
-            {
-                return Err(OpticsError::param(
-                    "grad_planes",
-                    "non-finite upstream gradient",
-                ));
-            }
-            Ok(())
-        };
-        check("grad_planes", grad_planes)?;
+        self.check_grads("grad_planes", depths_m.len(), grad_planes)?;
         let mut grad: Vec<Mat<f64>> = grad_planes.to_vec();
         if let Some(gdz) = grad_dz {
-            check("grad_dz", gdz)?;
+            self.check_grads("grad_dz", depths_m.len(), gdz)?;
             depth_derivative_vjp(depths_m, gdz, &mut grad);
         }
         let samples = self.samples(map);
-        let ns = samples.len();
-        let (gp, ga) = (0..nz)
-            .into_par_iter()
-            .filter(|&k| grad[k].col_iter().any(|c| c.iter().any(|&v| v != 0.0)))
-            .fold(
-                || (None::<Workspace>, vec![0.0; ns], vec![0.0; ns]),
-                |(ws, mut gp, mut ga), k| {
-                    let mut ws = ws.unwrap_or_else(|| self.workspace());
-                    self.plane_adjoint(&samples, depths_m[k], &grad[k], &mut ws, &mut gp, &mut ga);
-                    (Some(ws), gp, ga)
-                },
-            )
-            .map(|(_, gp, ga)| (gp, ga))
-            .reduce(
-                || (vec![0.0; ns], vec![0.0; ns]),
-                |(mut a, mut b), (c, d)| {
-                    a.iter_mut().zip(&c).for_each(|(x, y)| *x += y);
-                    b.iter_mut().zip(&d).for_each(|(x, y)| *x += y);
-                    (a, b)
-                },
-            );
         let n = self.grid.n;
-        let mut out = PhaseMapGrad {
-            phase_rad: Mat::zeros(n, n),
-            amplitude: Mat::zeros(n, n),
-        };
-        for (s, &cell) in samples.cell.iter().enumerate() {
-            let (i, j) = (cell as usize / n, cell as usize % n);
-            out.phase_rad[(i, j)] = gp[s];
-            out.amplitude[(i, j)] = ga[s];
+        let mut out = PhaseMapGrad::zeros(n);
+        // Depths in chunks of one per thread (bounded memory), their terms added in depth
+        // order: the sum does not depend on the thread count, and depths computed elsewhere
+        // (`vjp_terms` on other processes) added in the same order give the same bits.
+        let with_grad = depths_with_gradient(&grad);
+        for chunk in with_grad.chunks(rayon::current_num_threads().max(1)) {
+            for t in self.terms(&samples, depths_m, &grad, chunk) {
+                out.add(&t);
+            }
         }
         Ok(out)
+    }
+}
+
+/// Depths whose upstream gradient is not all zero: the ones a PSF VJP visits (in order).
+pub fn depths_with_gradient(grad_planes: &[Mat<f64>]) -> Vec<usize> {
+    (0..grad_planes.len())
+        .filter(|&k| {
+            grad_planes[k]
+                .col_iter()
+                .any(|c| c.iter().any(|&v| v != 0.0))
+        })
+        .collect()
+}
+
+impl PhaseMapGrad {
+    /// Zero gradient on an n×n aperture grid.
+    pub fn zeros(n: usize) -> PhaseMapGrad {
+        PhaseMapGrad {
+            phase_rad: Mat::zeros(n, n),
+            amplitude: Mat::zeros(n, n),
+        }
+    }
+
+    /// Adds `term` cell by cell: how [`PsfModel::vjp`] sums its per-depth terms.
+    pub fn add(&mut self, term: &PhaseMapGrad) {
+        add_cells(&mut self.phase_rad, &term.phase_rad);
+        add_cells(&mut self.amplitude, &term.amplitude);
+    }
+}
+
+/// `acc += term`, cell by cell.
+pub fn add_cells(acc: &mut Mat<f64>, term: &Mat<f64>) {
+    for j in 0..acc.ncols() {
+        for (a, &t) in acc.col_mut(j).iter_mut().zip(term.col(j).iter()) {
+            *a += t;
+        }
+    }
+}
+
+impl AsmPsf {
+    fn check_grads(&self, name: &str, nz: usize, g: &[Mat<f64>]) -> Result<()> {
+        let w = self.cfg.window_px;
+        if g.len() != nz || g.iter().any(|m| m.nrows() != w || m.ncols() != w) {
+            return Err(OpticsError::Shape(format!(
+                "{name} must hold {nz} planes of {w}×{w}"
+            )));
+        }
+        if g.iter()
+            .any(|m| m.col_iter().any(|c| c.iter().any(|v| !v.is_finite())))
+        {
+            return Err(OpticsError::param(
+                "grad_planes",
+                "non-finite upstream gradient",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The per-depth terms of [`PsfModel::vjp`] (without ∂/∂z): for each k of `which`, in that
+    /// order, the gradient w.r.t. `map` of ⟨grad_planes\[k\], PSF(z_k)⟩. `vjp` is the sum of the
+    /// terms of [`depths_with_gradient`], added by [`PhaseMapGrad::add`] in increasing k from
+    /// zero; a depth's term does not depend on which other depths are computed with it, so
+    /// shares of the depths computed on several processes and summed in that order give `vjp`'s
+    /// bits.
+    pub fn vjp_terms(
+        &self,
+        map: &PhaseMap,
+        depths_m: &[f64],
+        grad_planes: &[Mat<f64>],
+        which: &[usize],
+    ) -> Result<Vec<PhaseMapGrad>> {
+        self.check_map(map)?;
+        Self::check_depths(depths_m)?;
+        self.check_grads("grad_planes", depths_m.len(), grad_planes)?;
+        if let Some(&k) = which.iter().find(|&&k| k >= depths_m.len()) {
+            return Err(OpticsError::Shape(format!(
+                "depth index {k} beyond the {} depths",
+                depths_m.len()
+            )));
+        }
+        let samples = self.samples(map);
+        Ok(self.terms(&samples, depths_m, grad_planes, which))
+    }
+
+    /// One term per depth of `which`, in parallel over depths.
+    fn terms(
+        &self,
+        samples: &Samples,
+        depths_m: &[f64],
+        grad: &[Mat<f64>],
+        which: &[usize],
+    ) -> Vec<PhaseMapGrad> {
+        let n = self.grid.n;
+        let ns = samples.len();
+        which
+            .par_iter()
+            .map_init(
+                || None,
+                |ws: &mut Option<Workspace>, &k| {
+                    let ws = ws.get_or_insert_with(|| self.workspace());
+                    let (mut gp, mut ga) = (vec![0.0; ns], vec![0.0; ns]);
+                    self.plane_adjoint(samples, depths_m[k], &grad[k], ws, &mut gp, &mut ga);
+                    let mut out = PhaseMapGrad::zeros(n);
+                    for (s, &cell) in samples.cell.iter().enumerate() {
+                        let (i, j) = (cell as usize / n, cell as usize % n);
+                        out.phase_rad[(i, j)] = gp[s];
+                        out.amplitude[(i, j)] = ga[s];
+                    }
+                    out
+                },
+            )
+            .collect()
     }
 }
 

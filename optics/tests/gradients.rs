@@ -112,6 +112,51 @@ fn psf_vjp_matches_finite_differences() {
     }
 }
 
+/// The PSF VJP is its per-depth terms added in increasing depth from zero, whatever the
+/// thread count and whichever depths a term is computed with: shares of the depths computed
+/// on several processes (`vjp_terms`) and summed in that order give `vjp`'s bits.
+#[test]
+fn psf_vjp_is_its_depth_terms_summed_in_order_on_any_thread_count() {
+    let (model, map, _) = small_model();
+    let depths = vec![0.7e-3, 0.8e-3, 1.0e-3, 1.3e-3, 1.6e-3];
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let mut gp: Vec<Mat<f64>> = depths
+        .iter()
+        .map(|_| rand_mat(&mut rng, 8, 8, -1.0, 1.0))
+        .collect();
+    gp[2] = Mat::zeros(8, 8);
+    let with = nanoeye_optics::psf::depths_with_gradient(&gp);
+    assert_eq!(with, [0, 1, 3, 4]);
+    let on = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| model.vjp(&map, &depths, &gp, None).unwrap())
+    };
+    let bits = |m: &Mat<f64>| {
+        (0..m.ncols())
+            .flat_map(|j| (0..m.nrows()).map(move |i| (i, j)))
+            .map(|ij| m[ij].to_bits())
+            .collect::<Vec<_>>()
+    };
+    let (g1, g3) = (on(1), on(3));
+    assert_eq!(bits(&g1.phase_rad), bits(&g3.phase_rad));
+    assert_eq!(bits(&g1.amplitude), bits(&g3.amplitude));
+    // Two "processes": depths 0, 3 on one, 1, 4 on the other, added back in depth order.
+    let a = model.vjp_terms(&map, &depths, &gp, &[0, 3]).unwrap();
+    let b = model.vjp_terms(&map, &depths, &gp, &[1, 4]).unwrap();
+    let mut sum = nanoeye_optics::PhaseMapGrad::zeros(map.grid.n);
+    for t in [&a[0], &b[0], &a[1], &b[1]] {
+        sum.add(t);
+    }
+    assert_eq!(bits(&sum.phase_rad), bits(&g1.phase_rad));
+    assert_eq!(bits(&sum.amplitude), bits(&g1.amplitude));
+    // A term that is not zero, and an index beyond the stack refused.
+    assert!(a[0].phase_rad.norm_l2() > 0.0);
+    assert!(model.vjp_terms(&map, &depths, &gp, &[5]).is_err());
+}
+
 fn layers_fixture(rng: &mut ChaCha8Rng, n: usize) -> Vec<(Mat<f32>, Mat<f32>, Mat<f32>)> {
     (0..n)
         .map(|_| {

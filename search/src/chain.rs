@@ -18,17 +18,20 @@
 use crate::error::{Result, param, positive};
 use crate::geometry::{NativeGrid, PitchGrid};
 use crate::radiometry::Radiometry;
+use crate::split::{DepthSplit, OneProcess, map_gather};
 use faer::Mat;
 use nanoeye_datagen::render::{Dataset, FrameRecord, LayerSpec, Light, StoredFrame, Subject};
 use nanoeye_datagen::states::State;
 use nanoeye_nets::Tensor;
+use nanoeye_optics::psf::{add_cells, depths_with_gradient};
 use nanoeye_optics::{
     ApertureGrid, AsmPsf, KernelGradAccumulator, KernelSpectra, LayeredImager, PhaseMap, PsfConfig,
-    PsfModel, PsfStack, S1Tape, SpectralLayer,
+    PsfStack, S1Tape, SpectralLayer,
 };
 use nanoeye_sensor::{CmosSensor, NoiseMode, Sensor, SensorConfig, SensorTape};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// Parameters of the camera chain beyond the dataset's geometry.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -69,6 +72,8 @@ pub struct CameraChain {
     imager: LayeredImager,
     /// Photons per base-pixel area per unit rendered radiance, per native pixel.
     scale: Mat<f32>,
+    /// Who computes which depth of a PSF stack or PSF VJP ([`OneProcess`] unless set).
+    split: Arc<dyn DepthSplit>,
 }
 
 /// The PSFs of one step, normalised as the chain uses them, with their spectra on S1's grid.
@@ -208,7 +213,20 @@ impl CameraChain {
             psf,
             imager,
             scale,
+            split: Arc::new(OneProcess),
         })
+    }
+
+    /// Shares the depth planes of every PSF stack and PSF VJP of this chain among the
+    /// processes of `split` (crate::split): every process must then make the same calls on the
+    /// chain in the same order; the results are the bits a single process gets.
+    pub fn set_split(&mut self, split: Arc<dyn DepthSplit>) {
+        self.split = split;
+    }
+
+    /// The processes sharing this chain's PSF work.
+    pub fn split(&self) -> &dyn DepthSplit {
+        &*self.split
     }
 
     /// A chain for a dataset's native grid, slabs and illuminator.
@@ -296,8 +314,34 @@ impl CameraChain {
     }
 
     /// PSFs of the slabs `active` for phase map `map`, normalised (one stack per step).
+    /// The active planes are computed through the chain's [`DepthSplit`] (each process its
+    /// share, then all-gathered in f64), so every process gets the same stack.
     pub fn psfs(&self, map: &PhaseMap, active: &[bool]) -> Result<StepPsfs> {
-        let stack = self.psf.forward(map, &self.depths_m, Some(active))?;
+        let count = self.depths_m.len();
+        if active.len() != count {
+            return Err(param(
+                "active",
+                format!("{} flags for {count} slabs", active.len()),
+            ));
+        }
+        let wp = self.psf_px();
+        let items: Vec<usize> = (0..count).filter(|&k| active[k]).collect();
+        let got = map_gather(&*self.split, &items, wp * wp, |mine| {
+            let mut mask = vec![false; count];
+            for &k in mine {
+                mask[k] = true;
+            }
+            let planes = self.psf.planes_f64(map, &self.depths_m, Some(&mask))?;
+            Ok(mine
+                .iter()
+                .map(|&k| planes[k].as_ref().map_or_else(Vec::new, col_major))
+                .collect())
+        })?;
+        let mut planes: Vec<Option<Mat<f64>>> = vec![None; count];
+        for (&k, v) in items.iter().zip(&got) {
+            planes[k] = Some(Mat::from_fn(wp, wp, |i, j| v[j * wp + i]));
+        }
+        let stack = PsfStack::from_planes(&self.depths_m, self.psf.config().pitch_m, wp, &planes);
         let mut eta = vec![0.0; stack.planes.len()];
         let mut unit = Vec::with_capacity(stack.planes.len());
         for (k, p) in stack.planes.iter().enumerate() {
@@ -566,10 +610,29 @@ impl CameraChain {
                 Mat::from_fn(wp, wp, |r, c| (g[(r, c)] - dot) / e + g_eta)
             })
             .collect();
-        let pg = self.psf.vjp(map, &self.depths_m, &grads, None)?;
-        Ok(ChainGrad {
-            phase_rad: pg.phase_rad,
-            p_hat,
-        })
+        // AsmPsf::vjp through the chain's split: each process the terms of its depths, then
+        // every term added in increasing depth from zero, as `vjp` adds them (the same bits).
+        let items = depths_with_gradient(&grads);
+        let n = self.aperture_grid().n;
+        let terms = map_gather(&*self.split, &items, n * n, |mine| {
+            Ok(self
+                .psf
+                .vjp_terms(map, &self.depths_m, &grads, mine)?
+                .iter()
+                .map(|t| col_major(&t.phase_rad))
+                .collect())
+        })?;
+        let mut phase_rad = Mat::zeros(n, n);
+        for t in &terms {
+            add_cells(&mut phase_rad, &Mat::from_fn(n, n, |i, j| t[j * n + i]));
+        }
+        Ok(ChainGrad { phase_rad, p_hat })
     }
+}
+
+/// A matrix's values, column after column.
+fn col_major(m: &Mat<f64>) -> Vec<f64> {
+    (0..m.ncols())
+        .flat_map(|j| m.col(j).iter().copied().collect::<Vec<_>>())
+        .collect()
 }

@@ -10,6 +10,7 @@ pub mod lens;
 pub mod pareto;
 pub mod radiometry;
 pub mod rea;
+pub mod split;
 pub mod task;
 pub mod train;
 
@@ -21,6 +22,7 @@ pub use geometry::{NativeGrid, PitchGrid};
 pub use lens::LensSpec;
 pub use radiometry::Radiometry;
 pub use rea::{CycleRecord, EvalPool, Evaluator, Individual, Rea, ReaConfig, ReaState};
+pub use split::{DepthSplit, OneProcess};
 pub use task::{TaskLoss, task_loss};
 pub use train::{
     EvalSetup, FrameEval, Metrics, SolverInput, StepRecord, TrainConfig, Trainer, evaluate_frames,

@@ -602,7 +602,14 @@ impl<'a> Trainer<'a> {
     /// Restores a checkpoint written by [`Self::save`]; refuses one made with another
     /// configuration (naming the first differing field) or whose checksum fails.
     pub fn load(&mut self, path: &Path) -> Result<()> {
-        let (b, meta, at) = open_checkpoint(path, "checkpoint")?;
+        let b = read_checkpoint(path, "checkpoint")?;
+        self.load_bytes(b, path)
+    }
+
+    /// [`Self::load`] from the checkpoint file's bytes `b` (read elsewhere, e.g. by another
+    /// process); `path` only names the file in errors.
+    pub fn load_bytes(&mut self, b: Vec<u8>, path: &Path) -> Result<()> {
+        let (b, meta, at) = parse_checkpoint(b, path, "checkpoint")?;
         let bad = |why: &str| param("checkpoint", format!("{}: {why}", path.display()));
         let mut r = Reader {
             b: &b[..b.len() - 8],
@@ -683,7 +690,15 @@ pub fn read_config(path: &Path) -> Result<TrainConfig> {
 /// Reads a training checkpoint, checks its magic line and checksum and parses the metadata;
 /// returns the bytes, the metadata and the offset just after it. Errors name `name`.
 fn open_checkpoint(path: &Path, name: &'static str) -> Result<(Vec<u8>, Meta, usize)> {
-    let b = std::fs::read(path).map_err(|e| param(name, format!("{}: {e}", path.display())))?;
+    parse_checkpoint(read_checkpoint(path, name)?, path, name)
+}
+
+fn read_checkpoint(path: &Path, name: &'static str) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|e| param(name, format!("{}: {e}", path.display())))
+}
+
+/// [`open_checkpoint`] of bytes already read from `path`.
+fn parse_checkpoint(b: Vec<u8>, path: &Path, name: &'static str) -> Result<(Vec<u8>, Meta, usize)> {
     let bad = |why: &str| param(name, format!("{}: {why}", path.display()));
     if b.len() < TRAIN_MAGIC.len() + 16 || &b[..TRAIN_MAGIC.len()] != TRAIN_MAGIC {
         return Err(bad("not a training checkpoint"));
