@@ -121,8 +121,12 @@ pub fn print_json<T: serde::Serialize>(value: &T) -> Result<()> {
     Ok(())
 }
 
-/// Parses `a:b:step` (inclusive of `b` when it lies on the grid) or a single value `a`.
-/// `flag` names the parameter in the error message.
+/// Most values [`parse_range`] gives: its ranges are depth planes, each a PSF (and, in
+/// `fisher`, its derivative) computed and held in memory.
+pub const MAX_RANGE_VALUES: usize = 10_000;
+
+/// Parses `a:b:step` (inclusive of `b` when it lies on the grid) or a single value `a`, at most
+/// [`MAX_RANGE_VALUES`] values. `flag` names the parameter in the error message.
 pub fn parse_range(flag: &str, text: &str) -> Result<Vec<f64>> {
     let parts: Vec<&str> = text.split(':').collect();
     let num = |s: &str| -> Result<f64> {
@@ -145,10 +149,17 @@ pub fn parse_range(flag: &str, text: &str) -> Result<Vec<f64>> {
             if b < a {
                 bail!("{flag}: end {b} is below start {a}");
             }
-            let n = ((b - a) / step + 1e-9).floor() as usize + 1;
-            if n > 100_000_000 {
-                bail!("{flag}: {n} values is too many");
+            // Count in f64: a tiny step or a span beyond f64 (-1e308:1e308) makes the quotient
+            // +inf, and a saturating cast plus one overflowed (a panic in debug builds, an empty
+            // range in release builds).
+            let steps = ((b - a) / step + 1e-9).floor();
+            if steps.is_nan() || steps >= MAX_RANGE_VALUES as f64 {
+                bail!(
+                    "{flag}: {:e} values (step {step:e}) is more than {MAX_RANGE_VALUES}",
+                    steps + 1.0
+                );
             }
+            let n = steps as usize + 1;
             Ok((0..n).map(|i| a + i as f64 * step).collect())
         }
         _ => bail!("{flag}: expected a:b:step or a single value, got '{text}'"),
@@ -183,6 +194,22 @@ mod tests {
         assert!(parse_range("--x", "1:0:1").is_err());
         assert!(parse_range("--x", "1:2:0").is_err());
         assert!(parse_range("--x", "a").is_err());
+    }
+
+    #[test]
+    fn range_counts_beyond_the_limit_or_beyond_f64_are_refused() {
+        // The quotient is +inf: it overflowed usize (a panic in debug builds).
+        for text in ["0:1e300:1e-300", "-1e308:1e308:1", "20:22:1e-6"] {
+            let e = parse_range("--depths-mm", text).unwrap_err().to_string();
+            assert!(
+                e.starts_with("--depths-mm:") && e.contains("more than"),
+                "{e}"
+            );
+        }
+        let last = format!("0:{}:1", MAX_RANGE_VALUES - 1);
+        assert_eq!(parse_range("--x", &last).unwrap().len(), MAX_RANGE_VALUES);
+        let over = format!("0:{}:1", MAX_RANGE_VALUES);
+        assert!(parse_range("--x", &over).is_err());
     }
 
     #[test]
