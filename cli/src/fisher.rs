@@ -220,6 +220,8 @@ fn init(a: InitArgs) -> Result<()> {
         noise: sensor_noise(a.optics.photons),
         ..InitConfig::default()
     };
+    // Temporary files of a killed run (its checkpoint/ is written by the fisher crate only).
+    crate::util::remove_stale_temps_under(&a.out);
     let (mut state, cfg) = if InitState::checkpoint_exists(&ckpt) {
         let (s, c) = InitState::load(&ckpt)
             .with_context(|| format!("--out: cannot resume from '{}'", ckpt.display()))?;

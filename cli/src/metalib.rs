@@ -419,6 +419,8 @@ fn sweep_cmd(a: SweepArgs) -> Result<()> {
         (None, Some(out)) => out.clone(),
         (None, None) => bail!("--out: required"),
     };
+    // Temporary files of a killed run (partial/ is written by the metalib crate only).
+    crate::util::remove_stale_temps_under(&out);
     let t0 = std::time::Instant::now();
     let w = crate::dist::world();
     let m = if w.is_distributed() {

@@ -204,6 +204,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
     let mut t = Trainer::new(&chain, &ds, cfg, map.phase_rad).context("--lens / --pitch-um")?;
     util::check_output_target(&a.out.join("checkpoint.bin"))?;
     let ck = a.out.join("checkpoint.bin");
+    // Temporary files of a killed run (a checkpoint cut off before its rename).
+    util::remove_stale_temps_under(&a.out);
     if ck.exists() {
         t.load(&ck).context("--out (resume)")?;
         eprintln!("resuming {} at step {}", a.out.display(), t.step);
@@ -371,6 +373,7 @@ pub fn rea(a: ReaArgs) -> Result<()> {
     }
     let state_path = a.run.join("rea_state.json");
     util::check_output_target(&state_path)?;
+    util::remove_stale_temps_under(&a.run);
     if state_path.exists() {
         r.resume(&state_path).context("--run (resume)")?;
         eprintln!(

@@ -71,6 +71,26 @@ pub fn remove_stale_temps(dir: &Path) {
     }
 }
 
+/// [`remove_stale_temps`] in `dir` and in every directory below it (symbolic links are not
+/// followed): what a killed job left in its output tree, also in directories only the stage
+/// crates write (their atomic writers use the same `.nanoeye-tmp-<pid>-` names). A resumable
+/// job calls it before it resumes. Skipped under MPI, where another host's process ids mean
+/// nothing here.
+pub fn remove_stale_temps_under(dir: &Path) {
+    if crate::dist::world().is_distributed() {
+        return;
+    }
+    remove_stale_temps(dir);
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        if e.file_type().is_ok_and(|t| t.is_dir()) {
+            remove_stale_temps_under(&e.path());
+        }
+    }
+}
+
 /// Like [`write_atomic`], streaming through a writer callback.
 pub fn write_atomic_with(
     path: &Path,
@@ -242,6 +262,31 @@ mod tests {
         std::fs::write(&dead, b"partial").unwrap();
         write_atomic(&dir.path().join("out.txt"), b"ok").unwrap();
         assert!(!dead.exists());
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn dead_temps_are_removed_in_every_directory_below_and_live_ones_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let deep = dir.path().join("a/b");
+        std::fs::create_dir_all(&deep).unwrap();
+        let dead = [
+            dir.path().join(format!("{TMP_PREFIX}4294967295-x")),
+            deep.join(format!("{TMP_PREFIX}4294967295-y")),
+        ];
+        let live = deep.join(format!("{TMP_PREFIX}{}-z", std::process::id()));
+        let data = deep.join("checkpoint.bin");
+        for f in dead.iter().chain([&live, &data]) {
+            std::fs::write(f, b"x").unwrap();
+        }
+        // A link to another tree is not followed.
+        let other = tempfile::tempdir().unwrap();
+        let outside = other.path().join(format!("{TMP_PREFIX}4294967295-w"));
+        std::fs::write(&outside, b"x").unwrap();
+        std::os::unix::fs::symlink(other.path(), dir.path().join("link")).unwrap();
+        remove_stale_temps_under(dir.path());
+        assert!(dead.iter().all(|f| !f.exists()));
+        assert!(live.exists() && data.exists() && outside.exists());
     }
 
     #[test]
