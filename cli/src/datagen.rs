@@ -1,7 +1,7 @@
 //! `nanoeye datagen …`: state sets, Listing's law, rendering.
 
 use crate::{rig, util};
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use clap::{Subcommand, ValueEnum};
 use nanoeye_datagen::states::{self, Protocol};
 use nanoeye_gaze::eye;
@@ -130,8 +130,14 @@ pub fn run(cmd: Cmd) -> Result<()> {
             if n > max {
                 bail!("--n: at most {max} for --set {set:?} (the set is held in memory), got {n}");
             }
-            let rig = rig::load(rig.as_deref())?;
-            let text = set_jsonl(&rig, set, n, seed)?;
+            let rig_path = rig;
+            let rig = rig::load(rig_path.as_deref())?;
+            // The built-in rig always admits the sets; a rig file whose camera never sees the
+            // pupil does not, and the error must say which input is at fault.
+            let text = set_jsonl(&rig, set, n, seed).with_context(|| match &rig_path {
+                Some(p) => format!("--rig '{}': no {set:?} state fits this rig", p.display()),
+                None => format!("--set {set:?}: sampling failed"),
+            })?;
             util::write_atomic(&out, text.as_bytes())?;
             let lines = text.lines().count();
             if json {

@@ -115,6 +115,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
         progress: true,
         layers: LayerSpec::default(),
     };
+    // Temporary files of a killed run (frames/ is written by the renderer only).
+    crate::util::remove_stale_temps_under(&args.out);
     let w = crate::dist::world();
     let result = if w.is_distributed() {
         render_distributed(&opts, w)

@@ -102,10 +102,12 @@ fn depths(flag: &str, text: &str) -> Result<Vec<f64>> {
     if d.len() < 2 {
         bail!("{flag}: need at least 2 depth planes for ∂PSF/∂z");
     }
-    if d.iter().any(|&z| z <= 0.0) {
+    let m: Vec<f64> = d.into_iter().map(|z| z * 1e-3).collect();
+    // Checked in metres: 4.9e-324 mm is positive but 0 m.
+    if m.iter().any(|&z| z <= 0.0) {
         bail!("{flag}: depths must be positive");
     }
-    Ok(d.into_iter().map(|z| z * 1e-3).collect())
+    Ok(m)
 }
 
 /// Largest photon budget: Fisher information scales with it, and far beyond any exposure
@@ -259,6 +261,8 @@ fn init(a: InitArgs) -> Result<()> {
         noise: sensor_noise(a.optics.photons),
         ..InitConfig::default()
     };
+    // Temporary files of a killed run (its checkpoint/ is written by the fisher crate only).
+    crate::util::remove_stale_temps_under(&a.out);
     let (mut state, cfg) = if InitState::checkpoint_exists(&ckpt) {
         let (s, c) = InitState::load(&ckpt)
             .with_context(|| format!("--out: cannot resume from '{}'", ckpt.display()))?;
@@ -410,7 +414,8 @@ fn compare(a: CompareArgs) -> Result<()> {
         bail!("--pitch-um: need positive pitches");
     }
     let native = pitches_um.iter().copied().fold(f64::INFINITY, f64::min);
-    let (grid, model) = model(&a.optics, native * 1e-6)?;
+    let (grid, model) = model(&a.optics, native * 1e-6)
+        .context("--pitch-um: the smallest pitch is the PSF model's native pitch")?;
     let specs: Vec<&str> = a
         .lenses
         .split(',')
@@ -426,7 +431,9 @@ fn compare(a: CompareArgs) -> Result<()> {
         .collect::<Result<Vec<_>>>()?;
     let pitches_m: Vec<f64> = pitches_um.iter().map(|p| p * 1e-6).collect();
     let noise = sensor_noise(a.optics.photons);
-    let (rows, planes) = compare_lenses(&model, &lenses, &depths_m, &pitches_m, &noise)?;
+    // Binning fails for a pitch whose effective pixel exceeds the window.
+    let (rows, planes) = compare_lenses(&model, &lenses, &depths_m, &pitches_m, &noise)
+        .context("--pitch-um/--window-px")?;
     if let Some(r) = rows.iter().find(|r| !r.fisher_z.is_finite()) {
         bail!(
             "--photons: the Fisher information of {} at {} µm is not finite ({}); lower the \

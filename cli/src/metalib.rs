@@ -119,6 +119,61 @@ impl SolverArgs {
     }
 }
 
+/// Names the flag of a cell error: "invalid parameter `pitch`: …" becomes "--pitch-nm: …"; a
+/// numerical breakdown names the flags that set the problem.
+fn cell_flags(msg: &str) -> String {
+    const FLAGS: [(&str, &str); 4] = [
+        ("wavelength", "--wavelength-nm"),
+        ("pitch", "--pitch-nm"),
+        ("diameter", "--diameter-nm"),
+        ("height", "--height-nm"),
+    ];
+    for (name, flag) in FLAGS {
+        if let Some(rest) = msg.strip_prefix(&format!("invalid parameter `{name}`: ")) {
+            // "diameter … exceeds the pitch …": both flags set the limit.
+            let mut flags = vec![flag];
+            flags.extend(
+                FLAGS
+                    .iter()
+                    .filter(|(n, f)| *f != flag && rest.contains(n))
+                    .map(|(_, f)| *f),
+            );
+            return format!("{}: {rest}", flags.join("/"));
+        }
+    }
+    if let Some(rest) = msg.strip_prefix("numerical failure: ") {
+        return format!(
+            "--wavelength-nm/--pitch-nm/--diameter-nm/--harmonics or the materials (--n-pillar, \
+             --k-pillar, --n-background, --n-substrate): {rest}"
+        );
+    }
+    format!("--{}", flagify(msg))
+}
+
+/// Names the flag of a sweep grid error: "invalid parameter `fractions`: …" becomes
+/// "--fractions: …"; the representative cell's `pitch` and `diameter` are the pitch and
+/// fraction axes.
+fn sweep_flags(msg: &str) -> String {
+    for (name, flag) in [
+        ("heights", "--heights-nm"),
+        ("pitches", "--pitches-nm"),
+        ("pitch", "--pitches-nm"),
+        ("fractions", "--fractions"),
+        ("diameter", "--fractions"),
+        ("wavelength", "--wavelength-nm"),
+    ] {
+        if let Some(rest) = msg.strip_prefix(&format!("invalid parameter `{name}`: ")) {
+            // "pitch … exceeds 20 wavelengths": the wavelength sets the limit too.
+            return if rest.contains("wavelength") && flag != "--wavelength-nm" {
+                format!("{flag}/--wavelength-nm: {rest}")
+            } else {
+                format!("{flag}: {rest}")
+            };
+        }
+    }
+    format!("--{}", flagify(msg))
+}
+
 /// Turns "invalid parameter `n_pillar`: …" into "n-pillar: …" for flag-named messages.
 fn flagify(msg: &str) -> String {
     msg.replace("invalid parameter `", "")
@@ -294,9 +349,9 @@ fn cell(a: CellArgs) -> Result<()> {
         bail!("--height-nm must be >= 0");
     }
     let r = LayerModes::new(&spec)
-        .map_err(|e| anyhow!("--{}", flagify(&e.to_string())))?
+        .map_err(|e| anyhow!("{}", cell_flags(&e.to_string())))?
         .at_height(h)
-        .map_err(|e| anyhow!("--{}", flagify(&e.to_string())))?;
+        .map_err(|e| anyhow!("{}", cell_flags(&e.to_string())))?;
     if a.json {
         let v = serde_json::json!({
             "t_re": r.t.re, "t_im": r.t.im, "transmittance": r.transmittance,
@@ -356,11 +411,16 @@ fn sweep_cmd(a: SweepArgs) -> Result<()> {
         rule: a.solver.rule()?,
         material: a.solver.material.clone(),
     };
+    // The whole grid is checked before planning or solving, naming the flags (the sweep's own
+    // check reported a bad axis as an --out error, and --plan-ranks by its parameter name).
+    sweep::sweep_grid(&config).map_err(|e| anyhow!("{}", sweep_flags(&e.to_string())))?;
     let out = match (a.plan_ranks, &a.out) {
         (Some(n), _) => return plan_cmd(&config, n),
         (None, Some(out)) => out.clone(),
         (None, None) => bail!("--out: required"),
     };
+    // Temporary files of a killed run (partial/ is written by the metalib crate only).
+    crate::util::remove_stale_temps_under(&out);
     let t0 = std::time::Instant::now();
     let w = crate::dist::world();
     let m = if w.is_distributed() {

@@ -80,21 +80,28 @@ const MAX_FOLD: f64 = 16384.0;
 /// Largest sub-pixel points per window side the PSF model accepts.
 const MAX_SUBPIXEL_POINTS: f64 = 8192.0;
 
-fn positive(flag: &str, v: f64) -> Result<f64> {
-    if v.is_finite() && v > 0.0 {
-        Ok(v)
+/// Most float32 values of a PSF stack (depth planes × window²): 1 GiB, and the montage holds
+/// one byte per value.
+const MAX_STACK_VALUES: u128 = 1 << 28;
+
+/// `v · scale` (SI units) when `v` is finite and the product is finite and > 0: a value like
+/// 4.9e-324 mm passes a check in mm but is 0 in m.
+fn positive(flag: &str, v: f64, scale: f64) -> Result<f64> {
+    let si = v * scale;
+    if v.is_finite() && si.is_finite() && si > 0.0 {
+        Ok(si)
     } else {
         bail!("{flag}: must be finite and > 0, got {v}")
     }
 }
 
 fn psf(a: PsfArgs) -> Result<()> {
-    let lam = positive("--wavelength-nm", a.wavelength_nm)? * 1e-9;
-    let s = positive("--sensor-mm", a.sensor_mm)? * 1e-3;
-    let d = positive("--aperture-mm", a.aperture_mm)? * 1e-3;
-    let dx = positive("--sample-um", a.sample_um)? * 1e-6;
-    let pitch = positive("--pitch-um", a.pitch_um)? * 1e-6;
-    let zf = positive("--focus-mm", a.focus_mm)? * 1e-3;
+    let lam = positive("--wavelength-nm", a.wavelength_nm, 1e-9)?;
+    let s = positive("--sensor-mm", a.sensor_mm, 1e-3)?;
+    let d = positive("--aperture-mm", a.aperture_mm, 1e-3)?;
+    let dx = positive("--sample-um", a.sample_um, 1e-6)?;
+    let pitch = positive("--pitch-um", a.pitch_um, 1e-6)?;
+    let zf = positive("--focus-mm", a.focus_mm, 1e-3)?;
     if a.window_px == 0 || a.window_px > 1024 {
         bail!("--window-px: must be 1..=1024, got {}", a.window_px);
     }
@@ -105,9 +112,19 @@ fn psf(a: PsfArgs) -> Result<()> {
     if depths.iter().any(|&z| z <= 0.0) {
         bail!("--depths-mm: depths must be > 0");
     }
+    let values = depths.len() as u128 * (a.window_px as u128).pow(2);
+    if values > MAX_STACK_VALUES {
+        bail!(
+            "--depths-mm/--window-px: {} planes of {}×{} pixels is {values} values, more than \
+             {MAX_STACK_VALUES} (1 GiB of float32)",
+            depths.len(),
+            a.window_px,
+            a.window_px
+        );
+    }
     let period = a
         .period_mm
-        .map(|p| positive("--period-mm", p).map(|p| p * 1e-3))
+        .map(|p| positive("--period-mm", p, 1e-3))
         .transpose()?;
     if s > MAX_SENSOR_DISTANCE_M {
         bail!(
@@ -159,7 +176,8 @@ fn psf(a: PsfArgs) -> Result<()> {
     if points.is_nan() || points > MAX_SUBPIXEL_POINTS {
         bail!(
             "--pitch-um/--window-px: {:e} sub-pixel points per side is more than \
-             {MAX_SUBPIXEL_POINTS}",
+             {MAX_SUBPIXEL_POINTS} (the sub-pixel is 0.4 λ s / D: --wavelength-nm, --sensor-mm \
+             and --aperture-mm set it)",
             sub.ceil() * a.window_px as f64
         );
     }

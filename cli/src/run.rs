@@ -389,6 +389,8 @@ pub fn run(a: RunArgs) -> Result<()> {
     } else {
         util::write_atomic(&cpath, serde_json::to_string_pretty(&cfg)?.as_bytes())?;
     }
+    // Temporary files of a killed run, anywhere in its tree (frames, checkpoints).
+    util::remove_stale_temps_under(&out);
     // A finished run: report it again without redoing anything.
     if let Ok(text) = std::fs::read_to_string(out.join("result.json")) {
         let result: serde_json::Value = serde_json::from_str(&text)

@@ -79,6 +79,9 @@ fn ptc(a: PtcArgs) -> Result<()> {
                 "side" => "--side-px",
                 "gain_dn_per_e" => "--gain-dn-per-e",
                 "read_noise_e" => "--read-noise-e",
+                // No level below saturation: the noise (mean + 6σ) or the gain reaches the
+                // well or the ADC's top.
+                "full_well_e" => "--read-noise-e/--gain-dn-per-e",
                 _ => "sensor",
             },
             _ => "sensor",

@@ -323,6 +323,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
     // Rank 0 reads the checkpoint and sends it (empty: none), so --out need not be shared.
     let resume = if w.is_root() {
         util::check_output_target(&ck)?;
+        // Temporary files of a killed run (a checkpoint cut off before its rename).
+        util::remove_stale_temps_under(&a.out);
         if ck.exists() && lens_path.exists() {
             let had = std::fs::read_to_string(&lens_path).context("--out (resume): lens.json")?;
             if had.trim() != lens_json {
@@ -587,6 +589,7 @@ pub fn rea(a: ReaArgs) -> Result<()> {
     }
     let state_path = a.run.join("rea_state.json");
     util::check_output_target(&state_path)?;
+    util::remove_stale_temps_under(&a.run);
     if state_path.exists() {
         r.resume(&state_path).context("--run (resume)")?;
         eprintln!(

@@ -71,6 +71,26 @@ pub fn remove_stale_temps(dir: &Path) {
     }
 }
 
+/// [`remove_stale_temps`] in `dir` and in every directory below it (symbolic links are not
+/// followed): what a killed job left in its output tree, also in directories only the stage
+/// crates write (their atomic writers use the same `.nanoeye-tmp-<pid>-` names). A resumable
+/// job calls it before it resumes. Skipped under MPI, where another host's process ids mean
+/// nothing here.
+pub fn remove_stale_temps_under(dir: &Path) {
+    if crate::dist::world().is_distributed() {
+        return;
+    }
+    remove_stale_temps(dir);
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        if e.file_type().is_ok_and(|t| t.is_dir()) {
+            remove_stale_temps_under(&e.path());
+        }
+    }
+}
+
 /// Like [`write_atomic`], streaming through a writer callback.
 pub fn write_atomic_with(
     path: &Path,
@@ -121,8 +141,12 @@ pub fn print_json<T: serde::Serialize>(value: &T) -> Result<()> {
     Ok(())
 }
 
-/// Parses `a:b:step` (inclusive of `b` when it lies on the grid) or a single value `a`.
-/// `flag` names the parameter in the error message.
+/// Most values [`parse_range`] gives: its ranges are depth planes, each a PSF (and, in
+/// `fisher`, its derivative) computed and held in memory.
+pub const MAX_RANGE_VALUES: usize = 10_000;
+
+/// Parses `a:b:step` (inclusive of `b` when it lies on the grid) or a single value `a`, at most
+/// [`MAX_RANGE_VALUES`] values. `flag` names the parameter in the error message.
 pub fn parse_range(flag: &str, text: &str) -> Result<Vec<f64>> {
     let parts: Vec<&str> = text.split(':').collect();
     let num = |s: &str| -> Result<f64> {
@@ -145,10 +169,17 @@ pub fn parse_range(flag: &str, text: &str) -> Result<Vec<f64>> {
             if b < a {
                 bail!("{flag}: end {b} is below start {a}");
             }
-            let n = ((b - a) / step + 1e-9).floor() as usize + 1;
-            if n > 100_000_000 {
-                bail!("{flag}: {n} values is too many");
+            // Count in f64: a tiny step or a span beyond f64 (-1e308:1e308) makes the quotient
+            // +inf, and a saturating cast plus one overflowed (a panic in debug builds, an empty
+            // range in release builds).
+            let steps = ((b - a) / step + 1e-9).floor();
+            if steps.is_nan() || steps >= MAX_RANGE_VALUES as f64 {
+                bail!(
+                    "{flag}: {:e} values (step {step:e}) is more than {MAX_RANGE_VALUES}",
+                    steps + 1.0
+                );
             }
+            let n = steps as usize + 1;
             Ok((0..n).map(|i| a + i as f64 * step).collect())
         }
         _ => bail!("{flag}: expected a:b:step or a single value, got '{text}'"),
@@ -186,6 +217,22 @@ mod tests {
     }
 
     #[test]
+    fn range_counts_beyond_the_limit_or_beyond_f64_are_refused() {
+        // The quotient is +inf: it overflowed usize (a panic in debug builds).
+        for text in ["0:1e300:1e-300", "-1e308:1e308:1", "20:22:1e-6"] {
+            let e = parse_range("--depths-mm", text).unwrap_err().to_string();
+            assert!(
+                e.starts_with("--depths-mm:") && e.contains("more than"),
+                "{e}"
+            );
+        }
+        let last = format!("0:{}:1", MAX_RANGE_VALUES - 1);
+        assert_eq!(parse_range("--x", &last).unwrap().len(), MAX_RANGE_VALUES);
+        let over = format!("0:{}:1", MAX_RANGE_VALUES);
+        assert!(parse_range("--x", &over).is_err());
+    }
+
+    #[test]
     fn jsonl_line_strips_bom_and_endings_and_rejects_bad_utf8() {
         assert_eq!(jsonl_line(b"\xEF\xBB\xBF{}\r\n", 1).unwrap(), "{}");
         assert_eq!(jsonl_line(b"{}\n", 2).unwrap(), "{}");
@@ -215,6 +262,31 @@ mod tests {
         std::fs::write(&dead, b"partial").unwrap();
         write_atomic(&dir.path().join("out.txt"), b"ok").unwrap();
         assert!(!dead.exists());
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn dead_temps_are_removed_in_every_directory_below_and_live_ones_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let deep = dir.path().join("a/b");
+        std::fs::create_dir_all(&deep).unwrap();
+        let dead = [
+            dir.path().join(format!("{TMP_PREFIX}4294967295-x")),
+            deep.join(format!("{TMP_PREFIX}4294967295-y")),
+        ];
+        let live = deep.join(format!("{TMP_PREFIX}{}-z", std::process::id()));
+        let data = deep.join("checkpoint.bin");
+        for f in dead.iter().chain([&live, &data]) {
+            std::fs::write(f, b"x").unwrap();
+        }
+        // A link to another tree is not followed.
+        let other = tempfile::tempdir().unwrap();
+        let outside = other.path().join(format!("{TMP_PREFIX}4294967295-w"));
+        std::fs::write(&outside, b"x").unwrap();
+        std::os::unix::fs::symlink(other.path(), dir.path().join("link")).unwrap();
+        remove_stale_temps_under(dir.path());
+        assert!(dead.iter().all(|f| !f.exists()));
+        assert!(live.exists() && data.exists() && outside.exists());
     }
 
     #[test]

@@ -739,3 +739,144 @@ fn datagen_export_refuses_bad_states_and_writes_a_glb() {
         bytes.len()
     );
 }
+
+/// Defects the input property test (cli/tests/input_proptest.rs) found: each was a panic, a
+/// hang, or an error that named another flag (or none).
+#[test]
+fn inputs_found_by_the_property_test_are_refused_naming_their_flag() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let psf = ["optics", "psf", "--out", "o"];
+    let fc = [
+        "fisher",
+        "compare",
+        "--window-px",
+        "9",
+        "--aperture-step-um",
+        "50",
+        "--montage",
+        "m.png",
+    ];
+    let cell = [
+        "metalib",
+        "cell",
+        "--height-nm",
+        "700",
+        "--diameter-nm",
+        "200",
+    ];
+    for (args, flag) in [
+        // A range count beyond usize overflowed (a panic in debug builds, an empty range in
+        // release builds); 2 million depth planes ran for hours.
+        ("--depths-mm=0:1e300:1e-300", "--depths-mm"),
+        ("--depths-mm=-1e308:1e308:1", "--depths-mm"),
+        ("--depths-mm=20:22:1e-6", "--depths-mm"),
+        // Positive in mm, 0 in m.
+        ("--sensor-mm=4.9e-324", "--sensor-mm"),
+        ("--aperture-mm=18446744073709551615", "--aperture-mm"),
+    ] {
+        refused(&[&psf[..], &["--window-px", "16", args]].concat(), flag, p);
+    }
+    // 1001 planes of 1024² pixels: 4 GiB of stack and a 1 GB montage.
+    refused(
+        &[&psf[..], &["--window-px", "1024", "--depths-mm=20:30:0.01"]].concat(),
+        "--depths-mm/--window-px",
+        p,
+    );
+    for (args, flag) in [
+        (vec!["--depths-mm=4.9e-324:15:1"], "--depths-mm"),
+        (vec!["--depths-mm=-1e308:15:1e-20"], "--depths-mm"),
+        (vec!["--pitch-um=1e20"], "--pitch-um"),
+        (
+            vec!["--pitch-um=3,100", "--depths-mm=20:22:1"],
+            "--pitch-um",
+        ),
+    ] {
+        refused(&[&fc[..], &args].concat(), flag, p);
+    }
+    for (args, flag) in [
+        // (n + ik)² overflowed, 1/ε overflowed: a "numerical failure" naming no flag.
+        (vec!["--pitch-nm=530", "--n-pillar=7e239"], "--n-pillar"),
+        (
+            vec!["--pitch-nm=530", "--n-background=3e-124"],
+            "--n-background",
+        ),
+        (vec!["--pitch-nm=530", "--k-pillar=1e300"], "--k-pillar"),
+        // "--pitch: …" and "--diameter-nm: … exceeds the pitch".
+        (vec!["--pitch-nm=0"], "--pitch-nm"),
+        (vec!["--pitch-nm=1"], "--pitch-nm"),
+        (vec!["--pitch-nm=1"], "--diameter-nm"),
+    ] {
+        refused(&[&cell[..], &args].concat(), flag, p);
+    }
+    // "invalid parameter `fractions`" (plan) and "--out sw: …" (sweep) named no flag.
+    refused(
+        &[
+            "metalib",
+            "sweep",
+            "--plan-ranks",
+            "2",
+            "--fractions=100:100:1",
+        ],
+        "--fractions",
+        p,
+    );
+    refused(
+        &[
+            "metalib",
+            "sweep",
+            "--out",
+            "sw",
+            "--harmonics",
+            "1",
+            "--heights-nm",
+            "700:700:10",
+            "--pitches-nm",
+            "530:530:10",
+            "--fractions=0.5:1.5:0.5",
+        ],
+        "--fractions",
+        p,
+    );
+    // No flat-field level below saturation: named the sensor's full well, not a flag.
+    refused(
+        &[
+            "sensor",
+            "ptc",
+            "--side-px",
+            "8",
+            "--levels",
+            "4",
+            "--read-noise-e=977",
+        ],
+        "--read-noise-e",
+        p,
+    );
+    // A valid rig whose camera never sees the pupil: the sampler's error named no input.
+    let out = nanoeye(&["rig", "show", "--json"], p);
+    let mut rig: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    rig["camera"]["cy_px"] = serde_json::json!(0.0);
+    std::fs::write(p.join("cy.json"), rig.to_string()).unwrap();
+    assert!(
+        nanoeye(&["rig", "show", "--rig", "cy.json"], p)
+            .status
+            .success()
+    );
+    refused(
+        &[
+            "datagen",
+            "states",
+            "--set",
+            "ambiguity",
+            "--n",
+            "2",
+            "--out",
+            "s.jsonl",
+            "--rig",
+            "cy.json",
+        ],
+        "--rig",
+        p,
+    );
+    assert_eq!(entries(p), ["cy.json"], "a refused command wrote files");
+}

@@ -247,8 +247,9 @@ fn write_file(path: &Path, bytes: &[u8]) -> Result<(), FisherError> {
              to replace it",
         ));
     }
+    // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
     let mut tmp = tempfile::Builder::new()
-        .prefix(".nanoeye-tmp-")
+        .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
         .tempfile_in(dir)
         .map_err(|e| io("output", path, e))?;
     tmp.write_all(bytes).map_err(|e| io("output", path, e))?;

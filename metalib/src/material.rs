@@ -40,16 +40,26 @@ impl Default for Materials {
     }
 }
 
+/// Largest accepted n or k. Far beyond any optical material (metals in the far infrared reach
+/// a few hundred), and (n + ik)² stays far inside f64: an index of 7e239 made the permittivity
+/// infinite and the solve fail without naming the index.
+pub const MAX_INDEX: f64 = 1e3;
+/// Smallest accepted real index: below any optical material (silver's n is ~0.03 in the
+/// visible); 1/ε stays finite (a background index of 3e-124 made the inverse-permittivity
+/// matrix infinite).
+pub const MIN_INDEX: f64 = 1e-3;
+
 impl Materials {
-    /// Checks that every index is finite, real parts positive and losses non-negative.
+    /// Checks that every real part lies in [[`MIN_INDEX`], [`MAX_INDEX`]] and the loss in
+    /// [0, [`MAX_INDEX`]].
     pub fn validate(&self) -> Result<(), MetalibError> {
         let pos = |name: &'static str, v: f64| {
-            if v.is_finite() && v > 0.0 {
+            if (MIN_INDEX..=MAX_INDEX).contains(&v) {
                 Ok(())
             } else {
                 Err(MetalibError::param(
                     name,
-                    format!("must be finite and > 0, got {v}"),
+                    format!("must lie in [{MIN_INDEX}, {MAX_INDEX}], got {v}"),
                 ))
             }
         };
@@ -57,10 +67,13 @@ impl Materials {
         pos("n_background", self.n_background)?;
         pos("n_substrate", self.n_substrate)?;
         pos("n_superstrate", self.n_superstrate)?;
-        if !(self.k_pillar.is_finite() && self.k_pillar >= 0.0) {
+        if !(self.k_pillar.is_finite() && self.k_pillar >= 0.0 && self.k_pillar <= MAX_INDEX) {
             return Err(MetalibError::param(
                 "k_pillar",
-                format!("must be finite and >= 0 (no gain), got {}", self.k_pillar),
+                format!(
+                    "must lie in [0, {MAX_INDEX}] (no gain), got {}",
+                    self.k_pillar
+                ),
             ));
         }
         Ok(())
@@ -75,5 +88,63 @@ impl Materials {
     /// Relative permittivity of the layer background.
     pub fn eps_background(&self) -> Complex64 {
         Complex64::new(self.n_background * self.n_background, 0.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn indices_outside_the_bounds_are_refused_by_name() {
+        let ok = Materials::default();
+        assert!(ok.validate().is_ok());
+        let at_bound = Materials {
+            n_pillar: MAX_INDEX,
+            k_pillar: MAX_INDEX,
+            n_background: MIN_INDEX,
+            ..ok
+        };
+        assert!(at_bound.validate().is_ok());
+        for (m, name) in [
+            (
+                Materials {
+                    n_pillar: 7e239,
+                    ..ok
+                },
+                "n_pillar",
+            ),
+            (
+                Materials {
+                    k_pillar: 1e300,
+                    ..ok
+                },
+                "k_pillar",
+            ),
+            (
+                Materials {
+                    n_substrate: MAX_INDEX * 1.01,
+                    ..ok
+                },
+                "n_substrate",
+            ),
+            (
+                Materials {
+                    n_background: 3e-124,
+                    ..ok
+                },
+                "n_background",
+            ),
+            (
+                Materials {
+                    n_superstrate: 0.0,
+                    ..ok
+                },
+                "n_superstrate",
+            ),
+        ] {
+            let e = m.validate().unwrap_err().to_string();
+            assert!(e.contains(name), "{e}");
+        }
     }
 }

@@ -200,8 +200,9 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MetalibError> {
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
     check_output_target(path)?;
+    // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
     let mut tmp = tempfile::Builder::new()
-        .prefix(".nanoeye-tmp-")
+        .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
         .tempfile_in(dir)
         .map_err(|e| io_err(path, e))?;
     tmp.write_all(bytes).map_err(|e| io_err(path, e))?;

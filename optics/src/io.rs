@@ -98,7 +98,11 @@ pub fn save_stack_npy(stack: &PsfStack, path: &Path) -> Result<()> {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
     };
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(|e| io_err(path, e))?;
+    // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
+    let mut tmp = tempfile::Builder::new()
+        .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
+        .tempfile_in(dir)
+        .map_err(|e| io_err(path, e))?;
     {
         let mut bw = std::io::BufWriter::new(tmp.as_file_mut());
         write_stack_npy(stack, &mut bw).map_err(|e| io_err(path, e))?;

@@ -592,7 +592,11 @@ impl<'a> Trainer<'a> {
         std::fs::create_dir_all(dir)
             .map_err(|e| param("out", format!("{}: {e}", dir.display())))?;
         let io = |e: std::io::Error| param("out", format!("{}: {e}", path.display()));
-        let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io)?;
+        // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
+        let mut tmp = tempfile::Builder::new()
+            .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
+            .tempfile_in(dir)
+            .map_err(io)?;
         std::io::Write::write_all(&mut tmp, &b).map_err(io)?;
         tmp.as_file().sync_all().map_err(io)?;
         tmp.persist(path).map_err(|e| io(e.error))?;

@@ -349,7 +349,11 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RenderError> {
         }
     }
     let dir = path.parent().unwrap_or(Path::new("."));
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(|e| io_err(path, e))?;
+    // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
+    let mut tmp = tempfile::Builder::new()
+        .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
+        .tempfile_in(dir)
+        .map_err(|e| io_err(path, e))?;
     tmp.write_all(bytes).map_err(|e| io_err(path, e))?;
     tmp.persist(path).map_err(|e| io_err(path, e.error))?;
     Ok(())

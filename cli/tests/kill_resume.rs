@@ -1,0 +1,540 @@
+//! Kill-at-random-points test for every resumable job (issue 19, "Checks"): `fisher init`,
+//! `datagen render`, `metalib sweep`, `search train`, `search rea` and `nanoeye run`, each on a
+//! tiny configuration. Each job runs once uninterrupted into directory A; then, for each of a
+//! few kill points spread over A's wall time (seeded, so every run of the test uses the same
+//! fractions of it), a fresh directory B is given the same command, the process is sent SIGKILL
+//! at that point, and the same command is run again: it must exit 0 on that first rerun, and
+//! B's files must equal A's byte for byte, leftover temporary files included.
+//!
+//! Only the timing fields the docs name are left out of the comparison: `seconds` and
+//! `seconds_per_step` in
+//! `search train`'s metrics.json (docs/run.md), and for `nanoeye run` the stage times
+//! (`stages.json`, the `stages` and `seconds` of result.json, and report.html, whose stage table
+//! shows them). Every command runs in its own directory with relative paths, so paths written
+//! into the outputs (`out` in result.json) agree.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const BIN: &str = env!("CARGO_BIN_EXE_nanoeye");
+/// Longest a tiny job may take (the debug build on a busy 2-core machine).
+const DEADLINE: Duration = Duration::from_secs(400);
+
+fn spawn(args: &[&str], cwd: &Path, log: &Path) -> Child {
+    Command::new(BIN)
+        .args(args)
+        .current_dir(cwd)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(log).unwrap())
+        .spawn()
+        .expect("spawn nanoeye")
+}
+
+/// Runs `args` in `cwd` to completion; fails unless it exits 0. Returns its wall time.
+fn run_ok(args: &[&str], cwd: &Path) -> Duration {
+    let logs = tempfile::tempdir().unwrap();
+    let log = logs.path().join("stderr");
+    let t0 = Instant::now();
+    let mut child = spawn(args, cwd, &log);
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if t0.elapsed() > DEADLINE {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{args:?} in {} runs past {DEADLINE:?}", cwd.display());
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    assert!(
+        status.success(),
+        "{args:?} in {}: {status:?}\n{}",
+        cwd.display(),
+        std::fs::read_to_string(&log).unwrap_or_default()
+    );
+    t0.elapsed()
+}
+
+/// Starts `args` in `cwd` and sends SIGKILL after `delay`; returns whether it was still
+/// running then (a job that finished first was not interrupted).
+fn kill_after(args: &[&str], cwd: &Path, delay: Duration) -> bool {
+    let logs = tempfile::tempdir().unwrap();
+    let mut child = spawn(args, cwd, &logs.path().join("stderr"));
+    let t0 = Instant::now();
+    while t0.elapsed() < delay {
+        if child.try_wait().unwrap().is_some() {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    // Child::kill is SIGKILL on Unix: no destructor, no flush, no cleanup.
+    let running = child.try_wait().unwrap().is_none();
+    let _ = child.kill();
+    let status = child.wait().unwrap();
+    running && !status.success()
+}
+
+/// Every file under `dir`: relative path → bytes.
+fn tree(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.insert(
+                    p.strip_prefix(dir).unwrap().to_path_buf(),
+                    std::fs::read(&p).unwrap(),
+                );
+            }
+        }
+    }
+    out
+}
+
+/// Timing the docs name, left out of the comparison.
+#[derive(Default)]
+struct Timing {
+    /// Files that only hold or show timings.
+    files: &'static [&'static str],
+    /// (JSON file, top-level keys holding timings).
+    keys: &'static [(&'static str, &'static [&'static str])],
+}
+
+/// `bytes` of `file` with the timing keys removed (the bytes as they are for other files).
+fn comparable(file: &Path, bytes: &[u8], timing: &Timing) -> Vec<u8> {
+    for (f, keys) in timing.keys {
+        if file == Path::new(f) {
+            let mut v: serde_json::Value =
+                serde_json::from_slice(bytes).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+            for k in *keys {
+                assert!(
+                    v.as_object_mut().unwrap().remove(*k).is_some(),
+                    "{} has no {k}",
+                    file.display()
+                );
+            }
+            return serde_json::to_vec(&v).unwrap();
+        }
+    }
+    bytes.to_vec()
+}
+
+fn assert_same_outputs(a: &Path, b: &Path, timing: &Timing, what: &str) {
+    let (ta, tb) = (tree(a), tree(b));
+    let only = |x: &BTreeMap<PathBuf, Vec<u8>>, y: &BTreeMap<PathBuf, Vec<u8>>| {
+        x.keys()
+            .filter(|k| !y.contains_key(*k))
+            .cloned()
+            .collect::<Vec<_>>()
+    };
+    let (only_a, only_b) = (only(&ta, &tb), only(&tb, &ta));
+    assert!(
+        only_a.is_empty() && only_b.is_empty(),
+        "{what}: files only in the uninterrupted run {only_a:?}, only in the resumed run {only_b:?}"
+    );
+    for (k, va) in &ta {
+        if timing.files.iter().any(|f| k == Path::new(f)) {
+            continue;
+        }
+        assert!(
+            comparable(k, va, timing) == comparable(k, &tb[k], timing),
+            "{what}: {} differs after the resume",
+            k.display()
+        );
+    }
+}
+
+/// Fractions of the wall time at which to kill: one in each of `n` equal slices of its first
+/// 80 %, at a seeded place inside the slice (SplitMix64).
+fn kill_fractions(n: usize, seed: u64) -> Vec<f64> {
+    let mut s = seed;
+    (0..n)
+        .map(|k| {
+            s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = s;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^= z >> 31;
+            let u = (z >> 11) as f64 / (1u64 << 53) as f64;
+            // Within the first 80 %: a run on a less busy machine may finish sooner.
+            0.8 * (k as f64 + 0.1 + 0.8 * u) / n as f64
+        })
+        .collect()
+}
+
+/// One resumable job: its command, the directory it writes (relative to its cwd), how to
+/// prepare a cwd, and the timing its outputs hold.
+struct Job<'a> {
+    name: &'a str,
+    args: &'a [&'a str],
+    out: &'a str,
+    setup: &'a dyn Fn(&Path),
+    timing: Timing,
+    kills: usize,
+    seed: u64,
+}
+
+/// Runs the job uninterrupted, then killed at each kill point and resumed; compares.
+/// Returns the uninterrupted run's directory (for a job that builds on it).
+fn check_job(job: &Job, root: &Path) -> PathBuf {
+    let a = root.join(format!("{}-a", job.name));
+    std::fs::create_dir_all(&a).unwrap();
+    (job.setup)(&a);
+    let wall = run_ok(job.args, &a);
+    let mut landed = Vec::new();
+    for (k, f) in kill_fractions(job.kills, job.seed).into_iter().enumerate() {
+        let b = root.join(format!("{}-b{k}", job.name));
+        std::fs::create_dir_all(&b).unwrap();
+        (job.setup)(&b);
+        let delay = wall.mul_f64(f);
+        if kill_after(job.args, &b, delay) {
+            landed.push(format!("{delay:.2?}"));
+        }
+        run_ok(job.args, &b);
+        assert_same_outputs(
+            &a.join(job.out),
+            &b.join(job.out),
+            &job.timing,
+            &format!("{} killed at {delay:.2?} of {wall:.2?}", job.name),
+        );
+    }
+    eprintln!(
+        "{}: uninterrupted {wall:.2?}; killed at {landed:?} and resumed to the same bytes",
+        job.name
+    );
+    assert!(
+        !landed.is_empty(),
+        "{}: every run finished before its kill point",
+        job.name
+    );
+    a
+}
+
+fn no_setup(_: &Path) {}
+
+/// A 1-item (2-frame) ambiguity dataset at 80 × 50, the search jobs' input.
+fn render_dataset(cwd: &Path) {
+    run_ok(
+        &[
+            "datagen",
+            "render",
+            "--set",
+            "ambiguity",
+            "--n",
+            "1",
+            "--width",
+            "80",
+            "--height",
+            "50",
+            "--spp",
+            "1",
+            "--out",
+            "ds",
+        ],
+        cwd,
+    );
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.path().is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+#[test]
+fn fisher_init_resumes_to_the_same_bytes() {
+    let root = tempfile::tempdir().unwrap();
+    check_job(
+        &Job {
+            name: "fisher-init",
+            args: &[
+                "fisher",
+                "init",
+                "--out",
+                "fi",
+                "--aperture-step-um",
+                "10",
+                "--window-px",
+                "9",
+                "--depths-mm",
+                "20:23:1",
+                "--iterations",
+                "40",
+                "--checkpoint-every",
+                "1",
+            ],
+            out: "fi",
+            setup: &no_setup,
+            timing: Timing::default(),
+            kills: 6,
+            seed: 1,
+        },
+        root.path(),
+    );
+}
+
+#[test]
+fn datagen_render_resumes_to_the_same_bytes() {
+    let root = tempfile::tempdir().unwrap();
+    check_job(
+        &Job {
+            name: "render",
+            args: &[
+                "datagen",
+                "render",
+                "--set",
+                "ambiguity",
+                "--n",
+                "4",
+                "--width",
+                "120",
+                "--height",
+                "75",
+                "--spp",
+                "1",
+                "--out",
+                "ds",
+            ],
+            out: "ds",
+            setup: &no_setup,
+            timing: Timing::default(),
+            kills: 6,
+            seed: 2,
+        },
+        root.path(),
+    );
+}
+
+#[test]
+fn metalib_sweep_resumes_to_the_same_bytes() {
+    let root = tempfile::tempdir().unwrap();
+    check_job(
+        &Job {
+            name: "sweep",
+            args: &[
+                "metalib",
+                "sweep",
+                "--out",
+                "sw",
+                "--heights-nm",
+                "300:700:100",
+                "--pitches-nm",
+                "300:900:50",
+                "--fractions",
+                "0.2:0.8:0.1",
+                "--harmonics",
+                "5",
+            ],
+            out: "sw",
+            setup: &no_setup,
+            timing: Timing::default(),
+            kills: 6,
+            seed: 3,
+        },
+        root.path(),
+    );
+}
+
+/// The search's camera chain on the tiny dataset.
+const CHAIN: [&str; 8] = [
+    "--dataset",
+    "ds",
+    "--pitch-um",
+    "60",
+    "--aperture-step-um",
+    "10",
+    "--exposure-ms",
+    "0.0004",
+];
+
+#[test]
+fn search_train_and_rea_resume_to_the_same_bytes() {
+    let root = tempfile::tempdir().unwrap();
+    let train: Vec<&str> = [&["search", "train"][..], &CHAIN]
+        .concat()
+        .into_iter()
+        .chain([
+            "--steps",
+            "4",
+            "--batch",
+            "3",
+            "--random-subnets",
+            "0",
+            "--pitch-range-um",
+            "48:120",
+            "--checkpoint-every",
+            "1",
+            "--out",
+            "run",
+        ])
+        .collect();
+    let trained = check_job(
+        &Job {
+            name: "search-train",
+            args: &train,
+            out: "run",
+            setup: &render_dataset,
+            timing: Timing {
+                files: &[],
+                keys: &[("metrics.json", &["seconds", "seconds_per_step"])],
+            },
+            kills: 3,
+            seed: 4,
+        },
+        root.path(),
+    );
+    // The search continues the trained run in place (rea_state.json, rea.jsonl).
+    let rea: Vec<&str> = [&["search", "rea"][..], &CHAIN]
+        .concat()
+        .into_iter()
+        .chain([
+            "--run",
+            "run",
+            "--population",
+            "3",
+            "--cycles",
+            "3",
+            "--tournament",
+            "2",
+            "--epochs",
+            "0",
+        ])
+        .collect();
+    let from_trained = |cwd: &Path| {
+        copy_dir(&trained.join("ds"), &cwd.join("ds"));
+        copy_dir(&trained.join("run"), &cwd.join("run"));
+    };
+    check_job(
+        &Job {
+            name: "search-rea",
+            args: &rea,
+            out: "run",
+            setup: &from_trained,
+            timing: Timing {
+                files: &[],
+                keys: &[("metrics.json", &["seconds", "seconds_per_step"])],
+            },
+            kills: 3,
+            seed: 5,
+        },
+        root.path(),
+    );
+}
+
+/// The main job on the tiny configuration of main_job.rs: about a minute in the debug
+/// build, so one kill point.
+#[test]
+fn the_main_job_resumes_to_the_same_bytes() {
+    let root = tempfile::tempdir().unwrap();
+    let config = |cwd: &Path| {
+        std::fs::write(
+            cwd.join("tiny.json"),
+            r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items": 3, "val_items": 2,
+            "protocol_subjects": 1, "train_steps": 2, "batch": 3, "random_subnets": 0,
+            "pitch_init_um": 60.0, "pitch_range_um": [48.0, 120.0], "rea_cycles": 1,
+            "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0, "final_steps": 2,
+            "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16],
+            "sequence_frames": 5}"#,
+        )
+        .unwrap();
+    };
+    check_job(
+        &Job {
+            name: "run",
+            args: &["run", "--config", "tiny.json", "--out", "r"],
+            out: "r",
+            setup: &config,
+            timing: Timing {
+                files: &["stages.json", "report.html"],
+                keys: &[("result.json", &["stages", "seconds"])],
+            },
+            kills: 1,
+            seed: 6,
+        },
+        root.path(),
+    );
+}
+
+/// A kill between an atomic writer's temporary file and its rename leaves
+/// `.nanoeye-tmp-<pid>-…` (the stage crates' writers used tempfile's `.tmpXXXXXX` names, which
+/// a rerun never removed: search train's checkpoint.bin left one). Every resumable job removes
+/// those of dead processes anywhere in its output tree, also where only a stage crate writes.
+#[test]
+fn temp_files_of_a_killed_run_are_removed_on_resume() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let stale = ".nanoeye-tmp-4294967295-abcdef";
+    for (args, dir) in [
+        (
+            &[
+                "fisher",
+                "init",
+                "--out",
+                "fi",
+                "--aperture-step-um",
+                "50",
+                "--window-px",
+                "3",
+                "--iterations",
+                "1",
+            ][..],
+            "fi/checkpoint",
+        ),
+        (
+            &[
+                "datagen",
+                "render",
+                "--set",
+                "ambiguity",
+                "--n",
+                "1",
+                "--width",
+                "80",
+                "--height",
+                "50",
+                "--spp",
+                "1",
+                "--out",
+                "ds",
+            ],
+            "ds/frames",
+        ),
+        (
+            &[
+                "metalib",
+                "sweep",
+                "--out",
+                "sw",
+                "--heights-nm",
+                "300:500:200",
+                "--pitches-nm",
+                "300:400:100",
+                "--fractions",
+                "0.2:0.5:0.3",
+                "--harmonics",
+                "1",
+            ],
+            // partial/ goes once the sweep completes; the manifest's directory stays.
+            "sw",
+        ),
+    ] {
+        run_ok(args, p);
+        let left = p.join(dir).join(stale);
+        std::fs::write(&left, b"cut off").unwrap();
+        run_ok(args, p);
+        assert!(!left.exists(), "{args:?} kept {}", left.display());
+    }
+}
