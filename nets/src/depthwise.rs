@@ -50,8 +50,9 @@ impl Geom {
     }
 }
 
+/// a·b + c, fused where the target has FMA.
 #[inline(always)]
-fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
+pub(crate) fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
     // Without the FMA target feature `mul_add` would be a libm call; with it, one instruction.
     if FMA { a.mul_add(b, c) } else { a * b + c }
 }
@@ -225,7 +226,8 @@ fn backward_plane_fma(
     backward_plane::<true>(g, x, wk, dy, sc, dx, dw)
 }
 
-fn has_fma() -> bool {
+/// Whether this CPU has AVX2 and FMA (the fused code paths).
+pub(crate) fn has_fma() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
@@ -234,18 +236,6 @@ fn has_fma() -> bool {
     {
         false
     }
-}
-
-/// Forward of one plane on the calling thread, with the caller's scratch (batch-1 inference:
-/// no rayon, no allocation once the scratch has grown).
-pub(crate) fn forward_one(g: &Geom, x: &[f32], wk: &[f32], sc: &mut Scratch, out: &mut [f32]) {
-    #[cfg(target_arch = "x86_64")]
-    if has_fma() {
-        // SAFETY: AVX2 and FMA were detected on this CPU just above.
-        unsafe { forward_plane_fma(g, x, wk, sc, out) };
-        return;
-    }
-    forward_plane::<false>(g, x, wk, sc, out)
 }
 
 /// Forward over all planes: `x` is N·C planes of h×w, `w` C kernels of k², `y` N·C planes of

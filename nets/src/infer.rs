@@ -2,15 +2,22 @@
 //! into the convolutions before them, elastic kernels and weight sub-matrices extracted once,
 //! every activation buffer allocated once at construction, no gradient state. Computes the same
 //! function as [`Supernet::forward`] in [`crate::BnMode::Eval`] (to float rounding).
+//!
+//! Features are stored pixel-major (HWC: one row of C channels per pixel), not in the
+//! supernet's NCHW planes. At the subnets' deep stages a plane holds 6–24 pixels but there are
+//! hundreds of channels, so every per-channel loop (depthwise taps, squeeze-excitation, bias and
+//! activation) runs along the channels, where the vectors are long; 1×1 convolutions are the
+//! same GEMMs with the operands transposed. The whole pass is compiled a second time with AVX2
+//! and FMA, chosen at run time.
 
 use crate::act::Act;
 use crate::arch::{Arch, N_STAGES, STEM_CHANNELS};
 use crate::block::{MbBlock, elastic_kernel, sub_cols};
 use crate::conv::out_size;
-use crate::depthwise::{self, Geom, Scratch};
+use crate::depthwise::{Geom, has_fma, madd};
 use crate::error::{NetsError, Result};
 use crate::norm::BatchNorm;
-use crate::resize::{resize_plane, taps};
+use crate::resize::taps;
 use crate::supernet::Supernet;
 use faer::linalg::matmul::matmul;
 use faer::{Accum, MatMut, MatRef, Par};
@@ -32,26 +39,61 @@ fn fold(bn: &BatchNorm, w: &mut [f32], rows: usize, bias: Option<&[f32]>) -> Vec
         .collect()
 }
 
-/// Adds the per-channel bias and applies the activation over `hw`-sized planes.
-#[inline]
-fn bias_act(y: &mut [f32], hw: usize, b: &[f32], act: Act) {
-    // One loop per activation, so that each is a straight vectorizable pass.
-    fn pass(y: &mut [f32], hw: usize, b: &[f32], f: impl Fn(f32) -> f32) {
-        for (row, &bo) in y.chunks_exact_mut(hw).zip(b) {
-            row.iter_mut().for_each(|v| *v = f(*v + bo));
+/// `rows × cols` row-major → `cols × rows` row-major.
+fn transpose(a: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+    let mut t = vec![0.0; a.len()];
+    for (r, row) in a.chunks_exact(cols.max(1)).enumerate().take(rows) {
+        for (c, &v) in row.iter().enumerate() {
+            t[c * rows + r] = v;
         }
     }
+    t
+}
+
+/// Applies `act` to every value of `y`.
+#[inline(always)]
+fn act_pass(y: &mut [f32], act: Act) {
+    // One loop per activation, so that each is a straight vectorizable pass.
     match act {
-        Act::Identity => pass(y, hw, b, |v| v),
-        Act::Relu => pass(y, hw, b, |v| v.max(0.0)),
-        Act::HSwish => pass(y, hw, b, |v| Act::HSwish.apply(v)),
-        Act::HSigmoid => pass(y, hw, b, |v| Act::HSigmoid.apply(v)),
+        Act::Identity => {}
+        Act::Relu => y.iter_mut().for_each(|v| *v = v.max(0.0)),
+        Act::HSwish => y.iter_mut().for_each(|v| *v = Act::HSwish.apply(*v)),
+        Act::HSigmoid => y.iter_mut().for_each(|v| *v = Act::HSigmoid.apply(*v)),
     }
 }
 
-/// A 1×1 convolution with bias and activation: W (cout × cin).
+/// Adds the per-channel bias `b` to every pixel row of `y` (HWC) and applies the activation.
+#[inline(always)]
+fn bias_act(y: &mut [f32], b: &[f32], act: Act) {
+    for row in y.chunks_exact_mut(b.len()) {
+        row.iter_mut().zip(b).for_each(|(v, &bo)| *v += bo);
+        act_pass(row, act);
+    }
+}
+
+/// Dot product with eight independent accumulators, so that the sum vectorizes.
+#[inline(always)]
+fn dot<const FMA: bool>(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let (ac, bc) = (a.chunks_exact(8), b.chunks_exact(8));
+    let rest: f32 = ac
+        .remainder()
+        .iter()
+        .zip(bc.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in ac.zip(bc) {
+        for l in 0..8 {
+            acc[l] = madd::<FMA>(x[l], y[l], acc[l]);
+        }
+    }
+    acc.iter().sum::<f32>() + rest
+}
+
+/// A 1×1 convolution with bias and activation on HWC features: Y (hw × cout) = X (hw × cin) ·
+/// Wᵀ, with Wᵀ (cin × cout) stored row-major.
 struct Pointwise {
-    w: Vec<f32>,
+    wt: Vec<f32>,
     b: Vec<f32>,
     cin: usize,
     cout: usize,
@@ -59,33 +101,116 @@ struct Pointwise {
 }
 
 impl Pointwise {
+    /// From weights `w` (cout × cin, row-major) and bias `b`.
+    fn new(w: &[f32], b: Vec<f32>, cin: usize, cout: usize, act: Act) -> Self {
+        Self {
+            wt: transpose(w, cout, cin),
+            b,
+            cin,
+            cout,
+            act,
+        }
+    }
+    #[inline(always)]
     fn run(&self, x: &[f32], hw: usize, y: &mut [f32]) {
-        let wm = MatRef::from_row_major_slice(&self.w, self.cout, self.cin);
-        let xm = MatRef::from_row_major_slice(&x[..self.cin * hw], self.cin, hw);
-        let y = &mut y[..self.cout * hw];
+        let xm = MatRef::from_row_major_slice(&x[..hw * self.cin], hw, self.cin);
+        let wm = MatRef::from_row_major_slice(&self.wt, self.cin, self.cout);
+        let y = &mut y[..hw * self.cout];
         matmul(
-            MatMut::from_row_major_slice_mut(y, self.cout, hw),
+            MatMut::from_row_major_slice_mut(y, hw, self.cout),
             Accum::Replace,
-            wm,
             xm,
+            wm,
             1.0f32,
             Par::Seq,
         );
-        bias_act(y, hw, &self.b, self.act);
+        bias_act(y, &self.b, self.act);
     }
 }
 
-/// A per-channel k×k convolution (depthwise, or the stem's one input channel per tap set) with
-/// bias and activation.
-struct Spatial {
-    /// Kernels, (cout × cin_per_out) blocks of k².
-    k: Vec<f32>,
+/// Depthwise k×k convolution (same padding k/2, stride s) with bias and activation on HWC
+/// features of `c` channels; kernels stored tap-major (k² × c).
+struct Depthwise {
+    wt: Vec<f32>,
     b: Vec<f32>,
     g: Geom,
     act: Act,
 }
 
-/// Squeeze-and-excitation with its pooled vector and squeeze activations.
+/// Input indices `o·s + t − p` of output `o` over taps t = 0..k that fall inside [0, n): the
+/// first tap and the first input index.
+#[inline(always)]
+fn window(o: usize, s: usize, p: usize, k: usize, n: usize) -> (usize, usize, usize) {
+    let start = o * s;
+    let t0 = p.saturating_sub(start);
+    let t1 = k.min(n + p - start);
+    (t0, t1, start + t0 - p)
+}
+
+impl Depthwise {
+    #[inline(always)]
+    fn run<const FMA: bool>(&self, x: &[f32], y: &mut [f32]) {
+        let (g, c) = (&self.g, self.b.len());
+        let p = g.k / 2;
+        for oy in 0..g.ho {
+            let (ky0, ky1, iy0) = window(oy, g.s, p, g.k, g.h);
+            for ox in 0..g.wo {
+                let (kx0, kx1, ix0) = window(ox, g.s, p, g.k, g.w);
+                let out = &mut y[(oy * g.wo + ox) * c..][..c];
+                out.copy_from_slice(&self.b);
+                for (dy, ky) in (ky0..ky1).enumerate() {
+                    for (dx, kx) in (kx0..kx1).enumerate() {
+                        let xi = &x[((iy0 + dy) * g.w + ix0 + dx) * c..][..c];
+                        let wi = &self.wt[(ky * g.k + kx) * c..][..c];
+                        for ((o, &xv), &wv) in out.iter_mut().zip(xi).zip(wi) {
+                            *o = madd::<FMA>(xv, wv, *o);
+                        }
+                    }
+                }
+                act_pass(out, self.act);
+            }
+        }
+    }
+}
+
+/// The stem: a 3×3 stride-2 convolution from `cin` planes (CHW input) to HWC features, with
+/// bias and h-swish; kernels stored (cin × 9 × cout).
+struct Stem {
+    wt: Vec<f32>,
+    b: Vec<f32>,
+    g: Geom,
+    cin: usize,
+}
+
+impl Stem {
+    #[inline(always)]
+    fn run<const FMA: bool>(&self, x: &[f32], y: &mut [f32]) {
+        let (g, c) = (&self.g, self.b.len());
+        let (p, hw) = (g.k / 2, g.h * g.w);
+        for oy in 0..g.ho {
+            let (ky0, ky1, iy0) = window(oy, g.s, p, g.k, g.h);
+            for ox in 0..g.wo {
+                let (kx0, kx1, ix0) = window(ox, g.s, p, g.k, g.w);
+                let out = &mut y[(oy * g.wo + ox) * c..][..c];
+                out.copy_from_slice(&self.b);
+                for i in 0..self.cin {
+                    for (dy, ky) in (ky0..ky1).enumerate() {
+                        for (dx, kx) in (kx0..kx1).enumerate() {
+                            let xv = x[i * hw + (iy0 + dy) * g.w + ix0 + dx];
+                            let wi = &self.wt[((i * g.k + ky) * g.k + kx) * c..][..c];
+                            for (o, &wv) in out.iter_mut().zip(wi) {
+                                *o = madd::<FMA>(xv, wv, *o);
+                            }
+                        }
+                    }
+                }
+                act_pass(out, Act::HSwish);
+            }
+        }
+    }
+}
+
+/// Squeeze-and-excitation on HWC features, with its pooled vector and squeeze activations.
 struct Squeeze {
     w1: Vec<f32>,
     b1: Vec<f32>,
@@ -96,27 +221,27 @@ struct Squeeze {
 }
 
 impl Squeeze {
-    fn run(&mut self, y: &mut [f32], hw: usize) {
+    #[inline(always)]
+    fn run<const FMA: bool>(&mut self, y: &mut [f32]) {
         let (c, m) = (self.b2.len(), self.b1.len());
-        for (s, p) in self.s.iter_mut().zip(y.chunks_exact(hw)) {
-            *s = p.iter().sum::<f32>() / hw as f32;
+        let hw = y.len() / c;
+        self.s.fill(0.0);
+        for row in y.chunks_exact(c) {
+            self.s.iter_mut().zip(row).for_each(|(a, &v)| *a += v);
         }
+        let inv = 1.0 / hw as f32;
+        self.s.iter_mut().for_each(|v| *v *= inv);
         for j in 0..m {
-            let d: f32 = self.w1[j * c..][..c]
-                .iter()
-                .zip(&self.s)
-                .map(|(w, v)| w * v)
-                .sum();
+            let d = dot::<FMA>(&self.w1[j * c..][..c], &self.s);
             self.z[j] = Act::Relu.apply(self.b1[j] + d);
         }
-        for (ch, p) in y.chunks_exact_mut(hw).enumerate() {
-            let d: f32 = self.w2[ch * m..][..m]
-                .iter()
-                .zip(&self.z)
-                .map(|(w, v)| w * v)
-                .sum();
-            let g = Act::HSigmoid.apply(self.b2[ch] + d);
-            p.iter_mut().for_each(|v| *v *= g);
+        // The gate replaces the pooled vector, which is no longer needed.
+        for ch in 0..c {
+            let d = dot::<FMA>(&self.w2[ch * m..][..m], &self.z);
+            self.s[ch] = Act::HSigmoid.apply(self.b2[ch] + d);
+        }
+        for row in y.chunks_exact_mut(c) {
+            row.iter_mut().zip(&self.s).for_each(|(v, &g)| *v *= g);
         }
     }
 }
@@ -124,7 +249,7 @@ impl Squeeze {
 /// One inverted-residual block at a fixed input size.
 struct Block {
     expand: Option<Pointwise>,
-    dw: Spatial,
+    dw: Depthwise,
     se: Option<Squeeze>,
     project: Pointwise,
     residual: bool,
@@ -132,33 +257,65 @@ struct Block {
     mid: usize,
     hw_in: usize,
     hw_out: usize,
-    /// Output (cout × hw_out).
+    /// Output (hw_out × cout).
     out: Vec<f32>,
 }
 
-/// Bilinear resampling between two fixed plane sizes.
+/// Bilinear resampling of HWC features of `c` channels between two fixed sizes, separable:
+/// rows first (into `tmp`, hi × wo × c), then columns, each a straight pass along contiguous
+/// memory. The arithmetic is that of [`crate::resize`]'s (rows blended, then the two rows).
 struct Resize {
     ty: Vec<(usize, usize, f32)>,
     tx: Vec<(usize, usize, f32)>,
-    hi: usize,
     wi: usize,
+    c: usize,
+    tmp: Vec<f32>,
 }
 
 impl Resize {
-    fn new(hi: usize, wi: usize, ho: usize, wo: usize) -> Self {
+    fn new(hi: usize, wi: usize, ho: usize, wo: usize, c: usize) -> Self {
         Self {
             ty: taps(hi, ho),
             tx: taps(wi, wo),
-            hi,
             wi,
+            c,
+            tmp: vec![0.0; hi * wo * c],
         }
     }
-    fn run(&self, x: &[f32], c: usize, out: &mut [f32], add: bool) {
-        let (hwi, hwo) = (self.hi * self.wi, self.ty.len() * self.tx.len());
-        for ch in 0..c {
-            let src = &x[ch * hwi..][..hwi];
-            let dst = &mut out[ch * hwo..][..hwo];
-            resize_plane(src, self.wi, &self.ty, &self.tx, dst, add);
+    #[inline(always)]
+    fn run(&mut self, x: &[f32], out: &mut [f32], add: bool) {
+        let (c, wi, wo) = (self.c, self.wi, self.tx.len());
+        let row_out = wo * c;
+        // Only the input rows some output row reads are blended.
+        let mut last = usize::MAX;
+        for &(y0, y1, _) in &self.ty {
+            for iy in [y0, y1] {
+                // Taps are non-decreasing, so every row at or below `last` is done.
+                if last != usize::MAX && iy <= last {
+                    continue;
+                }
+                last = iy;
+                let src = &x[iy * wi * c..][..wi * c];
+                let dst = &mut self.tmp[iy * row_out..][..row_out];
+                for (d, &(x0, x1, lx)) in dst.chunks_exact_mut(c).zip(&self.tx) {
+                    let (a, b) = (&src[x0 * c..][..c], &src[x1 * c..][..c]);
+                    for ((o, &va), &vb) in d.iter_mut().zip(a).zip(b) {
+                        *o = va * (1.0 - lx) + vb * lx;
+                    }
+                }
+            }
+        }
+        for (orow, &(y0, y1, ly)) in out.chunks_exact_mut(row_out).zip(&self.ty) {
+            let (a, b) = (
+                &self.tmp[y0 * row_out..][..row_out],
+                &self.tmp[y1 * row_out..][..row_out],
+            );
+            let rows = orow.iter_mut().zip(a).zip(b);
+            if add {
+                rows.for_each(|((o, &va), &vb)| *o += va * (1.0 - ly) + vb * ly);
+            } else {
+                rows.for_each(|((o, &va), &vb)| *o = va * (1.0 - ly) + vb * ly);
+            }
         }
     }
 }
@@ -179,12 +336,11 @@ pub struct Inference {
     cin: usize,
     h: usize,
     w: usize,
-    /// Network input after the resolution scale (None: same size).
+    /// Network input after the resolution scale, per input plane (None: same size).
     scale: Option<Resize>,
     xr: Vec<f32>,
-    stem: Spatial,
+    stem: Stem,
     stem_out: Vec<f32>,
-    stem_plane: Vec<f32>,
     blocks: Vec<Block>,
     /// Index in `blocks` of the stride-8 output (the stride-2 one is block 0, the stride-32
     /// one the last).
@@ -192,7 +348,6 @@ pub struct Inference {
     /// Shared buffers of the blocks' middle features.
     mid_a: Vec<f32>,
     mid_b: Vec<f32>,
-    sc: Scratch,
     // Decoder: projections, resizes, buffers.
     dec: [Pointwise; 4],
     up32: Resize,
@@ -214,20 +369,11 @@ pub struct Inference {
 
 fn block_for(b: &MbBlock, k: usize, e: usize, (h, w): (usize, usize)) -> (Block, (usize, usize)) {
     let mid = b.mid_for(e);
-    let expand = match &b.expand {
-        Some(w1) => {
-            let mut wm = w1.value[..mid * b.cin].to_vec();
-            let bias = fold(&b.bn1, &mut wm, mid, None);
-            Some(Pointwise {
-                w: wm,
-                b: bias,
-                cin: b.cin,
-                cout: mid,
-                act: b.act,
-            })
-        }
-        None => None,
-    };
+    let expand = b.expand.as_ref().map(|w1| {
+        let mut wm = w1.value[..mid * b.cin].to_vec();
+        let bias = fold(&b.bn1, &mut wm, mid, None);
+        Pointwise::new(&wm, bias, b.cin, mid, b.act)
+    });
     let (mut kernel, _, _) = elastic_kernel(&b.dw.value, &b.t5.value, &b.t3.value, mid, k);
     let kb = fold(&b.bn2, &mut kernel, mid, None);
     let g = Geom {
@@ -238,40 +384,31 @@ fn block_for(b: &MbBlock, k: usize, e: usize, (h, w): (usize, usize)) -> (Block,
         k,
         s: b.stride,
     };
-    let se = match &b.se {
-        Some(p) => {
-            let (w1, w2) = b.se_sub(p, mid);
-            let m = w1.len() / mid;
-            Some(Squeeze {
-                w1,
-                b1: p.b1.value[..m].to_vec(),
-                w2,
-                b2: p.b2.value[..mid].to_vec(),
-                s: vec![0.0; mid],
-                z: vec![0.0; m],
-            })
+    let se = b.se.as_ref().map(|p| {
+        let (w1, w2) = b.se_sub(p, mid);
+        let m = w1.len() / mid;
+        Squeeze {
+            w1,
+            b1: p.b1.value[..m].to_vec(),
+            w2,
+            b2: p.b2.value[..mid].to_vec(),
+            s: vec![0.0; mid],
+            z: vec![0.0; m],
         }
-        None => None,
-    };
+    });
     let mut w3 = sub_cols(&b.project.value, b.cout, b.max_mid, mid);
     let b3 = fold(&b.bn3, &mut w3, b.cout, None);
     let hw_out = g.ho * g.wo;
     let blk = Block {
         expand,
-        dw: Spatial {
-            k: kernel,
+        dw: Depthwise {
+            wt: transpose(&kernel, mid, k * k),
             b: kb,
             g,
             act: b.act,
         },
         se,
-        project: Pointwise {
-            w: w3,
-            b: b3,
-            cin: mid,
-            cout: b.cout,
-            act: Act::Identity,
-        },
+        project: Pointwise::new(&w3, b3, mid, b.cout, Act::Identity),
         residual: b.residual(),
         mid,
         hw_in: h * w,
@@ -282,13 +419,7 @@ fn block_for(b: &MbBlock, k: usize, e: usize, (h, w): (usize, usize)) -> (Block,
 }
 
 fn dense(d: &crate::supernet::Dense, cin: usize, act: Act) -> Pointwise {
-    Pointwise {
-        w: d.w.value.clone(),
-        b: d.b.value.clone(),
-        cin,
-        cout: d.cout,
-        act,
-    }
+    Pointwise::new(&d.w.value, d.b.value.clone(), cin, d.cout, act)
 }
 
 impl Inference {
@@ -309,12 +440,13 @@ impl Inference {
                 "inference input {h}×{w} needs more than {MAX_FLOATS} activation values"
             )));
         }
-        let scale = ((hs, ws) != (h, w)).then(|| Resize::new(h, w, hs, ws));
+        let scale = ((hs, ws) != (h, w)).then(|| Resize::new(h, w, hs, ws, 1));
         let (h2, w2) = (out_size(hs, 3, 2), out_size(ws, 3, 2));
         let mut stem_k = net.stem.value.clone();
         let stem_b = fold(&net.stem_bn, &mut stem_k, STEM_CHANNELS, None);
-        let stem = Spatial {
-            k: stem_k,
+        let stem = Stem {
+            // (cout × cin·9) → (cin·9 × cout).
+            wt: transpose(&stem_k, STEM_CHANNELS, cin * 9),
             b: stem_b,
             g: Geom {
                 h: hs,
@@ -324,7 +456,7 @@ impl Inference {
                 k: 3,
                 s: 2,
             },
-            act: Act::HSwish,
+            cin,
         };
         let mut blocks = Vec::new();
         let (b0, mut size) = block_for(&net.blocks[0], 3, 1, (h2, w2));
@@ -365,37 +497,25 @@ impl Inference {
             scale,
             stem,
             stem_out: vec![0.0; STEM_CHANNELS * h2 * w2],
-            stem_plane: if cin > 1 {
-                vec![0.0; h2 * w2]
-            } else {
-                Vec::new()
-            },
             blocks,
             i8,
             mid_a: vec![0.0; mid_len],
             mid_b: vec![0.0; mid_len],
-            sc: Scratch::default(),
             dec: [
                 dense(&net.dec[0], c_last, Act::Identity),
                 dense(&net.dec[1], net.dec[1].w.value.len() / dw, Act::Identity),
                 dense(&net.dec[2], STEM_CHANNELS, Act::Identity),
                 dense(&net.dec[3], dw, Act::Identity),
             ],
-            up32: Resize::new(size.0, size.1, size8.0, size8.1),
-            up8: Resize::new(size8.0, size8.1, h2, w2),
-            up2: Resize::new(h2, w2, h, w),
+            up32: Resize::new(size.0, size.1, size8.0, size8.1, dw),
+            up8: Resize::new(size8.0, size8.1, h2, w2, dw),
+            up2: Resize::new(h2, w2, h, w, 1),
             p32: vec![0.0; dw * hw32],
             p8: vec![0.0; dw * size8.0 * size8.1],
             p2: vec![0.0; dw * h2 * w2],
             lo: vec![0.0; h2 * w2],
             logits: vec![0.0; h * w],
-            head_expand: Pointwise {
-                w: he_w,
-                b: he_b,
-                cin: c_last,
-                cout: cfg.head_expand,
-                act: Act::HSwish,
-            },
+            head_expand: Pointwise::new(&he_w, he_b, c_last, cfg.head_expand, Act::HSwish),
             head_map: vec![0.0; cfg.head_expand * hw32],
             head_g: vec![0.0; cfg.head_expand],
             hidden: dense(&net.head_hidden, cfg.head_expand, Act::HSwish),
@@ -418,31 +538,42 @@ impl Inference {
                 x.len()
             )));
         }
-        let xr: &[f32] = match &self.scale {
+        #[cfg(target_arch = "x86_64")]
+        let slip = if has_fma() {
+            // SAFETY: AVX2 and FMA were detected on this CPU just above.
+            unsafe { self.pass_fma(x) }
+        } else {
+            self.pass::<false>(x)
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let slip = self.pass::<false>(x);
+        Ok(InferenceOutput {
+            mask_logits: &self.logits,
+            slip,
+        })
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    fn pass_fma(&mut self, x: &[f32]) -> [f32; 3] {
+        self.pass::<true>(x)
+    }
+
+    /// The forward pass of [`Self::run`] on a checked input; returns the slippage.
+    #[inline(always)]
+    fn pass<const FMA: bool>(&mut self, x: &[f32]) -> [f32; 3] {
+        let (h, w) = (self.h, self.w);
+        let xr: &[f32] = match &mut self.scale {
             Some(r) => {
-                r.run(x, cin, &mut self.xr, false);
+                let (hwi, hwo) = (h * w, self.xr.len() / self.cin);
+                for (src, dst) in x.chunks_exact(hwi).zip(self.xr.chunks_exact_mut(hwo)) {
+                    r.run(src, dst, false);
+                }
                 &self.xr
             }
             None => x,
         };
-        // Stem: per output channel, the sum over input channels of a 3×3 stride-2 plane pass.
-        let st = &self.stem;
-        let (hwi, hwo) = (st.g.h * st.g.w, st.g.ho * st.g.wo);
-        for (o, out) in self.stem_out.chunks_exact_mut(hwo).enumerate() {
-            for i in 0..cin {
-                let wk = &st.k[(o * cin + i) * 9..][..9];
-                let xp = &xr[i * hwi..][..hwi];
-                if i == 0 {
-                    depthwise::forward_one(&st.g, xp, wk, &mut self.sc, out);
-                } else {
-                    depthwise::forward_one(&st.g, xp, wk, &mut self.sc, &mut self.stem_plane);
-                    out.iter_mut()
-                        .zip(&self.stem_plane)
-                        .for_each(|(a, b)| *a += b);
-                }
-            }
-        }
-        bias_act(&mut self.stem_out, hwo, &st.b, st.act);
+        self.stem.run::<FMA>(xr, &mut self.stem_out);
         for bi in 0..self.blocks.len() {
             let (done, rest) = self.blocks.split_at_mut(bi);
             let b = &mut rest[0];
@@ -458,15 +589,10 @@ impl Inference {
                 }
                 None => x,
             };
-            let kk = b.dw.g.k * b.dw.g.k;
             let a2 = &mut self.mid_b[..b.mid * b.hw_out];
-            for (c, out) in a2.chunks_exact_mut(b.hw_out).enumerate() {
-                let xp = &a1[c * b.hw_in..][..b.hw_in];
-                depthwise::forward_one(&b.dw.g, xp, &b.dw.k[c * kk..][..kk], &mut self.sc, out);
-            }
-            bias_act(a2, b.hw_out, &b.dw.b, b.dw.act);
+            b.dw.run::<FMA>(&a1[..b.mid * b.hw_in], a2);
             if let Some(se) = &mut b.se {
-                se.run(a2, b.hw_out);
+                se.run::<FMA>(a2);
             }
             b.project.run(a2, b.hw_out, &mut b.out);
             if b.residual {
@@ -476,33 +602,28 @@ impl Inference {
         let last = self.blocks.len() - 1;
         let (f2, f8, f32_) = (&self.blocks[0], &self.blocks[self.i8], &self.blocks[last]);
         // Perception decoder (FPN-like, as in `Supernet::forward`).
-        let dw = self.dec[0].cout;
         self.dec[0].run(&f32_.out, f32_.hw_out, &mut self.p32);
         self.dec[1].run(&f8.out, f8.hw_out, &mut self.p8);
-        self.up32.run(&self.p32, dw, &mut self.p8, true);
-        self.p8.iter_mut().for_each(|v| *v = v.max(0.0));
+        self.up32.run(&self.p32, &mut self.p8, true);
+        act_pass(&mut self.p8, Act::Relu);
         self.dec[2].run(&f2.out, f2.hw_out, &mut self.p2);
-        self.up8.run(&self.p8, dw, &mut self.p2, true);
-        self.p2.iter_mut().for_each(|v| *v = v.max(0.0));
+        self.up8.run(&self.p8, &mut self.p2, true);
+        act_pass(&mut self.p2, Act::Relu);
         self.dec[3].run(&self.p2, f2.hw_out, &mut self.lo);
-        self.up2.run(&self.lo, 1, &mut self.logits, false);
-        // Calibration head.
+        self.up2.run(&self.lo, &mut self.logits, false);
+        // Calibration head: expansion, then the mean over pixels of each channel.
         self.head_expand
             .run(&f32_.out, f32_.hw_out, &mut self.head_map);
-        for (g, p) in self
-            .head_g
-            .iter_mut()
-            .zip(self.head_map.chunks_exact(f32_.hw_out))
-        {
-            *g = p.iter().sum::<f32>() / f32_.hw_out as f32;
+        self.head_g.fill(0.0);
+        for row in self.head_map.chunks_exact(self.head_g.len()) {
+            self.head_g.iter_mut().zip(row).for_each(|(a, &v)| *a += v);
         }
+        let inv = 1.0 / f32_.hw_out as f32;
+        self.head_g.iter_mut().for_each(|v| *v *= inv);
         self.hidden.run(&self.head_g, 1, &mut self.hidden_out);
         let mut slip = [0.0f32; 3];
         self.slip_head.run(&self.hidden_out, 1, &mut slip);
-        Ok(InferenceOutput {
-            mask_logits: &self.logits,
-            slip,
-        })
+        slip
     }
 }
 
@@ -517,9 +638,18 @@ mod tests {
 
     #[test]
     fn matches_the_supernet_in_eval_mode() {
+        // One input channel (the camera) and two, so that the stem's sum over input planes
+        // is exercised too.
+        for cin in [1, 2] {
+            matches_the_supernet(cin);
+        }
+    }
+
+    fn matches_the_supernet(cin: usize) {
         let cfg = SupernetConfig {
             head_expand: 48,
             head_hidden: 32,
+            in_channels: cin,
             ..SupernetConfig::default()
         };
         let mut net = Supernet::new(cfg, 7).unwrap();
@@ -539,13 +669,16 @@ mod tests {
             (Arch::max(), 37, 50),
             (scaled, 45, 61),
         ] {
-            let mut img =
-                || -> Vec<f32> { (0..h * w).map(|_| rng.random_range(0.0..1.0)).collect() };
+            let mut img = || -> Vec<f32> {
+                (0..cin * h * w)
+                    .map(|_| rng.random_range(0.0..1.0))
+                    .collect()
+            };
             let calib: Vec<f32> = (0..4).flat_map(|_| img()).collect();
-            let calib = Tensor::from_vec(4, 1, h, w, calib).unwrap();
+            let calib = Tensor::from_vec(4, cin, h, w, calib).unwrap();
             net.recalibrate_bn(&arch, &[calib]).unwrap();
             let x = img();
-            let t = Tensor::from_vec(1, 1, h, w, x.clone()).unwrap();
+            let t = Tensor::from_vec(1, cin, h, w, x.clone()).unwrap();
             let want = net.forward(&arch, &t, BnMode::Eval).unwrap();
             // How far f32 rounding alone moves the reference: the same forward pass on the
             // input scaled by (1 + 2⁻²²), about two ulps. An untrained, recalibrated network
@@ -553,7 +686,7 @@ mod tests {
             // path (BN folded into the weights, sums in another order) must stay within a
             // few such perturbations.
             let xp: Vec<f32> = x.iter().map(|v| v * (1.0 + 2f32.powi(-22))).collect();
-            let tp = Tensor::from_vec(1, 1, h, w, xp).unwrap();
+            let tp = Tensor::from_vec(1, cin, h, w, xp).unwrap();
             let near = net.forward(&arch, &tp, BnMode::Eval).unwrap();
             let maxdiff = |a: &[f32], b: &[f32]| {
                 a.iter()
