@@ -93,3 +93,37 @@ fn dropping_monotonicity_measures_the_phase_span_of_the_whole_run() {
     );
     assert_eq!(s.run, Some((0, 120)));
 }
+
+#[test]
+fn no_pillar_index_on_the_study_grid_is_viable_at_700_by_530_under_d1() {
+    // The study's headline (docs/metalib.md, N = 10) on its whole default grid — the four
+    // tables and n 3.0–4.0 × k {0, 0.002, 0.005, 0.01} — at N = 3, where it holds as well.
+    let cfg = StudyConfig {
+        heights_m: Range {
+            start: 700e-9,
+            stop: 700e-9,
+            step: 10e-9,
+        },
+        harmonics: 3,
+        ..StudyConfig::default()
+    };
+    let points = study::run_study(&cfg, &|_, _| {}).unwrap();
+    assert_eq!(points.len(), cfg.materials.len() + 11 * 4);
+    for p in &points {
+        let d1 = variant(p, "d1");
+        assert!(!d1.viable, "{} {} + {}i: {d1:?}", p.source, p.n, p.k);
+    }
+    // The verdict is the criteria's, not a selection that rejects everything: with every
+    // criterion relaxed, low-loss pillars near n = 3.6 pass.
+    let relaxed: Vec<_> = points
+        .iter()
+        .filter(|p| variant(p, "all_relaxed").viable)
+        .map(|p| (p.n, p.k))
+        .collect();
+    assert!(
+        relaxed
+            .iter()
+            .any(|&(n, k)| (n - 3.6).abs() < 0.05 && k <= 0.002),
+        "{relaxed:?}"
+    );
+}
