@@ -15,6 +15,20 @@ use std::time::Duration;
 
 const BATCH: usize = 16;
 
+/// The `nanoeye` binary's allocator settings (cli/src/main.rs): freed blocks up to 32 MiB stay
+/// in the process, so these times are the CLI's, not glibc's defaults'.
+fn alloc_like_cli() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        static ONCE: std::sync::Once = std::sync::Once::new();
+        // SAFETY: mallopt only sets allocator parameters.
+        ONCE.call_once(|| unsafe {
+            libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+            libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+        });
+    }
+}
+
 fn image(n: usize, c: usize, h: usize, w: usize) -> Tensor {
     let data = (0..n * c * h * w)
         .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
@@ -23,6 +37,7 @@ fn image(n: usize, c: usize, h: usize, w: usize) -> Tensor {
 }
 
 fn supernet(c: &mut Criterion) {
+    alloc_like_cli();
     let cfg = SupernetConfig::default();
     let mut g = c.benchmark_group("supernet");
     g.sample_size(10)
@@ -66,6 +81,7 @@ fn supernet(c: &mut Criterion) {
 /// sensor grid (278×174 at p̂ ≈ 13.8 µm) and at 320×200, against the supernet's own forward
 /// pass in eval mode on one image.
 fn inference(c: &mut Criterion) {
+    alloc_like_cli();
     let cfg = SupernetConfig::default();
     let mut g = c.benchmark_group("inference");
     g.sample_size(20)
@@ -93,6 +109,7 @@ fn inference(c: &mut Criterion) {
 }
 
 fn layers(c: &mut Criterion) {
+    alloc_like_cli();
     let mut g = c.benchmark_group("layers");
     g.sample_size(10)
         .measurement_time(Duration::from_secs(2))
