@@ -105,6 +105,16 @@ fn load(a: &TrackArgs) -> Result<Model> {
             a
         }
     };
+    if !(have_tuned && a.subnet == "best") {
+        // Supernet BN statistics are a running mixture over every subnet trained; only
+        // `nanoeye run`'s tracker_net.bin holds statistics recalibrated for one subnet (B.6).
+        eprintln!(
+            "warning: --subnet {}: batch norms use the training run's running statistics, not \
+             ones recalibrated for this subnet (only --subnet best of a `nanoeye run` output is \
+             recalibrated); expect larger errors than the run's reports",
+            a.subnet
+        );
+    }
     let s = SensorConfig::default();
     let inf = Inference::new(&net, &arch, shape.0, shape.1)
         .with_context(|| format!("--model {}", a.model.display()))?;
