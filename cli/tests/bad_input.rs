@@ -1,16 +1,10 @@
 //! Bad-input regressions (issue 19, section 3): every refused request exits non-zero with a
 //! message naming the flag, never panics, and leaves no partial output behind.
 
-use std::path::Path;
-use std::process::{Command, Output};
+mod common;
 
-fn nanoeye(args: &[&str], cwd: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_nanoeye"))
-        .args(args)
-        .current_dir(cwd)
-        .output()
-        .expect("run nanoeye")
-}
+use common::{nanoeye, npy_f64, tiny_dataset};
+use std::path::Path;
 
 /// Runs `args`, expects a clean refusal that names `flag`.
 fn refused(args: &[&str], flag: &str, cwd: &Path) -> String {
@@ -387,28 +381,15 @@ fn out_at_a_symlink_is_refused_and_dead_temp_files_are_removed() {
     );
 }
 
-/// A 2-D float64 C-order NPY file.
-fn npy(rows: usize, cols: usize, data: &[f64]) -> Vec<u8> {
-    let mut header =
-        format!("{{'descr': '<f8', 'fortran_order': False, 'shape': ({rows}, {cols}), }}");
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut out = b"\x93NUMPY\x01\x00".to_vec();
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    for v in data {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    out
-}
-
 #[test]
 fn blueprint_validates_everything_before_writing() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
-    std::fs::write(p.join("phase.npy"), npy(2, 2, &[0.0, 1.0, 2.0, f64::NAN])).unwrap();
+    std::fs::write(
+        p.join("phase.npy"),
+        npy_f64(2, 2, &[0.0, 1.0, 2.0, f64::NAN]),
+    )
+    .unwrap();
     let csv: String = (0..32)
         .map(|i| format!("{},{},0.95\n", 100.0 + 10.0 * i as f64, 0.2 * i as f64))
         .collect();
@@ -441,7 +422,7 @@ fn blueprint_validates_everything_before_writing() {
     refused(&with(&["--sweep", "sw"]), "--sweep", p);
     std::fs::write(
         p.join("inf.npy"),
-        npy(2, 2, &[0.0, f64::INFINITY, 2.0, 1.0]),
+        npy_f64(2, 2, &[0.0, f64::INFINITY, 2.0, 1.0]),
     )
     .unwrap();
     let mut inf = base.to_vec();
@@ -545,24 +526,7 @@ fn datagen_render_names_n_and_refuses_a_symlinked_manifest() {
     );
     std::fs::create_dir(p.join("ds")).unwrap();
     std::os::unix::fs::symlink(p.join("elsewhere"), p.join("ds/dataset.json")).unwrap();
-    refused(
-        &[
-            "datagen",
-            "render",
-            "--set",
-            "ambiguity",
-            "--n",
-            "1",
-            "--width",
-            "80",
-            "--height",
-            "50",
-            "--out",
-            "ds",
-        ],
-        "--out",
-        p,
-    );
+    refused(&tiny_dataset("ds"), "--out", p);
     assert!(!p.join("elsewhere").exists());
     assert!(
         std::fs::symlink_metadata(p.join("ds/dataset.json"))
@@ -576,25 +540,7 @@ fn datagen_render_names_n_and_refuses_a_symlinked_manifest() {
 fn sim_and_search_loss_name_their_bad_flags() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
-    let ok = nanoeye(
-        &[
-            "datagen",
-            "render",
-            "--set",
-            "ambiguity",
-            "--n",
-            "1",
-            "--width",
-            "80",
-            "--height",
-            "50",
-            "--spp",
-            "1",
-            "--out",
-            "ds",
-        ],
-        p,
-    );
+    let ok = nanoeye(&tiny_dataset("ds"), p);
     assert!(ok.status.success());
     for (args, flag) in [
         (vec!["sim", "--dataset", "nope", "--out", "o"], "--dataset"),

@@ -19,6 +19,9 @@
 //! `PROPTEST_CASES=1000 cargo test -p nanoeye-cli --test input_proptest` searches harder
 //! (about 3 min in the debug build on 2 cores).
 
+mod common;
+
+use common::npy_f64;
 use nanoeye_metalib::rcwa::ENERGY_TOLERANCE;
 use proptest::prelude::*;
 use proptest::sample::Index;
@@ -28,7 +31,7 @@ use std::process::{Command, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-const BIN: &str = env!("CARGO_BIN_EXE_nanoeye");
+use common::BIN;
 /// A fast subcommand that runs longer than this hangs.
 const DEADLINE: Duration = Duration::from_secs(20);
 
@@ -841,23 +844,6 @@ fn valid_solve(docs: &[Value], lines: &[usize]) -> Result<(), String> {
     Ok(())
 }
 
-/// A 2-D float64 C-order NPY file.
-fn npy(rows: usize, cols: usize, data: &[f64]) -> Vec<u8> {
-    let mut header =
-        format!("{{'descr': '<f8', 'fortran_order': False, 'shape': ({rows}, {cols}), }}");
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut out = b"\x93NUMPY\x01\x00".to_vec();
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    for v in data {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    out
-}
-
 /// A valid 8×8 grey PNG with a dark disc (a pupil mask).
 fn mask_png() -> Vec<u8> {
     let img = image::GrayImage::from_fn(8, 8, |x, y| {
@@ -1301,7 +1287,7 @@ proptest! {
                 let phase: Vec<f64> = (0..100 * 100)
                     .map(|i| ((i % 100) as f64 - 50.0).powi(2) * 1e-3 + (i / 100) as f64 * 1e-2)
                     .collect();
-                std::fs::write(p.join("p.npy"), apply(&npy(100, 100, &phase), &edits)).unwrap();
+                std::fs::write(p.join("p.npy"), apply(&npy_f64(100, 100, &phase), &edits)).unwrap();
                 let mut args = without(PSF, "--lens");
                 args.push("--lens=file:p.npy".into());
                 check(&args, p, &Expect { names: &["--lens"], nullable: &[], valid: &valid_psf });
@@ -1311,7 +1297,7 @@ proptest! {
                     .map(|i| format!("{},{},0.95\n", 100.0 + 10.0 * i as f64, 0.2 * i as f64))
                     .collect();
                 std::fs::write(p.join("lib.csv"), apply(csv.as_bytes(), &edits)).unwrap();
-                std::fs::write(p.join("phase.npy"), npy(2, 3, &[0.0, 1.0, 2.0, 3.0, 4.0, 5.0])).unwrap();
+                std::fs::write(p.join("phase.npy"), npy_f64(2, 3, &[0.0, 1.0, 2.0, 3.0, 4.0, 5.0])).unwrap();
                 let args = strings(&[
                     "metalib", "blueprint", "--json", "--phase", "phase.npy", "--height-nm", "700",
                     "--pitch-nm", "500", "--out", "bp", "--library-csv", "lib.csv",

@@ -13,12 +13,14 @@
 //! shows them). Every command runs in its own directory with relative paths, so paths written
 //! into the outputs (`out` in result.json) agree.
 
+mod common;
+
+use common::{BIN, TINY_CHAIN, copy_dir, tiny_dataset, tree};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-const BIN: &str = env!("CARGO_BIN_EXE_nanoeye");
 /// Longest a tiny job may take (the debug build on a busy 2-core machine).
 const DEADLINE: Duration = Duration::from_secs(400);
 
@@ -76,26 +78,6 @@ fn kill_after(args: &[&str], cwd: &Path, delay: Duration) -> bool {
     let _ = child.kill();
     let status = child.wait().unwrap();
     running && !status.success()
-}
-
-/// Every file under `dir`: relative path → bytes.
-fn tree(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                out.insert(
-                    p.strip_prefix(dir).unwrap().to_path_buf(),
-                    std::fs::read(&p).unwrap(),
-                );
-            }
-        }
-    }
-    out
 }
 
 /// Timing the docs name, left out of the comparison.
@@ -221,37 +203,7 @@ fn no_setup(_: &Path) {}
 
 /// A 1-item (2-frame) ambiguity dataset at 80 × 50, the search jobs' input.
 fn render_dataset(cwd: &Path) {
-    run_ok(
-        &[
-            "datagen",
-            "render",
-            "--set",
-            "ambiguity",
-            "--n",
-            "1",
-            "--width",
-            "80",
-            "--height",
-            "50",
-            "--spp",
-            "1",
-            "--out",
-            "ds",
-        ],
-        cwd,
-    );
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.path().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
+    run_ok(&tiny_dataset("ds"), cwd);
 }
 
 #[test]
@@ -348,22 +300,10 @@ fn metalib_sweep_resumes_to_the_same_bytes() {
     );
 }
 
-/// The search's camera chain on the tiny dataset.
-const CHAIN: [&str; 8] = [
-    "--dataset",
-    "ds",
-    "--pitch-um",
-    "60",
-    "--aperture-step-um",
-    "10",
-    "--exposure-ms",
-    "0.0004",
-];
-
 #[test]
 fn search_train_and_rea_resume_to_the_same_bytes() {
     let root = tempfile::tempdir().unwrap();
-    let train: Vec<&str> = [&["search", "train"][..], &CHAIN]
+    let train: Vec<&str> = [&["search", "train"][..], &TINY_CHAIN]
         .concat()
         .into_iter()
         .chain([
@@ -397,7 +337,7 @@ fn search_train_and_rea_resume_to_the_same_bytes() {
         root.path(),
     );
     // The search continues the trained run in place (rea_state.json, rea.jsonl).
-    let rea: Vec<&str> = [&["search", "rea"][..], &CHAIN]
+    let rea: Vec<&str> = [&["search", "rea"][..], &TINY_CHAIN]
         .concat()
         .into_iter()
         .chain([
@@ -493,25 +433,7 @@ fn temp_files_of_a_killed_run_are_removed_on_resume() {
             ][..],
             "fi/checkpoint",
         ),
-        (
-            &[
-                "datagen",
-                "render",
-                "--set",
-                "ambiguity",
-                "--n",
-                "1",
-                "--width",
-                "80",
-                "--height",
-                "50",
-                "--spp",
-                "1",
-                "--out",
-                "ds",
-            ],
-            "ds/frames",
-        ),
+        (&tiny_dataset("ds"), "ds/frames"),
         (
             &[
                 "metalib",

@@ -1,16 +1,10 @@
 //! `--material` on `nanoeye metalib cell|sweep|blueprint` and `metalib material-study`
 //! (issue 19, section 2).
 
-use std::path::Path;
-use std::process::{Command, Output};
+mod common;
 
-fn nanoeye(args: &[&str], cwd: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_nanoeye"))
-        .args(args)
-        .current_dir(cwd)
-        .output()
-        .expect("run nanoeye")
-}
+use common::nanoeye;
+use std::process::Output;
 
 fn json(out: &Output) -> serde_json::Value {
     assert!(
@@ -21,22 +15,27 @@ fn json(out: &Output) -> serde_json::Value {
     serde_json::from_slice(&out.stdout).expect("JSON on stdout")
 }
 
+/// `metalib cell` at the paper's (h, s) = (700, 530) nm and a 200 nm pillar, then `more`.
+fn cell<'a>(more: &[&'a str]) -> Vec<&'a str> {
+    let mut v = vec![
+        "metalib",
+        "cell",
+        "--height-nm",
+        "700",
+        "--pitch-nm",
+        "530",
+        "--diameter-nm",
+        "200",
+    ];
+    v.extend_from_slice(more);
+    v
+}
+
 #[test]
 fn an_unknown_material_is_refused_naming_the_flag_and_the_known_names() {
     let d = tempfile::tempdir().unwrap();
     for args in [
-        vec![
-            "metalib",
-            "cell",
-            "--height-nm",
-            "700",
-            "--pitch-nm",
-            "530",
-            "--diameter-nm",
-            "200",
-            "--material",
-            "unobtainium",
-        ],
+        cell(&["--material", "unobtainium"]),
         vec![
             "metalib",
             "sweep",
@@ -63,20 +62,7 @@ fn an_unknown_material_is_refused_naming_the_flag_and_the_known_names() {
     assert!(!d.path().join("s").exists(), "nothing written on refusal");
     // A wavelength outside the table is refused naming both flags.
     let out = nanoeye(
-        &[
-            "metalib",
-            "cell",
-            "--height-nm",
-            "700",
-            "--pitch-nm",
-            "530",
-            "--diameter-nm",
-            "200",
-            "--material",
-            "green-2008-csi",
-            "--wavelength-nm",
-            "500",
-        ],
+        &cell(&["--material", "green-2008-csi", "--wavelength-nm", "500"]),
         d.path(),
     );
     let err = String::from_utf8_lossy(&out.stderr);
@@ -86,21 +72,8 @@ fn an_unknown_material_is_refused_naming_the_flag_and_the_known_names() {
 #[test]
 fn a_named_material_sets_the_pillar_index_and_explicit_flags_override_it() {
     let d = tempfile::tempdir().unwrap();
-    let base = [
-        "metalib",
-        "cell",
-        "--height-nm",
-        "700",
-        "--pitch-nm",
-        "530",
-        "--diameter-nm",
-        "200",
-        "--harmonics",
-        "1",
-        "--json",
-    ];
     let with = |extra: &[&str]| {
-        let mut a: Vec<&str> = base.to_vec();
+        let mut a = cell(&["--harmonics", "1", "--json"]);
         a.extend_from_slice(extra);
         json(&nanoeye(&a, d.path()))
     };

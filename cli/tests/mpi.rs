@@ -5,11 +5,11 @@
 //! `cargo test -p nanoeye-cli --features mpi --test mpi`.
 #![cfg(feature = "mpi")]
 
-use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+mod common;
 
-const BIN: &str = env!("CARGO_BIN_EXE_nanoeye");
+use common::{BIN, TINY_CHAIN, copy_dir, tiny_dataset, tree};
+use std::path::Path;
+use std::process::{Command, Output};
 
 /// `nanoeye args` on one process, without mpirun.
 fn single(args: &[&str], cwd: &Path) -> Output {
@@ -54,24 +54,6 @@ fn ok(o: Output, what: &str) -> Output {
         String::from_utf8_lossy(&o.stderr)
     );
     o
-}
-
-/// Every file under `dir` (relative path → bytes).
-fn tree(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                let rel = p.strip_prefix(dir).unwrap().to_path_buf();
-                out.insert(rel, std::fs::read(&p).unwrap());
-            }
-        }
-    }
-    out
 }
 
 fn assert_same_tree(a: &Path, b: &Path) {
@@ -157,26 +139,8 @@ fn sweep_on_two_ranks_is_byte_identical_and_resumes_a_killed_share() {
 fn render_and_psf_on_two_ranks_are_byte_identical() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
-    let render = |out: &'static str| {
-        [
-            "datagen",
-            "render",
-            "--set",
-            "ambiguity",
-            "--n",
-            "1",
-            "--width",
-            "80",
-            "--height",
-            "50",
-            "--spp",
-            "1",
-            "--out",
-            out,
-        ]
-    };
-    single(&render("one"), p);
-    ok(mpirun(2, &render("two"), p), "mpirun render");
+    single(&tiny_dataset("one"), p);
+    ok(mpirun(2, &tiny_dataset("two"), p), "mpirun render");
     assert_same_tree(&p.join("one"), &p.join("two"));
 
     let psf = [
@@ -207,44 +171,14 @@ fn render_and_psf_on_two_ranks_are_byte_identical() {
     assert_same_tree(&p.join("one_psf"), &p.join("two_psf"));
 }
 
-/// The one-frame dataset and chain flags of the training and search tests.
-const CHAIN: [&str; 8] = [
-    "--dataset",
-    "ds",
-    "--pitch-um",
-    "60",
-    "--aperture-step-um",
-    "10",
-    "--exposure-ms",
-    "0.0004",
-];
-
 fn render_dataset(p: &Path) {
-    single(
-        &[
-            "datagen",
-            "render",
-            "--set",
-            "ambiguity",
-            "--n",
-            "1",
-            "--width",
-            "80",
-            "--height",
-            "50",
-            "--spp",
-            "1",
-            "--out",
-            "ds",
-        ],
-        p,
-    );
+    single(&tiny_dataset("ds"), p);
 }
 
 fn train_args(out: &str) -> Vec<&str> {
     [
         &["search", "train"][..],
-        &CHAIN,
+        &TINY_CHAIN,
         &[
             "--steps",
             "2",
@@ -327,7 +261,7 @@ fn search_on_two_and_three_ranks_gives_the_sequential_result() {
     let rea = |run: &'static str| {
         [
             &["search", "rea"][..],
-            &CHAIN,
+            &TINY_CHAIN,
             &[
                 "--run",
                 run,
@@ -472,16 +406,4 @@ fn a_sweep_whose_rank_is_killed_resumes_to_the_same_bytes() {
     );
     ok(mpirun(2, &sweep("killed"), p), "resumed sweep");
     assert_same_tree(&p.join("one"), &p.join("killed"));
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.path().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
 }
