@@ -3,7 +3,7 @@
 use super::bvh::Bvh;
 use super::face::{self, Face, FacePart};
 use super::material::{IrisTexture, Material, MaterialKind, SkinTexture, TEAR_FILM_INDEX};
-use super::prim::{Clip, Shape, T_EPS};
+use super::prim::{Clip, Shape, T_EPS, triangle_hit};
 use super::{Ray, RenderError};
 use crate::states::State;
 use nanoeye_gaze::{Mat3, Pose, Rig, Vec3, geom};
@@ -157,6 +157,10 @@ pub struct Scene {
     pub materials: Vec<Material>,
     /// Hierarchy over `prims`.
     pub bvh: Bvh,
+    /// `prims` in the BVH's leaf order, triangles with their edges precomputed: a leaf's
+    /// primitives are then contiguous in memory and need no second lookup. Built by
+    /// [`Scene::new`]; rebuild the scene after changing `prims`.
+    pub slots: Vec<Slot>,
     /// Illuminator.
     pub light: Light,
     /// Refractive index of the cornea (and the aqueous behind it).
@@ -164,6 +168,23 @@ pub struct Scene {
     /// A sphere (centre, radius; m) that every ray reaching the pupil enters, when known: rays
     /// missing it skip the skin-free re-trace of the unoccluded pupil mask.
     pub pupil_bound: Option<(Vec3, f64)>,
+}
+
+/// A primitive in traversal order (see [`Scene::slots`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Slot {
+    /// First vertex (triangles; unused otherwise).
+    pub v0: Vec3,
+    /// Edge v1 − v0 (triangles).
+    pub e1: Vec3,
+    /// Edge v2 − v0 (triangles).
+    pub e2: Vec3,
+    /// Index into [`Scene::prims`].
+    pub prim: u32,
+    /// Visibility class bit of the primitive.
+    pub layer: u8,
+    /// True for a triangle (else the primitive's own shape is intersected).
+    pub triangle: bool,
 }
 
 /// A ray–scene hit.
@@ -210,10 +231,32 @@ impl Scene {
             });
         }
         let bvh = Bvh::build(&bounds);
+        let slots = bvh
+            .order
+            .iter()
+            .map(|&i| {
+                let p = &prims[i as usize];
+                let (v0, e1, e2, triangle) = match p.shape {
+                    Shape::Triangle { v } => {
+                        (v[0], geom::sub(v[1], v[0]), geom::sub(v[2], v[0]), true)
+                    }
+                    _ => ([0.0; 3], [0.0; 3], [0.0; 3], false),
+                };
+                Slot {
+                    v0,
+                    e1,
+                    e2,
+                    prim: i,
+                    layer: p.layer,
+                    triangle,
+                }
+            })
+            .collect();
         Ok(Scene {
             prims,
             materials,
             bvh,
+            slots,
             light,
             cornea_index,
             pupil_bound: None,
@@ -224,26 +267,31 @@ impl Scene {
     #[inline]
     pub fn closest(&self, ray: &Ray, t_max: f64, mask: u8) -> Option<Hit> {
         self.bvh
-            .closest(ray, t_max, |i, tm| {
-                let p = &self.prims[i as usize];
-                if p.layer & mask == 0 {
-                    return None;
-                }
-                p.shape.intersect(ray, tm)
+            .closest(ray, t_max, |s, tm| self.slot_hit(s, ray, tm, mask))
+            .map(|(s, t)| Hit {
+                t,
+                prim: self.slots[s as usize].prim,
             })
-            .map(|(prim, t)| Hit { t, prim })
     }
 
     /// True when a primitive in `mask` blocks the ray before `t_max`.
     #[inline]
     pub fn occluded(&self, ray: &Ray, t_max: f64, mask: u8) -> bool {
-        self.bvh.any(ray, t_max, |i, tm| {
-            let p = &self.prims[i as usize];
-            if p.layer & mask == 0 {
-                return None;
-            }
-            p.shape.intersect(ray, tm)
-        })
+        self.bvh
+            .any(ray, t_max, |s, tm| self.slot_hit(s, ray, tm, mask))
+    }
+
+    #[inline(always)]
+    fn slot_hit(&self, s: u32, ray: &Ray, t_max: f64, mask: u8) -> Option<f64> {
+        let sl = &self.slots[s as usize];
+        if sl.layer & mask == 0 {
+            return None;
+        }
+        if sl.triangle {
+            triangle_hit(sl.v0, sl.e1, sl.e2, ray, t_max)
+        } else {
+            self.prims[sl.prim as usize].shape.intersect(ray, t_max)
+        }
     }
 
     /// Material of primitive `prim`.
