@@ -161,6 +161,9 @@ pub struct Scene {
     /// primitives are then contiguous in memory and need no second lookup. Built by
     /// [`Scene::new`]; rebuild the scene after changing `prims`.
     pub slots: Vec<Slot>,
+    /// Primitive indices per class bit, and the bits whose list is short enough to scan
+    /// without the BVH (see [`FEW`]).
+    few: ([Vec<u32>; 8], u8),
     /// Illuminator.
     pub light: Light,
     /// Refractive index of the cornea (and the aqueous behind it).
@@ -169,6 +172,11 @@ pub struct Scene {
     /// missing it skip the skin-free re-trace of the unoccluded pupil mask.
     pub pupil_bound: Option<(Vec3, f64)>,
 }
+
+/// A query whose class bits hold at most this many primitives scans them instead of walking
+/// the BVH: the rays inside the eye ask for the four eye parts only, and a BVH walk would cross
+/// every skin and lash node on the way only to reject their primitives.
+pub const FEW: usize = 16;
 
 /// A primitive in traversal order (see [`Scene::slots`]).
 #[derive(Debug, Clone, Copy)]
@@ -252,11 +260,23 @@ impl Scene {
                 }
             })
             .collect();
+        let mut lists: [Vec<u32>; 8] = Default::default();
+        for (i, p) in prims.iter().enumerate() {
+            for (b, l) in lists.iter_mut().enumerate() {
+                if p.layer & (1 << b) != 0 && l.len() <= FEW {
+                    l.push(i as u32);
+                }
+            }
+        }
+        let few_bits = (0..8)
+            .filter(|&b| lists[b].len() <= FEW)
+            .fold(0u8, |m, b| m | (1 << b));
         Ok(Scene {
             prims,
             materials,
             bvh,
             slots,
+            few: (lists, few_bits),
             light,
             cornea_index,
             pupil_bound: None,
@@ -266,6 +286,17 @@ impl Scene {
     /// Nearest hit among primitives whose class bit is in `mask`.
     #[inline]
     pub fn closest(&self, ray: &Ray, t_max: f64, mask: u8) -> Option<Hit> {
+        if self.is_few(mask) {
+            let mut best = None;
+            let mut t_best = t_max;
+            for i in self.few_prims(mask) {
+                if let Some(t) = self.prims[i as usize].shape.intersect(ray, t_best) {
+                    best = Some(Hit { t, prim: i });
+                    t_best = t;
+                }
+            }
+            return best;
+        }
         self.bvh
             .closest(ray, t_max, |s, tm| self.slot_hit(s, ray, tm, mask))
             .map(|(s, t)| Hit {
@@ -277,8 +308,28 @@ impl Scene {
     /// True when a primitive in `mask` blocks the ray before `t_max`.
     #[inline]
     pub fn occluded(&self, ray: &Ray, t_max: f64, mask: u8) -> bool {
+        if self.is_few(mask) {
+            return self
+                .few_prims(mask)
+                .any(|i| self.prims[i as usize].shape.intersect(ray, t_max).is_some());
+        }
         self.bvh
             .any(ray, t_max, |s, tm| self.slot_hit(s, ray, tm, mask))
+    }
+
+    /// True when every class bit of `mask` holds at most [`FEW`] primitives.
+    #[inline]
+    fn is_few(&self, mask: u8) -> bool {
+        mask & !self.few.1 == 0
+    }
+
+    /// The primitives of the classes in `mask` (one with several bits in `mask` repeats,
+    /// which leaves a nearest or any hit unchanged).
+    #[inline]
+    fn few_prims(&self, mask: u8) -> impl Iterator<Item = u32> + '_ {
+        (0..8)
+            .filter(move |b| mask & (1 << b) != 0)
+            .flat_map(|b| self.few.0[b].iter().copied())
     }
 
     #[inline(always)]
