@@ -93,13 +93,18 @@ impl Bvh {
     ) -> Option<(u32, f64)> {
         let mut best: Option<(u32, f64)> = None;
         let mut t_best = t_max;
-        self.walk(ray, &mut t_best, |s, t| {
-            let h = hit(s, t);
-            if let Some(th) = h {
-                best = Some((s, th));
-            }
-            h
-        });
+        self.walk(
+            ray,
+            &mut t_best,
+            #[inline(always)]
+            |s, t| {
+                let h = hit(s, t);
+                if let Some(th) = h {
+                    best = Some((s, th));
+                }
+                h
+            },
+        );
         best
     }
 
@@ -108,18 +113,23 @@ impl Bvh {
     pub fn any(&self, ray: &Ray, t_max: f64, mut hit: impl FnMut(u32, f64) -> Option<f64>) -> bool {
         let mut t = t_max;
         let mut found = false;
-        self.walk(ray, &mut t, |s, tm| {
-            if hit(s, tm).is_some() {
-                found = true;
-                // Every pending node is entered at t ≥ 0 > −1: the traversal ends here.
-                return Some(-1.0);
-            }
-            None
-        });
+        self.walk(
+            ray,
+            &mut t,
+            #[inline(always)]
+            |s, tm| {
+                if hit(s, tm).is_some() {
+                    found = true;
+                    // Every pending node is entered at t ≥ 0 > −1: the traversal ends here.
+                    return Some(-1.0);
+                }
+                None
+            },
+        );
         found
     }
 
-    #[inline]
+    #[inline(always)]
     fn walk(&self, ray: &Ray, t_max: &mut f64, mut hit: impl FnMut(u32, f64) -> Option<f64>) {
         let Some(root) = self.nodes.first() else {
             return;
@@ -131,6 +141,10 @@ impl Bvh {
             for s in first..first + count {
                 if let Some(t) = hit(s, *t_max) {
                     *t_max = t;
+                    // An any-hit query is answered (see Bvh::any).
+                    if t < 0.0 {
+                        break;
+                    }
                 }
             }
         };

@@ -298,7 +298,12 @@ impl Scene {
             return best;
         }
         self.bvh
-            .closest(ray, t_max, |s, tm| self.slot_hit(s, ray, tm, mask))
+            .closest(
+                ray,
+                t_max,
+                #[inline(always)]
+                |s, tm| self.slot_hit(s, ray, tm, mask),
+            )
             .map(|(s, t)| Hit {
                 t,
                 prim: self.slots[s as usize].prim,
@@ -313,8 +318,12 @@ impl Scene {
                 .few_prims(mask)
                 .any(|i| self.prims[i as usize].shape.intersect(ray, t_max).is_some());
         }
-        self.bvh
-            .any(ray, t_max, |s, tm| self.slot_hit(s, ray, tm, mask))
+        self.bvh.any(
+            ray,
+            t_max,
+            #[inline(always)]
+            |s, tm| self.slot_hit(s, ray, tm, mask),
+        )
     }
 
     /// True when every class bit of `mask` holds at most [`FEW`] primitives.
