@@ -524,3 +524,46 @@ fn best_split(
     let (cost, axis, split) = best?;
     (cost < leaf_cost || n > LEAF_MAX).then_some((axis, split))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// The packed boxes must never be smaller than the exact ones: f32_down/f32_up bracket x
+    /// and are the tightest f32 that do.
+    #[test]
+    fn f32_rounding_brackets_tightly() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut xs = vec![0.0, -0.0, 1e-3, -1e-3, 1e-45, -1e-45, 1e-300, 1e300, -1e300];
+        for _ in 0..20_000 {
+            let m: f64 = rng.random_range(-1.0..1.0);
+            xs.push(m * 10f64.powi(rng.random_range(-40..40)));
+        }
+        for x in xs {
+            let (d, u) = (f32_down(x), f32_up(x));
+            assert!((d as f64) <= x && (u as f64) >= x, "{x}: {d} {u}");
+            // Tight: the next f32 outward from the bound would be on the wrong side of x.
+            if d.is_finite() && (d as f64) < x {
+                assert!(next_up(d) as f64 > x, "{x}: {d} not the largest below");
+            }
+            if u.is_finite() && (u as f64) > x {
+                assert!(
+                    ((-next_up(-u)) as f64) < x,
+                    "{x}: {u} not the smallest above"
+                );
+            }
+        }
+    }
+
+    fn next_up(f: f32) -> f32 {
+        if f == 0.0 {
+            f32::from_bits(1)
+        } else if f > 0.0 {
+            f32::from_bits(f.to_bits() + 1)
+        } else {
+            f32::from_bits(f.to_bits() - 1)
+        }
+    }
+}
