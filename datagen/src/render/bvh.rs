@@ -11,7 +11,7 @@ const BINS: usize = 12;
 const LEAF_MAX: usize = 4;
 // Relative cost of a ray–box test against a ray–primitive test in the SAH.
 const TRAVERSAL_COST: f64 = 0.5;
-const STACK: usize = 64;
+const STACK: usize = 32;
 // Below this many primitives a subtree is built on the calling thread: spawning costs more.
 const PAR_MIN: usize = 4096;
 // Parallel split levels: 2 levels give 4 subtrees, enough to balance 2 cores across the
