@@ -214,29 +214,13 @@ impl Shape {
                 let r2 = geom::dot(d, d);
                 (r2 <= r_out_m * r_out_m && r2 >= r_in_m * r_in_m).then_some(t)
             }
-            Shape::Triangle { v } => {
-                // Möller–Trumbore.
-                let e1 = geom::sub(v[1], v[0]);
-                let e2 = geom::sub(v[2], v[0]);
-                let p = geom::cross(ray.dir, e2);
-                let det = geom::dot(e1, p);
-                if det.abs() < 1e-30 {
-                    return None;
-                }
-                let inv = 1.0 / det;
-                let s = geom::sub(ray.origin, v[0]);
-                let u = geom::dot(s, p) * inv;
-                if !(0.0..=1.0).contains(&u) {
-                    return None;
-                }
-                let q = geom::cross(s, e1);
-                let w = geom::dot(ray.dir, q) * inv;
-                if w < 0.0 || u + w > 1.0 {
-                    return None;
-                }
-                let t = geom::dot(e2, q) * inv;
-                (t > T_EPS && t < t_max).then_some(t)
-            }
+            Shape::Triangle { v } => triangle_hit(
+                v[0],
+                geom::sub(v[1], v[0]),
+                geom::sub(v[2], v[0]),
+                ray,
+                t_max,
+            ),
         }
     }
 
@@ -259,6 +243,31 @@ impl Shape {
             Shape::Triangle { v } => geom::scale(geom::add(geom::add(v[0], v[1]), v[2]), 1.0 / 3.0),
         }
     }
+}
+
+/// Möller–Trumbore: hit distance in (T_EPS, t_max) on the triangle (v0, v0 + e1, v0 + e2).
+/// Takes the edges so a scene can store them once (the same f64 values
+/// [`Shape::intersect`] computes, hence the same hits).
+#[inline(always)]
+pub fn triangle_hit(v0: Vec3, e1: Vec3, e2: Vec3, ray: &Ray, t_max: f64) -> Option<f64> {
+    let p = geom::cross(ray.dir, e2);
+    let det = geom::dot(e1, p);
+    if det.abs() < 1e-30 {
+        return None;
+    }
+    let inv = 1.0 / det;
+    let s = geom::sub(ray.origin, v0);
+    let u = geom::dot(s, p) * inv;
+    if !(0.0..=1.0).contains(&u) {
+        return None;
+    }
+    let q = geom::cross(s, e1);
+    let w = geom::dot(ray.dir, q) * inv;
+    if w < 0.0 || u + w > 1.0 {
+        return None;
+    }
+    let t = geom::dot(e2, q) * inv;
+    (t > T_EPS && t < t_max).then_some(t)
 }
 
 /// Two unit vectors that complete unit `n` to a right-handed orthonormal basis (e1, e2, n).

@@ -3,7 +3,7 @@
 use super::bvh::Bvh;
 use super::face::{self, Face, FacePart};
 use super::material::{IrisTexture, Material, MaterialKind, SkinTexture, TEAR_FILM_INDEX};
-use super::prim::{Clip, Shape, T_EPS};
+use super::prim::{Clip, Shape, T_EPS, triangle_hit};
 use super::{Ray, RenderError};
 use crate::states::State;
 use nanoeye_gaze::{Mat3, Pose, Rig, Vec3, geom};
@@ -157,6 +157,13 @@ pub struct Scene {
     pub materials: Vec<Material>,
     /// Hierarchy over `prims`.
     pub bvh: Bvh,
+    /// `prims` in the BVH's leaf order, triangles with their edges precomputed: a leaf's
+    /// primitives are then contiguous in memory and need no second lookup. Built by
+    /// [`Scene::new`]; rebuild the scene after changing `prims`.
+    pub slots: Vec<Slot>,
+    /// Primitive indices per class bit, and the bits whose list is short enough to scan
+    /// without the BVH (see [`FEW`]).
+    few: ([Vec<u32>; 8], u8),
     /// Illuminator.
     pub light: Light,
     /// Refractive index of the cornea (and the aqueous behind it).
@@ -164,6 +171,28 @@ pub struct Scene {
     /// A sphere (centre, radius; m) that every ray reaching the pupil enters, when known: rays
     /// missing it skip the skin-free re-trace of the unoccluded pupil mask.
     pub pupil_bound: Option<(Vec3, f64)>,
+}
+
+/// A query whose class bits hold at most this many primitives scans them instead of walking
+/// the BVH: the rays inside the eye ask for the four eye parts only, and a BVH walk would cross
+/// every skin and lash node on the way only to reject their primitives.
+pub const FEW: usize = 16;
+
+/// A primitive in traversal order (see [`Scene::slots`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Slot {
+    /// First vertex (triangles; unused otherwise).
+    pub v0: Vec3,
+    /// Edge v1 − v0 (triangles).
+    pub e1: Vec3,
+    /// Edge v2 − v0 (triangles).
+    pub e2: Vec3,
+    /// Index into [`Scene::prims`].
+    pub prim: u32,
+    /// Visibility class bit of the primitive.
+    pub layer: u8,
+    /// True for a triangle (else the primitive's own shape is intersected).
+    pub triangle: bool,
 }
 
 /// A ray–scene hit.
@@ -210,10 +239,44 @@ impl Scene {
             });
         }
         let bvh = Bvh::build(&bounds);
+        let slots = bvh
+            .order
+            .iter()
+            .map(|&i| {
+                let p = &prims[i as usize];
+                let (v0, e1, e2, triangle) = match p.shape {
+                    Shape::Triangle { v } => {
+                        (v[0], geom::sub(v[1], v[0]), geom::sub(v[2], v[0]), true)
+                    }
+                    _ => ([0.0; 3], [0.0; 3], [0.0; 3], false),
+                };
+                Slot {
+                    v0,
+                    e1,
+                    e2,
+                    prim: i,
+                    layer: p.layer,
+                    triangle,
+                }
+            })
+            .collect();
+        let mut lists: [Vec<u32>; 8] = Default::default();
+        for (i, p) in prims.iter().enumerate() {
+            for (b, l) in lists.iter_mut().enumerate() {
+                if p.layer & (1 << b) != 0 && l.len() <= FEW {
+                    l.push(i as u32);
+                }
+            }
+        }
+        let few_bits = (0..8)
+            .filter(|&b| lists[b].len() <= FEW)
+            .fold(0u8, |m, b| m | (1 << b));
         Ok(Scene {
             prims,
             materials,
             bvh,
+            slots,
+            few: (lists, few_bits),
             light,
             cornea_index,
             pupil_bound: None,
@@ -223,27 +286,72 @@ impl Scene {
     /// Nearest hit among primitives whose class bit is in `mask`.
     #[inline]
     pub fn closest(&self, ray: &Ray, t_max: f64, mask: u8) -> Option<Hit> {
-        self.bvh
-            .closest(ray, t_max, |i, tm| {
-                let p = &self.prims[i as usize];
-                if p.layer & mask == 0 {
-                    return None;
+        if self.is_few(mask) {
+            let mut best = None;
+            let mut t_best = t_max;
+            for i in self.few_prims(mask) {
+                if let Some(t) = self.prims[i as usize].shape.intersect(ray, t_best) {
+                    best = Some(Hit { t, prim: i });
+                    t_best = t;
                 }
-                p.shape.intersect(ray, tm)
+            }
+            return best;
+        }
+        self.bvh
+            .closest(
+                ray,
+                t_max,
+                #[inline(always)]
+                |s, tm| self.slot_hit(s, ray, tm, mask),
+            )
+            .map(|(s, t)| Hit {
+                t,
+                prim: self.slots[s as usize].prim,
             })
-            .map(|(prim, t)| Hit { t, prim })
     }
 
     /// True when a primitive in `mask` blocks the ray before `t_max`.
     #[inline]
     pub fn occluded(&self, ray: &Ray, t_max: f64, mask: u8) -> bool {
-        self.bvh.any(ray, t_max, |i, tm| {
-            let p = &self.prims[i as usize];
-            if p.layer & mask == 0 {
-                return None;
-            }
-            p.shape.intersect(ray, tm)
-        })
+        if self.is_few(mask) {
+            return self
+                .few_prims(mask)
+                .any(|i| self.prims[i as usize].shape.intersect(ray, t_max).is_some());
+        }
+        self.bvh.any(
+            ray,
+            t_max,
+            #[inline(always)]
+            |s, tm| self.slot_hit(s, ray, tm, mask),
+        )
+    }
+
+    /// True when every class bit of `mask` holds at most [`FEW`] primitives.
+    #[inline]
+    fn is_few(&self, mask: u8) -> bool {
+        mask & !self.few.1 == 0
+    }
+
+    /// The primitives of the classes in `mask` (one with several bits in `mask` repeats,
+    /// which leaves a nearest or any hit unchanged).
+    #[inline]
+    fn few_prims(&self, mask: u8) -> impl Iterator<Item = u32> + '_ {
+        (0..8)
+            .filter(move |b| mask & (1 << b) != 0)
+            .flat_map(|b| self.few.0[b].iter().copied())
+    }
+
+    #[inline(always)]
+    fn slot_hit(&self, s: u32, ray: &Ray, t_max: f64, mask: u8) -> Option<f64> {
+        let sl = &self.slots[s as usize];
+        if sl.layer & mask == 0 {
+            return None;
+        }
+        if sl.triangle {
+            triangle_hit(sl.v0, sl.e1, sl.e2, ray, t_max)
+        } else {
+            self.prims[sl.prim as usize].shape.intersect(ray, t_max)
+        }
     }
 
     /// Material of primitive `prim`.

@@ -213,24 +213,33 @@ pub fn render(
         });
     let plane = |c: usize| Mat::<f32>::from_fn(h, w, |i, j| buf[(i * w + j) * stride + c]);
     let dz = (ls.far_m - ls.near_m) / k as f64;
-    let layers = (0..k)
-        .map(|li| {
-            let alpha = plane(4 + k + li);
-            let empty = (0..w * h).all(|p| buf[p * stride + 4 + k + li] == 0.0);
-            DepthLayer {
-                near_m: ls.near_m + dz * li as f64,
-                far_m: ls.near_m + dz * (li + 1) as f64,
-                radiance: plane(4 + li),
-                alpha,
-                empty,
-            }
-        })
-        .collect();
+    // Gathering a plane reads the interleaved buffer with a stride of `stride` floats; run on
+    // one thread the 4 + 2K gathers took ~3 ms of a 320×200 frame.
+    let (layers, mut main) = rayon::join(
+        || {
+            (0..k)
+                .into_par_iter()
+                .map(|li| {
+                    let alpha = plane(4 + k + li);
+                    let empty = (0..w * h).all(|p| buf[p * stride + 4 + k + li] == 0.0);
+                    DepthLayer {
+                        near_m: ls.near_m + dz * li as f64,
+                        far_m: ls.near_m + dz * (li + 1) as f64,
+                        radiance: plane(4 + li),
+                        alpha,
+                        empty,
+                    }
+                })
+                .collect()
+        },
+        || (0..4).into_par_iter().map(plane).collect::<Vec<_>>(),
+    );
+    let mut next = || main.remove(0);
     Ok(Frame {
-        radiance: plane(0),
-        depth_m: plane(1),
-        mask_visible_pupil: plane(2),
-        mask_pupil: plane(3),
+        radiance: next(),
+        depth_m: next(),
+        mask_visible_pupil: next(),
+        mask_pupil: next(),
         layers: DepthLayers { layers },
     })
 }
