@@ -5,7 +5,17 @@ use nanoeye_nets::act::Act;
 use nanoeye_nets::loss::{dice_loss, hard_dice, slip_mse};
 use nanoeye_nets::norm::{BatchNorm, BnMode};
 use nanoeye_nets::resize::bilinear_forward;
+use nanoeye_nets::{Arch, Inference, Supernet, SupernetConfig};
 use proptest::prelude::*;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// Largest |a − b| over two equally long slices.
+fn maxdiff(a: &[f32], b: &[f32]) -> f32 {
+    a.iter()
+        .zip(b)
+        .fold(0.0f32, |m, (p, q)| m.max((p - q).abs()))
+}
 
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(32))]
@@ -40,6 +50,62 @@ proptest! {
         prop_assert!((0.0..=1.0).contains(&Act::HSigmoid.apply(x)));
         let hs = Act::HSwish.apply(x);
         prop_assert!(hs.is_finite() && hs >= -0.375 && (hs <= x.max(0.0)));
+    }
+
+    /// The compiled batch-1 path computes the supernet's eval-mode function for any input size
+    /// and subnet, down to one-pixel planes (depthwise windows clipped on every side, resizes
+    /// to and from a single pixel), within a few times what a two-ulp input change moves the
+    /// reference (the unit test's tolerance, nets/src/infer.rs).
+    #[test]
+    fn inference_matches_the_supernet_for_any_size_and_subnet(
+        h in 1usize..40,
+        w in 1usize..40,
+        seed in 0u64..1 << 20,
+    ) {
+        let cfg = SupernetConfig { head_expand: 48, head_hidden: 32, ..SupernetConfig::default() };
+        let mut net = Supernet::new(cfg, seed).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let arch = Arch::sample(&mut rng);
+        let mut img = || -> Vec<f32> { (0..h * w).map(|_| rng.random_range(0.0..1.0)).collect() };
+        // Eight images, so that even the 1-pixel planes of the deep stages get BN statistics
+        // from more than a couple of samples (with two, an untrained net's logits reach 1e14
+        // and the comparison measures f32 chaos, not the compiled path).
+        let calib: Vec<f32> = (0..8).flat_map(|_| img()).collect();
+        let calib = Tensor::from_vec(8, 1, h, w, calib).unwrap();
+        net.recalibrate_bn(&arch, &[calib]).unwrap();
+        let x = img();
+        let fwd = |net: &mut Supernet, v: Vec<f32>| {
+            net.forward(&arch, &Tensor::from_vec(1, 1, h, w, v).unwrap(), BnMode::Eval).unwrap()
+        };
+        let want = fwd(&mut net, x.clone());
+        // How far f32 rounding alone moves the reference here: three inputs with every value
+        // changed by ±2 ulp (random signs). Untrained nets with BN statistics from a few pixels
+        // amplify such changes by up to ~10³ through 20 blocks; the compiled path (BN folded,
+        // other summation orders) must stay within a few of them.
+        let (mut near_logits, mut near_slip) = (0.0f32, 0.0f32);
+        for _ in 0..3 {
+            let xp: Vec<f32> = x
+                .iter()
+                .map(|v| v * (1.0 + if rng.random::<bool>() { 1.0 } else { -1.0 } * 2f32.powi(-22)))
+                .collect();
+            let near = fwd(&mut net, xp);
+            near_logits = near_logits.max(maxdiff(&near.mask_logits.data, &want.mask_logits.data));
+            near_slip = near_slip.max(maxdiff(&near.slip.data, &want.slip.data));
+        }
+        let scale = want.mask_logits.data.iter().fold(1.0f32, |m, v| m.max(v.abs()));
+        let slip_scale = want.slip.data.iter().fold(1.0f32, |m, v| m.max(v.abs()));
+        // Where ±2 ulp of input already move an output by more than 0.1 % of its range, the
+        // function is not determined at f32 (a tiny image with BN statistics of a few samples
+        // per channel): no implementation can be compared with another there.
+        prop_assume!(near_logits < 1e-3 * scale && near_slip < 1e-3 * slip_scale);
+        let tol = 1e-6 * scale + 16.0 * near_logits;
+        let slip_tol = 1e-6 * slip_scale + 16.0 * near_slip;
+        let mut inf = Inference::new(&net, &arch, h, w).unwrap();
+        let got = inf.run(&x).unwrap();
+        let err = maxdiff(got.mask_logits, &want.mask_logits.data);
+        prop_assert!(err <= tol, "logits differ by {} (tolerance {}) for {:?}", err, tol, arch);
+        let err = maxdiff(&got.slip, &want.slip.data);
+        prop_assert!(err <= slip_tol, "slip differs by {} (tolerance {})", err, slip_tol);
     }
 
     /// Bilinear resampling is a convex combination: output within the input's range.
