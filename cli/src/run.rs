@@ -14,6 +14,7 @@ use nanoeye_datagen::render::{
     Dataset, DatasetOptions, LayerSpec, RenderSet, SceneSource, write_dataset,
 };
 use nanoeye_gaze::{Rig, SolverKind};
+use nanoeye_nets::Arch;
 use nanoeye_search::{
     CameraChain, ChainConfig, LensSpec, Rea, ReaConfig, ReaState, SolverInput, TrainConfig, Trainer,
 };
@@ -646,6 +647,15 @@ pub fn run(a: RunArgs) -> Result<()> {
             serde_json::to_string(&best.arch)?.as_bytes(),
         )?;
         nanoeye_nets::checkpoint::from_bytes(&mut tr.net, &bytes)?;
+        // The min and max subnets of the same weights with their own exact BN statistics, for
+        // `track --subnet min|max` (the supernet's running statistics are a mixture).
+        for (tag, arch) in [("min", Arch::min()), ("max", Arch::max())] {
+            trn.recalibrate(&arch, 2)?;
+            util::write_atomic(
+                &out.join(format!("runs/{name}/tracker_net_{tag}.bin")),
+                &nanoeye_nets::checkpoint::to_bytes(&mut trn.net)?,
+            )?;
+        }
         let map = tr.phase_map()?;
         let p_hat = tr.pitch_um * 1e-6;
         // One pass of the chain and the network per lens; for the learned lens the same pass

@@ -65,10 +65,18 @@ fn load(a: &TrackArgs) -> Result<Model> {
     let tuned = a.model.join("tracker_net.bin");
     let tuned_arch = a.model.join("tracker_arch.json");
     let have_tuned = tuned.exists() && tuned_arch.exists();
-    if have_tuned && a.subnet == "best" {
-        let b = std::fs::read(&tuned).with_context(|| format!("--model {}", tuned.display()))?;
+    // ... and the min and max subnets of the same weights with their own statistics.
+    let recalibrated = match a.subnet.as_str() {
+        "best" if have_tuned => Some(tuned.clone()),
+        "min" | "max" => {
+            Some(a.model.join(format!("tracker_net_{}.bin", a.subnet))).filter(|p| p.exists())
+        }
+        _ => None,
+    };
+    if let Some(p) = &recalibrated {
+        let b = std::fs::read(p).with_context(|| format!("--model {}", p.display()))?;
         nanoeye_nets::checkpoint::from_bytes(&mut net, &b)
-            .with_context(|| format!("--model {}", tuned.display()))?;
+            .with_context(|| format!("--model {}", p.display()))?;
     }
     let rig_text = std::fs::read_to_string(a.model.join("rig.json")).with_context(|| {
         format!(
@@ -105,13 +113,13 @@ fn load(a: &TrackArgs) -> Result<Model> {
             a
         }
     };
-    if !(have_tuned && a.subnet == "best") {
+    if recalibrated.is_none() {
         // Supernet BN statistics are a running mixture over every subnet trained; only
-        // `nanoeye run`'s tracker_net.bin holds statistics recalibrated for one subnet (B.6).
+        // `nanoeye run`'s tracker_net*.bin hold statistics recalibrated for one subnet (B.6).
         eprintln!(
             "warning: --subnet {}: batch norms use the training run's running statistics, not \
-             ones recalibrated for this subnet (only --subnet best of a `nanoeye run` output is \
-             recalibrated); expect larger errors than the run's reports",
+             ones recalibrated for this subnet (only best, min and max of a `nanoeye run` output \
+             are recalibrated); expect larger errors than the run's reports",
             a.subnet
         );
     }

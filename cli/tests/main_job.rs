@@ -143,22 +143,25 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         .map(|l| serde_json::from_str(l).unwrap())
         .collect();
     assert_eq!(lines.len(), 4, "3 frames and one error line");
-    // The run's subnet carries BN statistics recalibrated for it; another subnet does not,
-    // and the tracker says so (it still tracks).
+    // The run's subnet, and the min and max subnets, carry BN statistics recalibrated for
+    // them; any other subnet does not, and the tracker says so (it still tracks).
     assert!(!String::from_utf8_lossy(&o.stderr).contains("warning"));
-    let o_min = Command::new(bin)
-        .args(["track", "--subnet", "min", "--model"])
-        .arg(out.join("runs/learned"))
-        .arg("--frames")
-        .arg(&frames)
-        .output()
-        .unwrap();
-    assert!(o_min.status.success());
-    let err = String::from_utf8_lossy(&o_min.stderr);
-    assert!(
-        err.contains("--subnet min") && err.contains("recalibrated"),
-        "{err}"
-    );
+    let arch_file = d.path().join("arch.json");
+    std::fs::copy(out.join("runs/learned/tracker_arch.json"), &arch_file).unwrap();
+    let file_subnet = format!("file:{}", arch_file.display());
+    for subnet in ["min", "max", file_subnet.as_str()] {
+        let o = Command::new(bin)
+            .args(["track", "--subnet", subnet, "--model"])
+            .arg(out.join("runs/learned"))
+            .arg("--frames")
+            .arg(&frames)
+            .output()
+            .unwrap();
+        assert!(o.status.success());
+        let err = String::from_utf8_lossy(&o.stderr);
+        let warned = err.contains(&format!("--subnet {subnet}")) && err.contains("recalibrated");
+        assert_eq!(warned, subnet.starts_with("file:"), "{subnet}: {err}");
+    }
     // Each frame gives a unit gaze vector, or (a barely trained network may find no pupil)
     // a per-frame error line; never a crash.
     for l in &lines[..3] {
