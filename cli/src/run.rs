@@ -638,7 +638,9 @@ pub fn run(a: RunArgs) -> Result<()> {
         let mut tr = Trainer::from_checkpoint(&proto_chain, &proto, &ck)?;
         // BN statistics from the training set's chain, then the protocol frames.
         let mut trn = Trainer::from_checkpoint(&chain, &train, &ck)?;
-        trn.recalibrate(&best.arch, 2)?;
+        // One set of training batches serves the selected, min and max subnets.
+        let recal = trn.recalibration_inputs(2)?;
+        trn.net.recalibrate_bn(&best.arch, &recal)?;
         let bytes = nanoeye_nets::checkpoint::to_bytes(&mut trn.net)?;
         // The tracker's model: the selected subnet with its exact BN statistics.
         util::write_atomic(&out.join(format!("runs/{name}/tracker_net.bin")), &bytes)?;
@@ -650,7 +652,7 @@ pub fn run(a: RunArgs) -> Result<()> {
         // The min and max subnets of the same weights with their own exact BN statistics, for
         // `track --subnet min|max` (the supernet's running statistics are a mixture).
         for (tag, arch) in [("min", Arch::min()), ("max", Arch::max())] {
-            trn.recalibrate(&arch, 2)?;
+            trn.net.recalibrate_bn(&arch, &recal)?;
             util::write_atomic(
                 &out.join(format!("runs/{name}/tracker_net_{tag}.bin")),
                 &nanoeye_nets::checkpoint::to_bytes(&mut trn.net)?,

@@ -429,6 +429,15 @@ impl<'a> Trainer<'a> {
     /// Recomputes BN statistics of `arch` exactly over `batches` training batches at the
     /// current φ and p̂ (before any evaluation).
     pub fn recalibrate(&mut self, arch: &Arch, batches: usize) -> Result<()> {
+        let recal = self.recalibration_inputs(batches)?;
+        self.net.recalibrate_bn(arch, &recal)?;
+        Ok(())
+    }
+
+    /// The network inputs of `batches` training batches at the current φ and p̂ that
+    /// [`Self::recalibrate`] computes BN statistics over: compute them once to recalibrate
+    /// several subnets (`net.recalibrate_bn(arch, &inputs)`).
+    pub fn recalibration_inputs(&self, batches: usize) -> Result<Vec<Tensor>> {
         let map = self.phase_map()?;
         let p_hat = self.pitch_um * 1e-6;
         let mut recal = Vec::new();
@@ -444,8 +453,7 @@ impl<'a> Trainer<'a> {
             )?;
             recal.push(fwd.input);
         }
-        self.net.recalibrate_bn(arch, &recal)?;
-        Ok(())
+        Ok(recal)
     }
 
     /// Validation of subnet `arch` on `val` (all frames, in batches of the training batch
