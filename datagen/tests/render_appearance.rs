@@ -117,7 +117,9 @@ fn corneal_glint_lies_where_the_law_of_reflection_puts_the_led() {
         let (got, max) = blob(&f, want, 4);
         eprintln!("({az}, {el}): cornea glint {got:?} vs {want:?}, {max} vs median {diffuse}");
         assert!(
-            max > 30.0 * diffuse,
+            // 10×: the median is lit skin now that the face fills the frame (it was 30× while
+            // about half the frame was empty background at zero radiance).
+            max > 10.0 * diffuse,
             "({az}, {el}): no glint near {want:?}: {max} vs median {diffuse}"
         );
         let err = geom::norm([got[0] - want[0], got[1] - want[1], 0.0]);

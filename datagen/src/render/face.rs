@@ -172,10 +172,9 @@ fn smoothstep(x: f64) -> f64 {
     x * x * (3.0 - 2.0 * x)
 }
 
-/// Skin thickness (m) over the eye's surface at angular position (a, e), `d` rad outside the
-/// margin, fissure-polar angle `theta`: lid skin thickening away from the margin, the upper
-/// lid's crease, and (away from the lids) brow, cheek, nose side and the rest of the face.
-fn thickness(s: &Subject, a: f64, e: f64, d: f64, theta: f64) -> f64 {
+/// Skin thickness (m) over the eye's surface `d` rad outside the margin at fissure-polar angle
+/// `theta`: 0.8 mm at the margin growing to 2 mm, minus the upper lid's crease.
+fn lid_thickness(s: &Subject, d: f64, theta: f64) -> f64 {
     let lid = LID_MARGIN_THICKNESS_M + (2.0e-3 - LID_MARGIN_THICKNESS_M) * smoothstep(d / 0.35);
     let upper = smoothstep((theta.sin() - 0.3) / 0.4);
     let crease = if s.crease_rad > 0.0 {
@@ -183,13 +182,67 @@ fn thickness(s: &Subject, a: f64, e: f64, d: f64, theta: f64) -> f64 {
     } else {
         0.0
     };
-    // Face relief starts only away from the lids, which hug the globe.
-    let away = smoothstep((d - 0.1) / 0.25);
-    let brow = s.brow_m * smoothstep((e - 0.6) / 0.35);
-    let cheek = s.cheek_m * smoothstep((-e - 0.7) / 0.4);
-    let nose = s.nose_m * smoothstep((a - 1.2) / 0.5);
-    let far = 25e-3 * smoothstep((d - 0.9) / 0.6);
-    lid - crease + away * (brow + cheek + nose + far)
+    lid - crease
+}
+
+/// A smooth bump of height 1 at 0 falling to 0 at |u| = 1 (C¹, cheap: no `exp`).
+#[inline]
+fn bump(u: f64) -> f64 {
+    let v = 1.0 - u * u;
+    if v > 0.0 { v * v } else { 0.0 }
+}
+
+/// Depth (m, eye frame z) of the face surface's base plane, through the orbital rims: 6 mm in
+/// front of the rotation centre, about 7 mm behind the corneal apex (a modelling choice; the
+/// lateral rim lies ≈ 16 mm behind the apex, Hertel exophthalmometry, reached through the
+/// temple term below).
+pub const FACE_BASE_Z_M: f64 = 6e-3;
+
+/// Depth z (m) of the face surface in front of the eye at (x, y) (m, eye frame at primary gaze;
+/// +x nasal): a base plane with the subject's brow ridge above, cheek below, the side of the
+/// nose nasally, and the temple falling back laterally. Far from the fissure the skin lies on
+/// it; near the fissure the lids hug the globe (docs/renderer.md).
+pub fn face_z(s: &Subject, x: f64, y: f64) -> f64 {
+    let mm = 1e-3;
+    // The brow ridge rises 8–20 mm above the eye's centre; the forehead recedes above it.
+    let brow = smoothstep((y - 8.0 * mm) / (12.0 * mm))
+        * (1.0 - 0.4 * smoothstep((y - 30.0 * mm) / (30.0 * mm)));
+    // The cheek's prominence lies below and slightly lateral of the eye.
+    let cheek = bump((y + 24.0 * mm) / (18.0 * mm)) * bump((x + 4.0 * mm) / (30.0 * mm));
+    // The side of the nose rises from 8 mm nasal of the eye's centre to the dorsum at the
+    // midline (≈ 32 mm), stronger below the brow.
+    let nose = 1.5
+        * smoothstep((x - 8.0 * mm) / (24.0 * mm))
+        * (1.0 - 0.5 * smoothstep((y - 10.0 * mm) / (20.0 * mm)));
+    let lateral = (-x - 8.0 * mm).max(0.0);
+    let temple = lateral * lateral / (2.0 * 20.0 * mm);
+    // Past the dorsum the other side of the nose falls away, so that directions nasal of the
+    // nose still meet skin (the far side, facing away from the light).
+    let beyond = (x - 32.0 * mm).max(0.0);
+    let far_side = beyond * beyond / (2.0 * 10.0 * mm);
+    FACE_BASE_Z_M + s.brow_m * brow + s.cheek_m * cheek + s.nose_m * nose - temple - far_side
+}
+
+/// Smooth maximum of `a` and `b`, rounding the corner over a width ≈ `k`.
+#[inline]
+fn smax(a: f64, b: f64, k: f64) -> f64 {
+    0.5 * (a + b + ((a - b) * (a - b) + k * k).sqrt())
+}
+
+/// Skin thickness (m) over the globe where the face surface does not lie in front of it.
+pub const ORBIT_SKIN_M: f64 = 2e-3;
+
+/// Depth z (m) of the skin at (x, y) away from the lids: the face surface [`face_z`], or the
+/// skin over the globe (eyeball radius `r_eye` plus [`ORBIT_SKIN_M`]) where that lies in front,
+/// joined smoothly.
+fn skin_z(s: &Subject, r_eye: f64, x: f64, y: f64) -> f64 {
+    let r = r_eye + ORBIT_SKIN_M;
+    let q = r * r - x * x - y * y;
+    let face = face_z(s, x, y);
+    if q <= 0.0 {
+        return face;
+    }
+    smax(face, q.sqrt(), 2e-3)
 }
 
 /// The posed face: triangles with their part, and the posed fissure.
@@ -198,6 +251,10 @@ pub struct Face {
     /// Triangles (m, world), vertices rounded to f32 so an exported mesh reproduces them
     /// exactly.
     pub triangles: Vec<([Vec3; 3], FacePart)>,
+    /// Per triangle, the surface normals at its three vertices for smooth shading (unit, not
+    /// oriented): the skin's, averaged over the skin triangles around each vertex; `None` for
+    /// the lid margin's strip (a crisp edge) and the lashes.
+    pub shading: Vec<Option<[Vec3; 3]>>,
     /// The caruncle: (centre, radius) in m.
     pub caruncle: (Vec3, f64),
     /// The fissure the lids form in this state.
@@ -209,43 +266,75 @@ fn f32_round(p: Vec3) -> Vec3 {
     p.map(|x| x as f32 as f64)
 }
 
-/// Outer edge of the mesh in fissure-polar terms (rad): far enough that the rig's wide field
-/// of view meets skin in every direction that does not look through the fissure.
-const OUTER_AZ: f64 = 1.75;
-const OUTER_EL: f64 = 1.35;
+/// Angular width (rad) of the lid band beyond the upper and lower margins (a quarter of it at
+/// the canthi): the skin there lies on the globe (and on the cornea where it bulges under the
+/// lids); beyond it the face surface takes over.
+pub const LID_BAND_RAD: f64 = 0.4;
+/// Of the [`ROWS`] rows outward, those across the lid band; the rest cross the face.
+pub const LID_ROWS: usize = 20;
+/// Outer edge of the mesh: half extents (m) in x towards the nose and the temple, and in y,
+/// about the fissure's centre, far enough that the rig's wide field of view meets skin in
+/// every direction that does not look through the fissure.
+const OUTER_X_MEDIAL_M: f64 = 0.06;
+const OUTER_X_LATERAL_M: f64 = 0.07;
+const OUTER_Y_M: f64 = 0.06;
+/// Fraction of the face rows over which the skin blends from the lid band onto the face.
+const FACE_BLEND: f64 = 0.3;
 
 /// Builds the face of `subject` in `state` around the eye `geo` gazing along `g`.
 pub fn face(geo: &EyeGeometry, subject: &Subject, state: &State, g: Vec3) -> Face {
     let f = Fissure::posed(subject, state);
     let n = RING_SAMPLES;
     let rows = ROWS + 2;
+    let face_rows = ROWS - LID_ROWS;
     let mut verts = vec![[0.0; 3]; n * rows];
-    let mut margin_dirs = vec![[0.0; 3]; n];
+    let c = direction(f.center_az, f.center_el);
+    let (cx, cy) = (c[0] * geo.eyeball_radius_m, c[1] * geo.eyeball_radius_m);
     for i in 0..n {
         let theta = TAU * i as f64 / n as f64;
         let rho_m = f.margin_radius(theta);
         let (am, em) = f.at(theta, rho_m);
-        let (st, ct) = theta.sin_cos();
-        let (ao, eo) = (
-            f.center_az + OUTER_AZ * ct,
-            (f.center_el + OUTER_EL * st).clamp(-1.4, 1.4),
-        );
         let w = direction(am, em);
-        margin_dirs[i] = w;
         let r_eye = eye_radius(geo, g, w);
         verts[i] = geom::scale(w, r_eye + LID_GAP_M);
         verts[n + i] = geom::scale(w, r_eye + LID_MARGIN_THICKNESS_M);
-        let span = ((ao - am).powi(2) + (eo - em).powi(2)).sqrt();
-        for j in 1..=ROWS {
-            let t = (j as f64 / ROWS as f64).powi(2);
-            let (a, e) = (am + t * (ao - am), em + t * (eo - em));
+        // The lid band: radial from the rotation centre, on the eye's surface plus the lid;
+        // narrower towards the canthi, where the globe curves away behind the face.
+        let band = LID_BAND_RAD * (0.25 + 0.75 * theta.sin().powi(2));
+        for j in 1..=LID_ROWS {
+            let d = band * (j as f64 / LID_ROWS as f64).powi(2);
+            let (a, e) = f.at(theta, rho_m + d);
             let w = direction(a, e);
-            let r = eye_radius(geo, g, w) + thickness(subject, a, e, t * span, theta);
+            let r = eye_radius(geo, g, w) + lid_thickness(subject, d, theta);
             verts[(j + 1) * n + i] = geom::scale(w, r);
+        }
+        // The face: a height field z(x, y) laid out from the band's edge straight out to a
+        // squarish boundary about the fissure's centre. A height field samples the side of the
+        // nose and the temple evenly, where rays from the rotation centre would graze them.
+        let p0 = verts[(LID_ROWS + 1) * n + i];
+        let (st, ct) = (theta - f.tilt).sin_cos();
+        let k = (ct.powi(4) + st.powi(4)).powf(-0.25);
+        let half_x = if ct >= 0.0 {
+            OUTER_X_MEDIAL_M
+        } else {
+            OUTER_X_LATERAL_M
+        };
+        let (bx, by) = (cx + k * half_x * ct, cy + k * OUTER_Y_M * st);
+        let dz0 = p0[2] - skin_z(subject, geo.eyeball_radius_m, p0[0], p0[1]);
+        for j in 1..=face_rows {
+            let u = j as f64 / face_rows as f64;
+            // Rows denser near the lids, where the surface bends most.
+            let t = u.powf(1.5);
+            let (x, y) = (p0[0] + t * (bx - p0[0]), p0[1] + t * (by - p0[1]));
+            let z = skin_z(subject, geo.eyeball_radius_m, x, y)
+                + dz0 * (1.0 - smoothstep(u / FACE_BLEND));
+            verts[(LID_ROWS + 1 + j) * n + i] = [x, y, z];
         }
     }
     let verts: Vec<Vec3> = verts.into_iter().map(f32_round).collect();
     let mut triangles = Vec::with_capacity(2 * n * (rows - 1) + lash_capacity(subject));
+    // Corner indices of each grid triangle, for the vertex normals below.
+    let mut corners = Vec::with_capacity(2 * n * (rows - 1));
     for j in 0..rows - 1 {
         let part = if j == 0 {
             FacePart::Margin
@@ -254,13 +343,36 @@ pub fn face(geo: &EyeGeometry, subject: &Subject, state: &State, g: Vec3) -> Fac
         };
         for i in 0..n {
             let i1 = (i + 1) % n;
-            let (a, b) = (verts[j * n + i], verts[j * n + i1]);
-            let (c, d) = (verts[(j + 1) * n + i], verts[(j + 1) * n + i1]);
-            triangles.push(([a, b, d], part));
-            triangles.push(([a, d, c], part));
+            let (ia, ib) = (j * n + i, j * n + i1);
+            let (ic, id) = ((j + 1) * n + i, (j + 1) * n + i1);
+            for tri in [[ia, ib, id], [ia, id, ic]] {
+                triangles.push((tri.map(|k| verts[k]), part));
+                corners.push(tri);
+            }
         }
     }
+    // Area-weighted vertex normals of the skin: with the face surface tens of millimetres from
+    // the eye, flat facets 1–2 mm wide would show as streaks under the near light.
+    let mut vn = vec![[0.0; 3]; verts.len()];
+    for (tri, (v, part)) in corners.iter().zip(&triangles) {
+        if *part == FacePart::Skin {
+            let c = geom::cross(geom::sub(v[1], v[0]), geom::sub(v[2], v[0]));
+            for &k in tri {
+                vn[k] = geom::add(vn[k], c);
+            }
+        }
+    }
+    let mut shading: Vec<Option<[Vec3; 3]>> = corners
+        .iter()
+        .zip(&triangles)
+        .map(|(tri, (_, part))| {
+            let ns = tri.map(|k| vn[k]);
+            (*part == FacePart::Skin && ns.iter().all(|n| geom::norm(*n) > 0.0))
+                .then(|| ns.map(geom::normalize))
+        })
+        .collect();
     lashes(geo, subject, &f, g, &mut triangles);
+    shading.resize(triangles.len(), None);
     // The caruncle sits in the medial canthus on the globe; an epicanthic fold hides part of it.
     let (ac, ec) = f.at(0.0, 0.85 * f.medial);
     let wc = direction(ac, ec);
@@ -270,6 +382,7 @@ pub fn face(geo: &EyeGeometry, subject: &Subject, state: &State, g: Vec3) -> Fac
     );
     Face {
         triangles,
+        shading,
         caruncle,
         fissure: f,
     }

@@ -171,6 +171,9 @@ pub struct Scene {
     /// A sphere (centre, radius; m) that every ray reaching the pupil enters, when known: rays
     /// missing it skip the skin-free re-trace of the unoccluded pupil mask.
     pub pupil_bound: Option<(Vec3, f64)>,
+    /// Vertex normals for smooth shading, indexed like `prims` (empty: every primitive shades
+    /// with its geometric normal). Only triangles use them.
+    pub shading: Vec<Option<[Vec3; 3]>>,
 }
 
 /// A query whose class bits hold at most this many primitives scans them instead of walking
@@ -280,6 +283,7 @@ impl Scene {
             light,
             cornea_index,
             pupil_bound: None,
+            shading: Vec::new(),
         })
     }
 
@@ -358,6 +362,37 @@ impl Scene {
     #[inline]
     pub fn material(&self, prim: u32) -> &Material {
         &self.materials[self.prims[prim as usize].material as usize]
+    }
+
+    /// Smooth-shading normal at point `p` on primitive `prim` (unit, not oriented): the vertex
+    /// normals interpolated barycentrically, or `None` where the primitive has none.
+    #[inline]
+    pub fn shading_normal(&self, prim: u32, p: Vec3) -> Option<Vec3> {
+        let ns = (*self.shading.get(prim as usize)?)?;
+        let Shape::Triangle { v } = self.prims[prim as usize].shape else {
+            return None;
+        };
+        let (e1, e2, d) = (
+            geom::sub(v[1], v[0]),
+            geom::sub(v[2], v[0]),
+            geom::sub(p, v[0]),
+        );
+        let (d00, d01, d11) = (geom::dot(e1, e1), geom::dot(e1, e2), geom::dot(e2, e2));
+        let (d20, d21) = (geom::dot(d, e1), geom::dot(d, e2));
+        let den = d00 * d11 - d01 * d01;
+        // A degenerate (zero-area) or NaN triangle has no barycentric coordinates.
+        if den.is_nan() || den <= 0.0 {
+            return None;
+        }
+        let b1 = ((d11 * d20 - d01 * d21) / den).clamp(0.0, 1.0);
+        let b2 = ((d00 * d21 - d01 * d20) / den).clamp(0.0, 1.0 - b1);
+        let b0 = 1.0 - b1 - b2;
+        let n = geom::add(
+            geom::add(geom::scale(ns[0], b0), geom::scale(ns[1], b1)),
+            geom::scale(ns[2], b2),
+        );
+        let len = geom::norm(n);
+        (len > 0.0).then(|| geom::scale(n, 1.0 / len))
     }
 
     /// Distance (m) at which `ray` meets the emitter sphere, if it does before `t_max`.
@@ -732,6 +767,9 @@ pub struct ProceduralParts {
     pub eye_rest: Vec<Prim>,
     /// Face parts (skin, lid margins, lashes, caruncle) posed for the state (m).
     pub face: Vec<Prim>,
+    /// Smooth-shading vertex normals of the face parts, indexed like `face` (see
+    /// [`Scene::shading`]).
+    pub face_shading: Vec<Option<[Vec3; 3]>>,
     /// Materials, indexed by `Prim::material`; names in [`MATERIAL_NAMES`].
     pub materials: Vec<Material>,
     /// The eye's rotation in the state.
@@ -902,6 +940,7 @@ pub fn procedural_parts(
     ];
     let Face {
         triangles,
+        mut shading,
         caruncle,
         fissure,
     } = face::face(&g, subject, state, gz);
@@ -927,10 +966,12 @@ pub fn procedural_parts(
             material: M_CARUNCLE,
             layer: LAYER_SKIN,
         });
+        shading.push(None);
     }
     Ok(ProceduralParts {
         eye_rest,
         face: face_prims,
+        face_shading: shading,
         materials,
         rotation: r,
         fissure,
@@ -949,6 +990,10 @@ pub fn procedural_scene(
 ) -> Result<Scene, RenderError> {
     let parts = procedural_parts(rig, state, subject)?;
     let (r, g) = (parts.rotation, parts.geometry);
+    let shading = vec![None; parts.eye_rest.len()]
+        .into_iter()
+        .chain(parts.face_shading)
+        .collect();
     let prims = parts
         .eye_rest
         .iter()
@@ -959,6 +1004,7 @@ pub fn procedural_scene(
         .chain(parts.face)
         .collect();
     let mut scene = Scene::new(prims, parts.materials, light, subject.cornea_index)?;
+    scene.shading = shading;
     // The pupil disc lies inside the cornea's sphere (its rim, the limbus, is on it), so a ray
     // that misses the sphere cannot reach the pupil.
     let gz = [r[0][2], r[1][2], r[2][2]];

@@ -362,12 +362,19 @@ fn diffuse(scene: &Scene, ray: &Ray, hit: &Hit, rng: &mut Rng64) -> f64 {
     if geom::dot(n, ray.dir) > 0.0 {
         n = geom::scale(n, -1.0);
     }
+    // Shading uses the smooth normal on the geometric side; offsets and the test for light
+    // below the surface keep the geometric one, so smoothing never lets light through a facet.
+    let ns = match scene.shading_normal(hit.prim, p) {
+        Some(s) if geom::dot(s, n) < 0.0 => geom::scale(s, -1.0),
+        Some(s) => s,
+        None => n,
+    };
     let (f, glint) = if m.coat_index > 0.0 {
-        coat_glint(scene, ray, p, n, m.coat_index)
+        coat_glint(scene, ray, p, ns, m.coat_index)
     } else {
         (0.0, 0.0)
     };
-    (1.0 - f) * lambert(scene, m.albedo_at(p), p, n, rng) + glint
+    (1.0 - f) * lambert(scene, m.albedo_at(p), p, n, ns, rng) + glint
 }
 
 /// Fresnel reflectance of a wet coat of index `index` seen along `ray` at `p` (normal `n`
@@ -386,9 +393,10 @@ fn coat_glint(scene: &Scene, ray: &Ray, p: Vec3, n: Vec3, index: f64) -> (f64, f
     (f, glint)
 }
 
-/// Lambertian radiance (albedo `albedo`) at `p` with normal `n` facing the viewer.
+/// Lambertian radiance (albedo `albedo`) at `p` with geometric normal `n` and shading normal
+/// `ns` facing the viewer.
 #[inline]
-fn lambert(scene: &Scene, albedo: f64, p: Vec3, n: Vec3, rng: &mut Rng64) -> f64 {
+fn lambert(scene: &Scene, albedo: f64, p: Vec3, n: Vec3, ns: Vec3, rng: &mut Rng64) -> f64 {
     let light = &scene.light;
     let to_c = geom::sub(light.position_m, p);
     let dist_c = geom::norm(to_c);
@@ -409,8 +417,8 @@ fn lambert(scene: &Scene, albedo: f64, p: Vec3, n: Vec3, rng: &mut Rng64) -> f64
     let l = geom::sub(q, p);
     let dist = geom::norm(l);
     let l = geom::scale(l, 1.0 / dist);
-    let cos = geom::dot(n, l);
-    if cos <= 0.0 {
+    let cos = geom::dot(ns, l);
+    if cos <= 0.0 || geom::dot(n, l) <= 0.0 {
         return 0.0;
     }
     let shadow = Ray::new(geom::add(p, geom::scale(n, OFFSET_M)), l);
