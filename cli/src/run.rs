@@ -142,7 +142,7 @@ impl Default for RunConfig {
             lr_net: 4e-3,
             lr_phase_rad: 2e-2,
             lr_pitch_um: 5e-2,
-            lambda_slip: 0.1,
+            lambda_slip: 0.3,
             pitch_init_um: 14.0,
             pitch_range_um: [12.0, 24.0],
             rea_cycles: 4,
