@@ -348,7 +348,8 @@ mod stress {
         #![proptest_config(ProptestConfig::with_cases(24))]
 
         /// Extreme but legal subjects and states (gaze to ±60°, full closure, the subject
-        /// ranges' ends, any seed) give a finite face whose margin stays on or outside the eye.
+        /// ranges' ends, any seed) give a finite face whose margin stays on or outside the eye,
+        /// with finite unit shading normals.
         #[test]
         fn face_is_finite_for_extreme_legal_inputs(
             seed in any::<u64>(),
@@ -358,12 +359,19 @@ mod stress {
             exponent in 1.2f64..4.0,
             upper in 0.05f64..0.8,
             lower in 0.05f64..0.8,
+            brow in 0.0f64..=20e-3,
+            cheek in 0.0f64..=10e-3,
+            nose in 0.0f64..=25e-3,
         ) {
             let rig = Rig::default();
+            // The relief fields over their whole validated ranges, not only the sampled ones.
             let subject = Subject {
                 fissure_exponent: exponent,
                 fissure_upper_rad: upper,
                 fissure_lower_rad: lower,
+                brow_m: brow,
+                cheek_m: cheek,
+                nose_m: nose,
                 ..Subject::from_seed(seed)
             };
             let st = state(az, el, closure);
@@ -377,6 +385,12 @@ mod stress {
                         prop_assert!(geom::norm(q) >= geo.eyeball_radius_m * (1.0 - 1e-6));
                     }
                 }
+            }
+            // Smooth-shading normals: one per skin triangle corner, finite and unit length.
+            prop_assert_eq!(parts.face_shading.len(), parts.face.len());
+            for ns in parts.face_shading.iter().flatten().flatten() {
+                prop_assert!(geom::is_finite(*ns), "{ns:?}");
+                prop_assert!((geom::norm(*ns) - 1.0).abs() < 1e-9, "{ns:?}");
             }
             let f = &parts.fissure;
             for k in 0..64 {
