@@ -398,5 +398,63 @@ mod stress {
                 prop_assert!(r.is_finite() && r >= 0.0, "margin radius {r}");
             }
         }
+
+        /// The interpolated normal is unit length and lies in the cone of the vertex normals at
+        /// any point, inside the triangle or off it (clamped barycentrics); a zero-area
+        /// triangle or a non-finite point gives none, never NaN.
+        #[test]
+        fn shading_normal_is_unit_inside_the_vertex_cone_or_none(
+            v in prop::array::uniform3(prop::array::uniform3(-1e-2f64..1e-2)),
+            n in prop::array::uniform3(prop::array::uniform2(-0.5f64..0.5)),
+            w in prop::array::uniform3(-0.5f64..1.5),
+            degenerate in any::<bool>(),
+            nan_point in any::<bool>(),
+        ) {
+            // Vertex normals within 35° of +z, so within 70° of each other, as on a smooth
+            // skin: every pair has a positive dot product.
+            let ns = n.map(|[x, y]| geom::normalize([x, y, 1.0]));
+            let mut v = v;
+            if degenerate {
+                v[2] = geom::add(v[0], geom::scale(geom::sub(v[1], v[0]), 0.5));
+            }
+            let prim = Prim {
+                shape: Shape::Triangle { v },
+                material: 0,
+                layer: LAYER_SKIN,
+            };
+            let mut scene = Scene::new(
+                vec![prim],
+                vec![nanoeye_datagen::render::Material::lambertian(
+                    nanoeye_datagen::render::MaterialKind::Skin,
+                    0.5,
+                )],
+                Light::isotropic([0.0, 0.0, 0.05], 0.5e-3, 1e-3),
+                1.376,
+            )
+            .unwrap();
+            scene.shading = vec![Some(ns)];
+            let p = if nan_point {
+                [f64::NAN, 0.0, 0.0]
+            } else {
+                geom::add(
+                    geom::add(geom::scale(v[0], w[0]), geom::scale(v[1], w[1])),
+                    geom::scale(v[2], 1.0 - w[0] - w[1]),
+                )
+            };
+            let area2 = geom::norm(geom::cross(geom::sub(v[1], v[0]), geom::sub(v[2], v[0])));
+            match scene.shading_normal(0, p) {
+                Some(s) => {
+                    // A collinear triangle may keep a rounding-level area: then any unit
+                    // answer in the cone is right.
+                    prop_assert!(!nan_point, "{s:?} for a NaN point");
+                    prop_assert!((geom::norm(s) - 1.0).abs() < 1e-12, "{s:?}");
+                    // A convex combination of the vertex normals, renormalised: it faces the
+                    // same way as their sum.
+                    let sum = geom::add(geom::add(ns[0], ns[1]), ns[2]);
+                    prop_assert!(geom::dot(s, sum) > 0.0);
+                }
+                None => prop_assert!(nan_point || degenerate || area2 < 1e-14, "none for {v:?}"),
+            }
+        }
     }
 }

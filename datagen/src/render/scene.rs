@@ -384,8 +384,13 @@ impl Scene {
         if den.is_nan() || den <= 0.0 {
             return None;
         }
-        let b1 = ((d11 * d20 - d01 * d21) / den).clamp(0.0, 1.0);
-        let b2 = ((d00 * d21 - d01 * d20) / den).clamp(0.0, 1.0 - b1);
+        let (b1, b2) = ((d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den);
+        // A non-finite point has no barycentrics (and `clamp` panics on a NaN bound).
+        if !(b1.is_finite() && b2.is_finite()) {
+            return None;
+        }
+        let b1 = b1.clamp(0.0, 1.0);
+        let b2 = b2.clamp(0.0, 1.0 - b1);
         let b0 = 1.0 - b1 - b2;
         let n = geom::add(
             geom::add(geom::scale(ns[0], b0), geom::scale(ns[1], b1)),
