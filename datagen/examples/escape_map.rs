@@ -1,32 +1,39 @@
-//! Where do primary rays leave the procedural scene without a hit? Reads a dataset's
-//! frames.jsonl (states and subjects), shoots one ray through each pixel centre of the default
-//! rig's camera and prints, per frame, the fraction that meets nothing, their mean, and where
-//! the escaping rays cross a 60 mm sphere about the rotation centre (azimuth a = atan2(x, z),
-//! + nasal, and elevation, in 20° bins, most populated first).
+//! Where do primary rays leave the procedural scene without a hit? Opens a dataset written by
+//! `nanoeye datagen render` (its rig, states and subjects), shoots one ray through each pixel
+//! centre of the dataset's camera and prints, per frame, the fraction that meets nothing, their
+//! mean, and where the escaping rays cross a 60 mm sphere about the rotation centre (azimuth
+//! a = atan2(x, z), + nasal, and elevation, in 20° bins, most populated first).
 //!
-//! Usage: `cargo run --release -p nanoeye-datagen --example escape_map -- DIR/frames.jsonl`
+//! Usage: `cargo run --release -p nanoeye-datagen --example escape_map -- DIR`
 
-use nanoeye_datagen::render::{Light, Ray, Subject, procedural_scene, trace::pixel_dir};
-use nanoeye_datagen::states::State;
-use nanoeye_gaze::{Rig, geom};
+use nanoeye_datagen::render::{Dataset, Light, Ray, Subject, procedural_scene, trace::pixel_dir};
+use nanoeye_gaze::geom;
 use std::collections::BTreeMap;
 
+/// Radius (m) of the sphere about the rotation centre on which escaping rays are binned.
+const SPHERE_M: f64 = 0.06;
+
 fn main() {
-    let path = std::env::args()
-        .nth(1)
-        .expect("usage: escape_map DIR/frames.jsonl");
-    let text = std::fs::read_to_string(&path).expect("read frames.jsonl");
-    let rig = Rig::default();
+    let Some(dir) = std::env::args().nth(1) else {
+        eprintln!("usage: escape_map DIR (a dataset written by `nanoeye datagen render`)");
+        std::process::exit(2);
+    };
+    let ds = Dataset::open(std::path::Path::new(&dir)).unwrap_or_else(|e| {
+        eprintln!("escape_map: {dir}: {e}");
+        std::process::exit(1);
+    });
+    let rig = &ds.manifest.rig;
     let (w, h) = (rig.camera.width_px, rig.camera.height_px);
     let mut bins: BTreeMap<(i32, i32), usize> = BTreeMap::new();
     let mut fractions = Vec::new();
-    for line in text.lines() {
-        let v: serde_json::Value = serde_json::from_str(line).expect("frames.jsonl line");
-        let state: State = serde_json::from_value(v["state"].clone()).expect("state");
-        let subject = Subject::from_seed(v["subject"].as_u64().expect("subject seed"));
-        let pose = state.camera_pose(&rig);
-        let scene =
-            procedural_scene(&rig, &state, &subject, Light::near_camera(&pose)).expect("scene");
+    for rec in &ds.records {
+        let pose = rec.state.camera_pose(rig);
+        let subject = Subject::from_seed(rec.subject);
+        let scene = procedural_scene(rig, &rec.state, &subject, Light::near_camera(&pose))
+            .unwrap_or_else(|e| {
+                eprintln!("escape_map: frame {}: {e}", rec.frame);
+                std::process::exit(1);
+            });
         let mut missed = 0usize;
         for row in 0..h {
             for col in 0..w {
@@ -38,10 +45,10 @@ fn main() {
                 missed += 1;
                 let o = pose.position;
                 let b = geom::dot(o, d);
-                let c = geom::dot(o, o) - 0.06f64.powi(2);
+                let c = geom::dot(o, o) - SPHERE_M * SPHERE_M;
                 let p = ray.at(-b + (b * b - c).sqrt());
                 let a = p[0].atan2(p[2]).to_degrees();
-                let e = (p[1] / 0.06).clamp(-1.0, 1.0).asin().to_degrees();
+                let e = (p[1] / SPHERE_M).clamp(-1.0, 1.0).asin().to_degrees();
                 let key = (
                     (a / 20.0).floor() as i32 * 20,
                     (e / 20.0).floor() as i32 * 20,
@@ -50,7 +57,7 @@ fn main() {
             }
         }
         let f = missed as f64 / (w * h) as f64;
-        println!("frame {} rays without a hit {f:.4}", v["frame"]);
+        println!("frame {} rays without a hit {f:.4}", rec.frame);
         fractions.push(f);
     }
     let n = fractions.len().max(1) as f64;

@@ -380,13 +380,10 @@ impl Scene {
         let (d00, d01, d11) = (geom::dot(e1, e1), geom::dot(e1, e2), geom::dot(e2, e2));
         let (d20, d21) = (geom::dot(d, e1), geom::dot(d, e2));
         let den = d00 * d11 - d01 * d01;
-        // A degenerate (zero-area) or NaN triangle has no barycentric coordinates.
-        if den.is_nan() || den <= 0.0 {
-            return None;
-        }
         let (b1, b2) = ((d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den);
-        // A non-finite point has no barycentrics (and `clamp` panics on a NaN bound).
-        if !(b1.is_finite() && b2.is_finite()) {
+        // A zero-area triangle or a non-finite point or triangle has no barycentrics (and
+        // `clamp` panics on a NaN bound).
+        if den <= 0.0 || !(b1.is_finite() && b2.is_finite()) {
             return None;
         }
         let b1 = b1.clamp(0.0, 1.0);
@@ -995,8 +992,7 @@ pub fn procedural_scene(
 ) -> Result<Scene, RenderError> {
     let parts = procedural_parts(rig, state, subject)?;
     let (r, g) = (parts.rotation, parts.geometry);
-    let shading = vec![None; parts.eye_rest.len()]
-        .into_iter()
+    let shading = std::iter::repeat_n(None, parts.eye_rest.len())
         .chain(parts.face_shading)
         .collect();
     let prims = parts
