@@ -1,7 +1,8 @@
 //! Bounding-volume hierarchy: binned surface-area-heuristic build (12 bins per axis; the two
-//! halves of the top splits built in parallel), then a packed traversal layout: one 64-byte
-//! node per inner node holding both children's boxes (f32, rounded outward), stack traversal
-//! nearest child first that skips any node entered beyond the current nearest hit.
+//! halves of the top splits built in parallel), collapsed into a 4-wide traversal layout: one
+//! 128-byte node holds up to four children's boxes (f32, rounded outward, one array per axis
+//! and side so the four slab tests run as vector lanes), stack traversal nearest child first
+//! that skips any node entered beyond the current nearest hit.
 
 use super::Ray;
 use super::prim::Aabb;
@@ -11,12 +12,15 @@ const BINS: usize = 12;
 const LEAF_MAX: usize = 4;
 // Relative cost of a ray–box test against a ray–primitive test in the SAH.
 const TRAVERSAL_COST: f64 = 0.5;
-const STACK: usize = 32;
+// Pending entries kept on the call stack: a 4-wide node pushes up to three.
+const STACK: usize = 64;
 // Below this many primitives a subtree is built on the calling thread: spawning costs more.
 const PAR_MIN: usize = 4096;
 // Parallel split levels: 2 levels give 4 subtrees, enough to balance 2 cores across the
 // uneven SAH splits near the root.
 const PAR_LEVELS: u32 = 2;
+/// Children per traversal node.
+pub const WIDTH: usize = 4;
 
 /// One BVH node of the build tree: an inner node's children are `first` and `first + 1`; a
 /// leaf holds primitive slots `first .. first + count` of [`Bvh::order`].
@@ -30,19 +34,21 @@ pub struct Node {
     pub count: u32,
 }
 
-/// An inner node in traversal layout: both children's boxes in one cache line, so a visit
-/// costs one line instead of two 56-byte f64 nodes.
+/// An inner node in traversal layout: up to four children's boxes, axis by axis, so that one
+/// visit tests all of them with the same instructions on four lanes (two cache lines).
 #[derive(Debug, Clone, Copy, Default)]
 #[repr(C, align(64))]
-pub struct Packed {
-    /// Minimum corners of child 0 and 1 (rounded down to f32).
-    pub min: [[f32; 3]; 2],
-    /// Maximum corners of child 0 and 1 (rounded up to f32).
-    pub max: [[f32; 3]; 2],
-    /// Per child: its packed index (inner) or its first primitive slot (leaf).
-    pub first: [u32; 2],
+pub struct Wide {
+    /// Minimum corners per axis and child (rounded down to f32).
+    pub min: [[f32; WIDTH]; 3],
+    /// Maximum corners per axis and child (rounded up to f32).
+    pub max: [[f32; WIDTH]; 3],
+    /// Per child: its wide index (inner) or its first primitive slot (leaf).
+    pub first: [u32; WIDTH],
     /// Per child: number of primitives (0 for an inner child).
-    pub count: [u32; 2],
+    pub count: [u32; WIDTH],
+    /// Number of children in use (2 ..= 4; the first `len` lanes).
+    pub len: u32,
 }
 
 /// A BVH over primitive bounds.
@@ -53,8 +59,8 @@ pub struct Bvh {
     /// Primitive indices in leaf order: the traversal callbacks receive a slot `s` of this
     /// array, the primitive is `order[s]`.
     pub order: Vec<u32>,
-    /// Inner nodes in traversal layout, root first (empty when the root is a leaf).
-    pub packed: Vec<Packed>,
+    /// Inner nodes in 4-wide traversal layout, root first (empty when the root is a leaf).
+    pub wide: Vec<Wide>,
 }
 
 /// One pending traversal entry: a child reference and the distance at which the ray enters it.
@@ -74,12 +80,8 @@ impl Bvh {
         let centroids: Vec<Vec3> = bounds.iter().map(|b| b.center()).collect();
         let mut order: Vec<u32> = (0..bounds.len() as u32).collect();
         let nodes = build_subtree(bounds, &centroids, &mut order, 0, PAR_LEVELS);
-        let packed = pack(&nodes);
-        Bvh {
-            nodes,
-            order,
-            packed,
-        }
+        let wide = widen(&nodes);
+        Bvh { nodes, order, wide }
     }
 
     /// Nearest hit: `hit(slot, t_max)` returns the hit distance below `t_max` of primitive
@@ -93,7 +95,7 @@ impl Bvh {
     ) -> Option<(u32, f64)> {
         let mut best: Option<(u32, f64)> = None;
         let mut t_best = t_max;
-        self.walk(
+        self.walk::<true>(
             ray,
             &mut t_best,
             #[inline(always)]
@@ -113,7 +115,7 @@ impl Bvh {
     pub fn any(&self, ray: &Ray, t_max: f64, mut hit: impl FnMut(u32, f64) -> Option<f64>) -> bool {
         let mut t = t_max;
         let mut found = false;
-        self.walk(
+        self.walk::<false>(
             ray,
             &mut t,
             #[inline(always)]
@@ -130,7 +132,42 @@ impl Bvh {
     }
 
     #[inline(always)]
-    fn walk(&self, ray: &Ray, t_max: &mut f64, mut hit: impl FnMut(u32, f64) -> Option<f64>) {
+    fn walk<const NEAREST: bool>(
+        &self,
+        ray: &Ray,
+        t_max: &mut f64,
+        hit: impl FnMut(u32, f64) -> Option<f64>,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx") {
+            // SAFETY: the CPU has AVX (checked just above).
+            unsafe { self.walk_avx::<NEAREST>(ray, t_max, hit) };
+            return;
+        }
+        self.walk_with::<NEAREST>(ray, t_max, hit, slab4);
+    }
+
+    /// [`Bvh::walk`] compiled for AVX, the four slab tests of a node on 256-bit lanes.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx")]
+    fn walk_avx<const NEAREST: bool>(
+        &self,
+        ray: &Ray,
+        t_max: &mut f64,
+        hit: impl FnMut(u32, f64) -> Option<f64>,
+    ) {
+        // SAFETY: this function only runs where AVX is present.
+        self.walk_with::<NEAREST>(ray, t_max, hit, |n, r, t| unsafe { slab4_avx(n, r, t) });
+    }
+
+    #[inline(always)]
+    fn walk_with<const NEAREST: bool>(
+        &self,
+        ray: &Ray,
+        t_max: &mut f64,
+        mut hit: impl FnMut(u32, f64) -> Option<f64>,
+        slab: impl Fn(&Wide, &Ray, f64) -> (u32, [f64; WIDTH]),
+    ) {
         let Some(root) = self.nodes.first() else {
             return;
         };
@@ -169,42 +206,36 @@ impl Bvh {
             if cur.count > 0 {
                 leaf(cur.first, cur.count, t_max);
             } else {
-                let n = &self.packed[cur.first as usize];
-                let ta = slab(&n.min[0], &n.max[0], ray, *t_max);
-                let tb = slab(&n.min[1], &n.max[1], ray, *t_max);
-                let a = |t| Entry {
-                    first: n.first[0],
-                    count: n.count[0],
-                    t,
-                };
-                let b = |t| Entry {
-                    first: n.first[1],
-                    count: n.count[1],
-                    t,
-                };
-                // Descend into the near child, keep the far one for later.
-                let far = match (ta, tb) {
-                    (Some(x), Some(y)) => {
-                        if x <= y {
-                            cur = a(x);
-                            Some(b(y))
-                        } else {
-                            cur = b(y);
-                            Some(a(x))
-                        }
+                let n = &self.wide[cur.first as usize];
+                let (met, t) = slab(n, ray, *t_max);
+                // The children met, nearest first (stable: ties keep the child order).
+                let mut near = [Entry {
+                    first: 0,
+                    count: 0,
+                    t: 0.0,
+                }; WIDTH];
+                let mut m = 0;
+                for (i, &ti) in t.iter().enumerate() {
+                    if met & (1 << i) == 0 {
+                        continue;
                     }
-                    (Some(x), None) => {
-                        cur = a(x);
-                        None
+                    let e = Entry {
+                        first: n.first[i],
+                        count: n.count[i],
+                        t: ti,
+                    };
+                    let mut j = m;
+                    while NEAREST && j > 0 && near[j - 1].t > ti {
+                        near[j] = near[j - 1];
+                        j -= 1;
                     }
-                    (None, Some(y)) => {
-                        cur = b(y);
-                        None
-                    }
-                    (None, None) => None,
-                };
-                if ta.is_some() || tb.is_some() {
-                    if let Some(f) = far {
+                    near[j] = e;
+                    m += 1;
+                }
+                if m > 0 {
+                    // Descend into the nearest child, keep the others for later, the farthest
+                    // deepest in the stack.
+                    for &f in near[1..m].iter().rev() {
                         if sp < STACK && spill.is_empty() {
                             stack[sp] = f;
                             sp += 1;
@@ -212,6 +243,7 @@ impl Bvh {
                             spill.push(f);
                         }
                     }
+                    cur = near[0];
                     continue;
                 }
             }
@@ -248,25 +280,71 @@ impl Bvh {
     }
 }
 
-/// Slab test against an f32 box: entry distance if the ray meets it within (0, t_max). The
-/// arithmetic is f64 so the outward-rounded box is only ever larger than the exact one.
+/// Slab test of the first `n.len` children of a wide node: bit i of the mask is set if the ray
+/// meets child i's f32 box within (0, t_max), at entry distance t[i]. The arithmetic is f64,
+/// so the outward-rounded box is only ever larger than the exact one.
 #[inline(always)]
-fn slab(min: &[f32; 3], max: &[f32; 3], ray: &Ray, t_max: f64) -> Option<f64> {
-    let mut t0 = 0.0f64;
-    let mut t1 = t_max;
+fn slab4(n: &Wide, ray: &Ray, t_max: f64) -> (u32, [f64; WIDTH]) {
+    let mut t0 = [0.0f64; WIDTH];
+    let mut t1 = [t_max; WIDTH];
     for a in 0..3 {
-        let ta = (min[a] as f64 - ray.origin[a]) * ray.inv_dir[a];
-        let tb = (max[a] as f64 - ray.origin[a]) * ray.inv_dir[a];
-        let (lo, hi) = if ta < tb { (ta, tb) } else { (tb, ta) };
-        // NaN (0·∞ on a slab face) leaves the interval unchanged.
-        if lo > t0 {
-            t0 = lo;
-        }
-        if hi < t1 {
-            t1 = hi;
+        let (o, inv) = (ray.origin[a], ray.inv_dir[a]);
+        for i in 0..WIDTH {
+            let ta = (n.min[a][i] as f64 - o) * inv;
+            let tb = (n.max[a][i] as f64 - o) * inv;
+            // A NaN (0·∞: a ray parallel to a slab, starting in its face plane) goes through
+            // these ordered comparisons the same way in slab4_avx.
+            let (lo, hi) = if ta < tb { (ta, tb) } else { (tb, ta) };
+            if lo > t0[i] {
+                t0[i] = lo;
+            }
+            if hi < t1[i] {
+                t1[i] = hi;
+            }
         }
     }
-    (t0 <= t1).then_some(t0)
+    let mut met = 0;
+    for i in 0..n.len as usize {
+        if t0[i] <= t1[i] {
+            met |= 1 << i;
+        }
+    }
+    (met, t0)
+}
+
+/// [`slab4`] on AVX lanes: the same operations in the same order with the same ordered
+/// comparisons, hence the same mask and distances bit for bit (tested).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+#[inline]
+unsafe fn slab4_avx(n: &Wide, ray: &Ray, t_max: f64) -> (u32, [f64; WIDTH]) {
+    use std::arch::x86_64::*;
+    let mut t0 = _mm256_setzero_pd();
+    let mut t1 = _mm256_set1_pd(t_max);
+    for a in 0..3 {
+        let o = _mm256_set1_pd(ray.origin[a]);
+        let inv = _mm256_set1_pd(ray.inv_dir[a]);
+        // SAFETY: each row is 4 f32 in bounds; unaligned loads need no alignment.
+        let (mn, mx) = unsafe {
+            (
+                _mm256_cvtps_pd(_mm_loadu_ps(n.min[a].as_ptr())),
+                _mm256_cvtps_pd(_mm_loadu_ps(n.max[a].as_ptr())),
+            )
+        };
+        let ta = _mm256_mul_pd(_mm256_sub_pd(mn, o), inv);
+        let tb = _mm256_mul_pd(_mm256_sub_pd(mx, o), inv);
+        // lo = ta < tb ? ta : tb; hi = ta < tb ? tb : ta.
+        let lt = _mm256_cmp_pd::<_CMP_LT_OQ>(ta, tb);
+        let lo = _mm256_blendv_pd(tb, ta, lt);
+        let hi = _mm256_blendv_pd(ta, tb, lt);
+        t0 = _mm256_blendv_pd(t0, lo, _mm256_cmp_pd::<_CMP_GT_OQ>(lo, t0));
+        t1 = _mm256_blendv_pd(t1, hi, _mm256_cmp_pd::<_CMP_LT_OQ>(hi, t1));
+    }
+    let met = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(t0, t1)) as u32 & ((1 << n.len) - 1);
+    let mut t = [0.0; WIDTH];
+    // SAFETY: t holds exactly four f64.
+    unsafe { _mm256_storeu_pd(t.as_mut_ptr(), t0) };
+    (met, t)
 }
 
 /// Largest f32 ≤ x (x finite or infinite, not NaN).
@@ -290,37 +368,57 @@ fn f32_up(x: f64) -> f32 {
     -f32_down(-x)
 }
 
-/// The traversal layout of a build tree (inner nodes only, in build order).
-fn pack(nodes: &[Node]) -> Vec<Packed> {
-    // Build index of each inner node → its packed index.
-    let mut map = vec![u32::MAX; nodes.len()];
-    let mut k = 0u32;
-    for (i, n) in nodes.iter().enumerate() {
-        if n.count == 0 {
-            map[i] = k;
-            k += 1;
-        }
+/// The 4-wide traversal layout of a build tree: each wide node takes its build node's two
+/// children and, while it has fewer than four, replaces the inner child of largest surface
+/// area by that child's two children.
+fn widen(nodes: &[Node]) -> Vec<Wide> {
+    if nodes.first().is_none_or(|r| r.count > 0) {
+        return Vec::new();
     }
-    nodes
-        .iter()
-        .filter(|n| n.count == 0)
-        .map(|n| {
-            let mut p = Packed::default();
-            for c in 0..2 {
-                let ch = &nodes[n.first as usize + c];
-                p.min[c] = ch.bounds.min.map(f32_down);
-                p.max[c] = ch.bounds.max.map(f32_up);
-                if ch.count > 0 {
-                    p.first[c] = ch.first;
-                    p.count[c] = ch.count;
-                } else {
-                    p.first[c] = map[n.first as usize + c];
-                    p.count[c] = 0;
-                }
+    let mut out = vec![Wide::default()];
+    // (build node, its wide index)
+    let mut work = vec![(0usize, 0usize)];
+    while let Some((ni, wi)) = work.pop() {
+        let f = nodes[ni].first as usize;
+        let mut ch = [f, f + 1, 0, 0];
+        let mut len = 2;
+        while len < WIDTH {
+            let widest = (0..len)
+                .filter(|&k| nodes[ch[k]].count == 0)
+                .max_by(|&a, &b| {
+                    nodes[ch[a]]
+                        .bounds
+                        .area()
+                        .total_cmp(&nodes[ch[b]].bounds.area())
+                });
+            let Some(k) = widest else { break };
+            let g = nodes[ch[k]].first as usize;
+            ch[k] = g;
+            ch[len] = g + 1;
+            len += 1;
+        }
+        let mut w = Wide {
+            len: len as u32,
+            ..Wide::default()
+        };
+        for (k, &c) in ch[..len].iter().enumerate() {
+            let node = &nodes[c];
+            for a in 0..3 {
+                w.min[a][k] = f32_down(node.bounds.min[a]);
+                w.max[a][k] = f32_up(node.bounds.max[a]);
             }
-            p
-        })
-        .collect()
+            if node.count > 0 {
+                w.first[k] = node.first;
+                w.count[k] = node.count;
+            } else {
+                w.first[k] = out.len() as u32;
+                out.push(Wide::default());
+                work.push((c, w.first[k] as usize));
+            }
+        }
+        out[wi] = w;
+    }
+    out
 }
 
 // The build's own min/max: bounds are finite (Scene::new checks), so the NaN handling of
@@ -555,6 +653,125 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Random boxes (some flat, some far, f32-rounded) against rays from random origins, axis-
+    /// parallel ones and ones starting on a face plane included: the AVX lanes and the scalar
+    /// slab test give the same mask and the same entry distances, bit for bit.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx_slab_test_equals_the_scalar_one_bit_for_bit() {
+        if !std::arch::is_x86_feature_detected!("avx") {
+            return;
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut differing = 0;
+        for case in 0..20_000 {
+            let mut n = Wide {
+                len: rng.random_range(2..=WIDTH as u32),
+                ..Wide::default()
+            };
+            for a in 0..3 {
+                for i in 0..WIDTH {
+                    let c: f64 = rng.random_range(-1.0..1.0);
+                    let h: f64 = if rng.random_bool(0.1) {
+                        0.0
+                    } else {
+                        rng.random_range(0.0..0.5)
+                    };
+                    n.min[a][i] = f32_down(c - h);
+                    n.max[a][i] = f32_up(c + h);
+                }
+            }
+            let mut o: [f64; 3] = std::array::from_fn(|_| rng.random_range(-2.0..2.0));
+            let mut d: [f64; 3] = std::array::from_fn(|_| rng.random_range(-1.0..1.0));
+            if case % 3 == 0 {
+                // Parallel to an axis plane, starting on a face of child 0.
+                let a = rng.random_range(0..3);
+                d[a] = 0.0;
+                o[a] = n.min[a][0] as f64;
+            }
+            if d == [0.0; 3] {
+                d = [1.0, 0.0, 0.0];
+            }
+            let ray = Ray::new(o, d);
+            let t_max = if rng.random_bool(0.5) {
+                f64::INFINITY
+            } else {
+                rng.random_range(0.0..3.0)
+            };
+            let (m0, t0) = slab4(&n, &ray, t_max);
+            // SAFETY: AVX checked above.
+            let (m1, t1) = unsafe { slab4_avx(&n, &ray, t_max) };
+            assert_eq!(m0, m1, "case {case}: masks");
+            for i in 0..WIDTH {
+                if m0 & (1 << i) != 0 {
+                    assert_eq!(t0[i].to_bits(), t1[i].to_bits(), "case {case}, child {i}");
+                }
+            }
+            differing += usize::from(m0 != 0 && m0 != (1 << n.len) - 1);
+        }
+        // Partly met nodes, not only all-or-nothing.
+        assert!(differing > 200, "{differing}");
+    }
+
+    /// The portable walk (the path of CPUs without AVX) finds the same nearest hit and any-hit
+    /// as brute force over random boxes.
+    #[test]
+    fn portable_walk_equals_brute_force() {
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let bounds: Vec<Aabb> = (0..3000)
+            .map(|_| {
+                let c: [f64; 3] = std::array::from_fn(|_| rng.random_range(-1.0..1.0));
+                let h: [f64; 3] = std::array::from_fn(|_| rng.random_range(0.0..0.03));
+                Aabb {
+                    min: std::array::from_fn(|a| c[a] - h[a]),
+                    max: std::array::from_fn(|a| c[a] + h[a]),
+                }
+            })
+            .collect();
+        let bvh = Bvh::build(&bounds);
+        let mut hits = 0;
+        for _ in 0..2000 {
+            let o: [f64; 3] = std::array::from_fn(|_| rng.random_range(-1.5..1.5));
+            let d: [f64; 3] = std::array::from_fn(|_| rng.random_range(-1.0..1.0));
+            let ray = Ray::new(o, d);
+            let want = bounds
+                .iter()
+                .filter_map(|b| b.hit(&ray, f64::INFINITY))
+                .min_by(f64::total_cmp);
+            let mut t = f64::INFINITY;
+            let mut got = None;
+            bvh.walk_with::<true>(
+                &ray,
+                &mut t,
+                |s, tm| {
+                    let h = bounds[bvh.order[s as usize] as usize].hit(&ray, tm);
+                    if h.is_some() {
+                        got = h;
+                    }
+                    h
+                },
+                slab4,
+            );
+            assert_eq!(got, want);
+            let cut = rng.random_range(0.0..2.0);
+            let mut t = cut;
+            let mut any = false;
+            bvh.walk_with::<false>(
+                &ray,
+                &mut t,
+                |s, tm| {
+                    let h = bounds[bvh.order[s as usize] as usize].hit(&ray, tm);
+                    any |= h.is_some();
+                    h.map(|_| -1.0)
+                },
+                slab4,
+            );
+            assert_eq!(any, want.is_some_and(|w| w < cut));
+            hits += usize::from(want.is_some());
+        }
+        assert!(hits > 200, "{hits}");
     }
 
     fn next_up(f: f32) -> f32 {
