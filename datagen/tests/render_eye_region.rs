@@ -362,9 +362,12 @@ mod stress {
             brow in 0.0f64..=20e-3,
             cheek in 0.0f64..=10e-3,
             nose in 0.0f64..=25e-3,
+            lift_medial in 0.0f64..=6e-3,
+            lift_lateral in 0.0f64..=6e-3,
         ) {
             let rig = Rig::default();
-            // The relief fields over their whole validated ranges, not only the sampled ones.
+            // The relief and canthal stand-off fields over their whole validated ranges, not
+            // only the sampled ones.
             let subject = Subject {
                 fissure_exponent: exponent,
                 fissure_upper_rad: upper,
@@ -372,6 +375,8 @@ mod stress {
                 brow_m: brow,
                 cheek_m: cheek,
                 nose_m: nose,
+                canthus_lift_medial_m: lift_medial,
+                canthus_lift_lateral_m: lift_lateral,
                 ..Subject::from_seed(seed)
             };
             let st = state(az, el, closure);
@@ -457,4 +462,35 @@ mod stress {
             }
         }
     }
+}
+
+/// The palpebral fissure's length, canthus to canthus in primary gaze: the margins stand off
+/// the globe near the canthi, so the fissure reaches a real one's 28–30 mm (docs/renderer.md)
+/// although the eyeball is only ≈ 24 mm wide; the subjects drawn from seeds spread around it.
+#[test]
+fn the_fissure_is_as_long_as_a_real_one() {
+    let rig = Rig::default();
+    let length = |s: &Subject| {
+        let geo = nanoeye_datagen::render::scene::EyeGeometry::new(&rig, s).expect("geometry");
+        let f = face::face(&geo, s, &state(0.0, 0.0, 0.0), [0.0, 0.0, 1.0]);
+        geom::norm(geom::sub(f.canthi[0], f.canthi[1]))
+    };
+    let d = length(&Subject::default());
+    let flat = length(&Subject {
+        canthus_lift_medial_m: 0.0,
+        canthus_lift_lateral_m: 0.0,
+        ..Subject::default()
+    });
+    let seeds: Vec<f64> = (0..64).map(|k| length(&Subject::from_seed(k))).collect();
+    let (lo, hi) = seeds
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), &x| (a.min(x), b.max(x)));
+    // Default 28.1 mm, 26.1–30.4 mm over the seeds; with the margins on the globe all the way
+    // (the model before the stand-off) 22.5 mm, bounded by the eyeball's 24 mm width.
+    assert!((27e-3..=29.5e-3).contains(&d), "default subject: {d} m");
+    assert!(flat < 24e-3, "margins on the globe: {flat} m");
+    assert!(
+        lo > 25e-3 && hi < 31.5e-3 && hi - lo > 3e-3,
+        "seeds: {lo}–{hi} m"
+    );
 }

@@ -72,6 +72,10 @@ pub struct Fissure {
     pub exponent: f64,
     /// Canthal tilt (rad): positive raises the lateral canthus.
     pub tilt: f64,
+    /// Stand-off (m) of the lid margin from the globe at the medial canthus.
+    pub lift_medial: f64,
+    /// Stand-off (m) of the lid margin from the globe at the lateral canthus.
+    pub lift_lateral: f64,
 }
 
 impl Fissure {
@@ -106,7 +110,24 @@ impl Fissure {
             lower: (height * (1.0 - share)).max(min_half),
             exponent: subject.fissure_exponent,
             tilt: subject.canthal_tilt_rad,
+            lift_medial: subject.canthus_lift_medial_m,
+            lift_lateral: subject.canthus_lift_lateral_m,
         }
+    }
+
+    /// Stand-off (m) of the lid margin from the eye's surface at fissure-polar angle `theta`:
+    /// zero over the middle of the fissure, rising smoothly over the outer 25 % of each half
+    /// length to the canthus's own value. The lids hug the globe, but the canthi lie off it
+    /// (medially by the caruncle's width), so the fissure can be longer than the globe is wide.
+    pub fn lift(&self, theta: f64) -> f64 {
+        let c = theta.cos();
+        let (half, lift) = if c >= 0.0 {
+            (self.medial, self.lift_medial)
+        } else {
+            (self.lateral, self.lift_lateral)
+        };
+        let u = (self.margin_radius(theta) * c / half).abs();
+        lift * smoothstep((u - 0.75) / 0.25)
     }
 
     /// Radius (rad) of the margin at fissure-polar angle `theta` (0 towards the medial canthus,
@@ -259,6 +280,9 @@ pub struct Face {
     pub caruncle: (Vec3, f64),
     /// The fissure the lids form in this state.
     pub fissure: Fissure,
+    /// The medial and lateral canthus: where the lid margins meet (m, same frame as the
+    /// triangles).
+    pub canthi: [Vec3; 2],
 }
 
 #[inline]
@@ -288,6 +312,9 @@ pub fn face(geo: &EyeGeometry, subject: &Subject, state: &State, g: Vec3) -> Fac
     let rows = ROWS + 2;
     let face_rows = ROWS - LID_ROWS;
     let mut verts = vec![[0.0; 3]; n * rows];
+    // The globe under each margin point: where the margin stands off the globe, a wet wall
+    // (conjunctiva) closes the gap so that no ray slips between lid and eyeball.
+    let mut fornix = vec![[0.0; 3]; n];
     let c = direction(f.center_az, f.center_el);
     let (cx, cy) = (c[0] * geo.eyeball_radius_m, c[1] * geo.eyeball_radius_m);
     for i in 0..n {
@@ -296,16 +323,21 @@ pub fn face(geo: &EyeGeometry, subject: &Subject, state: &State, g: Vec3) -> Fac
         let (am, em) = f.at(theta, rho_m);
         let w = direction(am, em);
         let r_eye = eye_radius(geo, g, w);
-        verts[i] = geom::scale(w, r_eye + LID_GAP_M);
-        verts[n + i] = geom::scale(w, r_eye + LID_MARGIN_THICKNESS_M);
+        let lift = f.lift(theta);
+        verts[i] = geom::scale(w, r_eye + LID_GAP_M + lift);
+        verts[n + i] = geom::scale(w, r_eye + LID_MARGIN_THICKNESS_M + lift);
+        fornix[i] = geom::scale(w, r_eye + LID_GAP_M);
         // The lid band: radial from the rotation centre, on the eye's surface plus the lid;
-        // narrower towards the canthi, where the globe curves away behind the face.
+        // narrower towards the canthi, where the globe curves away behind the face. The
+        // canthus's stand-off fades out across it.
         let band = LID_BAND_RAD * (0.25 + 0.75 * theta.sin().powi(2));
         for j in 1..=LID_ROWS {
             let d = band * (j as f64 / LID_ROWS as f64).powi(2);
             let (a, e) = f.at(theta, rho_m + d);
             let w = direction(a, e);
-            let r = eye_radius(geo, g, w) + lid_thickness(subject, d, theta);
+            let r = eye_radius(geo, g, w)
+                + lid_thickness(subject, d, theta)
+                + lift * (1.0 - smoothstep(d / band));
             verts[(j + 1) * n + i] = geom::scale(w, r);
         }
         // The face: a height field z(x, y) laid out from the band's edge straight out to a
@@ -332,7 +364,7 @@ pub fn face(geo: &EyeGeometry, subject: &Subject, state: &State, g: Vec3) -> Fac
         }
     }
     let verts: Vec<Vec3> = verts.into_iter().map(f32_round).collect();
-    let mut triangles = Vec::with_capacity(2 * n * (rows - 1) + lash_capacity(subject));
+    let mut triangles = Vec::with_capacity(2 * n * rows + lash_capacity(subject));
     // Corner indices of each grid triangle, for the vertex normals below.
     let mut corners = Vec::with_capacity(2 * n * (rows - 1));
     for j in 0..rows - 1 {
@@ -371,20 +403,36 @@ pub fn face(geo: &EyeGeometry, subject: &Subject, state: &State, g: Vec3) -> Fac
                 .then(|| ns.map(geom::normalize))
         })
         .collect();
+    let fornix: Vec<Vec3> = fornix.into_iter().map(f32_round).collect();
+    for i in 0..n {
+        let i1 = (i + 1) % n;
+        if verts[i] != fornix[i] || verts[i1] != fornix[i1] {
+            let (a, b, c, d) = (verts[i], verts[i1], fornix[i], fornix[i1]);
+            triangles.push(([a, b, d], FacePart::Margin));
+            triangles.push(([a, d, c], FacePart::Margin));
+        }
+    }
     lashes(geo, subject, &f, g, &mut triangles);
     shading.resize(triangles.len(), None);
     // The caruncle sits in the medial canthus on the globe; an epicanthic fold hides part of it.
-    let (ac, ec) = f.at(0.0, 0.85 * f.medial);
+    // It fills the space the lifted canthus leaves between lids and globe.
+    let (ac, ec) = f.at(0.0, 0.9 * f.medial);
     let wc = direction(ac, ec);
+    let rc = subject.caruncle_radius_m * (1.0 - 0.6 * subject.epicanthus);
     let caruncle = (
-        f32_round(geom::scale(wc, geo.eyeball_radius_m + 0.1e-3)),
-        (subject.caruncle_radius_m * (1.0 - 0.6 * subject.epicanthus)) as f32 as f64,
+        f32_round(geom::scale(
+            wc,
+            geo.eyeball_radius_m + 0.1e-3 + 0.5 * f.lift(0.0),
+        )),
+        rc as f32 as f64,
     );
     Face {
         triangles,
         shading,
         caruncle,
         fissure: f,
+        // Ring samples 0 and n/2 lie at fissure-polar angles 0 (medial) and π (lateral).
+        canthi: [verts[0], verts[n / 2]],
     }
 }
 
@@ -445,7 +493,10 @@ fn lashes(
     let margin_point = |theta: f64| {
         let (a, e) = f.at(theta, f.margin_radius(theta));
         let w = direction(a, e);
-        geom::scale(w, eye_radius(geo, g, w) + 0.7 * LID_MARGIN_THICKNESS_M)
+        geom::scale(
+            w,
+            eye_radius(geo, g, w) + 0.7 * LID_MARGIN_THICKNESS_M + f.lift(theta),
+        )
     };
     for upper in [true, false] {
         // Lashes grow from 5 % of the arc at the lateral canthus to 85 % (none medially,

@@ -491,6 +491,21 @@ pub struct Subject {
     pub lash_width_m: f64,
     /// Seed of the lash layout and of the skin texture.
     pub lash_seed: u64,
+    /// How far (m) the lid margin stands off the globe at the medial canthus, where the
+    /// caruncle and the plica fill the space between the canthus and the eyeball.
+    #[serde(default = "default_lift_medial")]
+    pub canthus_lift_medial_m: f64,
+    /// How far (m) the lid margin stands off the globe at the lateral canthus.
+    #[serde(default = "default_lift_lateral")]
+    pub canthus_lift_lateral_m: f64,
+}
+
+fn default_lift_medial() -> f64 {
+    Subject::default().canthus_lift_medial_m
+}
+
+fn default_lift_lateral() -> f64 {
+    Subject::default().canthus_lift_lateral_m
 }
 
 impl Default for Subject {
@@ -532,6 +547,8 @@ impl Default for Subject {
             lash_length_lower_m: 6.5e-3,
             lash_width_m: 0.09e-3,
             lash_seed: 0,
+            canthus_lift_medial_m: 4e-3,
+            canthus_lift_lateral_m: 2e-3,
         }
     }
 }
@@ -581,6 +598,9 @@ impl Subject {
             s.iris_phase[k] = std::f64::consts::TAU * rng.random::<f64>();
         }
         s.lash_seed = rng.random::<u64>();
+        // Drawn last so that every earlier field keeps the value it had before these existed.
+        s.canthus_lift_medial_m = 3e-3 + 2e-3 * rng.random::<f64>();
+        s.canthus_lift_lateral_m = 1.5e-3 + 1.5e-3 * rng.random::<f64>();
         s
     }
 }
@@ -671,7 +691,7 @@ impl EyeGeometry {
 /// Checks the eye-region parameters of a subject against their documented ranges (wide enough
 /// for any plausible face, tight enough that the mesh stays a proper surface).
 fn validate_face(s: &Subject) -> Result<(), RenderError> {
-    let checks: [(&'static str, f64, f64, f64); 17] = [
+    let checks: [(&'static str, f64, f64, f64); 19] = [
         ("subject.skin_texture", s.skin_texture, 0.0, 0.5),
         (
             "subject.fissure_center_az_rad",
@@ -704,6 +724,18 @@ fn validate_face(s: &Subject) -> Result<(), RenderError> {
         ("subject.nose_m", s.nose_m, 0.0, 25e-3),
         ("subject.caruncle_radius_m", s.caruncle_radius_m, 0.0, 3e-3),
         ("subject.lash_width_m", s.lash_width_m, 0.0, 0.5e-3),
+        (
+            "subject.canthus_lift_medial_m",
+            s.canthus_lift_medial_m,
+            0.0,
+            6e-3,
+        ),
+        (
+            "subject.canthus_lift_lateral_m",
+            s.canthus_lift_lateral_m,
+            0.0,
+            6e-3,
+        ),
     ];
     for (what, v, lo, hi) in checks {
         if !(lo..=hi).contains(&v) {
@@ -945,6 +977,7 @@ pub fn procedural_parts(
         mut shading,
         caruncle,
         fissure,
+        ..
     } = face::face(&g, subject, state, gz);
     let mut face_prims: Vec<Prim> = triangles
         .into_iter()
