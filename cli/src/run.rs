@@ -131,7 +131,7 @@ impl Default for RunConfig {
             height_px: 200,
             spp: 2,
             train_set: TrainSet::Envelope,
-            train_items: 120,
+            train_items: 240,
             val_items: 24,
             protocol_subjects: 1,
             fisher_iterations: 40,
