@@ -629,8 +629,8 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    /// The packed boxes must never be smaller than the exact ones: f32_down/f32_up bracket x
-    /// and are the tightest f32 that do.
+    /// The stored (f32) boxes must never be smaller than the exact ones: f32_down/f32_up
+    /// bracket x and are the tightest f32 that do.
     #[test]
     fn f32_rounding_brackets_tightly() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
