@@ -65,6 +65,10 @@ pub struct RenderArgs {
     /// Unit of the mesh coordinates.
     #[arg(long, value_enum, default_value = "mm")]
     pub mesh_units: UnitsArg,
+    /// Share (0–1) of envelope frames caught in a blink or partial closure (lid closure
+    /// uniform in 0.2–1); 0 keeps every lid open.
+    #[arg(long, default_value_t = 0.0)]
+    pub blink_fraction: f64,
 }
 
 /// Runs `datagen render`.
@@ -74,6 +78,15 @@ pub fn run(args: RenderArgs) -> Result<()> {
     }
     if args.spp == 0 {
         bail!("--spp must be at least 1");
+    }
+    if !(0.0..=1.0).contains(&args.blink_fraction) {
+        bail!(
+            "--blink-fraction must be in [0, 1], got {}",
+            args.blink_fraction
+        );
+    }
+    if args.blink_fraction > 0.0 && !matches!(args.set, SetArg::Envelope) {
+        bail!("--blink-fraction: only --set envelope samples lid closures");
     }
     let rig = match &args.rig {
         Some(p) => {
@@ -114,6 +127,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         source,
         progress: true,
         layers: LayerSpec::default(),
+        blink_fraction: args.blink_fraction,
     };
     // Temporary files of a killed run (frames/ is written by the renderer only).
     crate::util::remove_stale_temps_under(&args.out);

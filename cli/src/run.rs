@@ -354,6 +354,7 @@ fn render(dir: &Path, set: RenderSet, n: usize, seed: u64, cfg: &RunConfig) -> R
         source: SceneSource::Procedural,
         progress: std::io::stderr().is_terminal(),
         layers: LayerSpec::default(),
+        blink_fraction: 0.0,
     })
     .with_context(|| format!("rendering {}", dir.display()))?;
     Ok(Dataset::open(dir)?)

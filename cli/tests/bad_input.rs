@@ -507,7 +507,7 @@ fn fisher_init_resume_refuses_changed_parameters_and_keeps_one_checkpoint_file()
 }
 
 #[test]
-fn datagen_render_names_n_and_refuses_a_symlinked_manifest() {
+fn datagen_render_names_n_and_blink_fraction_and_refuses_a_symlinked_manifest() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
     refused(
@@ -524,6 +524,22 @@ fn datagen_render_names_n_and_refuses_a_symlinked_manifest() {
         "--n",
         p,
     );
+    for (set, frac) in [
+        ("envelope", "1.5"),
+        ("envelope", "NaN"),
+        ("envelope", "-0.1"),
+        ("ambiguity", "0.5"),
+    ] {
+        let flag = format!("--blink-fraction={frac}");
+        refused(
+            &[
+                "datagen", "render", "--set", set, "--n", "1", &flag, "--out", "b",
+            ],
+            "--blink-fraction",
+            p,
+        );
+    }
+    assert!(!p.join("b").exists(), "nothing written before the check");
     std::fs::create_dir(p.join("ds")).unwrap();
     std::os::unix::fs::symlink(p.join("elsewhere"), p.join("ds/dataset.json")).unwrap();
     refused(&tiny_dataset("ds"), "--out", p);

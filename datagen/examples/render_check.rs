@@ -34,6 +34,7 @@ fn main() {
             source: SceneSource::Procedural,
             progress: false,
             layers: LayerSpec::default(),
+            blink_fraction: 0.0,
         };
         let s = write_dataset(&opts).expect("render");
         eprintln!("{name}: {s:?}");

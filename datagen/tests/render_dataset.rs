@@ -18,6 +18,7 @@ fn opts(dir: &Path, seed: u64) -> DatasetOptions {
         source: SceneSource::Procedural,
         progress: false,
         layers: LayerSpec::default(),
+        blink_fraction: 0.0,
     }
 }
 
@@ -127,4 +128,61 @@ fn bad_size_names_the_flag() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("width"), "{e}");
+}
+
+/// `blink_fraction`: that share of envelope frames (within 4 binomial standard deviations over
+/// 400 frames) gets a lid closure in BLINK_CLOSURE, drawn on a stream of its own, so every
+/// subject and every other state field is the one of the default (no blinks) plan; the
+/// manifest records the fraction only when it is not 0 (old datasets stay readable and equal),
+/// and an out-of-range fraction or one on another set is refused.
+#[test]
+fn blink_fraction_closes_that_share_of_envelope_lids_and_changes_nothing_else() {
+    use nanoeye_datagen::render::{BLINK_CLOSURE, RenderSet, plan_dataset};
+    let dir = tempfile::tempdir().unwrap();
+    let base = DatasetOptions {
+        set: RenderSet::Envelope,
+        n: 400,
+        ..opts(dir.path(), 3)
+    };
+    let open = plan_dataset(&base).unwrap();
+    let frac = 0.3;
+    let blink = plan_dataset(&DatasetOptions {
+        blink_fraction: frac,
+        ..base.clone()
+    })
+    .unwrap();
+    let mut closed = 0;
+    for (a, b) in open.planned.iter().zip(&blink.planned) {
+        assert_eq!(a.subject, b.subject);
+        assert_eq!(a.state.lid_closure, 0.0);
+        let mut s = b.state;
+        if s.lid_closure != 0.0 {
+            assert!(BLINK_CLOSURE.contains(&s.lid_closure), "{}", s.lid_closure);
+            closed += 1;
+            s.lid_closure = 0.0;
+        }
+        assert_eq!(s, a.state);
+    }
+    let sd = (400.0 * frac * (1.0 - frac)).sqrt();
+    assert!(
+        (closed as f64 - 400.0 * frac).abs() < 4.0 * sd,
+        "{closed} of 400"
+    );
+    let text = serde_json::to_string(&open.manifest).unwrap();
+    assert!(!text.contains("blink"), "{text}");
+    assert_eq!(blink.manifest.blink_fraction, frac);
+    for (set, f) in [
+        (RenderSet::Envelope, 1.5),
+        (RenderSet::Envelope, f64::NAN),
+        (RenderSet::Ambiguity, 0.5),
+    ] {
+        let e = plan_dataset(&DatasetOptions {
+            set,
+            n: 2,
+            blink_fraction: f,
+            ..base.clone()
+        })
+        .unwrap_err();
+        assert!(e.to_string().contains("blink_fraction"), "{e}");
+    }
 }

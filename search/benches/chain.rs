@@ -26,6 +26,7 @@ fn bench(c: &mut Criterion) {
         source: SceneSource::Procedural,
         progress: false,
         layers: LayerSpec::default(),
+        blink_fraction: 0.0,
     })
     .expect("render");
     let ds = Dataset::open(dir.path()).expect("dataset");

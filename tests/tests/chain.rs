@@ -34,6 +34,7 @@ fn opts(dir: &Path, seed: u64) -> DatasetOptions {
         source: SceneSource::Procedural,
         progress: false,
         layers: LayerSpec::default(),
+        blink_fraction: 0.0,
     }
 }
 

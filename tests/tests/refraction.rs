@@ -81,6 +81,7 @@ fn on_rendered_frames_refraction_removes_most_of_the_bias() {
         source: SceneSource::Procedural,
         progress: false,
         layers: LayerSpec::default(),
+        blink_fraction: 0.0,
     })
     .unwrap();
     let ds = Dataset::open(d.path()).unwrap();

@@ -20,6 +20,7 @@ fn dataset(dir: &std::path::Path, seed: u64) -> Dataset {
         source: SceneSource::Procedural,
         progress: false,
         layers: LayerSpec::default(),
+        blink_fraction: 0.0,
     })
     .unwrap();
     Dataset::open(dir).unwrap()

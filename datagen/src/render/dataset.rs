@@ -11,6 +11,7 @@ use super::trace::{Frame, LayerSpec, RenderOptions, render};
 use crate::states::{self, Protocol, State};
 use faer::Mat;
 use nanoeye_gaze::{Rig, Vec3};
+use rand::Rng;
 use serde::{Deserialize, Serialize};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -67,7 +68,14 @@ pub struct DatasetOptions {
     pub progress: bool,
     /// Depth layers (the non-empty ones are written per frame).
     pub layers: LayerSpec,
+    /// Share (0–1) of the envelope set's frames caught in a blink or partial closure: their
+    /// `lid_closure` is uniform in [`BLINK_CLOSURE`]; 0 keeps every lid open (the default).
+    pub blink_fraction: f64,
 }
+
+/// Range of `lid_closure` drawn for a blinking frame (see [`DatasetOptions::blink_fraction`]):
+/// from a lid lowered over the upper iris to fully closed.
+pub const BLINK_CLOSURE: std::ops::Range<f64> = 0.2..1.0;
 
 /// Paths of one frame's files, relative to the dataset directory.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -134,6 +142,13 @@ pub struct DatasetManifest {
     pub light_intensity_w_per_sr: f64,
     /// Frames in the dataset.
     pub frames: usize,
+    /// Share of envelope frames drawn with a blink or partial closure (absent: 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub blink_fraction: f64,
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
 }
 
 /// One line of frames.jsonl.
@@ -479,6 +494,7 @@ pub fn manifest_for(opts: &DatasetOptions) -> Result<DatasetManifest, RenderErro
             .intensity_toward([0.0, 0.0, Subject::default().cornea_apex_m]),
         rig,
         frames,
+        blink_fraction: opts.blink_fraction,
     })
 }
 
@@ -606,7 +622,29 @@ pub fn plan_dataset(opts: &DatasetOptions) -> Result<DatasetPlan, RenderError> {
             reason: "must be ≥ 1".into(),
         });
     }
-    let planned = plan(opts.set, &manifest.rig, &opts.source, opts.n, opts.seed)?;
+    let b = opts.blink_fraction;
+    if !(0.0..=1.0).contains(&b) {
+        return Err(RenderError::Invalid {
+            what: "blink_fraction",
+            reason: format!("must be in [0, 1], got {b}"),
+        });
+    }
+    if b > 0.0 && opts.set != RenderSet::Envelope {
+        return Err(RenderError::Invalid {
+            what: "blink_fraction",
+            reason: "only the envelope set samples lid closures".into(),
+        });
+    }
+    let mut planned = plan(opts.set, &manifest.rig, &opts.source, opts.n, opts.seed)?;
+    if b > 0.0 {
+        // A stream of its own per item, so the states and subjects are those of b = 0.
+        for f in &mut planned {
+            let mut rng = states::sets::item_rng(opts.seed, 7, f.item as u64);
+            if rng.random::<f64>() < b {
+                f.state.lid_closure = rng.random_range(BLINK_CLOSURE);
+            }
+        }
+    }
     let manifest = DatasetManifest {
         frames: planned.len(),
         ..manifest

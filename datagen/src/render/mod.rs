@@ -17,9 +17,9 @@ pub mod scene;
 pub mod trace;
 
 pub use dataset::{
-    DATASET_FORMAT, DatasetManifest, DatasetOptions, DatasetPlan, DatasetSummary, FrameFiles,
-    FrameRecord, LayerInfo, RenderSet, SceneSource, finish_dataset, manifest_for, open_dataset,
-    plan_dataset, render_frames, write_dataset,
+    BLINK_CLOSURE, DATASET_FORMAT, DatasetManifest, DatasetOptions, DatasetPlan, DatasetSummary,
+    FrameFiles, FrameRecord, LayerInfo, RenderSet, SceneSource, finish_dataset, manifest_for,
+    open_dataset, plan_dataset, render_frames, write_dataset,
 };
 pub use export::export_glb;
 pub use landmarks::{Landmark, Landmarks, aim_refracted_pupil, landmarks, refracted_pupil_px};
