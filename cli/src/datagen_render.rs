@@ -79,15 +79,6 @@ pub fn run(args: RenderArgs) -> Result<()> {
     if args.spp == 0 {
         bail!("--spp must be at least 1");
     }
-    if !(0.0..=1.0).contains(&args.blink_fraction) {
-        bail!(
-            "--blink-fraction must be in [0, 1], got {}",
-            args.blink_fraction
-        );
-    }
-    if args.blink_fraction > 0.0 && !matches!(args.set, SetArg::Envelope) {
-        bail!("--blink-fraction: only --set envelope samples lid closures");
-    }
     let rig = match &args.rig {
         Some(p) => {
             let text =
@@ -148,6 +139,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
             "--height"
         } else if msg.contains("invalid spp") {
             "--spp"
+        } else if msg.contains("invalid blink_fraction") {
+            "--blink-fraction"
         } else {
             "--out"
         };

@@ -422,7 +422,7 @@ pub fn face(geo: &EyeGeometry, subject: &Subject, state: &State, g: Vec3) -> Fac
     let caruncle = (
         f32_round(geom::scale(
             wc,
-            geo.eyeball_radius_m + 0.1e-3 + 0.5 * f.lift(0.0),
+            geo.eyeball_radius_m + 0.1e-3 + 0.5 * f.lift_medial,
         )),
         rc as f32 as f64,
     );
