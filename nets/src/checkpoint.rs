@@ -9,8 +9,9 @@ use crate::supernet::Supernet;
 use std::path::Path;
 
 const MAGIC: &[u8; 16] = b"NANOEYE-NETS\0\0\0\0";
-/// Format version written and accepted.
-pub const VERSION: u32 = 1;
+/// Format version written and accepted (2: the calibration head's hidden layer also reads the
+/// last stage's x, y moments; a version-1 file holds a head for the pooled expansion alone).
+pub const VERSION: u32 = 2;
 
 fn fnv1a(bytes: &[u8]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;

@@ -144,6 +144,11 @@ impl Counter {
         (self.h, self.w) = (1, 1);
     }
 
+    /// `extra` more pooled features beside the current ones (a concatenation: no MACs).
+    pub fn concat(&mut self, extra: usize) {
+        self.c += extra;
+    }
+
     /// A fully connected layer on the current (pooled) features.
     pub fn linear(&mut self, cout: usize, bias: bool) {
         let cin = (self.c * self.h * self.w) as u64;
@@ -267,6 +272,8 @@ pub fn subnet_cost(cfg: &SupernetConfig, arch: &Arch, h: usize, w: usize) -> Res
     let mut head = c.clone();
     head.pointwise(cfg.head_expand);
     head.pool();
+    // The last stage's x and y moments join the pooled expansion (supernet.rs).
+    head.concat(2 * f32_.0);
     head.linear(cfg.head_hidden, true);
     head.linear(3, true);
     // Perception decoder: biased 1×1 projections of three taps and the 1-channel logit conv.

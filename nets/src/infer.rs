@@ -17,6 +17,7 @@ use crate::conv::out_size;
 use crate::depthwise::{Geom, has_fma, madd};
 use crate::error::{NetsError, Result};
 use crate::norm::BatchNorm;
+use crate::pool::centred_coordinate;
 use crate::resize::taps;
 use crate::supernet::Supernet;
 use faer::linalg::matmul::matmul;
@@ -362,6 +363,8 @@ pub struct Inference {
     head_expand: Pointwise,
     head_map: Vec<f32>,
     head_g: Vec<f32>,
+    /// The last stage's feature map (rows, columns).
+    head_hw: (usize, usize),
     hidden: Pointwise,
     hidden_out: Vec<f32>,
     slip_head: Pointwise,
@@ -517,8 +520,9 @@ impl Inference {
             logits: vec![0.0; h * w],
             head_expand: Pointwise::new(&he_w, he_b, c_last, cfg.head_expand, Act::HSwish),
             head_map: vec![0.0; cfg.head_expand * hw32],
-            head_g: vec![0.0; cfg.head_expand],
-            hidden: dense(&net.head_hidden, cfg.head_expand, Act::HSwish),
+            head_g: vec![0.0; cfg.head_expand + 2 * c_last],
+            head_hw: size,
+            hidden: dense(&net.head_hidden, cfg.head_expand + 2 * c_last, Act::HSwish),
             hidden_out: vec![0.0; cfg.head_hidden],
             slip_head: dense(&net.head_out, cfg.head_hidden, Act::Identity),
         })
@@ -611,12 +615,27 @@ impl Inference {
         act_pass(&mut self.p2, Act::Relu);
         self.dec[3].run(&self.p2, f2.hw_out, &mut self.lo);
         self.up2.run(&self.lo, &mut self.logits, false);
-        // Calibration head: expansion, then the mean over pixels of each channel.
+        // Calibration head: the expansion's channel means, then the last stage's x, y moments.
         self.head_expand
             .run(&f32_.out, f32_.hw_out, &mut self.head_map);
         self.head_g.fill(0.0);
-        for row in self.head_map.chunks_exact(self.head_g.len()) {
-            self.head_g.iter_mut().zip(row).for_each(|(a, &v)| *a += v);
+        let c_last = f32_.out.len() / f32_.hw_out;
+        let (rows, cols) = self.head_hw;
+        let he = self.head_g.len() - 2 * c_last;
+        let (m, rest) = self.head_g.split_at_mut(he);
+        for px in self.head_map.chunks_exact(m.len()) {
+            m.iter_mut().zip(px).for_each(|(a, &v)| *a += v);
+        }
+        let (mx, my) = rest.split_at_mut(c_last);
+        for (i, line) in f32_.out.chunks_exact(c_last * cols).enumerate() {
+            let yi = centred_coordinate(i, rows);
+            for (j, px) in line.chunks_exact(c_last).enumerate() {
+                let xj = centred_coordinate(j, cols);
+                for ((x, y), &v) in mx.iter_mut().zip(my.iter_mut()).zip(px) {
+                    *x += xj * v;
+                    *y += yi * v;
+                }
+            }
         }
         let inv = 1.0 / f32_.hw_out as f32;
         self.head_g.iter_mut().for_each(|v| *v *= inv);

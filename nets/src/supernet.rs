@@ -7,7 +7,7 @@ use crate::block::{MbBlock, normal_param};
 use crate::conv::{conv2d_forward, conv2d_vjp, pointwise_forward, pointwise_vjp};
 use crate::error::{NetsError, Result};
 use crate::norm::{BatchNorm, BnMode};
-use crate::pool::{gap_forward, gap_vjp};
+use crate::pool::{gap_forward, gap_vjp, moments_forward, moments_vjp};
 use crate::resize::{bilinear_forward, bilinear_vjp};
 use crate::tensor::{Param, Tensor};
 use rand::SeedableRng;
@@ -143,7 +143,7 @@ impl Supernet {
             blocks,
             head_expand: normal_param(&mut rng, he * c, (2.0 / c as f32).sqrt()),
             head_bn: BatchNorm::new(he),
-            head_hidden: Dense::new(&mut rng, he, hh, (2.0 / he as f32).sqrt()),
+            head_hidden: Dense::new(&mut rng, he + 2 * c, hh, (2.0 / (he + 2 * c) as f32).sqrt()),
             head_out: Dense::new(&mut rng, hh, 3, (0.1 / hh as f32).sqrt()),
             dec: [
                 Dense::new(&mut rng, c, dw, (1.0 / c as f32).sqrt()),
@@ -231,7 +231,10 @@ impl Supernet {
             data: Act::HSwish.forward(&hv.data),
             ..hv.clone()
         };
-        let g = gap_forward(&ha);
+        // The expansion's means and the last stage's x, y moments: slippage translates the
+        // face across the frame, and a global mean cannot see a translation (measured: x
+        // slip went unlearned, docs/nets.md).
+        let g = concat_features(&gap_forward(&ha), &moments_forward(&f32_));
         let z = self.head_hidden.forward(&g)?;
         let za = Tensor {
             data: Act::HSwish.forward(&z.data),
@@ -282,7 +285,8 @@ impl Supernet {
             ..dza
         };
         let dg = self.head_hidden.vjp(&c.g, &dz)?;
-        let dha = gap_vjp(c.ha.shape(), &dg);
+        let (dgap, dmom) = split_features(&dg, self.config.head_expand);
+        let dha = gap_vjp(c.ha.shape(), &dgap);
         let dhv = Tensor {
             data: Act::HSwish.vjp(&c.hv.data, &dha.data),
             ..dha
@@ -296,6 +300,7 @@ impl Supernet {
             &mut self.head_expand.grad,
             None,
         )?;
+        df32.add_assign(&moments_vjp(c.f32_.shape(), &dmom));
         // Decoder.
         let dlo = bilinear_vjp([n, 1, c.r2.h, c.r2.w], d_logits);
         let dr2 = self.dec[3].vjp(&c.r2, &dlo)?;
@@ -411,4 +416,36 @@ impl Supernet {
         self.cache = None;
         Ok(())
     }
+}
+
+/// Per sample, the features of `a` then those of `b` (both (N, C, 1, 1)).
+fn concat_features(a: &Tensor, b: &Tensor) -> Tensor {
+    let mut data = Vec::with_capacity(a.data.len() + b.data.len());
+    for (x, y) in a.data.chunks_exact(a.c).zip(b.data.chunks_exact(b.c)) {
+        data.extend_from_slice(x);
+        data.extend_from_slice(y);
+    }
+    Tensor {
+        n: a.n,
+        c: a.c + b.c,
+        h: 1,
+        w: 1,
+        data,
+    }
+}
+
+/// Inverse of [`concat_features`]: the first `ca` features of each sample, then the rest.
+fn split_features(g: &Tensor, ca: usize) -> (Tensor, Tensor) {
+    let cb = g.c - ca;
+    let (mut a, mut b) = (Tensor::zeros(g.n, ca, 1, 1), Tensor::zeros(g.n, cb, 1, 1));
+    for ((row, x), y) in g
+        .data
+        .chunks_exact(g.c)
+        .zip(a.data.chunks_exact_mut(ca))
+        .zip(b.data.chunks_exact_mut(cb))
+    {
+        x.copy_from_slice(&row[..ca]);
+        y.copy_from_slice(&row[ca..]);
+    }
+    (a, b)
 }

@@ -80,7 +80,10 @@ fn supernet_backward_matches_directional_fd() {
             .zip(&v)
             .map(|(a, b)| *a as f64 * *b as f64)
             .sum();
-        let h = 1e-3f32;
+        // h = 3e-4: with the calibration head's initial weights since the moments joined it,
+        // this direction's derivative is 0.0914 and FD reads 0.043 at h = 3e-3, 0.068 at 1e-3
+        // and passes at 3e-4 and 1e-4: curvature, shrinking with h, not a wrong gradient.
+        let h = 3e-4f32;
         let shift = |sg: f32| Tensor {
             data: x.data.iter().zip(&v).map(|(a, b)| a + sg * h * b).collect(),
             ..x.clone()
@@ -150,6 +153,109 @@ fn supernet_backward_matches_directional_fd() {
         }
         assert!(bad.is_empty(), "{bad:#?}");
     }
+}
+
+/// The calibration head alone (L = ⟨q, Δt⟩), reading only the last stage's x, y moments, on an
+/// input whose stride-32 map is 3×2 pixels: the input gradient (through the moments' VJP) and
+/// the hidden layer's moment columns against central differences.
+#[test]
+fn calibration_head_with_moments_matches_directional_fd() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (n, h, w) = (2, 96, 64);
+    let x = Tensor::from_vec(n, 1, h, w, rnd(&mut rng, n * h * w)).unwrap();
+    let q = Tensor::from_vec(n, 3, 1, 1, rnd(&mut rng, n * 3)).unwrap();
+    let zero = Tensor::zeros(n, 1, h, w);
+    let arch = Arch {
+        resolution_scale: 1.0,
+        ..Arch::min()
+    };
+    let mut net = Supernet::new(tiny(), 4).unwrap();
+    // The hidden layer reads the moments only, so the input gradient goes through their VJP.
+    let he = tiny().head_expand;
+    net.visit(&mut |name, p| {
+        if name == "head_hidden.w" {
+            let cin = p.value.len() / tiny().head_hidden;
+            for (i, w) in p.value.iter_mut().enumerate() {
+                if i % cin < he {
+                    *w = 0.0;
+                }
+            }
+        }
+    });
+    let (_, dl, dq) = loss(&mut net, &arch, &x, &zero, &q);
+    net.zero_grad();
+    let dx = net.backward(&dl, &dq).unwrap();
+    let v = rnd(&mut rng, x.len());
+    let analytic: f64 = dx
+        .data
+        .iter()
+        .zip(&v)
+        .map(|(a, b)| *a as f64 * *b as f64)
+        .sum();
+    let hs = 3e-4f32;
+    let at = |s: f32| Tensor {
+        data: x.data.iter().zip(&v).map(|(a, b)| a + s * hs * b).collect(),
+        ..x.clone()
+    };
+    let fd = (loss(&mut net, &arch, &at(1.0), &zero, &q).0
+        - loss(&mut net, &arch, &at(-1.0), &zero, &q).0)
+        / (2.0 * hs as f64);
+    assert!(
+        analytic.abs() > 1e-6,
+        "no input gradient through the moments: {analytic}"
+    );
+    assert!(
+        (fd - analytic).abs() < 3e-2 * analytic.abs(),
+        "input: fd {fd} vs {analytic}"
+    );
+    // The hidden layer's columns that read the moments (the last 2·160 of each row).
+    let mut grad = Vec::new();
+    net.visit(&mut |name, p| {
+        if name == "head_hidden.w" {
+            grad = p.grad.clone();
+        }
+    });
+    let cin = grad.len() / tiny().head_hidden;
+    let dir: Vec<f32> = (0..grad.len())
+        .map(|i| {
+            if i % cin >= he {
+                rng.random_range(-1.0..1.0)
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let analytic: f64 = grad
+        .iter()
+        .zip(&dir)
+        .map(|(a, b)| *a as f64 * *b as f64)
+        .sum();
+    assert!(
+        analytic.abs() > 1e-6,
+        "the moments carry no weight gradient: {analytic}"
+    );
+    let mut lv = [0.0f64; 2];
+    for (k, sg) in [1.0f32, -1.0].into_iter().enumerate() {
+        let shift = |net: &mut Supernet, s: f32| {
+            net.visit(&mut |name, p| {
+                if name == "head_hidden.w" {
+                    p.value
+                        .iter_mut()
+                        .zip(&dir)
+                        .for_each(|(w, d)| *w += s * 1e-3 * d);
+                }
+            })
+        };
+        shift(&mut net, sg);
+        lv[k] = loss(&mut net, &arch, &x, &zero, &q).0;
+        shift(&mut net, -sg);
+    }
+    let fd = (lv[0] - lv[1]) / 2e-3;
+    // Linear in these weights: only rounding separates the two.
+    assert!(
+        (fd - analytic).abs() < 1e-3 * analytic.abs(),
+        "head_hidden.w (moment columns): fd {fd} vs {analytic}"
+    );
 }
 
 #[test]
