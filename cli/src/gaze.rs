@@ -80,7 +80,12 @@ fn solve_line(solver: &dyn GazeSolver, line: &str, base: &Path) -> Result<serde_
         }
         _ => bail!("exactly one of \"pupil_px\" and \"mask_png\" is required"),
     };
-    let mut out = json!({"gaze": sol.gaze, "pupil_3d_m": sol.pupil_3d_m, "pupil_px": sol.pupil_px});
+    let mut out = json!({
+        "gaze": sol.gaze,
+        "pupil_3d_m": sol.pupil_3d_m,
+        "pupil_px": sol.pupil_px,
+        "fallback": sol.fallback,
+    });
     if let Some(v) = sol.visual_axis {
         out["visual_axis"] = json!(v);
     }

@@ -123,6 +123,55 @@ fn demo_svg(rows: &[serde_json::Value]) -> String {
     s + "</svg>\n"
 }
 
+/// Predicted against true slippage (mm), one panel per axis, from a lens's protocol.jsonl.
+fn slip_svg(rows: &[serde_json::Value]) -> String {
+    let (pw, m, lim) = (220.0, 34.0, 7.0);
+    let (w, ht) = (3.0 * pw, pw + 14.0);
+    let mut s = format!(
+        r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{ht}" font-family="sans-serif" font-size="11">
+<rect width="100%" height="100%" fill="white"/>
+"##
+    );
+    for (axis, name) in ["x", "y", "z"].iter().enumerate() {
+        let x0 = axis as f64 * pw;
+        let px = |v: f64| x0 + m + (pw - 1.5 * m) * (v.clamp(-lim, lim) + lim) / (2.0 * lim);
+        let py = |v: f64| pw - m - (pw - 1.5 * m) * (v.clamp(-lim, lim) + lim) / (2.0 * lim);
+        s += &format!(
+            "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{:.1}\" height=\"{:.1}\" fill=\"none\" stroke=\"black\"/>\n\
+<line x1=\"{:.1}\" y1=\"{:.1}\" x2=\"{:.1}\" y2=\"{:.1}\" stroke=\"#bbb\"/>\n\
+<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">true {name} (mm, ±{lim})</text>\n\
+<text x=\"{:.1}\" y=\"{:.1}\" transform=\"rotate(-90 {:.1} {:.1})\" text-anchor=\"middle\">estimated {name}</text>\n",
+            px(-lim),
+            py(lim),
+            px(lim) - px(-lim),
+            py(-lim) - py(lim),
+            px(-lim),
+            py(-lim),
+            px(lim),
+            py(lim),
+            px(0.0),
+            pw - 8.0,
+            x0 + 12.0,
+            py(0.0),
+            x0 + 12.0,
+            py(0.0),
+        );
+        for r in rows {
+            if let (Some(t), Some(e)) = (
+                r["true_slip_mm"][axis].as_f64(),
+                r["tracked_slip_mm"][axis].as_f64(),
+            ) {
+                s += &format!(
+                    "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"2\" fill=\"#2471a3\" fill-opacity=\"0.5\"/>\n",
+                    px(t),
+                    py(e)
+                );
+            }
+        }
+    }
+    s + "</svg>\n"
+}
+
 fn esc(s: &str) -> String {
     s.replace('&', "&amp;")
         .replace('<', "&lt;")
@@ -167,7 +216,9 @@ misses the sphere counts 90° and is listed under failures. <i>geometric_no_slip
 learned lens and network, but the solver is told there is no slippage. \
 <i>solver_true_mask_true_slip</i>: the true visible-pupil mask on the same sensor grid and the \
 true slippage — the configured geometric solver's own error without the network; the \
-difference to <i>learned</i> is the network's share. <i>sphere_solver_…</i> / \
+difference to <i>learned</i> is the network's share. <i>network_mask_true_slip</i> / \
+<i>true_mask_network_slip</i>: one of the network's two outputs replaced by the truth, so the \
+segmentation's and the slippage estimate's shares are separate. <i>sphere_solver_…</i> / \
 <i>refractive_solver_…</i>: the same with the other solver (the paper's S12 sphere of the \
 rig's eye radius, or the refraction-aware solver that looks through the cornea, \
 docs/gaze.md), so the refraction correction's effect is visible. Dice: mean overlap of the \
@@ -322,6 +373,27 @@ oldest member removed. V = mean gaze error on the validation set (degrees).</p><
         num(&r["v_deg"]),
         esc(&serde_json::to_string(&r["best_arch"])?)
     )?;
+    // The calibration head against the truth, frame by frame, per lens.
+    let mut slips = String::new();
+    for lens in ["learned", "hyperbolic", "double_helix"] {
+        if let Ok(text) = std::fs::read_to_string(out.join(format!("runs/{lens}/protocol.jsonl"))) {
+            let rows: Vec<serde_json::Value> = text
+                .lines()
+                .filter_map(|l| serde_json::from_str(l).ok())
+                .collect();
+            if !rows.is_empty() {
+                slips += &format!("<h3>{}</h3>{}", esc(lens), slip_svg(&rows));
+            }
+        }
+    }
+    if !slips.is_empty() {
+        writeln!(
+            h,
+            "<h2>Slippage estimate</h2><p>The calibration head's slippage against the truth on \
+every protocol frame (dots; on the grey diagonal the estimate is exact; values beyond ±7 mm sit \
+on the frame). runs/&lt;lens&gt;/protocol.jsonl has every frame's gaze and slippage.</p>{slips}"
+        )?;
+    }
     if let Ok(text) = std::fs::read_to_string(out.join("demo.jsonl")) {
         let rows: Vec<serde_json::Value> = text
             .lines()

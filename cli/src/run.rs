@@ -663,8 +663,9 @@ pub fn run(a: RunArgs) -> Result<()> {
         let p_hat = tr.pitch_um * 1e-6;
         // One pass of the chain and the network per lens; for the learned lens the same pass
         // also feeds the solver without slippage and the solver alone (true masks and
-        // slippage, with the configured solver and with the other one), so the network's and
-        // the refraction correction's shares of the error are visible.
+        // slippage, with the configured solver and with the other one; each of the network's
+        // two outputs alone), so the network's, each head's and the refraction correction's
+        // shares of the error are visible.
         let other = match cfg.solver {
             SolverKind::Refractive => SolverKind::Sphere,
             SolverKind::Sphere => SolverKind::Refractive,
@@ -682,6 +683,17 @@ pub fn run(a: RunArgs) -> Result<()> {
                 SolverInput::Truth,
                 other,
             ));
+            // The chain's error split between its two heads: each fed the truth in turn.
+            solves.push((
+                "network_mask_true_slip".into(),
+                SolverInput::PredictedMaskTrueSlip,
+                cfg.solver,
+            ));
+            solves.push((
+                "true_mask_network_slip".into(),
+                SolverInput::TrueMaskPredictedSlip,
+                cfg.solver,
+            ));
         }
         let setup = nanoeye_search::EvalSetup {
             chain: &proto_chain,
@@ -697,8 +709,31 @@ pub fn run(a: RunArgs) -> Result<()> {
             &setup,
             &solves.iter().map(|(_, i, k)| (*i, *k)).collect::<Vec<_>>(),
         )?;
+        // Frame by frame, what the chain estimated, so its errors can be traced to a head.
+        let e = &evals[0];
+        let mut lines = String::new();
+        for (k, rec) in proto.records.iter().enumerate() {
+            lines += &serde_json::json!({
+                "frame": k,
+                "slip_state": (k / 49) % 7,
+                "true_gaze": rec.gaze,
+                "tracked_gaze": e.gaze[k],
+                "error_deg": e.errors_deg[k],
+                "dice": e.dice[k],
+                "true_slip_mm": rec.state.slip_m.map(|v| v * 1e3),
+                "tracked_slip_mm": e.slip_mm[k],
+                "fallback": e.fallback[k],
+            })
+            .to_string();
+            lines.push('\n');
+        }
+        util::write_atomic(
+            &out.join(format!("runs/{name}/protocol.jsonl")),
+            lines.as_bytes(),
+        )?;
         for ((key, _, _), e) in solves.iter().zip(&evals) {
             let mut v = protocol_summary(&e.errors_deg);
+            v["fallbacks"] = e.fallback.iter().filter(|&&f| f).count().into();
             if key == name {
                 // The network's own share: segmentation and slippage against the truth.
                 let n = e.dice.len().max(1) as f64;
@@ -745,12 +780,14 @@ pub fn run(a: RunArgs) -> Result<()> {
                     "tracked_deg": est,
                     "slip_m": rec.state.slip_m,
                     "error_deg": e.errors_deg[k],
+                    "fallback": e.fallback[k],
                 })
                 .to_string();
                 lines.push('\n');
             }
             util::write_atomic(&out.join("demo.jsonl"), lines.as_bytes())?;
             demo = summarize(&e.errors_deg);
+            demo["fallbacks"] = e.fallback.iter().filter(|&&f| f).count().into();
         }
     }
     stage("protocol", t.elapsed().as_secs_f64(), &mut stages)?;

@@ -282,6 +282,7 @@ fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, String>
         "pupil_px": sol.pupil_px,
         "slip_m": slip,
         "confidence": conf,
+        "fallback": sol.fallback,
     }))
 }
 

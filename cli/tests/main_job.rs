@@ -51,9 +51,12 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         "geometric_no_slip",
         "solver_true_mask_true_slip",
         "sphere_solver_true_mask_true_slip",
+        "network_mask_true_slip",
+        "true_mask_network_slip",
     ] {
         let s = &p[lens];
         assert_eq!(s["frames"], 343, "{lens}");
+        assert!(s["fallbacks"].as_u64().unwrap() <= 343, "{lens}");
         assert_eq!(s["per_slip"].as_array().unwrap().len(), 7);
         let m = s["mean_deg"].as_f64().unwrap();
         assert!(m.is_finite() && (0.0..=90.0).contains(&m), "{lens}: {m}");
@@ -65,6 +68,32 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         );
         assert!((0.0..=1.0).contains(&dice), "{lens}: dice {dice}");
         assert!(slip.is_finite() && slip >= 0.0, "{lens}: slip {slip}");
+        // Frame by frame: the recorded slippage errors give back the summary's RMSE.
+        let rows: Vec<serde_json::Value> =
+            std::fs::read_to_string(out.join(format!("runs/{lens}/protocol.jsonl")))
+                .unwrap()
+                .lines()
+                .map(|l| serde_json::from_str(l).unwrap())
+                .collect();
+        assert_eq!(rows.len(), 343, "{lens}");
+        let ms: f64 = rows
+            .iter()
+            .map(|r| {
+                (0..3)
+                    .map(|a| {
+                        let d = r["tracked_slip_mm"][a].as_f64().unwrap()
+                            - r["true_slip_mm"][a].as_f64().unwrap();
+                        d * d
+                    })
+                    .sum::<f64>()
+            })
+            .sum::<f64>()
+            / 343.0;
+        assert!(
+            (ms.sqrt() - slip).abs() < 1e-4 * (1.0 + slip),
+            "{lens}: protocol.jsonl gives {} mm, the summary {slip} mm",
+            ms.sqrt()
+        );
         // The deployed model: the selected subnet fine-tuned behind this lens.
         assert!(
             out.join(format!("runs/{lens}/selected.bin")).exists(),
@@ -87,6 +116,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     );
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert!(html.contains("data:image/png;base64,") && html.contains("<svg"));
+    assert!(html.contains("Slippage estimate"));
     assert_eq!(
         html.matches("<img").count(),
         10,

@@ -293,7 +293,15 @@ impl GazeSolver for RefractiveSolver {
                 geom::normalize(p)
             }
         };
-        let g = self.newton(o, d, g0)?;
+        // Where no gaze refracts this ray through the pupil centre (the ray meets sclera: the
+        // slippage or the centroid is off by a millimetre near the limb), the unrefracted
+        // solution is the nearest estimate; it carries the pupil-sphere solver's bias
+        // (docs/gaze.md) and is flagged, not dropped.
+        let (g, fallback) = match self.newton(o, d, g0) {
+            Ok(g) => (g, false),
+            Err(GazeError::RayMissesCornea { .. }) => (g0, true),
+            Err(e) => return Err(e),
+        };
         let visual_axis = match self.kappa {
             Some(k) => Some(eye::visual_axis(g, k)?),
             None => None,
@@ -305,6 +313,7 @@ impl GazeSolver for RefractiveSolver {
             gaze: g,
             visual_axis,
             ray_length_m: geom::norm(geom::sub(p, o)),
+            fallback,
         })
     }
 
@@ -435,6 +444,64 @@ mod tests {
             .acos()
             .to_degrees();
         assert!(deg > 1.0, "refraction moved the answer by only {deg}°");
+    }
+
+    /// Where no gaze refracts the ray through the pupil centre (the ray meets the eye across
+    /// the limb: a centroid or a slippage a little off), the answer is the unrefracted
+    /// pupil-sphere solution, flagged; the true refracted image of the pupil centre never
+    /// falls back.
+    #[test]
+    fn a_ray_past_the_cornea_falls_back_to_the_pupil_sphere_solution_and_says_so() {
+        let rig = Rig::default();
+        let r = RefractiveSolver::new(&rig).unwrap();
+        let s = SphereSolver::new(&Rig {
+            eye_radius_m: rig.pupil_sphere_radius_m,
+            ..rig.clone()
+        })
+        .unwrap();
+        let c = &rig.camera;
+        let (mut exact, mut fell_back) = (0, 0);
+        for i in 0..=40 {
+            for j in 0..=40 {
+                let px = [
+                    c.width_px as f64 * i as f64 / 40.0,
+                    c.height_px as f64 * j as f64 / 40.0,
+                ];
+                let Ok(a) = r.solve_pixel(px, [0.0; 3]) else {
+                    continue;
+                };
+                if !a.fallback {
+                    exact += 1;
+                    continue;
+                }
+                fell_back += 1;
+                assert!((geom::norm(a.gaze) - 1.0).abs() < 1e-12);
+                if let Ok(b) = s.solve_pixel(px, [0.0; 3]) {
+                    assert!(geom::norm(geom::sub(a.gaze, b.gaze)) < 1e-12, "{px:?}");
+                }
+            }
+        }
+        // Over the whole frame most pixels see skin or sclera, not the cornea.
+        assert!(
+            fell_back > 0 && exact > 0,
+            "{exact} exact, {fell_back} fallbacks"
+        );
+        // The pupil centre at any gaze within ±80°, projected, is always solved exactly.
+        let pose = c.slipped_pose([0.0; 3], [0.0; 3]);
+        let mut solved = 0;
+        for az in (-80i32..=80).step_by(8) {
+            for el in (-80i32..=80).step_by(8) {
+                let g = eye::gaze_from_angles((az as f64).to_radians(), (el as f64).to_radians());
+                let p = geom::scale(g, rig.pupil_sphere_radius_m);
+                if let Ok(px) = project(c, &pose, p) {
+                    if let Ok(a) = r.solve_pixel(px, [0.0; 3]) {
+                        assert!(!a.fallback, "{az} {el}");
+                        solved += 1;
+                    }
+                }
+            }
+        }
+        assert!(solved > 300, "only {solved} of 441 gazes solved");
     }
 
     #[test]

@@ -20,6 +20,10 @@ pub struct GazeSolution {
     pub visual_axis: Option<Vec3>,
     /// Distance s* from the camera centre to P_3D along the ray (m).
     pub ray_length_m: f64,
+    /// True when the solver's own model had no exact solution for this ray and `gaze` is its
+    /// documented nearest estimate (the refraction-aware solver's unrefracted pupil-sphere
+    /// solution, see [`crate::RefractiveSolver`]); the sphere solver never falls back.
+    pub fallback: bool,
 }
 
 /// Gradients the solver passes upstream.
@@ -206,6 +210,7 @@ impl GazeSolver for SphereSolver {
             gaze: g,
             visual_axis,
             ray_length_m: s,
+            fallback: false,
         })
     }
 

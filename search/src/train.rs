@@ -145,7 +145,8 @@ pub struct StepRecord {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Metrics {
     /// V: mean angular gaze error (degrees) over the validation frames; a frame whose mask
-    /// is empty or whose ray misses the sphere counts 90°.
+    /// is empty or whose ray misses the sphere counts 90° (a solver's flagged fallback
+    /// estimate counts with its own error).
     pub v_deg: f64,
     /// Median angular error (degrees).
     pub median_deg: f64,
@@ -769,6 +770,10 @@ pub enum SolverInput {
     /// The true visible-pupil mask on the p̂ grid and the true slippage: the solver's own
     /// error on rendered frames, without the network.
     Truth,
+    /// The network's mask with the true slippage: the segmentation's share of the error.
+    PredictedMaskTrueSlip,
+    /// The true mask with the network's slippage: the calibration head's share of the error.
+    TrueMaskPredictedSlip,
 }
 
 /// Per-frame results of a validation pass.
@@ -783,6 +788,11 @@ pub struct FrameEval {
     pub slip_sq_mm2: Vec<f64>,
     /// Estimated gaze (unit optical axis) per frame; None where the solver failed.
     pub gaze: Vec<Option<[f64; 3]>>,
+    /// The network's slippage estimate per frame (mm, rig frame).
+    pub slip_mm: Vec<[f64; 3]>,
+    /// Per frame: the solver fell back to its nearest estimate
+    /// ([`nanoeye_gaze::GazeSolution::fallback`]); false where it failed.
+    pub fallback: Vec<bool>,
 }
 
 /// What an evaluation runs: every frame of `data` through `chain` at φ = `map`, p̂ =
@@ -881,16 +891,19 @@ pub fn evaluate_frames_multi(
             for ((&(input, _), solver), e) in solves.iter().zip(&solvers).zip(out.iter_mut()) {
                 e.dice.push(dice);
                 e.slip_sq_mm2.push(slip_sq);
-                let probs = if input == SolverInput::Truth {
-                    &truth
-                } else {
-                    &predicted
+                e.slip_mm
+                    .push([0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64));
+                let probs = match input {
+                    SolverInput::Truth | SolverInput::TrueMaskPredictedSlip => &truth,
+                    _ => &predicted,
                 };
                 let slip = match input {
                     SolverInput::NoSlip => [0.0; 3],
-                    SolverInput::Truth => f.record.state.slip_m,
-                    SolverInput::Predicted => {
-                        [0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64 * 1e-3)
+                    SolverInput::Truth | SolverInput::PredictedMaskTrueSlip => {
+                        f.record.state.slip_m
+                    }
+                    SolverInput::Predicted | SolverInput::TrueMaskPredictedSlip => {
+                        e.slip_mm[e.slip_mm.len() - 1].map(|v| v * 1e-3)
                     }
                 };
                 let sol = solver.solve_mask(probs.as_ref(), slip).ok();
@@ -898,6 +911,7 @@ pub fn evaluate_frames_multi(
                     sol.as_ref()
                         .map(|s| angular_error(s.gaze, f.record.gaze).to_degrees()),
                 );
+                e.fallback.push(sol.is_some_and(|s| s.fallback));
                 e.gaze.push(sol.map(|s| s.gaze));
             }
         }
