@@ -182,6 +182,12 @@ fn esc(s: &str) -> String {
 pub fn html(out: &Path, r: &serde_json::Value) -> Result<String> {
     let mut h = String::new();
     let num = |v: &serde_json::Value| v.as_f64().map_or("–".into(), |x| format!("{x:.2}"));
+    // The run's own sizes, from the configuration it wrote ("–" where it is missing).
+    let cfg: serde_json::Value = std::fs::read_to_string(out.join("config.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .unwrap_or_default();
+    let c = |k: &str| cfg[k].as_u64().map_or("–".to_string(), |v| v.to_string());
     writeln!(
         h,
         r#"<!doctype html><html lang="en"><head><meta charset="utf-8"><title>nanoeye run</title>
@@ -198,14 +204,21 @@ the whole simulated chain: rendered depth layers → lens PSFs (S1) → sensor a
 network → pupil centroid (S9) → ray–sphere gaze with the network's slippage (S10–S14). The
 same network is trained behind the fixed hyperbolic and double-helix lenses for comparison.
 Stage times add up to {:.0} s (table at the end).</p>
-<p><b>Scale.</b> The built-in default is sized to finish within 15 minutes on 2 cores: 120
-training frames at 12 µm pixels, 150 sandwich steps per lens and a 4 + 4 candidate search. Its
-errors are therefore far from the paper's; `nanoeye run --print-config` lists every size, and
-`--config FILE` scales the run up (more frames, steps, REA cycles and a finer render).</p>"#,
+<p><b>Scale.</b> This run: {} training frames rendered at {}×{}, {} sandwich steps per lens and a
+{} + {} candidate search (config.json). The built-in default is sized to finish within 15 minutes
+on 2 cores, so its errors are far from the paper's; `nanoeye run --print-config` lists every
+size, and `--config FILE` scales the run up (more frames, steps, REA cycles and a finer
+render).</p>"#,
         // The stages' sum: a resumed run's own wall time would count only what it redid.
         r["stages"]
             .as_object()
-            .map_or(0.0, |m| m.values().filter_map(|v| v.as_f64()).sum::<f64>())
+            .map_or(0.0, |m| m.values().filter_map(|v| v.as_f64()).sum::<f64>()),
+        c("train_items"),
+        c("width_px"),
+        c("height_px"),
+        c("train_steps"),
+        c("rea_population"),
+        c("rea_cycles"),
     )?;
     // Protocol table.
     writeln!(

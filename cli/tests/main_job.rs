@@ -117,6 +117,11 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert!(html.contains("data:image/png;base64,") && html.contains("<svg"));
     assert!(html.contains("Slippage estimate"));
+    // The report states this run's own sizes (the test's config), not the default's.
+    assert!(
+        html.contains("This run: 3 training frames rendered at 80×50, 2 sandwich steps"),
+        "scale paragraph"
+    );
     assert_eq!(
         html.matches("<img").count(),
         10,
