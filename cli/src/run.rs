@@ -321,6 +321,11 @@ fn summarize(errs: &[Option<f64>]) -> serde_json::Value {
     })
 }
 
+/// Frames where the solver gave its flagged fallback estimate.
+fn fallbacks(e: &nanoeye_search::FrameEval) -> usize {
+    e.fallback.iter().filter(|&&f| f).count()
+}
+
 fn protocol_summary(errs: &[Option<f64>]) -> serde_json::Value {
     let mut s = summarize(errs);
     // Protocol order: subject, slip state (7), target (49).
@@ -733,7 +738,7 @@ pub fn run(a: RunArgs) -> Result<()> {
         )?;
         for ((key, _, _), e) in solves.iter().zip(&evals) {
             let mut v = protocol_summary(&e.errors_deg);
-            v["fallbacks"] = e.fallback.iter().filter(|&&f| f).count().into();
+            v["fallbacks"] = fallbacks(e).into();
             if key == name {
                 // The network's own share: segmentation and slippage against the truth.
                 let n = e.dice.len().max(1) as f64;
@@ -787,7 +792,7 @@ pub fn run(a: RunArgs) -> Result<()> {
             }
             util::write_atomic(&out.join("demo.jsonl"), lines.as_bytes())?;
             demo = summarize(&e.errors_deg);
-            demo["fallbacks"] = e.fallback.iter().filter(|&&f| f).count().into();
+            demo["fallbacks"] = fallbacks(&e).into();
         }
     }
     stage("protocol", t.elapsed().as_secs_f64(), &mut stages)?;

@@ -373,6 +373,16 @@ mod tests {
     use crate::solver::project;
     use proptest::prelude::*;
 
+    /// The refraction-aware solver for `rig` and the sphere solver on its pupil sphere.
+    fn both_solvers(rig: &Rig) -> (RefractiveSolver, SphereSolver) {
+        let s = SphereSolver::new(&Rig {
+            eye_radius_m: rig.pupil_sphere_radius_m,
+            ..rig.clone()
+        })
+        .unwrap();
+        (RefractiveSolver::new(rig).unwrap(), s)
+    }
+
     /// Without refraction (n = 1) the cornea bends nothing, so the solver must agree with the
     /// sphere solver on the pupil sphere: the closed form S12–S13.
     #[test]
@@ -384,12 +394,7 @@ mod tests {
             },
             ..Rig::default()
         };
-        let r = RefractiveSolver::new(&rig).unwrap();
-        let s = SphereSolver::new(&Rig {
-            eye_radius_m: rig.pupil_sphere_radius_m,
-            ..rig.clone()
-        })
-        .unwrap();
+        let (r, s) = both_solvers(&rig);
         let mut n = 0;
         for az in [-30.0f64, -10.0, 0.0, 15.0, 30.0] {
             for el in [-12.0f64, 0.0, 10.0] {
@@ -423,12 +428,7 @@ mod tests {
     #[test]
     fn refraction_matters_at_primary_gaze() {
         let rig = Rig::default();
-        let r = RefractiveSolver::new(&rig).unwrap();
-        let s = SphereSolver::new(&Rig {
-            eye_radius_m: rig.pupil_sphere_radius_m,
-            ..rig.clone()
-        })
-        .unwrap();
+        let (r, s) = both_solvers(&rig);
         // A pixel a refracted ray from the pupil centre reaches: start from the unrefracted
         // projection and let the solver tell us the gaze it implies; then the two must differ.
         let px = project(
@@ -453,12 +453,7 @@ mod tests {
     #[test]
     fn a_ray_past_the_cornea_falls_back_to_the_pupil_sphere_solution_and_says_so() {
         let rig = Rig::default();
-        let r = RefractiveSolver::new(&rig).unwrap();
-        let s = SphereSolver::new(&Rig {
-            eye_radius_m: rig.pupil_sphere_radius_m,
-            ..rig.clone()
-        })
-        .unwrap();
+        let (r, s) = both_solvers(&rig);
         let c = &rig.camera;
         let (mut exact, mut fell_back) = (0, 0);
         for i in 0..=40 {

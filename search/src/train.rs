@@ -888,11 +888,11 @@ pub fn evaluate_frames_multi(
                 1.0 / (1.0 + (-l).exp())
             });
             let truth = Mat::from_fn(h, w, |i, j| fwd.mask.image(b)[i * w + j]);
+            let net_slip_mm = [0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64);
             for ((&(input, _), solver), e) in solves.iter().zip(&solvers).zip(out.iter_mut()) {
                 e.dice.push(dice);
                 e.slip_sq_mm2.push(slip_sq);
-                e.slip_mm
-                    .push([0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64));
+                e.slip_mm.push(net_slip_mm);
                 let probs = match input {
                     SolverInput::Truth | SolverInput::TrueMaskPredictedSlip => &truth,
                     _ => &predicted,
@@ -903,7 +903,7 @@ pub fn evaluate_frames_multi(
                         f.record.state.slip_m
                     }
                     SolverInput::Predicted | SolverInput::TrueMaskPredictedSlip => {
-                        e.slip_mm[e.slip_mm.len() - 1].map(|v| v * 1e-3)
+                        net_slip_mm.map(|v| v * 1e-3)
                     }
                 };
                 let sol = solver.solve_mask(probs.as_ref(), slip).ok();
