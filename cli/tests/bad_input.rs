@@ -842,3 +842,30 @@ fn inputs_found_by_the_property_test_are_refused_naming_their_flag() {
     );
     assert_eq!(entries(p), ["cy.json"], "a refused command wrote files");
 }
+
+/// A stage's error reaches the user once: the wrapping errors carried it both in their message
+/// and as `source()`, so `{:#}` printed "i/o error on …missing.npy: No such file…" three times.
+#[test]
+fn a_wrapped_stage_error_is_printed_once() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    assert!(nanoeye(&tiny_dataset("ds"), p).status.success());
+    let err = refused(
+        &[
+            "sim",
+            "--dataset",
+            "ds",
+            "--lens",
+            "file:missing.npy",
+            "--pitch-um",
+            "6",
+            "--out",
+            "s",
+            "--json",
+        ],
+        "--lens",
+        p,
+    );
+    assert_eq!(err.matches("missing.npy").count(), 1, "{err}");
+    assert!(!p.join("s").exists(), "{:?}", entries(p));
+}

@@ -21,12 +21,12 @@ pub enum MetalibError {
     #[error("numerical failure: {0}")]
     Numerical(String),
     /// File input/output failed.
-    #[error("i/o error on {path}: {source}")]
+    #[error("i/o error on {path}: {cause}")]
     Io {
         /// File concerned.
         path: String,
         /// Underlying error.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// A file had an unexpected format.
     #[error("format error in {path}: {reason}")]

@@ -273,7 +273,7 @@ pub fn write_figures(
     }
     std::fs::create_dir_all(dir).map_err(|e| MetalibError::Io {
         path: dir.display().to_string(),
-        source: e,
+        cause: e,
     })?;
     let (nh, ns) = (data.heights_m.len(), data.pitches_m.len());
     let nearest = |v: &[f64], x: f64| {

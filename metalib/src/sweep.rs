@@ -172,7 +172,7 @@ impl SweepData {
 fn io_err(path: &Path, source: std::io::Error) -> MetalibError {
     MetalibError::Io {
         path: path.display().to_string(),
-        source,
+        cause: source,
     }
 }
 
@@ -182,7 +182,7 @@ pub fn check_output_target(path: &Path) -> Result<(), MetalibError> {
     match std::fs::symlink_metadata(path) {
         Ok(m) if !m.file_type().is_file() => Err(MetalibError::Io {
             path: path.display().to_string(),
-            source: std::io::Error::other(
+            cause: std::io::Error::other(
                 "exists and is not a regular file (symlink, pipe, device or directory); \
                  refusing to replace it",
             ),

@@ -19,7 +19,15 @@ pub enum NetsError {
     Param(String),
     /// Underlying I/O failure.
     #[error("i/o error: {0}")]
-    Io(#[from] std::io::Error),
+    Io(std::io::Error),
+}
+
+// By hand rather than `#[from]`, which would also make the I/O error the `source()` and print
+// its message twice under `{:#}`.
+impl From<std::io::Error> for NetsError {
+    fn from(e: std::io::Error) -> Self {
+        Self::Io(e)
+    }
 }
 
 /// Result alias of the crate.

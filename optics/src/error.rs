@@ -16,14 +16,14 @@ pub enum OpticsError {
     Shape(String),
     /// The pillar library rejected a query.
     #[error("pillar library: {0}")]
-    Library(#[from] nanoeye_metalib::MetalibError),
+    Library(nanoeye_metalib::MetalibError),
     /// File input/output failed.
-    #[error("i/o error on {path}: {source}")]
+    #[error("i/o error on {path}: {cause}")]
     Io {
         /// File concerned.
         path: String,
         /// Underlying error.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// A file had an unexpected format.
     #[error("format error in {path}: {reason}")]
@@ -42,6 +42,14 @@ impl OpticsError {
             name,
             reason: reason.into(),
         }
+    }
+}
+
+// By hand rather than `#[from]`, which would also make the library's error the `source()` and
+// print its message twice under `{:#}`.
+impl From<nanoeye_metalib::MetalibError> for OpticsError {
+    fn from(e: nanoeye_metalib::MetalibError) -> Self {
+        Self::Library(e)
     }
 }
 

@@ -10,7 +10,7 @@ use std::path::Path;
 fn io_err(path: &Path, source: std::io::Error) -> OpticsError {
     OpticsError::Io {
         path: path.display().to_string(),
-        source,
+        cause: source,
     }
 }
 

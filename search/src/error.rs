@@ -1,7 +1,8 @@
 //! Errors of the camera chain and the search: one enum wrapping each stage's error, plus the
 //! chain's own parameter checks (which name the parameter).
 
-/// Errors of the `search` crate.
+/// Errors of the `search` crate. A stage's error is wrapped with its message in ours and no
+/// `source()`: with both, `{:#}` printed the stage's message twice.
 #[derive(Debug, thiserror::Error)]
 pub enum SearchError {
     /// A chain or search parameter is out of range; `name` is the parameter.
@@ -14,20 +15,37 @@ pub enum SearchError {
     },
     /// Optics stage.
     #[error("optics: {0}")]
-    Optics(#[from] nanoeye_optics::OpticsError),
+    Optics(nanoeye_optics::OpticsError),
     /// Sensor stage.
     #[error("sensor: {0}")]
-    Sensor(#[from] nanoeye_sensor::SensorError),
+    Sensor(nanoeye_sensor::SensorError),
     /// Network stage.
     #[error("network: {0}")]
-    Nets(#[from] nanoeye_nets::NetsError),
+    Nets(nanoeye_nets::NetsError),
     /// Geometry (rig, solver).
     #[error("geometry: {0}")]
-    Gaze(#[from] nanoeye_gaze::GazeError),
+    Gaze(nanoeye_gaze::GazeError),
     /// Dataset reading.
     #[error("dataset: {0}")]
-    Data(#[from] nanoeye_datagen::render::RenderError),
+    Data(nanoeye_datagen::render::RenderError),
 }
+
+macro_rules! wrap {
+    ($($t:ty => $v:ident),*) => {$(
+        impl From<$t> for SearchError {
+            fn from(e: $t) -> Self {
+                Self::$v(e)
+            }
+        }
+    )*};
+}
+wrap!(
+    nanoeye_optics::OpticsError => Optics,
+    nanoeye_sensor::SensorError => Sensor,
+    nanoeye_nets::NetsError => Nets,
+    nanoeye_gaze::GazeError => Gaze,
+    nanoeye_datagen::render::RenderError => Data
+);
 
 /// Result alias of the crate.
 pub type Result<T> = std::result::Result<T, SearchError>;

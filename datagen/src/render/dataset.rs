@@ -345,7 +345,7 @@ pub fn rig_at_size(rig: &Rig, width_px: usize, height_px: usize) -> Result<Rig, 
 fn io_err(path: &Path, source: std::io::Error) -> RenderError {
     RenderError::Io {
         path: path.display().to_string(),
-        source,
+        cause: source,
     }
 }
 

@@ -79,12 +79,12 @@ pub enum RenderError {
         reason: String,
     },
     /// File output failed.
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Io {
         /// File.
         path: String,
         /// Cause.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// Image encoding failed.
     #[error("{path}: {reason}")]

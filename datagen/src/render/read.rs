@@ -58,7 +58,7 @@ fn invalid(path: &Path, reason: impl std::fmt::Display) -> RenderError {
 pub fn read_npy_f32(path: &Path) -> Result<(Vec<u64>, Vec<f32>), RenderError> {
     let bytes = std::fs::read(path).map_err(|e| RenderError::Io {
         path: path.display().to_string(),
-        source: e,
+        cause: e,
     })?;
     let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| invalid(path, e))?;
     let shape = npy.shape().to_vec();
@@ -92,7 +92,7 @@ impl Dataset {
                 "{} (is this a directory written by `nanoeye datagen render`?)",
                 mpath.display()
             ),
-            source: e,
+            cause: e,
         })?;
         let manifest: DatasetManifest = serde_json::from_str(text.trim_start_matches('\u{feff}'))
             .map_err(|e| invalid(&mpath, e))?;
@@ -112,7 +112,7 @@ impl Dataset {
                 "{} (an interrupted render? re-run it to finish)",
                 jpath.display()
             ),
-            source: e,
+            cause: e,
         })?;
         let mut records = Vec::new();
         for (i, line) in text.trim_start_matches('\u{feff}').lines().enumerate() {
