@@ -204,7 +204,7 @@ the whole simulated chain: rendered depth layers → lens PSFs (S1) → sensor a
 network → pupil centroid (S9) → ray–sphere gaze with the network's slippage (S10–S14). The
 same network is trained behind the fixed hyperbolic and double-helix lenses for comparison.
 Stage times add up to {:.0} s (table at the end).</p>
-<p><b>Scale.</b> This run: {} training frames rendered at {}×{}, {} sandwich steps per lens and a
+<p><b>Scale.</b> This run: {} training frames{} rendered at {}×{}, {} sandwich steps per lens and a
 {} + {} candidate search (config.json). The built-in default is sized to finish within 15 minutes
 on 2 cores, so its errors are far from the paper's; `nanoeye run --print-config` lists every
 size, and `--config FILE` scales the run up (more frames, steps, REA cycles and a finer
@@ -214,6 +214,13 @@ render).</p>"#,
             .as_object()
             .map_or(0.0, |m| m.values().filter_map(|v| v.as_f64()).sum::<f64>()),
         c("train_items"),
+        match cfg["train_blink_fraction"].as_f64() {
+            Some(b) if b > 0.0 => format!(
+                " ({:.0} % of them in a blink or partial closure)",
+                b * 100.0
+            ),
+            _ => String::new(),
+        },
         c("width_px"),
         c("height_px"),
         c("train_steps"),

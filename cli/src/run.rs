@@ -64,6 +64,9 @@ pub struct RunConfig {
     pub train_set: TrainSet,
     /// Training items: frames (envelope) or pairs (ambiguity).
     pub train_items: usize,
+    /// Share (0–1) of the envelope training frames caught in a blink or partial closure
+    /// (`lid_closure` uniform in 0.2–1); validation, protocol and sequence stay open-eyed.
+    pub train_blink_fraction: f64,
     /// Validation items (V of S17/S19, which the REA selects on), from the training set's kind
     /// with another seed: frames (envelope) or pairs (ambiguity).
     pub val_items: usize,
@@ -132,11 +135,12 @@ impl Default for RunConfig {
             spp: 2,
             train_set: TrainSet::Envelope,
             train_items: 240,
+            train_blink_fraction: 0.0,
             val_items: 24,
             protocol_subjects: 1,
             fisher_iterations: 40,
             fisher_photons: 1e5,
-            train_steps: 150,
+            train_steps: 200,
             batch: 4,
             random_subnets: 0,
             lr_net: 4e-3,
@@ -213,6 +217,15 @@ fn check(cfg: &RunConfig) -> Result<()> {
     }
     if cfg.train_items > 100_000 || cfg.val_items > 100_000 || cfg.protocol_subjects > 1000 {
         bail!("--config: at most 100000 training items or pairs and 1000 protocol subjects");
+    }
+    let b = cfg.train_blink_fraction;
+    if !(0.0..=1.0).contains(&b) {
+        bail!("--config: train_blink_fraction must lie in [0, 1], got {b}");
+    }
+    if b > 0.0 && cfg.train_set != TrainSet::Envelope {
+        bail!(
+            "--config: train_blink_fraction needs train_set \"envelope\" (the ambiguity set's pairs are open-eyed by definition)"
+        );
     }
     if cfg.spp == 0 || cfg.spp > 1024 {
         bail!("--config: spp must be 1..=1024");
@@ -346,7 +359,13 @@ fn protocol_summary(errs: &[Option<f64>]) -> serde_json::Value {
     s
 }
 
-fn render(dir: &Path, set: RenderSet, n: usize, seed: u64, cfg: &RunConfig) -> Result<Dataset> {
+/// Renders (or resumes) set `set` into `dir`; `blink_fraction` as in `DatasetOptions`.
+fn render(
+    dir: &Path,
+    set: RenderSet,
+    (n, seed, blink_fraction): (usize, u64, f64),
+    cfg: &RunConfig,
+) -> Result<Dataset> {
     write_dataset(&DatasetOptions {
         set,
         n,
@@ -359,7 +378,7 @@ fn render(dir: &Path, set: RenderSet, n: usize, seed: u64, cfg: &RunConfig) -> R
         source: SceneSource::Procedural,
         progress: std::io::stderr().is_terminal(),
         layers: LayerSpec::default(),
-        blink_fraction: 0.0,
+        blink_fraction,
     })
     .with_context(|| format!("rendering {}", dir.display()))?;
     Ok(Dataset::open(dir)?)
@@ -428,8 +447,7 @@ pub fn run(a: RunArgs) -> Result<()> {
             TrainSet::Envelope => RenderSet::Envelope,
             TrainSet::Ambiguity => RenderSet::Ambiguity,
         },
-        cfg.train_items,
-        cfg.seed,
+        (cfg.train_items, cfg.seed, cfg.train_blink_fraction),
         &cfg,
     )?;
     // V must measure what the protocol measures: a validation set of the training set's kind.
@@ -439,22 +457,19 @@ pub fn run(a: RunArgs) -> Result<()> {
             TrainSet::Envelope => RenderSet::Envelope,
             TrainSet::Ambiguity => RenderSet::Ambiguity,
         },
-        cfg.val_items,
-        cfg.seed + 1,
+        (cfg.val_items, cfg.seed + 1, 0.0),
         &cfg,
     )?;
     let proto = render(
         &out.join("data/protocol"),
         RenderSet::Protocol,
-        cfg.protocol_subjects,
-        cfg.seed + 2,
+        (cfg.protocol_subjects, cfg.seed + 2, 0.0),
         &cfg,
     )?;
     let seq = render(
         &out.join("data/sequence"),
         RenderSet::Sequence,
-        cfg.sequence_frames.max(1),
-        cfg.seed + 3,
+        (cfg.sequence_frames.max(1), cfg.seed + 3, 0.0),
         &cfg,
     )?;
     stage("render", t.elapsed().as_secs_f64(), &mut stages)?;

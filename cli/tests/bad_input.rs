@@ -631,6 +631,11 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         (r#"{"train_items": "#, "--config"),
         (r#"{"train_items": 0}"#, "train_items"),
         (r#"{"train_set": "protocol"}"#, "train_set"),
+        (r#"{"train_blink_fraction": 1.5}"#, "train_blink_fraction"),
+        (
+            r#"{"train_set": "ambiguity", "train_blink_fraction": 0.1}"#,
+            "train_blink_fraction",
+        ),
     ] {
         std::fs::write(p.join("c.json"), cfg).unwrap();
         let err = refused(&["run", "--config", "c.json", "--out", "r"], "--config", p);

@@ -5,12 +5,12 @@
 use std::process::Command;
 
 /// The smallest configuration that runs every stage.
-const TINY: &str = r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items": 3, "val_items": 2,
+const TINY: &str = r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items": 6, "val_items": 2,
     "protocol_subjects": 1, "train_steps": 2, "batch": 3, "random_subnets": 0,
     "pitch_init_um": 60.0, "pitch_range_um": [48.0, 120.0], "rea_cycles": 1,
     "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0, "final_steps": 2,
     "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16],
-    "sequence_frames": 5}"#;
+    "sequence_frames": 5, "train_blink_fraction": 0.5}"#;
 
 #[test]
 fn the_main_job_runs_end_to_end_on_a_tiny_config() {
@@ -42,6 +42,26 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         "protocol",
     ] {
         assert!(r["stages"][k].as_f64().is_some(), "stage {k} missing: {r}");
+    }
+    // Blinks reach the training frames only: lid closures in 0.2–1 there, open lids elsewhere.
+    let closures = |set: &str| -> Vec<f64> {
+        let text =
+            std::fs::read_to_string(out.join("data").join(set).join("frames.jsonl")).unwrap();
+        text.lines()
+            .map(|l| {
+                let f: serde_json::Value = serde_json::from_str(l).unwrap();
+                f["state"]["lid_closure"].as_f64().unwrap_or(0.0)
+            })
+            .collect()
+    };
+    let train = closures("train");
+    assert!(train.iter().any(|&c| c >= 0.2), "{train:?}");
+    assert!(
+        train.iter().all(|&c| c == 0.0 || (0.2..=1.0).contains(&c)),
+        "{train:?}"
+    );
+    for set in ["val", "protocol", "sequence"] {
+        assert!(closures(set).iter().all(|&c| c == 0.0), "{set}");
     }
     let p = &r["protocol"];
     for lens in [
@@ -119,7 +139,9 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     assert!(html.contains("Slippage estimate"));
     // The report states this run's own sizes (the test's config), not the default's.
     assert!(
-        html.contains("This run: 3 training frames rendered at 80×50, 2 sandwich steps"),
+        html.contains(
+            "This run: 6 training frames (50 % of them in a blink or partial closure) rendered at 80×50, 2 sandwich steps"
+        ),
         "scale paragraph"
     );
     assert_eq!(
