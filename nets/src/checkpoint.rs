@@ -9,9 +9,10 @@ use crate::supernet::Supernet;
 use std::path::Path;
 
 const MAGIC: &[u8; 16] = b"NANOEYE-NETS\0\0\0\0";
-/// Format version written and accepted (2: the calibration head's hidden layer also reads the
-/// last stage's x, y moments; a version-1 file holds a head for the pooled expansion alone).
-pub const VERSION: u32 = 2;
+/// Format version written and accepted (3: the calibration head's hidden layer reads the pooled
+/// expansion and the x, y moments of the last and the stride-8 stage; 2: of the last stage
+/// only; 1: the pooled expansion alone).
+pub const VERSION: u32 = 3;
 
 fn fnv1a(bytes: &[u8]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
@@ -110,7 +111,7 @@ pub fn from_bytes(net: &mut Supernet, bytes: &[u8]) -> Result<()> {
     let version = r.u32()?;
     if version != VERSION {
         return Err(NetsError::Checkpoint(format!(
-            "version {version}, this build reads {VERSION}"
+            "version {version}, this build reads {VERSION}: train the run again with this build"
         )));
     }
     let n = r.u32()? as usize;

@@ -272,8 +272,9 @@ pub fn subnet_cost(cfg: &SupernetConfig, arch: &Arch, h: usize, w: usize) -> Res
     let mut head = c.clone();
     head.pointwise(cfg.head_expand);
     head.pool();
-    // The last stage's x and y moments join the pooled expansion (supernet.rs).
-    head.concat(2 * f32_.0);
+    // The x and y moments of the last stage and the stride-8 stage join the pooled expansion
+    // (supernet.rs).
+    head.concat(2 * f32_.0 + 2 * f8.0);
     head.linear(cfg.head_hidden, true);
     head.linear(3, true);
     // Perception decoder: biased 1×1 projections of three taps and the 1-channel logit conv.

@@ -19,7 +19,7 @@ use crate::error::{NetsError, Result};
 use crate::norm::BatchNorm;
 use crate::pool::centred_coordinate;
 use crate::resize::taps;
-use crate::supernet::Supernet;
+use crate::supernet::{Supernet, head_inputs};
 use faer::linalg::matmul::matmul;
 use faer::{Accum, MatMut, MatRef, Par};
 
@@ -365,6 +365,8 @@ pub struct Inference {
     head_g: Vec<f32>,
     /// The last stage's feature map (rows, columns).
     head_hw: (usize, usize),
+    /// The stride-8 feature map (rows, columns).
+    head_hw8: (usize, usize),
     hidden: Pointwise,
     hidden_out: Vec<f32>,
     slip_head: Pointwise,
@@ -423,6 +425,26 @@ fn block_for(b: &MbBlock, k: usize, e: usize, (h, w): (usize, usize)) -> (Block,
 
 fn dense(d: &crate::supernet::Dense, cin: usize, act: Act) -> Pointwise {
     Pointwise::new(&d.w.value, d.b.value.clone(), cin, d.cout, act)
+}
+
+/// The x̂ then ŷ means (`pool::moments_forward`) of a channels-innermost map of `rows` ×
+/// `cols` pixels into `out` (2·C values).
+fn moments_hwc(map: &[f32], (rows, cols): (usize, usize), out: &mut [f32]) {
+    let c = out.len() / 2;
+    out.fill(0.0);
+    let (mx, my) = out.split_at_mut(c);
+    for (i, line) in map.chunks_exact(c * cols).enumerate() {
+        let yi = centred_coordinate(i, rows);
+        for (j, px) in line.chunks_exact(c).enumerate() {
+            let xj = centred_coordinate(j, cols);
+            for ((x, y), &v) in mx.iter_mut().zip(my.iter_mut()).zip(px) {
+                *x += xj * v;
+                *y += yi * v;
+            }
+        }
+    }
+    let inv = 1.0 / (rows * cols) as f32;
+    out.iter_mut().for_each(|v| *v *= inv);
 }
 
 impl Inference {
@@ -520,9 +542,10 @@ impl Inference {
             logits: vec![0.0; h * w],
             head_expand: Pointwise::new(&he_w, he_b, c_last, cfg.head_expand, Act::HSwish),
             head_map: vec![0.0; cfg.head_expand * hw32],
-            head_g: vec![0.0; cfg.head_expand + 2 * c_last],
+            head_g: vec![0.0; head_inputs(cfg.head_expand)],
             head_hw: size,
-            hidden: dense(&net.head_hidden, cfg.head_expand + 2 * c_last, Act::HSwish),
+            head_hw8: size8,
+            hidden: dense(&net.head_hidden, head_inputs(cfg.head_expand), Act::HSwish),
             hidden_out: vec![0.0; cfg.head_hidden],
             slip_head: dense(&net.head_out, cfg.head_hidden, Act::Identity),
         })
@@ -615,30 +638,21 @@ impl Inference {
         act_pass(&mut self.p2, Act::Relu);
         self.dec[3].run(&self.p2, f2.hw_out, &mut self.lo);
         self.up2.run(&self.lo, &mut self.logits, false);
-        // Calibration head: the expansion's channel means, then the last stage's x, y moments.
+        // Calibration head: the expansion's channel means, then the x, y moments of the last
+        // stage and of the stride-8 stage (as in `Supernet::forward`).
         self.head_expand
             .run(&f32_.out, f32_.hw_out, &mut self.head_map);
-        self.head_g.fill(0.0);
         let c_last = f32_.out.len() / f32_.hw_out;
-        let (rows, cols) = self.head_hw;
-        let he = self.head_g.len() - 2 * c_last;
-        let (m, rest) = self.head_g.split_at_mut(he);
+        let (m, rest) = self.head_g.split_at_mut(self.head_map.len() / f32_.hw_out);
+        m.fill(0.0);
         for px in self.head_map.chunks_exact(m.len()) {
             m.iter_mut().zip(px).for_each(|(a, &v)| *a += v);
         }
-        let (mx, my) = rest.split_at_mut(c_last);
-        for (i, line) in f32_.out.chunks_exact(c_last * cols).enumerate() {
-            let yi = centred_coordinate(i, rows);
-            for (j, px) in line.chunks_exact(c_last).enumerate() {
-                let xj = centred_coordinate(j, cols);
-                for ((x, y), &v) in mx.iter_mut().zip(my.iter_mut()).zip(px) {
-                    *x += xj * v;
-                    *y += yi * v;
-                }
-            }
-        }
         let inv = 1.0 / f32_.hw_out as f32;
-        self.head_g.iter_mut().for_each(|v| *v *= inv);
+        m.iter_mut().for_each(|v| *v *= inv);
+        let (m32, m8) = rest.split_at_mut(2 * c_last);
+        moments_hwc(&f32_.out, self.head_hw, m32);
+        moments_hwc(&f8.out, self.head_hw8, m8);
         self.hidden.run(&self.head_g, 1, &mut self.hidden_out);
         let mut slip = [0.0f32; 3];
         self.slip_head.run(&self.hidden_out, 1, &mut slip);

@@ -137,13 +137,14 @@ impl Supernet {
             }
         }
         let (he, hh, dw) = (config.head_expand, config.head_hidden, config.decoder_width);
+        let head_in = head_inputs(he);
         Ok(Self {
             stem,
             stem_bn: BatchNorm::new(STEM_CHANNELS),
             blocks,
             head_expand: normal_param(&mut rng, he * c, (2.0 / c as f32).sqrt()),
             head_bn: BatchNorm::new(he),
-            head_hidden: Dense::new(&mut rng, he + 2 * c, hh, (2.0 / (he + 2 * c) as f32).sqrt()),
+            head_hidden: Dense::new(&mut rng, head_in, hh, (2.0 / head_in as f32).sqrt()),
             head_out: Dense::new(&mut rng, hh, 3, (0.1 / hh as f32).sqrt()),
             dec: [
                 Dense::new(&mut rng, c, dw, (1.0 / c as f32).sqrt()),
@@ -231,10 +232,14 @@ impl Supernet {
             data: Act::HSwish.forward(&hv.data),
             ..hv.clone()
         };
-        // The expansion's means and the last stage's x, y moments: slippage translates the
-        // face across the frame, and a global mean cannot see a translation (measured: x
-        // slip went unlearned, docs/nets.md).
-        let g = concat_features(&gap_forward(&ha), &moments_forward(&f32_));
+        // The expansion's means and the x, y moments of the stride-32 and stride-8 features:
+        // slippage translates the face across the frame, which a global mean cannot see; the
+        // stride-8 map places a translation on a 4× finer grid (docs/nets.md).
+        let g = concat_features(&[
+            &gap_forward(&ha),
+            &moments_forward(&f32_),
+            &moments_forward(&f8),
+        ]);
         let z = self.head_hidden.forward(&g)?;
         let za = Tensor {
             data: Act::HSwish.forward(&z.data),
@@ -285,7 +290,14 @@ impl Supernet {
             ..dza
         };
         let dg = self.head_hidden.vjp(&c.g, &dz)?;
-        let (dgap, dmom) = split_features(&dg, self.config.head_expand);
+        let [dgap, dmom, dmom8] = split_features(
+            &dg,
+            [
+                self.config.head_expand,
+                2 * STAGES[N_STAGES - 1].channels,
+                2 * STAGES[1].channels,
+            ],
+        );
         let dha = gap_vjp(c.ha.shape(), &dgap);
         let dhv = Tensor {
             data: Act::HSwish.vjp(&c.hv.data, &dha.data),
@@ -314,7 +326,8 @@ impl Supernet {
             data: Act::Relu.vjp(&c.p8.data, &dr8.data),
             ..dr8
         };
-        let df8 = self.dec[1].vjp(&c.f8, &dp8)?;
+        let mut df8 = self.dec[1].vjp(&c.f8, &dp8)?;
+        df8.add_assign(&moments_vjp(c.f8.shape(), &dmom8));
         let dp32 = bilinear_vjp(c.p32.shape(), &dp8);
         df32.add_assign(&self.dec[0].vjp(&c.f32_, &dp32)?);
         // Backbone, last block first; decoder taps join at the stage-2 and first-block outputs.
@@ -418,34 +431,41 @@ impl Supernet {
     }
 }
 
-/// Per sample, the features of `a` then those of `b` (both (N, C, 1, 1)).
-fn concat_features(a: &Tensor, b: &Tensor) -> Tensor {
-    let mut data = Vec::with_capacity(a.data.len() + b.data.len());
-    for (x, y) in a.data.chunks_exact(a.c).zip(b.data.chunks_exact(b.c)) {
-        data.extend_from_slice(x);
-        data.extend_from_slice(y);
+/// Width of the calibration head's pooled features for an expansion of `he` channels: the
+/// expansion's means, then the x and y moments of the last stage and of the stride-8 stage.
+pub fn head_inputs(he: usize) -> usize {
+    he + 2 * STAGES[N_STAGES - 1].channels + 2 * STAGES[1].channels
+}
+
+/// Per sample, the features of each part in turn (all (N, C_i, 1, 1)).
+fn concat_features(parts: &[&Tensor]) -> Tensor {
+    let n = parts[0].n;
+    let c: usize = parts.iter().map(|p| p.c).sum();
+    let mut data = Vec::with_capacity(n * c);
+    for i in 0..n {
+        for p in parts {
+            data.extend_from_slice(&p.data[i * p.c..][..p.c]);
+        }
     }
     Tensor {
-        n: a.n,
-        c: a.c + b.c,
+        n,
+        c,
         h: 1,
         w: 1,
         data,
     }
 }
 
-/// Inverse of [`concat_features`]: the first `ca` features of each sample, then the rest.
-fn split_features(g: &Tensor, ca: usize) -> (Tensor, Tensor) {
-    let cb = g.c - ca;
-    let (mut a, mut b) = (Tensor::zeros(g.n, ca, 1, 1), Tensor::zeros(g.n, cb, 1, 1));
-    for ((row, x), y) in g
-        .data
-        .chunks_exact(g.c)
-        .zip(a.data.chunks_exact_mut(ca))
-        .zip(b.data.chunks_exact_mut(cb))
-    {
-        x.copy_from_slice(&row[..ca]);
-        y.copy_from_slice(&row[ca..]);
+/// Inverse of [`concat_features`] for parts of `widths` features each.
+fn split_features<const K: usize>(g: &Tensor, widths: [usize; K]) -> [Tensor; K] {
+    let mut parts = widths.map(|c| Tensor::zeros(g.n, c, 1, 1));
+    for (i, row) in g.data.chunks_exact(g.c).enumerate() {
+        let mut at = 0;
+        for p in parts.iter_mut() {
+            let c = p.c;
+            p.data[i * c..][..c].copy_from_slice(&row[at..at + c]);
+            at += c;
+        }
     }
-    (a, b)
+    parts
 }
