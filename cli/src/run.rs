@@ -220,7 +220,7 @@ fn check(cfg: &RunConfig) -> Result<()> {
     }
     let b = cfg.train_blink_fraction;
     if !(0.0..=1.0).contains(&b) {
-        bail!("--config: train_blink_fraction must lie in [0, 1], got {b}");
+        bail!("--config: train_blink_fraction must lie in [0, 1], got {b:?}");
     }
     if b > 0.0 && cfg.train_set != TrainSet::Envelope {
         bail!(

@@ -6,6 +6,7 @@
 use crate::arch::{Arch, STAGES, STEM_CHANNELS, SupernetConfig, mid_channels, se_channels};
 use crate::conv::out_size;
 use crate::error::{NetsError, Result};
+use crate::supernet::head_inputs;
 use serde::Serialize;
 
 /// Largest input side (px) the cost model accepts: beyond it MAC counts approach the range of
@@ -274,7 +275,7 @@ pub fn subnet_cost(cfg: &SupernetConfig, arch: &Arch, h: usize, w: usize) -> Res
     head.pool();
     // The x and y moments of the last stage and the stride-8 stage join the pooled expansion
     // (supernet.rs).
-    head.concat(2 * f32_.0 + 2 * f8.0);
+    head.concat(head_inputs(cfg.head_expand) - cfg.head_expand);
     head.linear(cfg.head_hidden, true);
     head.linear(3, true);
     // Perception decoder: biased 1×1 projections of three taps and the 1-channel logit conv.

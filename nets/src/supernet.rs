@@ -290,14 +290,7 @@ impl Supernet {
             ..dza
         };
         let dg = self.head_hidden.vjp(&c.g, &dz)?;
-        let [dgap, dmom, dmom8] = split_features(
-            &dg,
-            [
-                self.config.head_expand,
-                2 * STAGES[N_STAGES - 1].channels,
-                2 * STAGES[1].channels,
-            ],
-        );
+        let [dgap, dmom, dmom8] = split_features(&dg, head_parts(self.config.head_expand));
         let dha = gap_vjp(c.ha.shape(), &dgap);
         let dhv = Tensor {
             data: Act::HSwish.vjp(&c.hv.data, &dha.data),
@@ -431,10 +424,19 @@ impl Supernet {
     }
 }
 
-/// Width of the calibration head's pooled features for an expansion of `he` channels: the
-/// expansion's means, then the x and y moments of the last stage and of the stride-8 stage.
+/// Widths of the calibration head's pooled features for an expansion of `he` channels, in
+/// order: the expansion's means, the last stage's x and y moments, the stride-8 stage's.
+pub fn head_parts(he: usize) -> [usize; 3] {
+    [
+        he,
+        2 * STAGES[N_STAGES - 1].channels,
+        2 * STAGES[1].channels,
+    ]
+}
+
+/// Total width of [`head_parts`]: the hidden layer's input.
 pub fn head_inputs(he: usize) -> usize {
-    he + 2 * STAGES[N_STAGES - 1].channels + 2 * STAGES[1].channels
+    head_parts(he).iter().sum()
 }
 
 /// Per sample, the features of each part in turn (all (N, C_i, 1, 1)).
