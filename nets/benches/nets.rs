@@ -1,6 +1,7 @@
 //! Criterion benches: supernet forward and forward+backward (min / max subnet, 64², 128² and
 //! 320×200, batch 16), per-layer-kind throughput (depthwise forward and backward at strides 1
-//! and 2), batch-1 inference (compiled, one thread) against the supernet's eval pass, and the 1×1 convolution against faer's GEMM on the same shape. MACs per pass come from the cost model and are printed once per case.
+//! and 2, beside the memory roofline of each shape: a pass that only streams the bytes a depthwise
+//! pass must move), batch-1 inference (compiled, one thread) against the supernet's eval pass, and the 1×1 convolution against faer's GEMM on the same shape. MACs per pass come from the cost model and are printed once per case.
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use faer::linalg::matmul::matmul;
@@ -10,6 +11,7 @@ use nanoeye_nets::conv::{depthwise_forward, depthwise_vjp, out_size, pointwise_f
 use nanoeye_nets::cost::subnet_cost;
 use nanoeye_nets::se::{SeWeights, se_forward};
 use nanoeye_nets::{BnMode, Inference, Supernet, Tensor};
+use rayon::prelude::*;
 use std::hint::black_box;
 use std::time::Duration;
 
@@ -151,6 +153,47 @@ fn layers(c: &mut Criterion) {
         (240, 16, 16, 2),
         (24, 100, 160, 1),
     ] {
+        // The memory roofline of the shape: the least any depthwise pass must move, streamed
+        // on both cores (forward: read x, write y; backward: read x and dL/dy, write dL/dx).
+        {
+            let x = image(BATCH, c, h, w);
+            let (ho, wo) = (out_size(h, 3, s), out_size(w, 3, s));
+            let dy = image(BATCH, c, ho, wo);
+            let shape = format!("{c}x{h}x{w}/s{s}");
+            g.throughput(Throughput::Bytes(
+                (4 * (x.data.len() + dy.data.len())) as u64,
+            ));
+            g.bench_function(BenchmarkId::new("roofline_fwd", &shape), |b| {
+                b.iter(|| {
+                    let mut y = vec![0.0f32; dy.data.len()];
+                    y.par_chunks_mut(ho * wo)
+                        .zip(x.data.par_chunks(h * w))
+                        .for_each(|(y, x)| {
+                            let m = x.iter().fold(0.0f32, |m, &v| m.max(v));
+                            y.fill(m);
+                        });
+                    black_box(y)
+                })
+            });
+            g.throughput(Throughput::Bytes(
+                (4 * (2 * x.data.len() + dy.data.len())) as u64,
+            ));
+            g.bench_function(BenchmarkId::new("roofline_bwd", &shape), |b| {
+                b.iter(|| {
+                    let mut dx = vec![0.0f32; x.data.len()];
+                    dx.par_chunks_mut(h * w)
+                        .zip(x.data.par_chunks(h * w))
+                        .zip(dy.data.par_chunks(ho * wo))
+                        .for_each(|((dx, x), dy)| {
+                            let m = dy.iter().fold(0.0f32, |m, &v| m.max(v));
+                            for (d, &v) in dx.iter_mut().zip(x) {
+                                *d = v * m;
+                            }
+                        });
+                    black_box(dx)
+                })
+            });
+        }
         for k in [3usize, 5, 7] {
             let x = image(BATCH, c, h, w);
             let wt = vec![0.01f32; c * k * k];

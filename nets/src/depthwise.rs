@@ -3,7 +3,9 @@
 //! Each (image, channel) plane is copied once into a zero-padded scratch whose columns are
 //! split by parity of the stride (phase q = column mod s), so every tap (ky, kx) of every
 //! output row reads one contiguous, bounds-free run of `wo` values: the inner loops are
-//! straight-line multiply–adds the compiler vectorizes. On x86-64 with AVX2 and FMA (checked
+//! straight-line multiply–adds the compiler vectorizes. The forward pass computes two or four
+//! output rows at a time so that several accumulator registers are in flight; at stride 2
+//! the phase split is a pairwise column copy. On x86-64 with AVX2 and FMA (checked
 //! at run time) the same code is compiled a second time with fused multiply–adds.
 //! Scratch lives per rayon task, not per plane; planes are grouped so a task carries enough
 //! work to pay for the scheduling.
@@ -12,6 +14,8 @@ use rayon::prelude::*;
 
 /// Output lanes accumulated in registers per block of an output row.
 const LANES: usize = 16;
+/// A block of one 256-bit register of f32 lanes.
+const HALF: usize = LANES / 2;
 /// Smallest number of multiply–adds a rayon task should carry.
 const TASK_MACS: usize = 1 << 16;
 
@@ -69,16 +73,45 @@ fn fill(g: &Geom, x: &[f32], buf: &mut Vec<f32>) {
             buf[r * cw + p..][..w].copy_from_slice(row);
             continue;
         }
+        if s == 2 {
+            // Column pairs of the input row go to the two phases: one strided-load loop the
+            // compiler vectorizes with shuffles.
+            let (row0, row1) = buf[r * 2 * cw..][..2 * cw].split_at_mut(cw);
+            // Input column 0 lands in phase p mod 2 at phase column p / 2.
+            let (a, b) = if p % 2 == 0 {
+                (row0, row1)
+            } else {
+                (row1, row0)
+            };
+            let (a, b) = (&mut a[p / 2..], &mut b[p.div_ceil(2)..]);
+            let pairs = row.chunks_exact(2);
+            if let Some(&last) = pairs.remainder().first() {
+                a[w / 2] = last;
+            }
+            for ((pr, x), y) in pairs.zip(a.iter_mut()).zip(b.iter_mut()) {
+                *x = pr[0];
+                *y = pr[1];
+            }
+            continue;
+        }
         for q in 0..s {
+            let (first, j0) = phase_start(q, p, s);
             let dst = &mut buf[(r * s + q) * cw..][..cw];
-            for (j, d) in dst.iter_mut().enumerate() {
-                let c = q + s * j;
-                if c >= p && c - p < w {
-                    *d = row[c - p];
+            if let (Some(d), Some(src)) = (dst.get_mut(j0..), row.get(first..)) {
+                for (d, &v) in d.iter_mut().zip(src.iter().step_by(s)) {
+                    *d = v;
                 }
             }
         }
     }
+}
+
+/// Phase `q` of a padded row (pad `p`, stride `s`) starts at input column `first` (the first
+/// with (first + p) mod s = q), stored at phase column `j0` = (first + p) / s.
+#[inline(always)]
+fn phase_start(q: usize, p: usize, s: usize) -> (usize, usize) {
+    let first = (q + s - p % s) % s;
+    (first, (first + p) / s)
 }
 
 /// The inverse of [`fill`] on the interior: padded, phase-split `buf` → plane `x`.
@@ -91,12 +124,31 @@ fn unfill(g: &Geom, buf: &[f32], x: &mut [f32]) {
             row.copy_from_slice(&buf[r * cw + p..][..w]);
             continue;
         }
+        if s == 2 {
+            // The inverse of fill's column pairs.
+            let (row0, row1) = buf[r * 2 * cw..][..2 * cw].split_at(cw);
+            let (a, b) = if p % 2 == 0 {
+                (row0, row1)
+            } else {
+                (row1, row0)
+            };
+            let (a, b) = (&a[p / 2..], &b[p.div_ceil(2)..]);
+            let mut pairs = row.chunks_exact_mut(2);
+            for ((pr, &x), &y) in (&mut pairs).zip(a).zip(b) {
+                pr[0] = x;
+                pr[1] = y;
+            }
+            if let Some(last) = pairs.into_remainder().first_mut() {
+                *last = a[w / 2];
+            }
+            continue;
+        }
         for q in 0..s {
+            let (first, j0) = phase_start(q, p, s);
             let src = &buf[(r * s + q) * cw..][..cw];
-            for (j, &v) in src.iter().enumerate() {
-                let c = q + s * j;
-                if c >= p && c - p < w {
-                    row[c - p] = v;
+            if let (Some(src), Some(d)) = (src.get(j0..), row.get_mut(first..)) {
+                for (d, &v) in d.iter_mut().step_by(s).zip(src) {
+                    *d = v;
                 }
             }
         }
@@ -135,26 +187,76 @@ fn forward_plane<const FMA: bool>(
     fill(g, x, &mut sc.buf);
     tap_offsets(g, &mut sc.offs);
     let (buf, offs) = (&sc.buf, &sc.offs);
+    // Several output rows per pass keep four or more independent accumulator registers in
+    // flight (one row's chain of k² fused multiply–adds alone is latency-bound); each output
+    // still sums its taps in the same order, so the result is the same bit for bit.
+    let ho = g.ho;
+    let mut oy = 0;
+    if g.wo < LANES {
+        while oy + 4 <= ho {
+            forward_rows::<FMA, 4>(g, buf, offs, wk, oy, out);
+            oy += 4;
+        }
+    }
+    while oy + 2 <= ho {
+        forward_rows::<FMA, 2>(g, buf, offs, wk, oy, out);
+        oy += 2;
+    }
+    if oy < ho {
+        forward_rows::<FMA, 1>(g, buf, offs, wk, oy, out);
+    }
+}
+
+/// Output rows `oy .. oy + R` of one plane from its padded scratch `buf`.
+#[inline(always)]
+fn forward_rows<const FMA: bool, const R: usize>(
+    g: &Geom,
+    buf: &[f32],
+    offs: &[usize],
+    wk: &[f32],
+    oy: usize,
+    out: &mut [f32],
+) {
     let (wo, row_step) = (g.wo, g.s * g.s * g.cw());
-    for (oy, orow) in out.chunks_exact_mut(wo).enumerate() {
-        let base = oy * row_step;
-        let mut x0 = 0;
-        while x0 + LANES <= wo {
-            let mut acc = [0.0f32; LANES];
-            for (&wv, &off) in wk.iter().zip(offs) {
-                let src = &buf[base + off + x0..][..LANES];
+    let base = oy * row_step;
+    let mut x0 = 0;
+    while x0 + LANES <= wo {
+        let mut acc = [[0.0f32; LANES]; R];
+        for (&wv, &off) in wk.iter().zip(offs) {
+            for (r, acc) in acc.iter_mut().enumerate() {
+                let src = &buf[base + r * row_step + off + x0..][..LANES];
                 for (a, &v) in acc.iter_mut().zip(src) {
                     *a = madd::<FMA>(wv, v, *a);
                 }
             }
-            orow[x0..x0 + LANES].copy_from_slice(&acc);
-            x0 += LANES;
         }
-        if x0 < wo {
-            let tail = &mut orow[x0..];
+        for (r, acc) in acc.iter().enumerate() {
+            out[(oy + r) * wo + x0..][..LANES].copy_from_slice(acc);
+        }
+        x0 += LANES;
+    }
+    // Maps narrower than LANES (stride-2 layers at the low resolutions): one register per row.
+    if x0 + HALF <= wo {
+        let mut acc = [[0.0f32; HALF]; R];
+        for (&wv, &off) in wk.iter().zip(offs) {
+            for (r, acc) in acc.iter_mut().enumerate() {
+                let src = &buf[base + r * row_step + off + x0..][..HALF];
+                for (a, &v) in acc.iter_mut().zip(src) {
+                    *a = madd::<FMA>(wv, v, *a);
+                }
+            }
+        }
+        for (r, acc) in acc.iter().enumerate() {
+            out[(oy + r) * wo + x0..][..HALF].copy_from_slice(acc);
+        }
+        x0 += HALF;
+    }
+    if x0 < wo {
+        for r in 0..R {
+            let tail = &mut out[(oy + r) * wo + x0..][..wo - x0];
             tail.fill(0.0);
             for (&wv, &off) in wk.iter().zip(offs) {
-                let src = &buf[base + off + x0..][..tail.len()];
+                let src = &buf[base + r * row_step + off + x0..][..tail.len()];
                 for (a, &v) in tail.iter_mut().zip(src) {
                     *a = madd::<FMA>(wv, v, *a);
                 }
@@ -391,6 +493,40 @@ mod tests {
                     backward_plane::<false>(&g, &x, &wk, &dy, &mut sc, &mut dx, &mut dw);
                 }
                 close(&y, &y0, "y");
+                // Blocking rows and lanes must not reorder the sum: every output adds its taps
+                // in order, zero padding included, exactly as one scalar loop does.
+                for oy in 0..g.ho {
+                    for ox in 0..g.wo {
+                        let mut acc = 0.0f32;
+                        for ky in 0..k {
+                            for kx in 0..k {
+                                let (iy, ix) = (
+                                    (oy * s + ky) as isize - (k / 2) as isize,
+                                    (ox * s + kx) as isize - (k / 2) as isize,
+                                );
+                                let v = if (0..h as isize).contains(&iy)
+                                    && (0..w as isize).contains(&ix)
+                                {
+                                    x[iy as usize * w + ix as usize]
+                                } else {
+                                    0.0
+                                };
+                                let wv = wk[ky * k + kx];
+                                acc = if fma {
+                                    wv.mul_add(v, acc)
+                                } else {
+                                    wv * v + acc
+                                };
+                            }
+                        }
+                        let got = y[oy * g.wo + ox];
+                        assert_eq!(
+                            got.to_bits(),
+                            acc.to_bits(),
+                            "y[{oy},{ox}] {got} vs {acc} in {g:?}"
+                        );
+                    }
+                }
                 close(&dx, &dx0, "dx");
                 close(&dw, &dw0, "dw");
             }
