@@ -446,6 +446,9 @@ mod tests {
     #[test]
     fn planes_match_the_definition() {
         let mut rng = StdRng::seed_from_u64(7);
+        // One scratch per code path for all cases, reused as the rayon tasks reuse theirs:
+        // planes of a new geometry must not see the previous one's values.
+        let mut scratch = [Scratch::default(), Scratch::default()];
         for case in 0..300 {
             let k = [1, 3, 5, 7][case % 4];
             let s = 1 + case % 3;
@@ -477,20 +480,32 @@ mod tests {
                 runs.push(true);
             }
             for fma in runs {
-                let mut sc = Scratch::default();
+                let sc = &mut scratch[fma as usize];
                 let mut y = vec![f32::NAN; g.ho * g.wo];
                 let mut dx = vec![f32::NAN; h * w];
                 let mut dw = vec![f32::NAN; k * k];
+                // Another plane of the same geometry first: its values must not leak through.
+                let other: Vec<f32> = x.iter().map(|v| 3.0 - v).collect();
+                let mut y_other = vec![f32::NAN; g.ho * g.wo];
                 if fma {
                     #[cfg(target_arch = "x86_64")]
                     // SAFETY: has_fma() checked the CPU.
                     unsafe {
-                        forward_plane_fma(&g, &x, &wk, &mut sc, &mut y);
-                        backward_plane_fma(&g, &x, &wk, &dy, &mut sc, &mut dx, &mut dw);
+                        forward_plane_fma(&g, &other, &wk, sc, &mut y_other)
+                    };
+                } else {
+                    forward_plane::<false>(&g, &other, &wk, sc, &mut y_other);
+                }
+                if fma {
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: has_fma() checked the CPU.
+                    unsafe {
+                        forward_plane_fma(&g, &x, &wk, sc, &mut y);
+                        backward_plane_fma(&g, &x, &wk, &dy, sc, &mut dx, &mut dw);
                     }
                 } else {
-                    forward_plane::<false>(&g, &x, &wk, &mut sc, &mut y);
-                    backward_plane::<false>(&g, &x, &wk, &dy, &mut sc, &mut dx, &mut dw);
+                    forward_plane::<false>(&g, &x, &wk, sc, &mut y);
+                    backward_plane::<false>(&g, &x, &wk, &dy, sc, &mut dx, &mut dw);
                 }
                 close(&y, &y0, "y");
                 // Blocking rows and lanes must not reorder the sum: every output adds its taps
