@@ -123,10 +123,14 @@ fn demo_svg(rows: &[serde_json::Value]) -> String {
     s + "</svg>\n"
 }
 
-/// Predicted against true slippage (mm), one panel per axis, from a lens's protocol.jsonl.
+/// Predicted against true slippage (mm), one panel per axis, from a lens's protocol.jsonl: one
+/// dot per frame, the mean estimate of each slippage state (frames sharing a true slippage) as
+/// an orange diamond, ticks every 2.5 mm; a value beyond ±7 mm is drawn on the frame as a red
+/// ring and counted in the panel's corner.
 fn slip_svg(rows: &[serde_json::Value]) -> String {
-    let (pw, m, lim) = (220.0, 34.0, 7.0);
-    let (w, ht) = (3.0 * pw, pw + 14.0);
+    let (pw, ml, mb, mt, lim) = (220.0, 46.0, 36.0, 8.0, 7.0);
+    let (w, ht) = (3.0 * pw, pw + 4.0);
+    let side = pw - ml - mt;
     let mut s = format!(
         r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{ht}" font-family="sans-serif" font-size="11">
 <rect width="100%" height="100%" fill="white"/>
@@ -134,39 +138,90 @@ fn slip_svg(rows: &[serde_json::Value]) -> String {
     );
     for (axis, name) in ["x", "y", "z"].iter().enumerate() {
         let x0 = axis as f64 * pw;
-        let px = |v: f64| x0 + m + (pw - 1.5 * m) * (v.clamp(-lim, lim) + lim) / (2.0 * lim);
-        let py = |v: f64| pw - m - (pw - 1.5 * m) * (v.clamp(-lim, lim) + lim) / (2.0 * lim);
+        let frac = |v: f64| (v.clamp(-lim, lim) + lim) / (2.0 * lim);
+        let px = |v: f64| x0 + ml + side * frac(v);
+        let py = |v: f64| pw - mb - side * frac(v);
         s += &format!(
-            "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{:.1}\" height=\"{:.1}\" fill=\"none\" stroke=\"black\"/>\n\
+            "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{side:.1}\" height=\"{side:.1}\" fill=\"none\" stroke=\"black\"/>\n\
 <line x1=\"{:.1}\" y1=\"{:.1}\" x2=\"{:.1}\" y2=\"{:.1}\" stroke=\"#bbb\"/>\n\
-<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">true {name} (mm, ±{lim})</text>\n\
-<text x=\"{:.1}\" y=\"{:.1}\" transform=\"rotate(-90 {:.1} {:.1})\" text-anchor=\"middle\">estimated {name}</text>\n",
+<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">true {name} (mm)</text>\n\
+<text x=\"{:.1}\" y=\"{:.1}\" transform=\"rotate(-90 {:.1} {:.1})\" text-anchor=\"middle\">estimated {name} (mm)</text>\n",
             px(-lim),
             py(lim),
-            px(lim) - px(-lim),
-            py(-lim) - py(lim),
             px(-lim),
             py(-lim),
             px(lim),
             py(lim),
             px(0.0),
-            pw - 8.0,
-            x0 + 12.0,
+            pw - 6.0,
+            x0 + 11.0,
             py(0.0),
-            x0 + 12.0,
+            x0 + 11.0,
             py(0.0),
         );
+        for v in [-5.0, -2.5, 0.0, 2.5, 5.0] {
+            s += &format!(
+                "<line x1=\"{0:.1}\" y1=\"{1:.1}\" x2=\"{0:.1}\" y2=\"{2:.1}\" stroke=\"black\"/>\n\
+<text x=\"{0:.1}\" y=\"{3:.1}\" text-anchor=\"middle\">{v}</text>\n\
+<line x1=\"{4:.1}\" y1=\"{5:.1}\" x2=\"{6:.1}\" y2=\"{5:.1}\" stroke=\"black\"/>\n\
+<text x=\"{7:.1}\" y=\"{8:.1}\" text-anchor=\"end\">{v}</text>\n",
+                px(v),
+                py(-lim),
+                py(-lim) + 4.0,
+                py(-lim) + 15.0,
+                px(-lim) - 4.0,
+                py(v),
+                px(-lim),
+                px(-lim) - 6.0,
+                py(v) + 4.0,
+            );
+        }
+        let mut outside = 0;
+        // Per slippage state: (Σ true, Σ estimate, frames).
+        let mut states: std::collections::BTreeMap<u64, (f64, f64, usize)> = Default::default();
         for r in rows {
-            if let (Some(t), Some(e)) = (
+            let (Some(t), Some(e)) = (
                 r["true_slip_mm"][axis].as_f64(),
                 r["tracked_slip_mm"][axis].as_f64(),
-            ) {
-                s += &format!(
+            ) else {
+                continue;
+            };
+            if let Some(k) = r["slip_state"].as_u64() {
+                let st = states.entry(k).or_default();
+                *st = (st.0 + t, st.1 + e, st.2 + 1);
+            }
+            let out = t.abs() > lim || e.abs() > lim;
+            outside += usize::from(out);
+            s += &if out {
+                format!(
+                    "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"3\" fill=\"none\" stroke=\"#c0392b\"/>\n",
+                    px(t),
+                    py(e)
+                )
+            } else {
+                format!(
                     "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"2\" fill=\"#2471a3\" fill-opacity=\"0.5\"/>\n",
                     px(t),
                     py(e)
-                );
-            }
+                )
+            };
+        }
+        for (t, e, n) in states.values() {
+            let (cx, cy) = (px(t / *n as f64), py(e / *n as f64));
+            s += &format!(
+                "<path d=\"M{:.1} {cy:.1} L{cx:.1} {:.1} L{:.1} {cy:.1} L{cx:.1} {:.1} Z\" fill=\"#e67e22\" stroke=\"black\" stroke-width=\"0.5\"/>\n",
+                cx - 5.0,
+                cy - 5.0,
+                cx + 5.0,
+                cy + 5.0
+            );
+        }
+        if outside > 0 {
+            s += &format!(
+                "<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\" fill=\"#c0392b\">{outside} beyond ±{lim} mm</text>\n",
+                px(lim) - 3.0,
+                py(-lim) - 4.0
+            );
         }
     }
     s + "</svg>\n"
@@ -410,8 +465,9 @@ oldest member removed. V = mean gaze error on the validation set (degrees).</p><
         writeln!(
             h,
             "<h2>Slippage estimate</h2><p>The calibration head's slippage against the truth on \
-every protocol frame (dots; on the grey diagonal the estimate is exact; values beyond ±7 mm sit \
-on the frame). runs/&lt;lens&gt;/protocol.jsonl has every frame's gaze and slippage.</p>{slips}"
+every protocol frame (blue dots; orange diamonds: the mean estimate of each slippage state; on \
+the grey diagonal the estimate is exact; values beyond ±7 mm sit on the frame as red rings, \
+counted in the panel). runs/&lt;lens&gt;/protocol.jsonl has every frame's gaze and slippage.</p>{slips}"
         )?;
     }
     if let Ok(text) = std::fs::read_to_string(out.join("demo.jsonl")) {
@@ -439,4 +495,55 @@ dots: tracked by the learned chain (mean error {}°). demo.jsonl has every frame
     }
     writeln!(h, "</table></body></html>")?;
     Ok(h)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Two slippage states of two frames each and one estimate off the chart: each panel draws
+    /// every frame, one diamond per state at the state's mean, and counts the one outside.
+    #[test]
+    fn slip_chart_marks_state_means_and_counts_what_it_clamps() {
+        let row = |state: u64, t: [f64; 3], e: [f64; 3]| serde_json::json!({"slip_state": state, "true_slip_mm": t, "tracked_slip_mm": e});
+        let rows = [
+            row(0, [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]),
+            row(0, [0.0, 0.0, 0.0], [-3.0, 0.0, 0.0]),
+            row(1, [2.5, 0.0, 0.0], [2.0, 0.0, 9.0]),
+            row(1, [2.5, 0.0, 0.0], [3.0, 0.0, 0.0]),
+        ];
+        let svg = slip_svg(&rows);
+        assert_eq!(
+            svg.matches("<circle").count(),
+            12,
+            "one dot per frame and axis"
+        );
+        assert_eq!(
+            svg.matches("<path").count(),
+            6,
+            "one diamond per state and axis"
+        );
+        assert_eq!(
+            svg.matches("1 beyond ±7 mm").count(),
+            1,
+            "only z has a clamped value"
+        );
+        assert_eq!(svg.matches("stroke=\"#c0392b\"").count(), 1);
+        // Panel x: state 0's mean estimate is −1 mm and state 1's 2.5 mm, at their true values.
+        let (ml, side, pw, mb) = (46.0, 220.0 - 46.0 - 8.0, 220.0, 36.0);
+        let px = |v: f64| ml + side * (v + 7.0) / 14.0;
+        let py = |v: f64| pw - mb - side * (v + 7.0) / 14.0;
+        for (t, e) in [(0.0, -1.0), (2.5, 2.5)] {
+            let d = format!(
+                "M{:.1} {:.1} L{:.1} {:.1}",
+                px(t) - 5.0,
+                py(e),
+                px(t),
+                py(e) - 5.0
+            );
+            assert!(svg.contains(&d), "no diamond at ({t}, {e}): {d}");
+        }
+        // Tick labels on both axes of each panel.
+        assert_eq!(svg.matches(">-2.5</text>").count(), 6);
+    }
 }
