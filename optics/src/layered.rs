@@ -12,7 +12,41 @@ use crate::error::{OpticsError, Result};
 use crate::psf::fast_fft_size;
 use faer::{Mat, c64};
 use rustfft::{Fft, FftPlanner};
+use std::ops::Range;
 use std::sync::Arc;
+
+/// Columns per block in the column pass of the 2-D FFT.
+const COLS: usize = 16;
+
+/// Side of the square tiles in which a column-major matrix meets a row-major grid.
+const TILE: usize = 32;
+
+/// The columns of a column-major matrix as slices (faer stores an owned `Mat` that way).
+fn columns(m: &Mat<f32>) -> Vec<&[f32]> {
+    (0..m.ncols())
+        .map(|c| {
+            m.col(c)
+                .try_as_col_major()
+                .expect("an owned Mat has contiguous columns")
+                .as_slice()
+        })
+        .collect()
+}
+
+/// Visits every (r, c) of an h × w matrix tile by tile, so that a column-major and a
+/// row-major array both stay within a few pages while they are copied into each other.
+#[inline]
+fn tiles(h: usize, w: usize, mut f: impl FnMut(usize, usize)) {
+    for r0 in (0..h).step_by(TILE) {
+        for c0 in (0..w).step_by(TILE) {
+            for c in c0..(c0 + TILE).min(w) {
+                for r in r0..(r0 + TILE).min(h) {
+                    f(r, c);
+                }
+            }
+        }
+    }
+}
 
 /// One depth layer: radiance L (H×W), alpha α ∈ [0, 1] (H×W) and the PSF of its depth
 /// (W_p×W_p, kernel centre at index (W_p/2, W_p/2)).
@@ -53,10 +87,19 @@ pub struct LayeredImager {
 /// Per layer kept for the VJP: the image below it I⁽ᵏ⁻¹⁾ and its occlusion α∗P.
 type Saved = Option<(Mat<f64>, Mat<f64>)>;
 
+/// Work space of the spectral path (see [`LayeredImager::spectral_buffers`]).
+struct SpectralBuffers {
+    a: Vec<c64>,
+    blk: Vec<c64>,
+    blk2: Vec<c64>,
+    scratch: Vec<c64>,
+}
+
 struct Buffers {
     a: Vec<c64>,
     p: Vec<c64>,
-    col: Vec<c64>,
+    /// Column blocks of the 2-D FFT (COLS × ny).
+    work: Vec<c64>,
     scratch: Vec<c64>,
 }
 
@@ -87,36 +130,64 @@ impl LayeredImager {
         })
     }
 
-    fn buffers(&self) -> Buffers {
-        let s = [&self.fy, &self.fx, &self.iy, &self.ix]
+    /// Scratch length that serves all four planned transforms.
+    fn scratch_len(&self) -> usize {
+        [&self.fy, &self.fx, &self.iy, &self.ix]
             .iter()
             .map(|f| f.get_inplace_scratch_len())
             .max()
-            .unwrap_or(0);
+            .unwrap_or(0)
+    }
+
+    fn buffers(&self) -> Buffers {
+        let s = self.scratch_len();
         let z = c64::new(0.0, 0.0);
         Buffers {
             a: vec![z; self.ny * self.nx],
             p: vec![z; self.ny * self.nx],
-            col: vec![z; self.ny],
+            work: vec![z; COLS * self.ny],
             scratch: vec![z; s],
         }
     }
 
-    fn fft2(&self, data: &mut [c64], col: &mut [c64], scratch: &mut [c64], inverse: bool) {
-        let (rf, cf) = if inverse {
-            (&self.ix, &self.iy)
+    /// 2-D FFT of the ny × nx row-major grid `data` in place: rows, then columns. `span`
+    /// limits the work to what the caller has or needs: forward, the rows holding data (the
+    /// transform of a zero row is zero, so the others are skipped); inverse, the columns it
+    /// will read (the others are left after the row pass only). Same arithmetic per row and
+    /// column as the whole transform, so the values it computes are the same.
+    fn fft2(
+        &self,
+        data: &mut [c64],
+        work: &mut [c64],
+        scratch: &mut [c64],
+        inverse: bool,
+        span: Range<usize>,
+    ) {
+        let (nx, ny) = (self.nx, self.ny);
+        let (rf, cf, rows, cols) = if inverse {
+            (&self.ix, &self.iy, 0..ny, span)
         } else {
-            (&self.fx, &self.fy)
+            (&self.fx, &self.fy, span, 0..nx)
         };
-        rf.process_with_scratch(data, scratch);
-        for c in 0..self.nx {
-            for (r, v) in col.iter_mut().enumerate() {
-                *v = data[r * self.nx + c];
+        rf.process_with_scratch(&mut data[rows.start * nx..rows.end * nx], scratch);
+        // Columns in blocks of COLS: one row's block is a few whole cache lines, where a
+        // single column would touch one line per row for 16 bytes of it.
+        let mut c0 = cols.start;
+        while c0 < cols.end {
+            let bw = COLS.min(cols.end - c0);
+            let work = &mut work[..bw * ny];
+            for (r, row) in data.chunks_exact(nx).enumerate() {
+                for (j, &v) in row[c0..c0 + bw].iter().enumerate() {
+                    work[j * ny + r] = v;
+                }
             }
-            cf.process_with_scratch(col, scratch);
-            for (r, v) in col.iter().enumerate() {
-                data[r * self.nx + c] = *v;
+            cf.process_with_scratch(work, scratch);
+            for (r, row) in data.chunks_exact_mut(nx).enumerate() {
+                for (j, v) in row[c0..c0 + bw].iter_mut().enumerate() {
+                    *v = work[j * ny + r];
+                }
             }
+            c0 += bw;
         }
     }
 
@@ -164,7 +235,7 @@ impl LayeredImager {
                 b.p[r * self.nx + c] = c64::new(l.psf[(r, c)] as f64, 0.0);
             }
         }
-        self.fft2(&mut b.p, &mut b.col, &mut b.scratch, false);
+        self.fft2(&mut b.p, &mut b.work, &mut b.scratch, false, 0..self.wp);
     }
 
     /// (αL ∗ P, α ∗ P) of one layer, cropped to H×W, as one complex image in `b.a` (spatial).
@@ -177,10 +248,16 @@ impl LayeredImager {
                 b.a[r * self.nx + c] = c64::new(al * l.radiance[(r, c)] as f64, al);
             }
         }
-        self.fft2(&mut b.a, &mut b.col, &mut b.scratch, false);
+        self.fft2(&mut b.a, &mut b.work, &mut b.scratch, false, 0..self.h);
         let norm = 1.0 / (self.ny * self.nx) as f64;
         b.a.iter_mut().zip(&b.p).for_each(|(a, p)| *a *= p * norm);
-        self.fft2(&mut b.a, &mut b.col, &mut b.scratch, true);
+        self.fft2(
+            &mut b.a,
+            &mut b.work,
+            &mut b.scratch,
+            true,
+            self.wp / 2..self.wp / 2 + self.w,
+        );
     }
 
     fn forward_f64(&self, layers: &[Layer], keep: bool) -> (Mat<f64>, Vec<Saved>) {
@@ -262,7 +339,7 @@ impl LayeredImager {
                     gi[(r, c)] *= 1.0 - o[(r, c)];
                 }
             }
-            self.fft2(&mut g, &mut b.col, &mut b.scratch, false);
+            self.fft2(&mut g, &mut b.work, &mut b.scratch, false, cy..cy + self.h);
             // Â of the packed input αL + iα.
             b.a.fill(c64::new(0.0, 0.0));
             for r in 0..self.h {
@@ -271,12 +348,12 @@ impl LayeredImager {
                     b.a[r * self.nx + c] = c64::new(al * l.radiance[(r, c)] as f64, al);
                 }
             }
-            self.fft2(&mut b.a, &mut b.col, &mut b.scratch, false);
+            self.fft2(&mut b.a, &mut b.work, &mut b.scratch, false, 0..self.h);
             // ∂/∂P(u,v) = Re Σ G(t+u) conj(A(t)) → IFFT(Ĝ·conj(Â)).
             b.a.iter_mut()
                 .zip(&g)
                 .for_each(|(a, gg)| *a = gg * a.conj() * norm);
-            self.fft2(&mut b.a, &mut b.col, &mut b.scratch, true);
+            self.fft2(&mut b.a, &mut b.work, &mut b.scratch, true, 0..self.wp);
             for r in 0..self.wp {
                 for c in 0..self.wp {
                     out.psf[k][(r, c)] = b.a[r * self.nx + c].re;
@@ -287,7 +364,7 @@ impl LayeredImager {
             g.iter_mut()
                 .zip(&b.p)
                 .for_each(|(gg, p)| *gg *= p.conj() * norm);
-            self.fft2(&mut g, &mut b.col, &mut b.scratch, true);
+            self.fft2(&mut g, &mut b.work, &mut b.scratch, true, 0..self.w);
             for r in 0..self.h {
                 for c in 0..self.w {
                     let v = g[r * self.nx + c];
@@ -319,10 +396,11 @@ pub struct SpectralLayer<'a> {
 }
 
 /// What a spectral forward pass keeps for the PSF VJP: per layer the image below it and its
-/// occlusion α∗P, in f32 (the adjoint needs them to round-off precision only).
+/// occlusion α∗P, in f32 (the adjoint needs them to round-off precision only), row-major H×W
+/// like the padded grid they meet.
 pub struct S1Tape {
-    saved: Vec<Option<(Mat<f32>, Mat<f32>)>>,
-    image: Mat<f32>,
+    saved: Vec<Option<(Vec<f32>, Vec<f32>)>>,
+    image: Vec<f32>,
 }
 
 /// ∂loss/∂P accumulated in the frequency domain over frames: one inverse FFT per kernel at
@@ -335,9 +413,11 @@ pub struct KernelGradAccumulator {
 }
 
 impl LayeredImager {
-    /// FFTs of the kernels (`None`: unused, skipped).
+    /// FFTs of the kernels (`None`: unused, skipped), each stored column by column (the
+    /// layout the fused column pass reads).
     pub fn kernel_spectra(&self, kernels: &[Option<&Mat<f32>>]) -> Result<KernelSpectra> {
-        let mut b = self.buffers();
+        let mut sb = self.spectral_buffers();
+        let (nx, ny) = (self.nx, self.ny);
         let mut spec = Vec::with_capacity(kernels.len());
         for (j, k) in kernels.iter().enumerate() {
             match k {
@@ -352,13 +432,28 @@ impl LayeredImager {
                             self.wp
                         )));
                     }
-                    let l = Layer {
-                        radiance: m,
-                        alpha: m,
-                        psf: m,
-                    };
-                    self.psf_spectrum(&l, &mut b);
-                    spec.push(Some(b.p.clone()));
+                    let rows = 0..self.wp;
+                    for r in rows.clone() {
+                        let row = &mut sb.a[r * nx..(r + 1) * nx];
+                        for (c, v) in row.iter_mut().enumerate() {
+                            *v = if c < self.wp {
+                                c64::new(m[(r, c)] as f64, 0.0)
+                            } else {
+                                c64::new(0.0, 0.0)
+                            };
+                        }
+                    }
+                    self.fx
+                        .process_with_scratch(&mut sb.a[..self.wp * nx], &mut sb.scratch);
+                    let mut out = vec![c64::new(0.0, 0.0); nx * ny];
+                    for c0 in (0..nx).step_by(COLS) {
+                        let bw = COLS.min(nx - c0);
+                        let blk = &mut sb.blk[..bw * ny];
+                        self.gather(&sb.a, c0, rows.clone(), blk);
+                        self.fy.process_with_scratch(blk, &mut sb.scratch);
+                        out[c0 * ny..(c0 + bw) * ny].copy_from_slice(blk);
+                    }
+                    spec.push(Some(out));
                 }
             }
         }
@@ -402,58 +497,124 @@ impl LayeredImager {
         Ok(())
     }
 
-    /// Packs αL + iα of a layer into `b.a` and transforms it.
-    fn layer_spectrum(&self, l: &SpectralLayer, b: &mut Buffers) {
-        b.a.fill(c64::new(0.0, 0.0));
-        for r in 0..self.h {
-            for c in 0..self.w {
-                let al = l.alpha[(r, c)] as f64;
-                b.a[r * self.nx + c] = c64::new(al * l.radiance[(r, c)] as f64, al);
+    /// Work space of the spectral path: one padded grid (rows are written before use), two
+    /// column blocks and FFT scratch.
+    fn spectral_buffers(&self) -> SpectralBuffers {
+        let s = self.scratch_len();
+        let z = c64::new(0.0, 0.0);
+        SpectralBuffers {
+            a: vec![z; self.ny * self.nx],
+            blk: vec![z; COLS * self.ny],
+            blk2: vec![z; COLS * self.ny],
+            scratch: vec![z; s],
+        }
+    }
+
+    /// Columns `c0 .. c0 + blk.len() / ny` of the row-major grid `data` into `blk`, column j
+    /// at `j * ny`; rows outside `live` are taken as zero without being read.
+    fn gather(&self, data: &[c64], c0: usize, live: Range<usize>, blk: &mut [c64]) {
+        let (nx, ny) = (self.nx, self.ny);
+        let bw = blk.len() / ny;
+        for col in blk.chunks_exact_mut(ny) {
+            col[..live.start].fill(c64::new(0.0, 0.0));
+            col[live.end..].fill(c64::new(0.0, 0.0));
+        }
+        for r in live {
+            for (j, &v) in data[r * nx + c0..r * nx + c0 + bw].iter().enumerate() {
+                blk[j * ny + r] = v;
             }
         }
-        self.fft2(&mut b.a, &mut b.col, &mut b.scratch, false);
+    }
+
+    /// Rows `rows` of a column block back into the row-major grid `data`.
+    fn scatter(&self, blk: &[c64], c0: usize, rows: Range<usize>, data: &mut [c64]) {
+        let (nx, ny) = (self.nx, self.ny);
+        let bw = blk.len() / ny;
+        for r in rows {
+            for (j, v) in data[r * nx + c0..r * nx + c0 + bw].iter_mut().enumerate() {
+                *v = blk[j * ny + r];
+            }
+        }
+    }
+
+    /// Packs αL + iα of a layer into rows 0..H of `a` (zero beyond column W) and transforms
+    /// each row while it is still in cache; the column transform happens block by block in
+    /// the caller.
+    fn layer_rows(&self, l: &SpectralLayer, a: &mut [c64], scratch: &mut [c64]) {
+        let (h, w, nx) = (self.h, self.w, self.nx);
+        let (al, rad) = (columns(l.alpha), columns(l.radiance));
+        for (r, row) in a.chunks_exact_mut(nx).take(h).enumerate() {
+            for ((v, al), rad) in row.iter_mut().zip(&al).zip(&rad) {
+                let x = al[r] as f64;
+                *v = c64::new(x * rad[r] as f64, x);
+            }
+            row[w..].fill(c64::new(0.0, 0.0));
+            self.fx.process_with_scratch(row, scratch);
+        }
     }
 
     /// S1 with precomputed kernel spectra (two FFTs per non-empty layer); keeps the tape the
-    /// PSF VJP needs.
+    /// PSF VJP needs. Per block of columns the forward column transform, the product with P̂
+    /// and the inverse column transform run back to back while the block is in cache, and
+    /// only the H rows the output keeps go through the inverse row transform.
     pub fn forward_spectral(
         &self,
         layers: &[SpectralLayer],
         ks: &KernelSpectra,
     ) -> Result<(Mat<f32>, S1Tape)> {
         self.check_spectral(layers, ks)?;
+        let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);
         let (cy, cx) = (self.wp / 2, self.wp / 2);
-        let mut img = Mat::<f64>::zeros(self.h, self.w);
+        // The image so far, row-major like the grid rows it is composed with.
+        let mut img = vec![0.0f64; h * w];
+        // I⁽ᵏ⁻¹⁾ in f32 for the tape (I⁽⁻¹⁾ = 0).
+        let mut prev = vec![0.0f32; h * w];
         let mut saved = Vec::with_capacity(layers.len());
-        let mut b = self.buffers();
-        let norm = 1.0 / (self.ny * self.nx) as f64;
+        let mut sb = self.spectral_buffers();
+        let norm = 1.0 / (ny * nx) as f64;
         for l in layers {
             if l.alpha.col_iter().all(|c| c.iter().all(|&v| v == 0.0)) {
                 saved.push(None);
                 continue;
             }
-            self.layer_spectrum(l, &mut b);
+            self.layer_rows(l, &mut sb.a, &mut sb.scratch);
             let p = ks.spec[l.kernel].as_ref().expect("checked");
-            b.a.iter_mut().zip(p).for_each(|(a, p)| *a *= p * norm);
-            self.fft2(&mut b.a, &mut b.col, &mut b.scratch, true);
-            let prev = Mat::from_fn(self.h, self.w, |r, c| img[(r, c)] as f32);
-            let o = Mat::from_fn(self.h, self.w, |r, c| {
-                b.a[(r + cy) * self.nx + c + cx].im as f32
-            });
-            for c in 0..self.w {
-                for r in 0..self.h {
-                    let v = b.a[(r + cy) * self.nx + c + cx];
-                    img[(r, c)] = v.re + (1.0 - v.im) * img[(r, c)];
+            for c0 in (0..nx).step_by(COLS) {
+                let bw = COLS.min(nx - c0);
+                let blk = &mut sb.blk[..bw * ny];
+                self.gather(&sb.a, c0, 0..h, blk);
+                self.fy.process_with_scratch(blk, &mut sb.scratch);
+                blk.iter_mut()
+                    .zip(&p[c0 * ny..(c0 + bw) * ny])
+                    .for_each(|(a, p)| *a *= p * norm);
+                self.iy.process_with_scratch(blk, &mut sb.scratch);
+                self.scatter(blk, c0, cy..cy + h, &mut sb.a);
+            }
+            // Each kept row is inverse-transformed and composed while it is in cache; the
+            // f32 copy of the new image (the next layer's I⁽ᵏ⁻¹⁾) is written on the way.
+            let mut o = Vec::with_capacity(h * w);
+            let mut cur = Vec::with_capacity(h * w);
+            let out = &mut sb.a[cy * nx..(cy + h) * nx];
+            for (irow, grow) in img.chunks_exact_mut(w).zip(out.chunks_exact_mut(nx)) {
+                self.ix.process_with_scratch(grow, &mut sb.scratch);
+                for (i, v) in irow.iter_mut().zip(&grow[cx..cx + w]) {
+                    o.push(v.im as f32);
+                    *i = v.re + (1.0 - v.im) * *i;
+                    cur.push(*i as f32);
                 }
             }
-            saved.push(Some((prev, o)));
+            saved.push(Some((std::mem::replace(&mut prev, cur), o)));
         }
-        let image = Mat::from_fn(self.h, self.w, |r, c| img[(r, c)] as f32);
-        Ok((image.clone(), S1Tape { saved, image }))
+        let image = prev;
+        let mut m = Mat::<f32>::zeros(h, w);
+        tiles(h, w, |r, c| m[(r, c)] = image[r * w + c]);
+        Ok((m, S1Tape { saved, image }))
     }
 
     /// Adds ∂loss/∂P (in the frequency domain) and ∂loss/∂(radiance scale) of one frame into
-    /// `acc`, for ∂loss/∂I = `grad`. Two FFTs per non-empty layer; no input gradients.
+    /// `acc`, for ∂loss/∂I = `grad`. Two FFTs per non-empty layer; no input gradients. The
+    /// column transforms of the gradient and of the layer and their product run block by
+    /// block, so neither full spectrum is ever stored.
     pub fn vjp_kernels(
         &self,
         layers: &[SpectralLayer],
@@ -472,41 +633,59 @@ impl LayeredImager {
                 tape.saved.len()
             )));
         }
+        let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);
         let (cy, cx) = (self.wp / 2, self.wp / 2);
-        let mut gi = grad.clone();
-        let mut b = self.buffers();
-        let mut g = vec![c64::new(0.0, 0.0); self.ny * self.nx];
-        let norm = 1.0 / (self.ny * self.nx) as f64;
+        let mut gi = vec![0.0f64; h * w];
+        tiles(h, w, |r, c| gi[r * w + c] = grad[(r, c)]);
+        let mut sb = self.spectral_buffers();
+        let mut g = vec![c64::new(0.0, 0.0); ny * nx];
+        let norm = 1.0 / (ny * nx) as f64;
         let n = layers.len();
         // I⁽ᵏ⁾ of each layer: the next non-empty layer's `prev`, or the final image.
-        let mut above: &Mat<f32> = &tape.image;
+        let mut above: &[f32] = &tape.image;
         for k in (0..n).rev() {
             let Some((prev, o)) = &tape.saved[k] else {
                 continue;
             };
             let l = &layers[k];
-            // ⟨gI, conv⟩ with conv = I⁽ᵏ⁾ − (1 − o)·I⁽ᵏ⁻¹⁾.
+            // ⟨gI, conv⟩ with conv = I⁽ᵏ⁾ − (1 − o)·I⁽ᵏ⁻¹⁾; g = gI − i gI·I⁽ᵏ⁻¹⁾ at the
+            // output's offset (cy, cx), zero elsewhere in its rows.
             let mut dot = 0.0;
-            g.fill(c64::new(0.0, 0.0));
-            for r in 0..self.h {
-                for c in 0..self.w {
-                    let (p, oo) = (prev[(r, c)] as f64, o[(r, c)] as f64);
-                    let conv = above[(r, c)] as f64 - (1.0 - oo) * p;
-                    dot += gi[(r, c)] * conv;
-                    g[(r + cy) * self.nx + c + cx] = c64::new(gi[(r, c)], -gi[(r, c)] * p);
+            for r in 0..h {
+                let row = &mut g[(r + cy) * nx..(r + cy + 1) * nx];
+                row[..cx].fill(c64::new(0.0, 0.0));
+                row[cx + w..].fill(c64::new(0.0, 0.0));
+                let span = r * w..(r + 1) * w;
+                for ((((gv, &p), &oo), &ab), gs) in gi[span.clone()]
+                    .iter_mut()
+                    .zip(&prev[span.clone()])
+                    .zip(&o[span.clone()])
+                    .zip(&above[span])
+                    .zip(&mut row[cx..cx + w])
+                {
+                    let (p, oo) = (p as f64, oo as f64);
+                    let conv = ab as f64 - (1.0 - oo) * p;
+                    dot += *gv * conv;
+                    *gs = c64::new(*gv, -*gv * p);
+                    *gv *= 1.0 - oo;
                 }
+                self.fx.process_with_scratch(row, &mut sb.scratch);
             }
-            for c in 0..self.w {
-                for r in 0..self.h {
-                    gi[(r, c)] *= 1.0 - o[(r, c)] as f64;
-                }
-            }
-            self.fft2(&mut g, &mut b.col, &mut b.scratch, false);
-            self.layer_spectrum(l, &mut b);
+            let live = cy..cy + h;
+            self.layer_rows(l, &mut sb.a, &mut sb.scratch);
             let slot = acc.spec[l.kernel].get_or_insert_with(|| vec![c64::new(0.0, 0.0); g.len()]);
-            slot.iter_mut()
-                .zip(g.iter().zip(&b.a))
-                .for_each(|(s, (gg, a))| *s += gg * a.conj() * norm);
+            for c0 in (0..nx).step_by(COLS) {
+                let bw = COLS.min(nx - c0);
+                let (gb, ab) = (&mut sb.blk[..bw * ny], &mut sb.blk2[..bw * ny]);
+                self.gather(&g, c0, live.clone(), gb);
+                self.fy.process_with_scratch(gb, &mut sb.scratch);
+                self.gather(&sb.a, c0, 0..h, ab);
+                self.fy.process_with_scratch(ab, &mut sb.scratch);
+                slot[c0 * ny..(c0 + bw) * ny]
+                    .iter_mut()
+                    .zip(gb.iter().zip(ab.iter()))
+                    .for_each(|(s, (gg, a))| *s += gg * a.conj() * norm);
+            }
             acc.radiance_scale[l.kernel] += dot;
             above = prev;
         }
@@ -527,18 +706,91 @@ impl LayeredImager {
         }
     }
 
-    /// ∂loss/∂P_j (W_p×W_p) from an accumulator: one inverse FFT per kernel that got gradient.
+    /// ∂loss/∂P_j (W_p×W_p) from an accumulator: one inverse FFT per kernel that got gradient
+    /// (all columns, then only the W_p rows that are kept).
     pub fn kernel_grads(&self, acc: KernelGradAccumulator) -> Vec<Mat<f64>> {
-        let mut b = self.buffers();
+        let (nx, ny, wp) = (self.nx, self.ny, self.wp);
+        let mut sb = self.spectral_buffers();
+        let mut row = vec![c64::new(0.0, 0.0); nx];
         acc.spec
             .into_iter()
             .map(|s| match s {
-                None => Mat::zeros(self.wp, self.wp),
+                None => Mat::zeros(wp, wp),
                 Some(mut v) => {
-                    self.fft2(&mut v, &mut b.col, &mut b.scratch, true);
-                    Mat::from_fn(self.wp, self.wp, |r, c| v[r * self.nx + c].re)
+                    self.iy.process_with_scratch(&mut v, &mut sb.scratch);
+                    let mut out = Mat::zeros(wp, wp);
+                    for r in 0..wp {
+                        for (c, x) in row.iter_mut().enumerate() {
+                            *x = v[c * ny + r];
+                        }
+                        self.ix.process_with_scratch(&mut row, &mut sb.scratch);
+                        for c in 0..wp {
+                            out[(r, c)] = row[c].re;
+                        }
+                    }
+                    out
                 }
             })
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The 2-D FFT one column at a time, every row and every column.
+    fn fft2_by_column(im: &LayeredImager, data: &mut [c64], inverse: bool) {
+        let (rf, cf) = if inverse {
+            (&im.ix, &im.iy)
+        } else {
+            (&im.fx, &im.fy)
+        };
+        rf.process(data);
+        let mut col = vec![c64::new(0.0, 0.0); im.ny];
+        for c in 0..im.nx {
+            for (r, v) in col.iter_mut().enumerate() {
+                *v = data[r * im.nx + c];
+            }
+            cf.process(&mut col);
+            for (r, v) in col.iter().enumerate() {
+                data[r * im.nx + c] = *v;
+            }
+        }
+    }
+
+    #[test]
+    fn blocked_fft2_computes_what_the_column_by_column_one_does() {
+        // nx = 40 is not a multiple of the block width, so the last block is partial.
+        let im = LayeredImager::new(21, 34, 7).unwrap();
+        assert_eq!(im.nx % COLS, 8);
+        let mut b = im.buffers();
+        let live = 3..17;
+        let grid = |r: usize, c: usize| {
+            if live.contains(&r) {
+                c64::new(
+                    ((r * 31 + c * 17) % 23) as f64 - 11.0,
+                    ((r + 3 * c) % 5) as f64,
+                )
+            } else {
+                c64::new(0.0, 0.0)
+            }
+        };
+        let mut want: Vec<c64> = (0..im.ny * im.nx)
+            .map(|i| grid(i / im.nx, i % im.nx))
+            .collect();
+        let mut got = want.clone();
+        fft2_by_column(&im, &mut want, false);
+        im.fft2(&mut got, &mut b.work, &mut b.scratch, false, live.clone());
+        // Bit for bit: skipping zero rows and blocking the columns change no arithmetic.
+        assert!(want.iter().zip(&got).all(|(a, b)| a == b));
+        let cols = 5..29;
+        fft2_by_column(&im, &mut want, true);
+        im.fft2(&mut got, &mut b.work, &mut b.scratch, true, cols.clone());
+        for r in 0..im.ny {
+            for c in cols.clone() {
+                assert_eq!(want[r * im.nx + c], got[r * im.nx + c], "({r}, {c})");
+            }
+        }
     }
 }

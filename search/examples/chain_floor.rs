@@ -1,6 +1,7 @@
 //! Time of the camera chain's optics part per frame against its FFT floor, and the PSF stack
 //! and its VJP per step. Usage: `RAYON_NUM_THREADS=1 cargo run --release -p nanoeye-search
-//! --example chain_floor -- DATASET [PITCH_UM] [FRAMES]` (docs/chain.md).
+//! --example chain_floor -- DATASET [PITCH_UM] [FRAMES]` (docs/bench/chain.md). Allocator as in
+//! the CLI.
 
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::Tensor;
@@ -8,7 +9,19 @@ use nanoeye_search::{CameraChain, ChainConfig, LensSpec};
 use nanoeye_sensor::NoiseMode;
 use std::time::Instant;
 
+/// The `nanoeye` binary's allocator settings (cli/src/main.rs): freed blocks up to 32 MiB stay
+/// in the process, so the per-frame grids are not faulted in afresh, as in the CLI.
+fn alloc_like_cli() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets allocator parameters; no other thread exists yet.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+    }
+}
+
 fn main() {
+    alloc_like_cli();
     let args: Vec<String> = std::env::args().collect();
     let Some(dir) = args.get(1) else {
         eprintln!("usage: chain_floor DATASET [PITCH_UM] [FRAMES]");

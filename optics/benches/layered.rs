@@ -1,0 +1,76 @@
+//! Criterion benches: the spectral S1 path on the 3 µm default sensor (800×1280, 65-px PSF
+//! window), one thread, per layer: forward (`forward_spectral`) and the PSF adjoint
+//! (`vjp_kernels`), against the floor of two bare 2-D FFTs of the padded grid per layer
+//! (rows, then the second axis as contiguous rows: no transpose, no copies). Allocator as in
+//! the CLI.
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use faer::Mat;
+use nanoeye_optics::psf::fast_fft_size;
+use nanoeye_optics::{LayeredImager, SpectralLayer};
+use num_complex::Complex64;
+use rustfft::FftPlanner;
+
+/// The `nanoeye` binary's allocator settings (cli/src/main.rs): freed blocks up to 32 MiB stay
+/// in the process, so a call's 19 MB grid is not faulted in afresh each time, as in the CLI.
+fn alloc_like_cli() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets allocator parameters; no other thread exists yet.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+    }
+}
+
+fn bench(c: &mut Criterion) {
+    alloc_like_cli();
+    let (h, w, wp) = (800, 1280, 65);
+    let im = LayeredImager::new(h, w, wp).expect("imager");
+    let psf = Mat::from_fn(wp, wp, |r, c| {
+        let (y, x) = (r as f32 - 32.0, c as f32 - 32.0);
+        (-(x * x + y * y) / 200.0).exp()
+    });
+    let ks = im.kernel_spectra(&[Some(&psf)]).expect("spectra");
+    let rad = Mat::from_fn(h, w, |r, c| ((r * 7 + c * 13) % 17) as f32 / 17.0);
+    let alpha = Mat::from_fn(
+        h,
+        w,
+        |r, c| if (r / 40 + c / 40) % 3 == 0 { 0.0 } else { 1.0 },
+    );
+    let layers = [SpectralLayer {
+        radiance: &rad,
+        alpha: &alpha,
+        kernel: 0,
+    }];
+    let grad = Mat::from_fn(h, w, |r, c| ((r * 5 + c * 3) % 7) as f64 - 3.0);
+    let mut g = c.benchmark_group("layered");
+    g.sample_size(10);
+    g.bench_function("forward_1layer_800x1280_65px", |b| {
+        b.iter(|| im.forward_spectral(&layers, &ks).expect("forward"))
+    });
+    let (_, tape) = im.forward_spectral(&layers, &ks).expect("forward");
+    g.bench_function("vjp_kernels_1layer_800x1280_65px", |b| {
+        b.iter(|| {
+            let mut acc = im.kernel_grad_accumulator(1);
+            im.vjp_kernels(&layers, &tape, &grad, &mut acc)
+                .expect("vjp");
+            acc
+        })
+    });
+    let (ny, nx) = (fast_fft_size(h + wp - 1), fast_fft_size(w + wp - 1));
+    let mut planner = FftPlanner::<f64>::new();
+    let (fx, fy) = (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny));
+    let mut buf = vec![Complex64::new(0.5, 0.25); ny * nx];
+    g.bench_function("floor_two_ffts_800x1280_65px", |b| {
+        b.iter(|| {
+            for _ in 0..2 {
+                fx.process(&mut buf);
+                fy.process(&mut buf);
+            }
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
