@@ -474,12 +474,10 @@ fn split(idx: &mut [u32], bounds: &[Aabb], cen: &[Vec3], cb: &Aabb, bb: &Aabb) -
         return None;
     }
     let (axis, split) = best_split(idx, bounds, cen, cb, bb)?;
-    let lo = cb.min[axis];
-    let ext = cb.max[axis] - lo;
-    let bin = |c: Vec3| (((c[axis] - lo) / ext * BINS as f64) as usize).min(BINS - 1);
+    let (lo, scale) = bin_scale(cb, axis);
     let mut mid = 0;
     for k in 0..n {
-        if bin(cen[idx[k] as usize]) < split {
+        if bin_of(cen[idx[k] as usize][axis], lo, scale) < split {
             idx.swap(k, mid);
             mid += 1;
         }
@@ -570,6 +568,20 @@ fn build_serial(bounds: &[Aabb], cen: &[Vec3], idx: &mut [u32], base: usize) -> 
     nodes
 }
 
+/// Origin and scale (bins per metre) of the SAH bins along `axis` of the centroid bounds.
+#[inline]
+fn bin_scale(cb: &Aabb, axis: usize) -> (f64, f64) {
+    let lo = cb.min[axis];
+    (lo, BINS as f64 / (cb.max[axis] - lo))
+}
+
+/// SAH bin of a centroid coordinate: one multiplication, not a division per primitive; the
+/// split and the partition both bin through here, so they always agree.
+#[inline]
+fn bin_of(c: f64, lo: f64, scale: f64) -> usize {
+    (((c - lo) * scale) as usize).min(BINS - 1)
+}
+
 /// Best (axis, bin split) by the binned SAH, or None when a leaf is cheaper.
 fn best_split(
     idx: &[u32],
@@ -584,15 +596,15 @@ fn best_split(
     let mut best: Option<(f64, usize, usize)> = None;
     #[allow(clippy::needless_range_loop)] // axis indexes three parallel arrays
     for axis in 0..3 {
-        let lo = cb.min[axis];
-        let ext = cb.max[axis] - lo;
+        let ext = cb.max[axis] - cb.min[axis];
         if ext.is_nan() || ext <= 0.0 {
             continue;
         }
+        let (lo, scale) = bin_scale(cb, axis);
         let mut bin_box = [Aabb::EMPTY; BINS];
         let mut bin_n = [0usize; BINS];
         for &i in idx {
-            let b = (((cen[i as usize][axis] - lo) / ext * BINS as f64) as usize).min(BINS - 1);
+            let b = bin_of(cen[i as usize][axis], lo, scale);
             bin_box[b] = join(&bin_box[b], &bounds[i as usize]);
             bin_n[b] += 1;
         }
