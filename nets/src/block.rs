@@ -6,10 +6,12 @@
 use crate::act::Act;
 use crate::arch::{mid_channels, se_channels};
 use crate::conv::{depthwise_forward, depthwise_vjp, pointwise_forward, pointwise_vjp};
+use crate::dense::{gemm, rm};
 use crate::error::{NetsError, Result};
 use crate::norm::{BatchNorm, BnMode};
 use crate::se::{SeCache, SeGrads, SeWeights, se_forward, se_vjp};
 use crate::tensor::{Param, Tensor};
+use faer::Accum;
 use rand::Rng;
 use rand_distr::{Distribution, Normal};
 
@@ -49,18 +51,6 @@ fn uncrop_add(src: &[f32], k: usize, big: usize, dst: &mut [f32]) {
     }
 }
 
-/// v·T for a row vector v (len n) and T (n × n, row-major).
-fn vec_mat(v: &[f32], t: &[f32], out: &mut [f32]) {
-    let n = v.len();
-    out.iter_mut().for_each(|o| *o = 0.0);
-    for i in 0..n {
-        let vi = v[i];
-        for j in 0..n {
-            out[j] += vi * t[i * n + j];
-        }
-    }
-}
-
 /// Effective kernels of `mid` channels at size k from 7×7 weights and transforms T5 (25×25),
 /// T3 (9×9): k5 = crop5(w7)·T5, k3 = crop3(k5)·T3. Returns (kernel, crop25, crop9) per channel.
 pub fn elastic_kernel(
@@ -73,21 +63,36 @@ pub fn elastic_kernel(
     if k == KMAX {
         return (w7[..mid * 49].to_vec(), Vec::new(), Vec::new());
     }
+    // All channels at once: K5 (mid × 25) = C25·T5, K3 (mid × 9) = C9·T3.
     let mut c25 = vec![0.0f32; mid * 25];
-    let mut k5 = vec![0.0f32; mid * 25];
     for ch in 0..mid {
         crop(&w7[ch * 49..][..49], 7, 5, &mut c25[ch * 25..][..25]);
-        vec_mat(&c25[ch * 25..][..25], t5, &mut k5[ch * 25..][..25]);
     }
+    let mut k5 = vec![0.0f32; mid * 25];
+    gemm(
+        &mut k5,
+        mid,
+        25,
+        Accum::Replace,
+        rm(&c25, mid, 25),
+        rm(t5, 25, 25),
+    );
     if k == 5 {
         return (k5, c25, Vec::new());
     }
     let mut c9 = vec![0.0f32; mid * 9];
-    let mut k3 = vec![0.0f32; mid * 9];
     for ch in 0..mid {
         crop(&k5[ch * 25..][..25], 5, 3, &mut c9[ch * 9..][..9]);
-        vec_mat(&c9[ch * 9..][..9], t3, &mut k3[ch * 9..][..9]);
     }
+    let mut k3 = vec![0.0f32; mid * 9];
+    gemm(
+        &mut k3,
+        mid,
+        9,
+        Accum::Replace,
+        rm(&c9, mid, 9),
+        rm(t3, 9, 9),
+    );
     (k3, c25, c9)
 }
 
@@ -111,34 +116,52 @@ pub fn elastic_kernel_vjp(
         }
         return;
     }
+    // All channels at once: dT += Cᵀ·dK and dC = dK·Tᵀ per stage, then the crops' adjoints.
     let mut dk5 = vec![0.0f32; mid * 25];
     if k == 3 {
+        let g = &dk[..mid * 9];
+        gemm(
+            dt3,
+            9,
+            9,
+            Accum::Add,
+            rm(c9, mid, 9).transpose(),
+            rm(g, mid, 9),
+        );
+        let mut dc9 = vec![0.0f32; mid * 9];
+        gemm(
+            &mut dc9,
+            mid,
+            9,
+            Accum::Replace,
+            rm(g, mid, 9),
+            rm(t3, 9, 9).transpose(),
+        );
         for ch in 0..mid {
-            let g = &dk[ch * 9..][..9];
-            let c = &c9[ch * 9..][..9];
-            let mut dc9 = [0.0f32; 9];
-            for i in 0..9 {
-                for j in 0..9 {
-                    dt3[i * 9 + j] += c[i] * g[j];
-                    dc9[i] += t3[i * 9 + j] * g[j];
-                }
-            }
-            uncrop_add(&dc9, 3, 5, &mut dk5[ch * 25..][..25]);
+            uncrop_add(&dc9[ch * 9..][..9], 3, 5, &mut dk5[ch * 25..][..25]);
         }
     } else {
         dk5.copy_from_slice(&dk[..mid * 25]);
     }
+    gemm(
+        dt5,
+        25,
+        25,
+        Accum::Add,
+        rm(c25, mid, 25).transpose(),
+        rm(&dk5, mid, 25),
+    );
+    let mut dc25 = vec![0.0f32; mid * 25];
+    gemm(
+        &mut dc25,
+        mid,
+        25,
+        Accum::Replace,
+        rm(&dk5, mid, 25),
+        rm(t5, 25, 25).transpose(),
+    );
     for ch in 0..mid {
-        let g = &dk5[ch * 25..][..25];
-        let c = &c25[ch * 25..][..25];
-        let mut dc25 = [0.0f32; 25];
-        for i in 0..25 {
-            for j in 0..25 {
-                dt5[i * 25 + j] += c[i] * g[j];
-                dc25[i] += t5[i * 25 + j] * g[j];
-            }
-        }
-        uncrop_add(&dc25, 5, 7, &mut dw7[ch * 49..][..49]);
+        uncrop_add(&dc25[ch * 25..][..25], 5, 7, &mut dw7[ch * 49..][..49]);
     }
 }
 

@@ -11,6 +11,7 @@ pub mod block;
 pub mod checkpoint;
 pub mod conv;
 pub mod cost;
+mod dense;
 mod depthwise;
 pub mod error;
 pub mod infer;

@@ -171,6 +171,70 @@ fn pointwise_vjp_matches_fd_and_dense_reference() {
     });
 }
 
+/// One-pixel planes (the heads after pooling) take the batched-GEMM path: check it against the
+/// dense reference and central differences with more output rows than one parallel block, that
+/// the weight gradient is added to what `dw` held, and that the result does not depend on the
+/// thread count.
+#[test]
+fn pointwise_on_one_pixel_planes_matches_reference_fd_and_thread_counts() {
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    let (cin, cout) = (70, 130);
+    let x = t(&mut rng, [3, cin, 1, 1]);
+    let w = rnd(&mut rng, cout * cin);
+    let b = rnd(&mut rng, cout);
+    let y = pointwise_forward(&x, &w, cout, Some(&b)).unwrap();
+    let yr = conv2d_forward(&x, &w, cout, 1, 1).unwrap();
+    for (i, (a, c)) in y.data.iter().zip(&yr.data).enumerate() {
+        assert!(
+            (a - c - b[i % cout]).abs() < 1e-5,
+            "y[{i}]: {a} vs {}",
+            c + b[i % cout]
+        );
+    }
+    let r = rnd(&mut rng, y.len());
+    let dy = Tensor {
+        data: r.clone(),
+        ..y.clone()
+    };
+    let held = rnd(&mut rng, w.len());
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let (mut dw, mut db) = (held.clone(), vec![0.0; cout]);
+            let dx = pointwise_vjp(&x, &w, cout, &dy, &mut dw, Some(&mut db)).unwrap();
+            (dx, dw, db)
+        })
+    };
+    let (dx, dw_acc, db) = run(2);
+    let (dx1, dw1, db1) = run(1);
+    assert_eq!(dx.data, dx1.data);
+    assert_eq!(dw_acc, dw1);
+    assert_eq!(db, db1);
+    let dw: Vec<f32> = dw_acc.iter().zip(&held).map(|(a, h)| a - h).collect();
+    fd_check("pw1 dx", &x.data, &dx.data, &r, 1e-2, 1e-3, |v| {
+        pointwise_forward(
+            &Tensor {
+                data: v.to_vec(),
+                ..x.clone()
+            },
+            &w,
+            cout,
+            Some(&b),
+        )
+        .unwrap()
+        .data
+    });
+    fd_check("pw1 dw", &w, &dw, &r, 1e-2, 1e-3, |v| {
+        pointwise_forward(&x, v, cout, Some(&b)).unwrap().data
+    });
+    fd_check("pw1 db", &b, &db, &r, 1e-2, 1e-3, |v| {
+        pointwise_forward(&x, &w, cout, Some(v)).unwrap().data
+    });
+}
+
 #[test]
 fn batchnorm_vjp_matches_fd_train_and_eval() {
     let mut rng = ChaCha8Rng::seed_from_u64(4);

@@ -1,0 +1,53 @@
+//! Profiling harness for `perf record`: min or max subnet forward + backward at batch 16,
+//! train-mode BN, under the CLI's allocator settings, N times; prints the mean time.
+//!
+//! Usage: `cargo run --release -p nanoeye-nets --example subnet_prof -- min|max H W [N]`
+
+use nanoeye_nets::arch::{Arch, SupernetConfig};
+use nanoeye_nets::{BnMode, Supernet, Tensor};
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let which = args.get(1).map_or("min", |s| s.as_str());
+    let h: usize = args.get(2).map_or(64, |s| s.parse().expect("H"));
+    let w: usize = args.get(3).map_or(64, |s| s.parse().expect("W"));
+    let n: usize = args.get(4).map_or(50, |s| s.parse().expect("N"));
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets allocator parameters.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+    }
+    let arch = if which == "max" {
+        Arch::max()
+    } else {
+        Arch::min()
+    };
+    let mut net = Supernet::new(SupernetConfig::default(), 1).expect("net");
+    let b = 16;
+    let data = (0..b * h * w)
+        .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
+        .collect();
+    let x = Tensor::from_vec(b, 1, h, w, data).expect("shape");
+    let mut step = || {
+        let out = net.forward(&arch, &x, BnMode::Train).expect("fwd");
+        let dl = Tensor {
+            data: vec![1e-3; out.mask_logits.len()],
+            ..out.mask_logits.clone()
+        };
+        let ds = Tensor {
+            data: vec![1e-3; out.slip.len()],
+            ..out.slip.clone()
+        };
+        std::hint::black_box(net.backward(&dl, &ds).expect("bwd"));
+    };
+    step();
+    let t = std::time::Instant::now();
+    for _ in 0..n {
+        step();
+    }
+    eprintln!(
+        "{which} {h}x{w} fwd+bwd: {:.2} ms",
+        t.elapsed().as_secs_f64() * 1e3 / n as f64
+    );
+}
