@@ -82,11 +82,13 @@ fn sandwich_training_lowers_both_losses_and_moves_the_optics() {
         .flat_map(|i| (0..p0.ncols()).map(move |j| (i, j)))
         .any(|(i, j)| t.phase[(i, j)] != p0[(i, j)]);
     assert!(moved, "φ did not move");
-    // Validation: the full chain to gaze gives finite, bounded numbers.
+    // Validation: the full chain to gaze gives finite, bounded numbers. An angle between two
+    // directions lies in [0°, 180°] (a failure counts 90°, a tracked frame after 8 steps may be
+    // farther off than that).
     let m = t.evaluate(&ds, &Arch::min(), 1).unwrap();
     assert_eq!(m.frames, 3);
     assert!(
-        m.v_deg.is_finite() && (0.0..=90.0).contains(&m.v_deg),
+        m.v_deg.is_finite() && (0.0..=180.0).contains(&m.v_deg),
         "{m:?}"
     );
     assert!((0.0..=1.0).contains(&m.dice) && m.slip_mse.is_finite());
