@@ -237,7 +237,7 @@ pub fn sim(a: SimArgs) -> Result<()> {
     let (mut sensor, mut masks, mut lines) = (Vec::new(), Vec::new(), String::new());
     let mut shape = (0, 0);
     // Chunks bound memory; the PSF stack is recomputed only when the active slabs change.
-    let mut cached: Option<(Vec<bool>, nanoeye_search::StepPsfs)> = None;
+    let mut cached: Option<(Vec<bool>, std::sync::Arc<nanoeye_search::StepPsfs>)> = None;
     for chunk in ids.chunks(16) {
         let frames = chain.load(&ds, chunk)?;
         let active = chain.active(&frames);

@@ -31,7 +31,7 @@ use nanoeye_optics::{
 use nanoeye_sensor::{CmosSensor, NoiseMode, Sensor, SensorConfig, SensorTape};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// Parameters of the camera chain beyond the dataset's geometry.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -74,6 +74,43 @@ pub struct CameraChain {
     scale: Mat<f32>,
     /// Who computes which depth of a PSF stack or PSF VJP ([`OneProcess`] unless set).
     split: Arc<dyn DepthSplit>,
+    /// The last stack [`CameraChain::psfs`] computed and what it was computed for.
+    memo: Mutex<Option<PsfMemo>>,
+}
+
+/// A PSF stack with the exact phase map (bit patterns) and slabs it belongs to. A fixed lens
+/// (the baselines' training, BN recalibration, every evaluation) asks for the same stack once
+/// per batch; p̂ does not enter it (the PSFs live on the native grid), so it is computed once.
+struct PsfMemo {
+    grid: ApertureGrid,
+    phase_bits: Vec<u64>,
+    amplitude_bits: Vec<u64>,
+    active: Vec<bool>,
+    psfs: Arc<StepPsfs>,
+}
+
+impl PsfMemo {
+    fn bits(m: &Mat<f64>) -> Vec<u64> {
+        m.col_iter()
+            .flat_map(|c| c.iter())
+            .map(|v| v.to_bits())
+            .collect()
+    }
+
+    fn same(bits: &[u64], m: &Mat<f64>) -> bool {
+        bits.len() == m.nrows() * m.ncols()
+            && m.col_iter()
+                .flat_map(|c| c.iter())
+                .zip(bits)
+                .all(|(v, &b)| v.to_bits() == b)
+    }
+
+    fn matches(&self, map: &PhaseMap, active: &[bool]) -> bool {
+        self.grid == map.grid
+            && self.active == active
+            && Self::same(&self.phase_bits, &map.phase_rad)
+            && Self::same(&self.amplitude_bits, &map.amplitude)
+    }
 }
 
 /// The PSFs of one step, normalised as the chain uses them, with their spectra on S1's grid.
@@ -214,6 +251,7 @@ impl CameraChain {
             imager,
             scale,
             split: Arc::new(OneProcess),
+            memo: Mutex::new(None),
         })
     }
 
@@ -316,7 +354,26 @@ impl CameraChain {
     /// PSFs of the slabs `active` for phase map `map`, normalised (one stack per step).
     /// The active planes are computed through the chain's [`DepthSplit`] (each process its
     /// share, then all-gathered in f64), so every process gets the same stack.
-    pub fn psfs(&self, map: &PhaseMap, active: &[bool]) -> Result<StepPsfs> {
+    /// The stack of the last call is kept: the same map (bit for bit) and slabs return it
+    /// without any work, and every process of a split makes the same decision.
+    pub fn psfs(&self, map: &PhaseMap, active: &[bool]) -> Result<Arc<StepPsfs>> {
+        let memo = self.memo.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(m) = memo.as_ref().filter(|m| m.matches(map, active)) {
+            return Ok(Arc::clone(&m.psfs));
+        }
+        drop(memo);
+        let psfs = Arc::new(self.compute_psfs(map, active)?);
+        *self.memo.lock().unwrap_or_else(|e| e.into_inner()) = Some(PsfMemo {
+            grid: map.grid,
+            phase_bits: PsfMemo::bits(&map.phase_rad),
+            amplitude_bits: PsfMemo::bits(&map.amplitude),
+            active: active.to_vec(),
+            psfs: Arc::clone(&psfs),
+        });
+        Ok(psfs)
+    }
+
+    fn compute_psfs(&self, map: &PhaseMap, active: &[bool]) -> Result<StepPsfs> {
         let count = self.depths_m.len();
         if active.len() != count {
             return Err(param(

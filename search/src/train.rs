@@ -199,7 +199,7 @@ impl VecAdam {
 struct StepData {
     frames: Vec<ChainFrame>,
     map: PhaseMap,
-    psfs: crate::chain::StepPsfs,
+    psfs: std::sync::Arc<crate::chain::StepPsfs>,
     fwd: crate::chain::ChainForward,
 }
 

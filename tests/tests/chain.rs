@@ -244,8 +244,58 @@ fn disc(cy: f64, cx: f64, r: f64, v: f32) -> Mat<f32> {
     })
 }
 
-fn all_slabs_psfs(chain: &CameraChain, map: &PhaseMap) -> StepPsfs {
+fn all_slabs_psfs(chain: &CameraChain, map: &PhaseMap) -> std::sync::Arc<StepPsfs> {
     chain.psfs(map, &[true; 8]).unwrap()
+}
+
+/// The stack's normalised planes and powers as bits, for exact comparison.
+fn psf_bits(p: &StepPsfs) -> (Vec<u32>, Vec<u64>) {
+    let planes = p
+        .unit
+        .iter()
+        .flat_map(|m| {
+            let (r, c) = (m.nrows(), m.ncols());
+            (0..r * c).map(move |i| m[(i / c, i % c)].to_bits())
+        })
+        .collect();
+    (planes, p.eta.iter().map(|e| e.to_bits()).collect())
+}
+
+/// A fixed lens asks for the same stack once per batch, so the chain keeps the last one: it
+/// holds the bits a fresh chain computes, the same map and slabs get it back, and a map that
+/// differs in one sample, or another set of slabs, gets a stack of its own.
+#[test]
+fn the_last_psf_stack_is_reused_only_for_the_same_map_and_slabs() {
+    use std::sync::Arc;
+    let (_d, ds) = tiny_dataset();
+    let chain = chain_for(&ds);
+    let map = hyperbolic(&chain);
+    let all = [true; 8];
+    let a = chain.psfs(&map, &all).unwrap();
+    assert!(Arc::ptr_eq(&a, &chain.psfs(&map, &all).unwrap()));
+    let fresh = chain_for(&ds).psfs(&map, &all).unwrap();
+    assert_eq!(psf_bits(&a), psf_bits(&fresh));
+
+    let mut other = map.clone();
+    let n = other.phase_rad.nrows();
+    other.phase_rad[(n / 2, n / 2 + 3)] += 1.0;
+    let b = chain.psfs(&other, &all).unwrap();
+    assert!(!Arc::ptr_eq(&a, &b));
+    assert_ne!(
+        psf_bits(&a),
+        psf_bits(&b),
+        "one phase sample moved no PSF value"
+    );
+    let again = chain.psfs(&map, &all).unwrap();
+    assert!(!Arc::ptr_eq(&b, &again));
+    assert_eq!(psf_bits(&a), psf_bits(&again));
+
+    let mut some = all;
+    some[0] = false;
+    let c = chain.psfs(&map, &some).unwrap();
+    assert!(!Arc::ptr_eq(&again, &c));
+    assert_eq!(c.eta[0], 0.0);
+    assert_eq!(c.eta[1..], a.eta[1..]);
 }
 
 #[test]
