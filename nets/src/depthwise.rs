@@ -169,12 +169,14 @@ fn tap_offsets(g: &Geom, offs: &mut Vec<usize>) {
     }
 }
 
-/// Per-task scratch: the padded plane, its gradient and the tap offsets.
+/// Per-task scratch: the padded plane, its gradient, the tap offsets and the turned kernel.
 #[derive(Default)]
 pub(crate) struct Scratch {
     buf: Vec<f32>,
     dbuf: Vec<f32>,
     offs: Vec<usize>,
+    /// The kernel turned by 180° (stride-1 dL/dx).
+    flip: Vec<f32>,
 }
 
 #[inline(always)]
@@ -187,7 +189,18 @@ fn forward_plane<const FMA: bool>(
 ) {
     fill(g, x, &mut sc.buf);
     tap_offsets(g, &mut sc.offs);
-    let (buf, offs) = (&sc.buf, &sc.offs);
+    forward_padded::<FMA>(g, &sc.buf, &sc.offs, wk, out);
+}
+
+/// The forward pass from a plane already in the padded scratch layout.
+#[inline(always)]
+fn forward_padded<const FMA: bool>(
+    g: &Geom,
+    buf: &[f32],
+    offs: &[usize],
+    wk: &[f32],
+    out: &mut [f32],
+) {
     // Several output rows per pass keep four or more independent accumulator registers in
     // flight (one row's chain of k² fused multiply–adds alone is latency-bound); each output
     // still sums its taps in the same order, so the result is the same bit for bit.
@@ -279,34 +292,90 @@ fn backward_plane<const FMA: bool>(
 ) {
     fill(g, x, &mut sc.buf);
     tap_offsets(g, &mut sc.offs);
+    weight_grad::<FMA>(g, &sc.buf, &sc.offs, dy, dw);
+    if g.s == 1 {
+        // At stride 1 with same padding, dL/dx is dL/dy correlated with the kernel turned by
+        // 180°, on the same geometry (ho = h, wo = w): the forward pass's register-blocked
+        // rows instead of a scatter that loads and stores dL/dx once per tap.
+        sc.flip.clear();
+        sc.flip.extend(wk.iter().rev());
+        fill(g, dy, &mut sc.buf);
+        forward_padded::<FMA>(g, &sc.buf, &sc.offs, &sc.flip, dx);
+        return;
+    }
     sc.dbuf.clear();
     sc.dbuf.resize(g.scratch_len(), 0.0);
-    let (buf, dbuf, offs) = (&sc.buf, &mut sc.dbuf, &sc.offs);
     let (wo, row_step) = (g.wo, g.s * g.s * g.cw());
-    // Tap-major: each tap's weight gradient keeps its lane sums over the whole plane, so the
-    // horizontal reduction is paid once per tap, not once per row.
-    for ((d, &wv), &off) in dw.iter_mut().zip(wk).zip(offs) {
-        let mut lanes = [0.0f32; 8];
-        let mut rest = 0.0f32;
+    for (&wv, &off) in wk.iter().zip(&sc.offs) {
         for (oy, grow) in dy.chunks_exact(wo).enumerate() {
-            let at = oy * row_step + off;
-            let src = &buf[at..][..wo];
-            let (cg, cs) = (grow.chunks_exact(8), src.chunks_exact(8));
-            for (t, &gv) in cg.remainder().iter().zip(cs.remainder()) {
-                rest = madd::<FMA>(*t, gv, rest);
-            }
-            for (a, b) in cg.zip(cs) {
-                for l in 0..8 {
-                    lanes[l] = madd::<FMA>(a[l], b[l], lanes[l]);
-                }
-            }
-            for (t, &gv) in dbuf[at..][..wo].iter_mut().zip(grow) {
+            for (t, &gv) in sc.dbuf[oy * row_step + off..][..wo].iter_mut().zip(grow) {
                 *t = madd::<FMA>(wv, gv, *t);
             }
         }
-        *d = lanes.iter().sum::<f32>() + rest;
     }
-    unfill(g, dbuf, dx);
+    unfill(g, &sc.dbuf, dx);
+}
+
+/// Most taps whose weight gradients one pass over dL/dy accumulates side by side.
+const TAPS: usize = 8;
+
+/// dL/dw of one plane (k² taps, overwritten) from the padded input `buf` and dL/dy.
+///
+/// Taps go in near-equal groups of at most [`TAPS`]: each block of dL/dy is loaded once per
+/// group, and the group's lane sums are independent chains (one tap's chain of fused
+/// multiply–adds alone waits on its own latency).
+#[inline(always)]
+fn weight_grad<const FMA: bool>(g: &Geom, buf: &[f32], offs: &[usize], dy: &[f32], dw: &mut [f32]) {
+    let kk = offs.len();
+    let per = kk.div_ceil(kk.div_ceil(TAPS));
+    for (d, o) in dw.chunks_mut(per).zip(offs.chunks(per)) {
+        match o.len() {
+            1 => tap_group::<FMA, 1>(g, buf, o, dy, d),
+            2 => tap_group::<FMA, 2>(g, buf, o, dy, d),
+            3 => tap_group::<FMA, 3>(g, buf, o, dy, d),
+            4 => tap_group::<FMA, 4>(g, buf, o, dy, d),
+            5 => tap_group::<FMA, 5>(g, buf, o, dy, d),
+            6 => tap_group::<FMA, 6>(g, buf, o, dy, d),
+            7 => tap_group::<FMA, 7>(g, buf, o, dy, d),
+            _ => tap_group::<FMA, 8>(g, buf, o, dy, d),
+        }
+    }
+}
+
+/// Weight gradients of `T` taps (offsets `offs`) into `dw`.
+#[inline(always)]
+fn tap_group<const FMA: bool, const T: usize>(
+    g: &Geom,
+    buf: &[f32],
+    offs: &[usize],
+    dy: &[f32],
+    dw: &mut [f32],
+) {
+    let (wo, row_step) = (g.wo, g.s * g.s * g.cw());
+    let offs: [usize; T] = std::array::from_fn(|t| offs[t]);
+    let mut lanes = [[0.0f32; HALF]; T];
+    let mut rest = [0.0f32; T];
+    for (oy, grow) in dy.chunks_exact(wo).enumerate() {
+        let row = &buf[oy * row_step..];
+        let blocks = grow.chunks_exact(HALF);
+        let x0 = wo - blocks.remainder().len();
+        for (b, gb) in blocks.enumerate() {
+            for t in 0..T {
+                let src = &row[offs[t] + b * HALF..][..HALF];
+                for l in 0..HALF {
+                    lanes[t][l] = madd::<FMA>(gb[l], src[l], lanes[t][l]);
+                }
+            }
+        }
+        for (j, &gv) in grow[x0..].iter().enumerate() {
+            for t in 0..T {
+                rest[t] = madd::<FMA>(gv, row[offs[t] + x0 + j], rest[t]);
+            }
+        }
+    }
+    for t in 0..T {
+        dw[t] = lanes[t].iter().sum::<f32>() + rest[t];
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
