@@ -141,12 +141,15 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) if w.is_distributed() => {
             // One rank's failure ends every rank: the others may wait on it in a collective.
-            eprintln!(
+            // One write of the whole message: stderr is unbuffered, and `eprintln!` writes each
+            // formatted piece separately, so another rank's progress line could land inside it.
+            let msg = format!(
                 "error (rank {} of {}): {e:#}\nthe run is aborted; finished shares stay on disk \
-                 and a rerun of the same command resumes them",
+                 and a rerun of the same command resumes them\n",
                 w.rank(),
                 w.size()
             );
+            let _ = std::io::Write::write_all(&mut std::io::stderr().lock(), msg.as_bytes());
             w.abort(1)
         }
         Err(e) => {
