@@ -236,20 +236,16 @@ pub fn sim(a: SimArgs) -> Result<()> {
     std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     let (mut sensor, mut masks, mut lines) = (Vec::new(), Vec::new(), String::new());
     let mut shape = (0, 0);
-    // Chunks bound memory; the PSF stack is recomputed only when the active slabs change.
-    let mut cached: Option<(Vec<bool>, std::sync::Arc<nanoeye_search::StepPsfs>)> = None;
+    // Chunks bound memory. The stack covers every slab used so far, so a chunk with fewer
+    // slabs asks for the same stack, which the chain keeps, instead of a new one.
+    let mut need = vec![false; chain.depths_m().len()];
     for chunk in ids.chunks(16) {
         let frames = chain.load(&ds, chunk)?;
-        let active = chain.active(&frames);
-        let need: Vec<bool> = match &cached {
-            Some((have, _)) => active.iter().zip(have).map(|(&x, &y)| x || y).collect(),
-            None => active.clone(),
-        };
-        if cached.as_ref().is_none_or(|(have, _)| *have != need) {
-            cached = Some((need.clone(), chain.psfs(&map, &need).context("--lens")?));
-        }
-        let psfs = &cached.as_ref().expect("set above").1;
-        let fwd = chain.forward(&frames, psfs, p_hat, noise, a.seed)?;
+        need.iter_mut()
+            .zip(chain.active(&frames))
+            .for_each(|(n, a)| *n |= a);
+        let psfs = chain.psfs(&map, &need).context("--lens")?;
+        let fwd = chain.forward(&frames, &psfs, p_hat, noise, a.seed)?;
         shape = fwd.grid.shape();
         for (b, f) in frames.iter().enumerate() {
             sensor.push(match noise {
