@@ -1,7 +1,8 @@
-//! Profiling harness for `perf record`: min or max subnet forward + backward at batch 16,
-//! train-mode BN, under the CLI's allocator settings, N times; prints the mean time.
+//! Profiling harness for `perf record`: min or max subnet forward + backward at batch B
+//! (default 16), train-mode BN, under the CLI's allocator settings, N times; prints the mean
+//! time.
 //!
-//! Usage: `cargo run --release -p nanoeye-nets --example subnet_prof -- min|max H W [N]`
+//! Usage: `cargo run --release -p nanoeye-nets --example subnet_prof -- min|max H W [N] [B]`
 
 use nanoeye_nets::arch::{Arch, SupernetConfig};
 use nanoeye_nets::{BnMode, Supernet, Tensor};
@@ -24,7 +25,7 @@ fn main() {
         Arch::min()
     };
     let mut net = Supernet::new(SupernetConfig::default(), 1).expect("net");
-    let b = 16;
+    let b: usize = args.get(5).map_or(16, |s| s.parse().expect("B"));
     let data = (0..b * h * w)
         .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
         .collect();
@@ -47,7 +48,7 @@ fn main() {
         step();
     }
     eprintln!(
-        "{which} {h}x{w} fwd+bwd: {:.2} ms",
+        "{which} {h}x{w} batch {b} fwd+bwd: {:.2} ms",
         t.elapsed().as_secs_f64() * 1e3 / n as f64
     );
 }

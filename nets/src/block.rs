@@ -180,12 +180,12 @@ pub struct SeParams {
 
 struct Cache {
     x: Tensor,
-    v1: Option<Tensor>,
-    a1: Tensor,
-    v2: Tensor,
+    /// The depthwise input: the expansion's activation, or None when it is `x` itself.
+    a1: Option<Tensor>,
     a2: Tensor,
-    se: Option<(Vec<f32>, Vec<f32>, SeCache)>,
-    a3: Tensor,
+    /// SE weights and cache, and its output (the projection's input); without SE that input
+    /// is `a2`.
+    se: Option<(Vec<f32>, Vec<f32>, SeCache, Tensor)>,
     kernel: Vec<f32>,
     c25: Vec<f32>,
     c9: Vec<f32>,
@@ -297,27 +297,19 @@ impl MbBlock {
             )));
         }
         let mid = self.mid_for(e);
-        let (v1, a1) = match &self.expand {
+        // Each batch norm applies the activation after it in the same pass (`forward_act`).
+        let a1 = match &self.expand {
             Some(w1) => {
                 let u1 = pointwise_forward(x, &w1.value[..mid * self.cin], mid, None)?;
-                let v1 = self.bn1.forward(&u1, mode)?;
-                let a1 = Tensor {
-                    data: self.act.forward(&v1.data),
-                    ..v1.clone()
-                };
-                (Some(v1), a1)
+                Some(self.bn1.forward_act(&u1, mode, self.act)?)
             }
-            None => (None, x.clone()),
+            None => None,
         };
         let (kernel, c25, c9) =
             elastic_kernel(&self.dw.value, &self.t5.value, &self.t3.value, mid, k);
-        let u2 = depthwise_forward(&a1, &kernel, k, self.stride)?;
-        let v2 = self.bn2.forward(&u2, mode)?;
-        let a2 = Tensor {
-            data: self.act.forward(&v2.data),
-            ..v2.clone()
-        };
-        let (a3, se) = match &self.se {
+        let u2 = depthwise_forward(a1.as_ref().unwrap_or(x), &kernel, k, self.stride)?;
+        let a2 = self.bn2.forward_act(&u2, mode, self.act)?;
+        let se = match &self.se {
             Some(p) => {
                 let (w1, w2) = self.se_sub(p, mid);
                 let s = w1.len() / mid;
@@ -328,24 +320,22 @@ impl MbBlock {
                     b2: &p.b2.value[..mid],
                 };
                 let (y, c) = se_forward(&a2, &wt)?;
-                (y, Some((w1, w2, c)))
+                Some((w1, w2, c, y))
             }
-            None => (a2.clone(), None),
+            None => None,
         };
+        let a3 = se.as_ref().map_or(&a2, |s| &s.3);
         let w3 = sub_cols(&self.project.value, self.cout, self.max_mid, mid);
-        let u3 = pointwise_forward(&a3, &w3, self.cout, None)?;
+        let u3 = pointwise_forward(a3, &w3, self.cout, None)?;
         let mut y = self.bn3.forward(&u3, mode)?;
         if self.residual() {
             y.add_assign(x);
         }
         self.cache = Some(Cache {
             x: x.clone(),
-            v1,
             a1,
-            v2,
             a2,
             se,
-            a3,
             kernel,
             c25,
             c9,
@@ -374,10 +364,11 @@ impl MbBlock {
         let mid = c.mid;
         let du3 = self.bn3.backward(dy)?;
         let mut dw3 = vec![0.0f32; c.w3.len()];
-        let da3 = pointwise_vjp(&c.a3, &c.w3, self.cout, &du3, &mut dw3, None)?;
+        let a3 = c.se.as_ref().map_or(&c.a2, |s| &s.3);
+        let da3 = pointwise_vjp(a3, &c.w3, self.cout, &du3, &mut dw3, None)?;
         add_cols(&dw3, self.cout, self.max_mid, mid, &mut self.project.grad);
         let da2 = match (&mut self.se, &c.se) {
-            (Some(p), Some((w1, w2, sc))) => {
+            (Some(p), Some((w1, w2, sc, _))) => {
                 let smax = p.b1.len();
                 let s = w1.len() / mid;
                 let wt = SeWeights {
@@ -406,13 +397,10 @@ impl MbBlock {
             }
             _ => da3,
         };
-        let du2 = Tensor {
-            data: self.act.vjp(&c.v2.data, &da2.data),
-            ..da2
-        };
-        let du2 = self.bn2.backward(&du2)?;
+        let du2 = self.bn2.backward(&da2)?;
         let mut dk = vec![0.0f32; c.kernel.len()];
-        let da1 = depthwise_vjp(&c.a1, &c.kernel, c.k, self.stride, &du2, &mut dk)?;
+        let a1 = c.a1.as_ref().unwrap_or(&c.x);
+        let da1 = depthwise_vjp(a1, &c.kernel, c.k, self.stride, &du2, &mut dk)?;
         elastic_kernel_vjp(
             &self.t5.value,
             &self.t3.value,
@@ -425,13 +413,9 @@ impl MbBlock {
             &mut self.t5.grad,
             &mut self.t3.grad,
         );
-        let mut dx = match (&mut self.expand, &c.v1) {
-            (Some(w1), Some(v1)) => {
-                let du1 = Tensor {
-                    data: self.act.vjp(&v1.data, &da1.data),
-                    ..da1
-                };
-                let du1 = self.bn1.backward(&du1)?;
+        let mut dx = match (&mut self.expand, &c.a1) {
+            (Some(w1), Some(_)) => {
+                let du1 = self.bn1.backward(&da1)?;
                 let (wv, wg) = (&w1.value[..mid * self.cin], &mut w1.grad[..mid * self.cin]);
                 pointwise_vjp(&c.x, wv, mid, &du1, wg, None)?
             }

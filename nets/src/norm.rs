@@ -1,6 +1,6 @@
 //! Batch normalization with training, evaluation and exact-recalibration modes.
 
-use crate::act::PAR_MIN;
+use crate::act::{Act, PAR_MIN};
 use crate::error::{NetsError, Result};
 use crate::tensor::{Param, Tensor};
 use rayon::prelude::*;
@@ -26,6 +26,8 @@ struct Cache {
     inv_std: Vec<f32>,
     batch_stats: bool,
     shape: [usize; 4],
+    /// The activation applied after the normalization (Identity for none).
+    act: Act,
 }
 
 /// Batch normalization over (N, H, W) per channel, y = γ·(x−μ)/√(σ²+ε) + β; the layer holds
@@ -67,6 +69,14 @@ impl BatchNorm {
 
     /// Normalizes `x` (its C ≤ the layer's width) and caches what the backward pass needs.
     pub fn forward(&mut self, x: &Tensor, mode: BnMode) -> Result<Tensor> {
+        self.forward_act(x, mode, Act::Identity)
+    }
+
+    /// Normalizes `x` and applies `act`: act(γ·x̂ + β). The pre-activation is not stored; the
+    /// backward pass recomputes it from x̂ by the same expression, so the pair computes what
+    /// `forward` followed by `Act::forward` does, bit for bit, with one pass and one tensor
+    /// fewer each way.
+    pub fn forward_act(&mut self, x: &Tensor, mode: BnMode, act: Act) -> Result<Tensor> {
         let c = x.c;
         if c > self.channels() {
             return Err(NetsError::Shape(format!(
@@ -141,32 +151,34 @@ impl BatchNorm {
         let mut y = Tensor::zeros(x.n, c, x.h, x.w);
         let mut xhat = vec![0.0f32; x.len()];
         if hw > 0 {
-            let (gamma, beta) = (&self.gamma.value, &self.beta.value);
-            y.data
-                .par_chunks_mut(hw)
-                .zip(xhat.par_chunks_mut(hw))
-                .zip(x.data.par_chunks(hw))
-                .enumerate()
-                .with_min_len((PAR_MIN / hw).max(1))
-                .for_each(|(idx, ((yp, hp), xp))| {
-                    let ch = idx % c;
-                    let (g, b, mu, is) = (gamma[ch], beta[ch], mean[ch], inv_std[ch]);
-                    for ((y, h), &v) in yp.iter_mut().zip(hp.iter_mut()).zip(xp) {
-                        *h = (v - mu) * is;
-                        *y = g * *h + b;
-                    }
-                });
+            let p = Pass {
+                c,
+                hw,
+                gamma: &self.gamma.value,
+                beta: &self.beta.value,
+            };
+            // One monomorphic pass per activation: a `match` inside the loop would keep it
+            // from vectorizing.
+            let (y, h) = (&mut y.data, &mut xhat);
+            match act {
+                Act::Identity => p.normalize(|v| v, x, &mean, &inv_std, y, h),
+                Act::Relu => p.normalize(|v| Act::Relu.apply(v), x, &mean, &inv_std, y, h),
+                Act::HSwish => p.normalize(|v| Act::HSwish.apply(v), x, &mean, &inv_std, y, h),
+                Act::HSigmoid => p.normalize(|v| Act::HSigmoid.apply(v), x, &mean, &inv_std, y, h),
+            }
         }
         self.cache = Some(Cache {
             xhat,
             inv_std,
             batch_stats,
             shape: x.shape(),
+            act,
         });
         Ok(y)
     }
 
-    /// VJP of the last forward: returns dL/dx and accumulates dL/dγ, dL/dβ.
+    /// VJP of the last forward (through its activation): returns dL/dx and accumulates dL/dγ,
+    /// dL/dβ.
     pub fn backward(&mut self, dy: &Tensor) -> Result<Tensor> {
         let cache = self
             .cache
@@ -180,59 +192,49 @@ impl BatchNorm {
         }
         let [nb, c, h, w] = cache.shape;
         let hw = h * w;
-        let m = (nb * hw) as f32;
-        let mut dx = Tensor::zeros(nb, c, h, w);
+        let mut dx_t = Tensor::zeros(nb, c, h, w);
         if hw == 0 {
-            return Ok(dx);
+            return Ok(dx_t);
         }
-        let sums: Vec<(f32, f32)> = (0..c)
-            .into_par_iter()
-            .map(|ch| {
-                let (mut sg, mut sgx) = ([0.0f32; LANES], [0.0f32; LANES]);
-                for n in 0..nb {
-                    let off = (n * c + ch) * hw;
-                    let (gs, hs) = (&dy.data[off..off + hw], &cache.xhat[off..off + hw]);
-                    let (gb, hb) = (gs.chunks_exact(LANES), hs.chunks_exact(LANES));
-                    for (l, (&g, &xh)) in gb.remainder().iter().zip(hb.remainder()).enumerate() {
-                        sg[l] += g;
-                        sgx[l] += g * xh;
-                    }
-                    for (g, xh) in gb.zip(hb) {
-                        for l in 0..LANES {
-                            sg[l] += g[l];
-                            sgx[l] += g[l] * xh[l];
-                        }
-                    }
-                }
-                (sg.iter().sum::<f32>(), sgx.iter().sum::<f32>())
-            })
-            .collect();
+        let dx = &mut dx_t;
+        let p = Pass {
+            c,
+            hw,
+            gamma: &self.gamma.value,
+            beta: &self.beta.value,
+        };
+        // dL/d(pre-activation) from dL/dy, x̂, γ and β: the forward's expression for the
+        // pre-activation, so the derivative is taken where the forward pass was.
+        let (dy, dx) = (&dy.data, &mut dx.data);
+        let sums = match cache.act {
+            Act::Identity => p.backward(|g, _, _, _| g, nb, &cache, dy, dx),
+            Act::Relu => p.backward(
+                |g, h, ga, be| g * Act::Relu.deriv(ga * h + be),
+                nb,
+                &cache,
+                dy,
+                dx,
+            ),
+            Act::HSwish => p.backward(
+                |g, h, ga, be| g * Act::HSwish.deriv(ga * h + be),
+                nb,
+                &cache,
+                dy,
+                dx,
+            ),
+            Act::HSigmoid => p.backward(
+                |g, h, ga, be| g * Act::HSigmoid.deriv(ga * h + be),
+                nb,
+                &cache,
+                dy,
+                dx,
+            ),
+        };
         for (ch, &(sg, sgx)) in sums.iter().enumerate() {
             self.gamma.grad[ch] += sgx;
             self.beta.grad[ch] += sg;
         }
-        let gamma = &self.gamma.value;
-        dx.data
-            .par_chunks_mut(hw)
-            .zip(dy.data.par_chunks(hw))
-            .zip(cache.xhat.par_chunks(hw))
-            .enumerate()
-            .with_min_len((PAR_MIN / hw).max(1))
-            .for_each(|(idx, ((dxp, gp), hp))| {
-                let ch = idx % c;
-                let (sg, sgx) = sums[ch];
-                let k = gamma[ch] * cache.inv_std[ch];
-                if cache.batch_stats {
-                    for ((d, &g), &xh) in dxp.iter_mut().zip(gp).zip(hp) {
-                        *d = k * (g - sg / m - xh * sgx / m);
-                    }
-                } else {
-                    for (d, &g) in dxp.iter_mut().zip(gp) {
-                        *d = k * g;
-                    }
-                }
-            });
-        Ok(dx)
+        Ok(dx_t)
     }
 
     /// Clears the recalibration sums.
@@ -250,6 +252,153 @@ impl BatchNorm {
                     self.running_mean[ch] = mu as f32;
                     self.running_var[ch] = (s2[ch] / cnt[ch] - mu * mu).max(0.0) as f32;
                 }
+            }
+        }
+    }
+}
+
+/// The element-wise passes of one batch-norm call: C channels of H·W pixels, γ, β.
+struct Pass<'a> {
+    c: usize,
+    hw: usize,
+    gamma: &'a [f32],
+    beta: &'a [f32],
+}
+
+impl Pass<'_> {
+    /// x̂ = (x − μ)·σ⁻¹ into `xhat` and y = f(γ·x̂ + β) into `y`, plane by plane.
+    fn normalize<F: Fn(f32) -> f32 + Sync>(
+        &self,
+        f: F,
+        x: &Tensor,
+        mean: &[f32],
+        inv_std: &[f32],
+        y: &mut [f32],
+        xhat: &mut [f32],
+    ) {
+        let (c, hw) = (self.c, self.hw);
+        y.par_chunks_mut(hw)
+            .zip(xhat.par_chunks_mut(hw))
+            .zip(x.data.par_chunks(hw))
+            .enumerate()
+            .with_min_len((PAR_MIN / hw).max(1))
+            .for_each(|(idx, ((yp, hp), xp))| {
+                let ch = idx % c;
+                let (g, b, mu, is) = (self.gamma[ch], self.beta[ch], mean[ch], inv_std[ch]);
+                for ((y, h), &v) in yp.iter_mut().zip(hp.iter_mut()).zip(xp) {
+                    *h = (v - mu) * is;
+                    *y = f(g * *h + b);
+                }
+            });
+    }
+
+    /// dL/dx into `dx` from dL/dy, with `dpre(dL/dy, x̂, γ, β)` the gradient at the
+    /// pre-activation; returns the per-channel sums (Σ dpre, Σ dpre·x̂) = (dL/dβ, dL/dγ).
+    fn backward<D: Fn(f32, f32, f32, f32) -> f32 + Sync>(
+        &self,
+        dpre: D,
+        nb: usize,
+        cache: &Cache,
+        dy: &[f32],
+        dx: &mut [f32],
+    ) -> Vec<(f32, f32)> {
+        let (c, hw) = (self.c, self.hw);
+        let m = (nb * hw) as f32;
+        let sums: Vec<(f32, f32)> = (0..c)
+            .into_par_iter()
+            .map(|ch| {
+                let (ga, be) = (self.gamma[ch], self.beta[ch]);
+                let (mut sg, mut sgx) = ([0.0f32; LANES], [0.0f32; LANES]);
+                for n in 0..nb {
+                    let off = (n * c + ch) * hw;
+                    let (gs, hs) = (&dy[off..off + hw], &cache.xhat[off..off + hw]);
+                    let (gb, hb) = (gs.chunks_exact(LANES), hs.chunks_exact(LANES));
+                    for (l, (&g, &xh)) in gb.remainder().iter().zip(hb.remainder()).enumerate() {
+                        let g = dpre(g, xh, ga, be);
+                        sg[l] += g;
+                        sgx[l] += g * xh;
+                    }
+                    for (g, xh) in gb.zip(hb) {
+                        for l in 0..LANES {
+                            let g = dpre(g[l], xh[l], ga, be);
+                            sg[l] += g;
+                            sgx[l] += g * xh[l];
+                        }
+                    }
+                }
+                (sg.iter().sum::<f32>(), sgx.iter().sum::<f32>())
+            })
+            .collect();
+        dx.par_chunks_mut(hw)
+            .zip(dy.par_chunks(hw))
+            .zip(cache.xhat.par_chunks(hw))
+            .enumerate()
+            .with_min_len((PAR_MIN / hw).max(1))
+            .for_each(|(idx, ((dxp, gp), hp))| {
+                let ch = idx % c;
+                let (sg, sgx) = sums[ch];
+                let (ga, be) = (self.gamma[ch], self.beta[ch]);
+                let k = ga * cache.inv_std[ch];
+                if cache.batch_stats {
+                    for ((d, &g), &xh) in dxp.iter_mut().zip(gp).zip(hp) {
+                        *d = k * (dpre(g, xh, ga, be) - sg / m - xh * sgx / m);
+                    }
+                } else {
+                    for ((d, &g), &xh) in dxp.iter_mut().zip(gp).zip(hp) {
+                        *d = k * dpre(g, xh, ga, be);
+                    }
+                }
+            });
+        sums
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+
+    /// The fused normalize-and-activate pass and its backward compute what the separate
+    /// layers do (batch norm, then the activation; the activation's VJP, then batch norm's),
+    /// bit for bit, in every mode and for every activation, on values that straddle the
+    /// activations' kinks.
+    #[test]
+    fn fused_activation_matches_the_separate_layers_bit_for_bit() {
+        let mut rng = StdRng::seed_from_u64(11);
+        let (n, c, h, w) = (3, 5, 7, 9);
+        let x = Tensor::from_vec(
+            n,
+            c,
+            h,
+            w,
+            (0..n * c * h * w)
+                .map(|_| rng.random_range(-6.0..6.0))
+                .collect(),
+        )
+        .expect("shape");
+        let dy: Vec<f32> = (0..x.len()).map(|_| rng.random_range(-1.0..1.0)).collect();
+        for act in [Act::Identity, Act::Relu, Act::HSwish, Act::HSigmoid] {
+            for mode in [BnMode::Train, BnMode::Eval, BnMode::Recalibrate] {
+                let mut bn = BatchNorm::new(c);
+                for ch in 0..c {
+                    bn.gamma.value[ch] = rng.random_range(0.5..2.0);
+                    bn.beta.value[ch] = rng.random_range(-1.0..1.0);
+                    bn.running_mean[ch] = rng.random_range(-1.0..1.0);
+                    bn.running_var[ch] = rng.random_range(0.5..3.0);
+                }
+                let mut fused = bn.clone();
+                let v = bn.forward(&x, mode).expect("bn");
+                let a = act.forward(&v.data);
+                let dv = v.like(act.vjp(&v.data, &dy));
+                let dx = bn.backward(&dv).expect("bn vjp");
+                let a2 = fused.forward_act(&x, mode, act).expect("fused");
+                let dx2 = fused.backward(&x.like(dy.clone())).expect("fused vjp");
+                let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+                let what = format!("{act:?} {mode:?}");
+                assert_eq!(bits(&a), bits(&a2.data), "forward, {what}");
+                assert_eq!(bits(&dx.data), bits(&dx2.data), "dL/dx, {what}");
+                assert_eq!(bits(&bn.gamma.grad), bits(&fused.gamma.grad), "dγ, {what}");
+                assert_eq!(bits(&bn.beta.grad), bits(&fused.beta.grad), "dβ, {what}");
             }
         }
     }

@@ -25,7 +25,6 @@ pub struct SupernetOutput {
 struct Cache {
     x_shape: [usize; 4],
     xr: Tensor,
-    v0: Tensor,
     f2: Tensor,
     f8: Tensor,
     f32_: Tensor,
@@ -36,7 +35,6 @@ struct Cache {
     p2: Tensor,
     r2: Tensor,
     // calibration head
-    hv: Tensor,
     ha: Tensor,
     g: Tensor,
     z: Tensor,
@@ -184,11 +182,7 @@ impl Supernet {
             bilinear_forward(x, hs, ws)
         };
         let u0 = conv2d_forward(&xr, &self.stem.value, STEM_CHANNELS, 3, 2)?;
-        let v0 = self.stem_bn.forward(&u0, mode)?;
-        let mut h = Tensor {
-            data: Act::HSwish.forward(&v0.data),
-            ..v0.clone()
-        };
+        let mut h = self.stem_bn.forward_act(&u0, mode, Act::HSwish)?;
         h = self.blocks[0].forward(&h, 3, 1, mode)?;
         let f2 = h.clone();
         let mut f8 = h.clone();
@@ -208,16 +202,10 @@ impl Supernet {
         let p32 = self.dec[0].forward(&f32_)?;
         let mut p8 = self.dec[1].forward(&f8)?;
         p8.add_assign(&bilinear_forward(&p32, f8.h, f8.w));
-        let r8 = Tensor {
-            data: Act::Relu.forward(&p8.data),
-            ..p8.clone()
-        };
+        let r8 = p8.like(Act::Relu.forward(&p8.data));
         let mut p2 = self.dec[2].forward(&f2)?;
         p2.add_assign(&bilinear_forward(&r8, f2.h, f2.w));
-        let r2 = Tensor {
-            data: Act::Relu.forward(&p2.data),
-            ..p2.clone()
-        };
+        let r2 = p2.like(Act::Relu.forward(&p2.data));
         let lo = self.dec[3].forward(&r2)?;
         let mask_logits = bilinear_forward(&lo, x.h, x.w);
         // Calibration head.
@@ -227,11 +215,7 @@ impl Supernet {
             self.config.head_expand,
             None,
         )?;
-        let hv = self.head_bn.forward(&hu, mode)?;
-        let ha = Tensor {
-            data: Act::HSwish.forward(&hv.data),
-            ..hv.clone()
-        };
+        let ha = self.head_bn.forward_act(&hu, mode, Act::HSwish)?;
         // The expansion's means and the x, y moments of the stride-32 and stride-8 features:
         // slippage translates the face across the frame, which a global mean cannot see; the
         // stride-8 map places a translation on a 4× finer grid (docs/nets.md).
@@ -241,15 +225,11 @@ impl Supernet {
             &moments_forward(&f8),
         ]);
         let z = self.head_hidden.forward(&g)?;
-        let za = Tensor {
-            data: Act::HSwish.forward(&z.data),
-            ..z.clone()
-        };
+        let za = z.like(Act::HSwish.forward(&z.data));
         let slip = self.head_out.forward(&za)?;
         self.cache = Some(Cache {
             x_shape: x.shape(),
             xr,
-            v0,
             f2,
             f8,
             f32_,
@@ -258,7 +238,6 @@ impl Supernet {
             r8,
             p2,
             r2,
-            hv,
             ha,
             g,
             z,
@@ -292,11 +271,7 @@ impl Supernet {
         let dg = self.head_hidden.vjp(&c.g, &dz)?;
         let [dgap, dmom, dmom8] = split_features(&dg, head_parts(self.config.head_expand));
         let dha = gap_vjp(c.ha.shape(), &dgap);
-        let dhv = Tensor {
-            data: Act::HSwish.vjp(&c.hv.data, &dha.data),
-            ..dha
-        };
-        let dhu = self.head_bn.backward(&dhv)?;
+        let dhu = self.head_bn.backward(&dha)?;
         let mut df32 = pointwise_vjp(
             &c.f32_,
             &self.head_expand.value,
@@ -338,11 +313,7 @@ impl Supernet {
         }
         df2.add_assign(&g);
         let g = self.blocks[0].backward(&df2)?;
-        let dv0 = Tensor {
-            data: Act::HSwish.vjp(&c.v0.data, &g.data),
-            ..g
-        };
-        let du0 = self.stem_bn.backward(&dv0)?;
+        let du0 = self.stem_bn.backward(&g)?;
         let dxr = conv2d_vjp(
             &c.xr,
             &self.stem.value,

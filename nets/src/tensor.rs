@@ -40,6 +40,18 @@ impl Tensor {
         Ok(Self { n, c, h, w, data })
     }
 
+    /// A tensor of this one's shape holding `data` (the shape is copied, not the values).
+    pub fn like(&self, data: Vec<f32>) -> Self {
+        debug_assert_eq!(data.len(), self.len());
+        Self {
+            n: self.n,
+            c: self.c,
+            h: self.h,
+            w: self.w,
+            data,
+        }
+    }
+
     /// Shape as [N, C, H, W].
     pub fn shape(&self) -> [usize; 4] {
         [self.n, self.c, self.h, self.w]

@@ -867,8 +867,10 @@ pub fn evaluate_frames_multi(
         for (b, f) in frames.iter().enumerate() {
             let one = |t: &Tensor, c: usize| Tensor {
                 n: 1,
+                c: t.c,
+                h: t.h,
+                w: t.w,
                 data: t.data[b * c * t.h * t.w..(b + 1) * c * t.h * t.w].to_vec(),
-                ..t.clone()
             };
             let target = one(&fwd.mask, 1);
             let hard = Tensor {
