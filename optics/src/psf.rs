@@ -20,7 +20,7 @@ use faer::{Mat, c64};
 use rayon::prelude::*;
 use rustfft::{Fft, FftPlanner};
 use std::f64::consts::{PI, TAU};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// Optical and sensor parameters of a PSF evaluation (SI units).
 #[derive(Clone, Copy, Debug)]
@@ -160,6 +160,9 @@ pub struct AsmPsf {
     fold_rows: usize,
     /// Band frequency indices m (f = m / L), ascending.
     band: Vec<i64>,
+    /// Where each band frequency sits in a folded FFT's output: m mod N_L (a signed modulo per
+    /// element in the inner loops cost a few per cent of a training step).
+    band_at: Vec<usize>,
     /// Transfer function × Δ² × the window DFTs' pre-multipliers (pre_y[a]·pre_x[b]), Nb×Nb
     /// (rows f_y, columns f_x).
     h: Mat<c64>,
@@ -176,6 +179,35 @@ pub struct AsmPsf {
     p_in: f64,
     fft: Arc<dyn Fft<f64>>,
     ifft: Arc<dyn Fft<f64>>,
+    /// The fields of the last stack computed, for a VJP at the same map (see [`FieldMemo`]).
+    memo: Mutex<Option<FieldMemo>>,
+}
+
+/// Most bytes of fields [`FieldMemo`] keeps; a stack whose fields need more keeps none.
+const FIELD_MEMO_BYTES: usize = 64 << 20;
+
+/// The fields V of the last [`AsmPsf::planes_f64`] call, by depth, and the map they belong
+/// to. A VJP at the same map needs each depth's field again, which costs as much as the
+/// plane itself; training calls the VJP right after the stack, with the map unchanged.
+struct FieldMemo {
+    /// Bit patterns of the map's phase and amplitude samples, column by column.
+    key: Vec<u64>,
+    /// (depth's bit pattern, its field) for every plane computed.
+    fields: Vec<(u64, Mat<c64>)>,
+}
+
+/// A plane and, when the memo keeps it, the field it was integrated from.
+type PlaneAndField = (Mat<f64>, Option<Mat<c64>>);
+
+/// The memo key of `map`: its samples' bit patterns (equal keys ⇔ the same map, bit for bit).
+fn map_key(map: &PhaseMap) -> Vec<u64> {
+    let mut key = Vec::with_capacity(2 * map.phase_rad.nrows() * map.phase_rad.ncols());
+    for m in [&map.phase_rad, &map.amplitude] {
+        for c in m.col_iter() {
+            key.extend(c.iter().map(|v| v.to_bits()));
+        }
+    }
+    key
 }
 
 /// Smallest n' ≥ n whose prime factors are all in {2, 3, 5, 7} (fast FFT sizes).
@@ -503,6 +535,10 @@ impl AsmPsf {
             f_band,
             n_fold,
             fold_rows: grid.n.min(n_fold),
+            band_at: band
+                .iter()
+                .map(|&m| m.rem_euclid(n_fold as i64) as usize)
+                .collect(),
             band,
             h,
             post_gain,
@@ -513,6 +549,7 @@ impl AsmPsf {
             p_in,
             fft,
             ifft,
+            memo: Mutex::new(None),
         })
     }
 
@@ -688,11 +725,6 @@ impl AsmPsf {
         }
     }
 
-    #[inline]
-    fn band_index(&self, m: i64) -> usize {
-        m.rem_euclid(self.n_fold as i64) as usize
-    }
-
     /// Field V on the (W q + 2T)² grid for depth z, left in `ws.v`, up to the unit-modulus
     /// post-multipliers of the window DFTs (|V|² = `post_gain`·|ws.v|²).
     fn field(&self, samples: &Samples, z: f64, ws: &mut Workspace) {
@@ -712,7 +744,7 @@ impl AsmPsf {
             let nc = COL_CHUNK.min(nb - b0);
             let cols = &mut ws.cols[..nc * nl];
             for (c, col) in cols.chunks_exact_mut(nl).enumerate() {
-                let cx = self.band_index(self.band[b0 + c]);
+                let cx = self.band_at[b0 + c];
                 for (r, v) in col[..rows].iter_mut().enumerate() {
                     *v = ws.buf[r * nl + cx];
                 }
@@ -721,8 +753,8 @@ impl AsmPsf {
             self.fft.process_with_scratch(cols, &mut ws.scratch);
             for (c, col) in cols.chunks_exact(nl).enumerate() {
                 let b = b0 + c;
-                for (a, &my) in self.band.iter().enumerate() {
-                    ws.m[(a, b)] = col[self.band_index(my)] * self.h[(a, b)];
+                for (a, &iy) in self.band_at.iter().enumerate() {
+                    ws.m[(a, b)] = col[iy] * self.h[(a, b)];
                 }
             }
         }
@@ -807,7 +839,12 @@ impl AsmPsf {
             }
         }
         let samples = self.samples(map);
-        Ok(depths_m
+        let used = (0..depths_m.len())
+            .filter(|&k| active.is_none_or(|a| a[k]))
+            .count();
+        let field_bytes = self.n_ext * self.n_ext * std::mem::size_of::<c64>();
+        let keep = used * field_bytes <= FIELD_MEMO_BYTES;
+        let out: Vec<Option<PlaneAndField>> = depths_m
             .par_iter()
             .enumerate()
             .map_init(
@@ -818,10 +855,28 @@ impl AsmPsf {
                     }
                     let ws = ws.get_or_insert_with(|| self.workspace());
                     self.field(&samples, z, ws);
-                    Some(self.plane_from_field(ws))
+                    let plane = self.plane_from_field(ws);
+                    Some((plane, keep.then(|| ws.v.clone())))
                 },
             )
-            .collect())
+            .collect();
+        let mut fields = Vec::new();
+        let planes = out
+            .into_iter()
+            .zip(depths_m)
+            .map(|(o, z)| {
+                o.map(|(plane, v)| {
+                    fields.extend(v.map(|v| (z.to_bits(), v)));
+                    plane
+                })
+            })
+            .collect();
+        let memo = keep.then(|| FieldMemo {
+            key: map_key(map),
+            fields,
+        });
+        *self.memo.lock().unwrap_or_else(|e| e.into_inner()) = memo;
+        Ok(planes)
     }
 }
 
@@ -916,11 +971,13 @@ impl PsfModel for AsmPsf {
         // order: the sum does not depend on the thread count, and depths computed elsewhere
         // (`vjp_terms` on other processes) added in the same order give the same bits.
         let with_grad = depths_with_gradient(&grad);
+        let memo = self.take_memo(map);
         for chunk in with_grad.chunks(rayon::current_num_threads().max(1)) {
-            for t in self.terms(&samples, depths_m, &grad, chunk) {
+            for t in self.terms(&samples, depths_m, &grad, chunk, memo.as_ref()) {
                 out.add(&t);
             }
         }
+        self.put_memo(memo);
         Ok(out)
     }
 }
@@ -1003,7 +1060,10 @@ impl AsmPsf {
             )));
         }
         let samples = self.samples(map);
-        Ok(self.terms(&samples, depths_m, grad_planes, which))
+        let memo = self.take_memo(map);
+        let out = self.terms(&samples, depths_m, grad_planes, which, memo.as_ref());
+        self.put_memo(memo);
+        Ok(out)
     }
 
     /// One term per depth of `which`, in parallel over depths.
@@ -1013,9 +1073,14 @@ impl AsmPsf {
         depths_m: &[f64],
         grad: &[Mat<f64>],
         which: &[usize],
+        memo: Option<&FieldMemo>,
     ) -> Vec<PhaseMapGrad> {
         let n = self.grid.n;
         let ns = samples.len();
+        let kept = |z: f64| {
+            memo.and_then(|m| m.fields.iter().find(|f| f.0 == z.to_bits()))
+                .map(|f| &f.1)
+        };
         which
             .par_iter()
             .map_init(
@@ -1023,7 +1088,15 @@ impl AsmPsf {
                 |ws: &mut Option<Workspace>, &k| {
                     let ws = ws.get_or_insert_with(|| self.workspace());
                     let (mut gp, mut ga) = (vec![0.0; ns], vec![0.0; ns]);
-                    self.plane_adjoint(samples, depths_m[k], &grad[k], ws, &mut gp, &mut ga);
+                    let z = depths_m[k];
+                    match kept(z) {
+                        Some(v) => {
+                            ws.v.copy_from(v);
+                            self.spherical_wave(samples, z, &mut ws.wave);
+                        }
+                        None => self.field(samples, z, ws),
+                    }
+                    self.plane_adjoint(samples, &grad[k], ws, &mut gp, &mut ga);
                     let mut out = PhaseMapGrad::zeros(n);
                     for (s, &cell) in samples.cell.iter().enumerate() {
                         let (i, j) = (cell as usize / n, cell as usize % n);
@@ -1035,20 +1108,38 @@ impl AsmPsf {
             )
             .collect()
     }
+
+    /// The last stack's fields if they are `map`'s, taken out of the model while a VJP runs
+    /// (give them back with [`AsmPsf::put_memo`]).
+    fn take_memo(&self, map: &PhaseMap) -> Option<FieldMemo> {
+        self.memo
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .take()
+            .filter(|m| m.key == map_key(map))
+    }
+
+    /// Gives back what [`AsmPsf::take_memo`] took, unless a stack computed meanwhile left its own.
+    fn put_memo(&self, memo: Option<FieldMemo>) {
+        let mut slot = self.memo.lock().unwrap_or_else(|e| e.into_inner());
+        if slot.is_none() {
+            *slot = memo;
+        }
+    }
 }
 
 impl AsmPsf {
-    /// Accumulates the gradient of ⟨g, PSF(z)⟩ w.r.t. phase and amplitude per sample.
+    /// Accumulates the gradient of ⟨g, PSF(z)⟩ w.r.t. phase and amplitude per sample, from
+    /// the field of depth z in `ws.v` and its spherical wave in `ws.wave` (what
+    /// [`AsmPsf::field`] leaves there).
     fn plane_adjoint(
         &self,
         samples: &Samples,
-        z: f64,
         g: &Mat<f64>,
         ws: &mut Workspace,
         gp: &mut [f64],
         ga: &mut [f64],
     ) {
-        self.field(samples, z, ws);
         let (q, w, ne) = (self.q, self.cfg.window_px, self.n_ext);
         let scale = 2.0 * self.post_gain / self.p_in;
         // ∂/∂|V|² = Kᵀ g K (the transpose of `plane_from_field`'s two passes), into ws.iv.
@@ -1103,14 +1194,14 @@ impl AsmPsf {
             let cols = &mut ws.cols[..nc * nl];
             cols.fill(c64::new(0.0, 0.0));
             for (c, col) in cols.chunks_exact_mut(nl).enumerate() {
-                for (a, &my) in self.band.iter().enumerate() {
-                    col[self.band_index(my)] = ws.m[(a, b0 + c)] * self.h[(a, b0 + c)].conj();
+                for (a, &iy) in self.band_at.iter().enumerate() {
+                    col[iy] = ws.m[(a, b0 + c)] * self.h[(a, b0 + c)].conj();
                 }
             }
             self.ifft.process_with_scratch(cols, &mut ws.scratch);
             // Only rows that hold samples are read back.
             for (c, col) in cols.chunks_exact(nl).enumerate() {
-                let cx = self.band_index(self.band[b0 + c]);
+                let cx = self.band_at[b0 + c];
                 for (r, v) in col[..rows].iter().enumerate() {
                     ws.buf[r * nl + cx] = *v;
                 }

@@ -48,6 +48,48 @@ fn small_model() -> (AsmPsf, PhaseMap, Vec<f64>) {
     )
 }
 
+/// The VJP right after the stack at the same map reuses the stack's fields (`AsmPsf`'s
+/// memo): its gradient must be the fresh model's bit for bit, with some depths inactive in the
+/// stack (their fields computed afresh), and after a stack at another map (no reuse).
+#[test]
+fn psf_vjp_after_the_stack_reuses_its_fields_bit_for_bit() {
+    let (model, map, depths) = small_model();
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let gp: Vec<Mat<f64>> = depths
+        .iter()
+        .map(|_| rand_mat(&mut rng, 8, 8, -1.0, 1.0))
+        .collect();
+    let bits = |g: &nanoeye_optics::psf::PhaseMapGrad| {
+        let mut v = Vec::new();
+        for m in [&g.phase_rad, &g.amplitude] {
+            for j in 0..m.ncols() {
+                v.extend(m.col(j).iter().map(|x| x.to_bits()));
+            }
+        }
+        v
+    };
+    let (fresh, _, _) = small_model();
+    let want = bits(&fresh.vjp(&map, &depths, &gp, None).unwrap());
+    model
+        .planes_f64(&map, &depths, Some(&[true, false, true]))
+        .unwrap();
+    assert_eq!(bits(&model.vjp(&map, &depths, &gp, None).unwrap()), want);
+    let other = PhaseMap::new(
+        map.grid,
+        Mat::from_fn(map.grid.n, map.grid.n, |i, j| map.phase_rad[(i, j)] + 0.3),
+        map.amplitude.clone(),
+    )
+    .unwrap();
+    model.planes_f64(&other, &depths, None).unwrap();
+    assert_eq!(bits(&model.vjp(&map, &depths, &gp, None).unwrap()), want);
+    // And the other map's VJP, with its fields kept, is its fresh one's.
+    let (fresh2, _, _) = small_model();
+    let want2 = bits(&fresh2.vjp(&other, &depths, &gp, None).unwrap());
+    model.planes_f64(&other, &depths, None).unwrap();
+    assert_eq!(bits(&model.vjp(&other, &depths, &gp, None).unwrap()), want2);
+    assert_ne!(want, want2);
+}
+
 #[test]
 fn psf_vjp_matches_finite_differences() {
     let (model, map, depths) = small_model();

@@ -2,7 +2,10 @@
 //! the network forward + backward of N_max, N_min and n random subnets, the chain backward and
 //! the one PSF VJP — the parts of `Trainer::train_step`, timed apart. Usage:
 //! `cargo run --release -p nanoeye-search --example step_time -- DATASET [PITCH_UM] [BATCH]
-//! [N_RANDOM] [REPS]` (docs/run.md, "Time per step and per candidate").
+//! [N_RANDOM] [REPS] [learned|fixed]` (docs/run.md, "Time per step and per candidate"). With
+//! `learned` (the default) the phase map moves by a small step each pass, as the learned
+//! lens's does in training, so the chain's kept PSF stack is never reused; with `fixed` it is
+//! (a fixed lens's training).
 
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig};
@@ -25,9 +28,17 @@ fn main() {
     let batch: usize = arg(&args, 3, 4);
     let n_random: usize = arg(&args, 4, 2);
     let reps: usize = arg(&args, 5, 3);
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets allocator parameters; no other thread exists yet. The CLI's
+    // settings (cli/src/main.rs), so the steps reuse freed grids as training does.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+    }
+    let learned = args.get(6).is_none_or(|s| s != "fixed");
     let ds = Dataset::open(std::path::Path::new(dir)).expect("dataset");
     let chain = CameraChain::for_dataset(&ds, ChainConfig::default()).expect("chain");
-    let map = LensSpec::Hyperbolic
+    let mut map = LensSpec::Hyperbolic
         .phase_map(chain.aperture_grid(), 940e-9, 2e-3)
         .expect("lens");
     let ids: Vec<usize> = (0..batch).map(|i| i % ds.len()).collect();
@@ -45,6 +56,12 @@ fn main() {
             lap[k] = clock.elapsed().as_secs_f64();
             *clock = Instant::now();
         };
+        if learned {
+            // An optimizer step moves every phase sample.
+            map.phase_rad
+                .col_iter_mut()
+                .for_each(|c| c.iter_mut().for_each(|v| *v += 1e-3));
+        }
         let frames = chain.load(&ds, &ids).expect("load");
         tick(0, &mut clock);
         let psfs = chain.psfs(&map, &chain.active(&frames)).expect("psfs");
@@ -89,12 +106,13 @@ fn main() {
     let total: f64 = t.iter().sum();
     println!(
         "native {w}x{h} at {:.1} um, p_hat {pitch_um} um -> network input {}x{}, batch {batch}, \
-         {} subnets, {} depth slabs",
+         {} subnets, {} depth slabs, {} lens",
         chain.native().pitch_m() * 1e6,
         shape.1,
         shape.0,
         archs.len(),
-        chain.depths_m().len()
+        chain.depths_m().len(),
+        if learned { "learned" } else { "fixed" }
     );
     let names = [
         "load layers",
