@@ -194,6 +194,8 @@ struct FieldMemo {
     key: Vec<u64>,
     /// (depth's bit pattern, its field) for every plane computed.
     fields: Vec<(u64, Mat<c64>)>,
+    /// The map's aperture samples (one sincos per cell to rebuild).
+    samples: Samples,
 }
 
 /// A plane and, when the memo keeps it, the field it was integrated from.
@@ -874,6 +876,7 @@ impl AsmPsf {
         let memo = keep.then(|| FieldMemo {
             key: map_key(map),
             fields,
+            samples,
         });
         *self.memo.lock().unwrap_or_else(|e| e.into_inner()) = memo;
         Ok(planes)
@@ -964,16 +967,23 @@ impl PsfModel for AsmPsf {
             self.check_grads("grad_dz", depths_m.len(), gdz)?;
             depth_derivative_vjp(depths_m, gdz, &mut grad);
         }
-        let samples = self.samples(map);
+        let memo = self.take_memo(map);
+        let fresh;
+        let samples = match &memo {
+            Some(m) => &m.samples,
+            None => {
+                fresh = self.samples(map);
+                &fresh
+            }
+        };
         let n = self.grid.n;
         let mut out = PhaseMapGrad::zeros(n);
         // Depths in chunks of one per thread (bounded memory), their terms added in depth
         // order: the sum does not depend on the thread count, and depths computed elsewhere
         // (`vjp_terms` on other processes) added in the same order give the same bits.
         let with_grad = depths_with_gradient(&grad);
-        let memo = self.take_memo(map);
         for chunk in with_grad.chunks(rayon::current_num_threads().max(1)) {
-            for t in self.terms(&samples, depths_m, &grad, chunk, memo.as_ref()) {
+            for t in self.terms(samples, depths_m, &grad, chunk, memo.as_ref()) {
                 out.add(&t);
             }
         }
@@ -1059,9 +1069,16 @@ impl AsmPsf {
                 depths_m.len()
             )));
         }
-        let samples = self.samples(map);
         let memo = self.take_memo(map);
-        let out = self.terms(&samples, depths_m, grad_planes, which, memo.as_ref());
+        let fresh;
+        let samples = match &memo {
+            Some(m) => &m.samples,
+            None => {
+                fresh = self.samples(map);
+                &fresh
+            }
+        };
+        let out = self.terms(samples, depths_m, grad_planes, which, memo.as_ref());
         self.put_memo(memo);
         Ok(out)
     }
