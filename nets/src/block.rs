@@ -301,14 +301,14 @@ impl MbBlock {
         let a1 = match &self.expand {
             Some(w1) => {
                 let u1 = pointwise_forward(x, &w1.value[..mid * self.cin], mid, None)?;
-                Some(self.bn1.forward_act(&u1, mode, self.act)?)
+                Some(self.bn1.forward_act(u1, mode, self.act)?)
             }
             None => None,
         };
         let (kernel, c25, c9) =
             elastic_kernel(&self.dw.value, &self.t5.value, &self.t3.value, mid, k);
         let u2 = depthwise_forward(a1.as_ref().unwrap_or(x), &kernel, k, self.stride)?;
-        let a2 = self.bn2.forward_act(&u2, mode, self.act)?;
+        let a2 = self.bn2.forward_act(u2, mode, self.act)?;
         let se = match &self.se {
             Some(p) => {
                 let (w1, w2) = self.se_sub(p, mid);
@@ -327,7 +327,7 @@ impl MbBlock {
         let a3 = se.as_ref().map_or(&a2, |s| &s.3);
         let w3 = sub_cols(&self.project.value, self.cout, self.max_mid, mid);
         let u3 = pointwise_forward(a3, &w3, self.cout, None)?;
-        let mut y = self.bn3.forward(&u3, mode)?;
+        let mut y = self.bn3.forward_act(u3, mode, Act::Identity)?;
         if self.residual() {
             y.add_assign(x);
         }
@@ -397,7 +397,7 @@ impl MbBlock {
             }
             _ => da3,
         };
-        let du2 = self.bn2.backward(&da2)?;
+        let du2 = self.bn2.backward_owned(da2)?;
         let mut dk = vec![0.0f32; c.kernel.len()];
         let a1 = c.a1.as_ref().unwrap_or(&c.x);
         let da1 = depthwise_vjp(a1, &c.kernel, c.k, self.stride, &du2, &mut dk)?;
@@ -415,7 +415,7 @@ impl MbBlock {
         );
         let mut dx = match (&mut self.expand, &c.a1) {
             (Some(w1), Some(_)) => {
-                let du1 = self.bn1.backward(&da1)?;
+                let du1 = self.bn1.backward_owned(da1)?;
                 let (wv, wg) = (&w1.value[..mid * self.cin], &mut w1.grad[..mid * self.cin]);
                 pointwise_vjp(&c.x, wv, mid, &du1, wg, None)?
             }

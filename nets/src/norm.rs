@@ -22,7 +22,10 @@ pub enum BnMode {
 
 #[derive(Clone, Debug)]
 struct Cache {
-    xhat: Vec<f32>,
+    /// The layer's input x, kept instead of x̂: the backward pass recomputes x̂ = (x − μ)·σ⁻¹
+    /// by the forward's expression (the same bits), so the forward writes one tensor, not two.
+    x: Vec<f32>,
+    mean: Vec<f32>,
     inv_std: Vec<f32>,
     batch_stats: bool,
     shape: [usize; 4],
@@ -69,14 +72,14 @@ impl BatchNorm {
 
     /// Normalizes `x` (its C ≤ the layer's width) and caches what the backward pass needs.
     pub fn forward(&mut self, x: &Tensor, mode: BnMode) -> Result<Tensor> {
-        self.forward_act(x, mode, Act::Identity)
+        self.forward_act(x.clone(), mode, Act::Identity)
     }
 
-    /// Normalizes `x` and applies `act`: act(γ·x̂ + β). The pre-activation is not stored; the
-    /// backward pass recomputes it from x̂ by the same expression, so the pair computes what
-    /// `forward` followed by `Act::forward` does, bit for bit, with one pass and one tensor
-    /// fewer each way.
-    pub fn forward_act(&mut self, x: &Tensor, mode: BnMode, act: Act) -> Result<Tensor> {
+    /// Normalizes `x` (moved in: the layer keeps it for the backward pass) and applies `act`:
+    /// act(γ·x̂ + β). The pre-activation is not stored; the backward pass recomputes it by the
+    /// same expression, so the pair computes what `forward` followed by `Act::forward` does,
+    /// bit for bit, with one pass and one tensor fewer each way.
+    pub fn forward_act(&mut self, x: Tensor, mode: BnMode, act: Act) -> Result<Tensor> {
         let c = x.c;
         if c > self.channels() {
             return Err(NetsError::Shape(format!(
@@ -149,7 +152,6 @@ impl BatchNorm {
         }
         let inv_std: Vec<f32> = var.iter().map(|v| 1.0 / (v + self.eps).sqrt()).collect();
         let mut y = Tensor::zeros(x.n, c, x.h, x.w);
-        let mut xhat = vec![0.0f32; x.len()];
         if hw > 0 {
             let p = Pass {
                 c,
@@ -159,19 +161,21 @@ impl BatchNorm {
             };
             // One monomorphic pass per activation: a `match` inside the loop would keep it
             // from vectorizing.
-            let (y, h) = (&mut y.data, &mut xhat);
+            let (y, x) = (&mut y.data, &x.data);
             match act {
-                Act::Identity => p.normalize(|v| v, x, &mean, &inv_std, y, h),
-                Act::Relu => p.normalize(|v| Act::Relu.apply(v), x, &mean, &inv_std, y, h),
-                Act::HSwish => p.normalize(|v| Act::HSwish.apply(v), x, &mean, &inv_std, y, h),
-                Act::HSigmoid => p.normalize(|v| Act::HSigmoid.apply(v), x, &mean, &inv_std, y, h),
+                Act::Identity => p.normalize(|v| v, x, &mean, &inv_std, y),
+                Act::Relu => p.normalize(|v| Act::Relu.apply(v), x, &mean, &inv_std, y),
+                Act::HSwish => p.normalize(|v| Act::HSwish.apply(v), x, &mean, &inv_std, y),
+                Act::HSigmoid => p.normalize(|v| Act::HSigmoid.apply(v), x, &mean, &inv_std, y),
             }
         }
+        let shape = x.shape();
         self.cache = Some(Cache {
-            xhat,
+            x: x.data,
+            mean,
             inv_std,
             batch_stats,
-            shape: x.shape(),
+            shape,
             act,
         });
         Ok(y)
@@ -180,6 +184,11 @@ impl BatchNorm {
     /// VJP of the last forward (through its activation): returns dL/dx and accumulates dL/dγ,
     /// dL/dβ.
     pub fn backward(&mut self, dy: &Tensor) -> Result<Tensor> {
+        self.backward_owned(dy.clone())
+    }
+
+    /// [`BatchNorm::backward`] writing dL/dx over `dy`'s values (no second tensor).
+    pub fn backward_owned(&mut self, mut dy: Tensor) -> Result<Tensor> {
         let cache = self
             .cache
             .take()
@@ -192,11 +201,9 @@ impl BatchNorm {
         }
         let [nb, c, h, w] = cache.shape;
         let hw = h * w;
-        let mut dx_t = Tensor::zeros(nb, c, h, w);
         if hw == 0 {
-            return Ok(dx_t);
+            return Ok(dy);
         }
-        let dx = &mut dx_t;
         let p = Pass {
             c,
             hw,
@@ -205,36 +212,33 @@ impl BatchNorm {
         };
         // dL/d(pre-activation) from dL/dy, x̂, γ and β: the forward's expression for the
         // pre-activation, so the derivative is taken where the forward pass was.
-        let (dy, dx) = (&dy.data, &mut dx.data);
+        let d = &mut dy.data;
         let sums = match cache.act {
-            Act::Identity => p.backward(|g, _, _, _| g, nb, &cache, dy, dx),
+            Act::Identity => p.backward(|g, _, _, _| g, nb, &cache, d),
             Act::Relu => p.backward(
                 |g, h, ga, be| g * Act::Relu.deriv(ga * h + be),
                 nb,
                 &cache,
-                dy,
-                dx,
+                d,
             ),
             Act::HSwish => p.backward(
                 |g, h, ga, be| g * Act::HSwish.deriv(ga * h + be),
                 nb,
                 &cache,
-                dy,
-                dx,
+                d,
             ),
             Act::HSigmoid => p.backward(
                 |g, h, ga, be| g * Act::HSigmoid.deriv(ga * h + be),
                 nb,
                 &cache,
-                dy,
-                dx,
+                d,
             ),
         };
         for (ch, &(sg, sgx)) in sums.iter().enumerate() {
             self.gamma.grad[ch] += sgx;
             self.beta.grad[ch] += sg;
         }
-        Ok(dx_t)
+        Ok(dy)
     }
 
     /// Clears the recalibration sums.
@@ -257,6 +261,12 @@ impl BatchNorm {
     }
 }
 
+/// x̂ = (x − μ)·σ⁻¹: one expression for the forward pass and the backward's recomputation.
+#[inline(always)]
+fn xhat(x: f32, mu: f32, inv_std: f32) -> f32 {
+    (x - mu) * inv_std
+}
+
 /// The element-wise passes of one batch-norm call: C channels of H·W pixels, γ, β.
 struct Pass<'a> {
     c: usize,
@@ -266,41 +276,37 @@ struct Pass<'a> {
 }
 
 impl Pass<'_> {
-    /// x̂ = (x − μ)·σ⁻¹ into `xhat` and y = f(γ·x̂ + β) into `y`, plane by plane.
+    /// y = f(γ·x̂ + β) with x̂ = (x − μ)·σ⁻¹ into `y`, plane by plane.
     fn normalize<F: Fn(f32) -> f32 + Sync>(
         &self,
         f: F,
-        x: &Tensor,
+        x: &[f32],
         mean: &[f32],
         inv_std: &[f32],
         y: &mut [f32],
-        xhat: &mut [f32],
     ) {
         let (c, hw) = (self.c, self.hw);
         y.par_chunks_mut(hw)
-            .zip(xhat.par_chunks_mut(hw))
-            .zip(x.data.par_chunks(hw))
+            .zip(x.par_chunks(hw))
             .enumerate()
             .with_min_len((PAR_MIN / hw).max(1))
-            .for_each(|(idx, ((yp, hp), xp))| {
+            .for_each(|(idx, (yp, xp))| {
                 let ch = idx % c;
                 let (g, b, mu, is) = (self.gamma[ch], self.beta[ch], mean[ch], inv_std[ch]);
-                for ((y, h), &v) in yp.iter_mut().zip(hp.iter_mut()).zip(xp) {
-                    *h = (v - mu) * is;
-                    *y = f(g * *h + b);
+                for (y, &v) in yp.iter_mut().zip(xp) {
+                    *y = f(g * xhat(v, mu, is) + b);
                 }
             });
     }
 
-    /// dL/dx into `dx` from dL/dy, with `dpre(dL/dy, x̂, γ, β)` the gradient at the
+    /// dL/dx over dL/dy in `d`, with `dpre(dL/dy, x̂, γ, β)` the gradient at the
     /// pre-activation; returns the per-channel sums (Σ dpre, Σ dpre·x̂) = (dL/dβ, dL/dγ).
     fn backward<D: Fn(f32, f32, f32, f32) -> f32 + Sync>(
         &self,
         dpre: D,
         nb: usize,
         cache: &Cache,
-        dy: &[f32],
-        dx: &mut [f32],
+        d: &mut [f32],
     ) -> Vec<(f32, f32)> {
         let (c, hw) = (self.c, self.hw);
         let m = (nb * hw) as f32;
@@ -308,44 +314,48 @@ impl Pass<'_> {
             .into_par_iter()
             .map(|ch| {
                 let (ga, be) = (self.gamma[ch], self.beta[ch]);
+                let (mu, is) = (cache.mean[ch], cache.inv_std[ch]);
                 let (mut sg, mut sgx) = ([0.0f32; LANES], [0.0f32; LANES]);
                 for n in 0..nb {
                     let off = (n * c + ch) * hw;
-                    let (gs, hs) = (&dy[off..off + hw], &cache.xhat[off..off + hw]);
-                    let (gb, hb) = (gs.chunks_exact(LANES), hs.chunks_exact(LANES));
-                    for (l, (&g, &xh)) in gb.remainder().iter().zip(hb.remainder()).enumerate() {
+                    let (gs, xs) = (&d[off..off + hw], &cache.x[off..off + hw]);
+                    let (gb, xb) = (gs.chunks_exact(LANES), xs.chunks_exact(LANES));
+                    for (l, (&g, &v)) in gb.remainder().iter().zip(xb.remainder()).enumerate() {
+                        let xh = xhat(v, mu, is);
                         let g = dpre(g, xh, ga, be);
                         sg[l] += g;
                         sgx[l] += g * xh;
                     }
-                    for (g, xh) in gb.zip(hb) {
+                    for (g, v) in gb.zip(xb) {
                         for l in 0..LANES {
-                            let g = dpre(g[l], xh[l], ga, be);
+                            let xh = xhat(v[l], mu, is);
+                            let g = dpre(g[l], xh, ga, be);
                             sg[l] += g;
-                            sgx[l] += g * xh[l];
+                            sgx[l] += g * xh;
                         }
                     }
                 }
                 (sg.iter().sum::<f32>(), sgx.iter().sum::<f32>())
             })
             .collect();
-        dx.par_chunks_mut(hw)
-            .zip(dy.par_chunks(hw))
-            .zip(cache.xhat.par_chunks(hw))
+        d.par_chunks_mut(hw)
+            .zip(cache.x.par_chunks(hw))
             .enumerate()
             .with_min_len((PAR_MIN / hw).max(1))
-            .for_each(|(idx, ((dxp, gp), hp))| {
+            .for_each(|(idx, (dp, xp))| {
                 let ch = idx % c;
                 let (sg, sgx) = sums[ch];
                 let (ga, be) = (self.gamma[ch], self.beta[ch]);
-                let k = ga * cache.inv_std[ch];
+                let (mu, is) = (cache.mean[ch], cache.inv_std[ch]);
+                let k = ga * is;
                 if cache.batch_stats {
-                    for ((d, &g), &xh) in dxp.iter_mut().zip(gp).zip(hp) {
-                        *d = k * (dpre(g, xh, ga, be) - sg / m - xh * sgx / m);
+                    for (d, &v) in dp.iter_mut().zip(xp) {
+                        let xh = xhat(v, mu, is);
+                        *d = k * (dpre(*d, xh, ga, be) - sg / m - xh * sgx / m);
                     }
                 } else {
-                    for ((d, &g), &xh) in dxp.iter_mut().zip(gp).zip(hp) {
-                        *d = k * dpre(g, xh, ga, be);
+                    for (d, &v) in dp.iter_mut().zip(xp) {
+                        *d = k * dpre(*d, xhat(v, mu, is), ga, be);
                     }
                 }
             });
@@ -391,8 +401,8 @@ mod tests {
                 let a = act.forward(&v.data);
                 let dv = v.like(act.vjp(&v.data, &dy));
                 let dx = bn.backward(&dv).expect("bn vjp");
-                let a2 = fused.forward_act(&x, mode, act).expect("fused");
-                let dx2 = fused.backward(&x.like(dy.clone())).expect("fused vjp");
+                let a2 = fused.forward_act(x.clone(), mode, act).expect("fused");
+                let dx2 = fused.backward_owned(x.like(dy.clone())).expect("fused vjp");
                 let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
                 let what = format!("{act:?} {mode:?}");
                 assert_eq!(bits(&a), bits(&a2.data), "forward, {what}");

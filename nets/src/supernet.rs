@@ -182,7 +182,7 @@ impl Supernet {
             bilinear_forward(x, hs, ws)
         };
         let u0 = conv2d_forward(&xr, &self.stem.value, STEM_CHANNELS, 3, 2)?;
-        let mut h = self.stem_bn.forward_act(&u0, mode, Act::HSwish)?;
+        let mut h = self.stem_bn.forward_act(u0, mode, Act::HSwish)?;
         h = self.blocks[0].forward(&h, 3, 1, mode)?;
         let f2 = h.clone();
         let mut f8 = h.clone();
@@ -215,7 +215,7 @@ impl Supernet {
             self.config.head_expand,
             None,
         )?;
-        let ha = self.head_bn.forward_act(&hu, mode, Act::HSwish)?;
+        let ha = self.head_bn.forward_act(hu, mode, Act::HSwish)?;
         // The expansion's means and the x, y moments of the stride-32 and stride-8 features:
         // slippage translates the face across the frame, which a global mean cannot see; the
         // stride-8 map places a translation on a 4× finer grid (docs/nets.md).
@@ -271,7 +271,7 @@ impl Supernet {
         let dg = self.head_hidden.vjp(&c.g, &dz)?;
         let [dgap, dmom, dmom8] = split_features(&dg, head_parts(self.config.head_expand));
         let dha = gap_vjp(c.ha.shape(), &dgap);
-        let dhu = self.head_bn.backward(&dha)?;
+        let dhu = self.head_bn.backward_owned(dha)?;
         let mut df32 = pointwise_vjp(
             &c.f32_,
             &self.head_expand.value,
@@ -313,7 +313,7 @@ impl Supernet {
         }
         df2.add_assign(&g);
         let g = self.blocks[0].backward(&df2)?;
-        let du0 = self.stem_bn.backward(&g)?;
+        let du0 = self.stem_bn.backward_owned(g)?;
         let dxr = conv2d_vjp(
             &c.xr,
             &self.stem.value,
