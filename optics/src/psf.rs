@@ -968,14 +968,8 @@ impl PsfModel for AsmPsf {
             depth_derivative_vjp(depths_m, gdz, &mut grad);
         }
         let memo = self.take_memo(map);
-        let fresh;
-        let samples = match &memo {
-            Some(m) => &m.samples,
-            None => {
-                fresh = self.samples(map);
-                &fresh
-            }
-        };
+        let mut fresh = None;
+        let samples = self.samples_or(map, memo.as_ref(), &mut fresh);
         let n = self.grid.n;
         let mut out = PhaseMapGrad::zeros(n);
         // Depths in chunks of one per thread (bounded memory), their terms added in depth
@@ -1070,14 +1064,8 @@ impl AsmPsf {
             )));
         }
         let memo = self.take_memo(map);
-        let fresh;
-        let samples = match &memo {
-            Some(m) => &m.samples,
-            None => {
-                fresh = self.samples(map);
-                &fresh
-            }
-        };
+        let mut fresh = None;
+        let samples = self.samples_or(map, memo.as_ref(), &mut fresh);
         let out = self.terms(samples, depths_m, grad_planes, which, memo.as_ref());
         self.put_memo(memo);
         Ok(out)
@@ -1124,6 +1112,19 @@ impl AsmPsf {
                 },
             )
             .collect()
+    }
+
+    /// `map`'s aperture samples: the memo's when there is one, else built into `fresh`.
+    fn samples_or<'m>(
+        &self,
+        map: &PhaseMap,
+        memo: Option<&'m FieldMemo>,
+        fresh: &'m mut Option<Samples>,
+    ) -> &'m Samples {
+        match memo {
+            Some(m) => &m.samples,
+            None => fresh.insert(self.samples(map)),
+        }
     }
 
     /// The last stack's fields if they are `map`'s, taken out of the model while a VJP runs
