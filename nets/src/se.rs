@@ -3,6 +3,8 @@
 use crate::act::{Act, PAR_MIN};
 use crate::error::{NetsError, Result};
 use crate::tensor::Tensor;
+use faer::linalg::matmul::matmul;
+use faer::{Accum, MatMut, MatRef, Par};
 use rayon::prelude::*;
 
 /// Weights of one SE module: W1 (M, C), b1 (M), W2 (C, M), b2 (C), all row-major.
@@ -62,25 +64,28 @@ pub fn se_forward(x: &Tensor, wt: &SeWeights) -> Result<(Tensor, SeCache)> {
         .with_min_len(per_task)
         .map(|p| p.iter().sum::<f32>() / hw as f32)
         .collect();
-    let mut z = vec![0.0f32; x.n * m];
-    let mut a = vec![0.0f32; x.n * c];
-    for n in 0..x.n {
-        let sn = &s[n * c..][..c];
-        for j in 0..m {
-            z[n * m + j] = wt.b1[j]
-                + wt.w1[j * c..][..c]
-                    .iter()
-                    .zip(sn)
-                    .map(|(w, v)| w * v)
-                    .sum::<f32>();
-        }
-        for ch in 0..c {
-            a[n * c + ch] = wt.b2[ch]
-                + (0..m)
-                    .map(|j| wt.w2[ch * m + j] * Act::Relu.apply(z[n * m + j]))
-                    .sum::<f32>();
-        }
-    }
+    // z = S·W1ᵀ + b1 (N × M), a = ReLU(z)·W2ᵀ + b2 (N × C): one GEMM each for the whole
+    // batch, where per-image dot products ran serially.
+    let n = x.n;
+    let mut z: Vec<f32> = (0..n).flat_map(|_| wt.b1.iter().copied()).collect();
+    matmul(
+        MatMut::from_row_major_slice_mut(&mut z, n, m),
+        Accum::Add,
+        MatRef::from_row_major_slice(&s, n, c),
+        MatRef::from_row_major_slice(wt.w1, m, c).transpose(),
+        1.0f32,
+        Par::Seq,
+    );
+    let r: Vec<f32> = z.iter().map(|&v| Act::Relu.apply(v)).collect();
+    let mut a: Vec<f32> = (0..n).flat_map(|_| wt.b2.iter().copied()).collect();
+    matmul(
+        MatMut::from_row_major_slice_mut(&mut a, n, c),
+        Accum::Add,
+        MatRef::from_row_major_slice(&r, n, m),
+        MatRef::from_row_major_slice(wt.w2, c, m).transpose(),
+        1.0f32,
+        Par::Seq,
+    );
     let mut y = x.clone();
     y.data
         .par_chunks_mut(hw.max(1))
@@ -106,14 +111,19 @@ pub fn se_vjp(
     if m != cache.m {
         return Err(NetsError::Shape("SE cache from another width".into()));
     }
-    let (c, hw) = (x.c, x.plane());
+    let c = x.c;
+    if gr.w1.len() != m * c || gr.w2.len() != c * m || gr.b1.len() != m || gr.b2.len() != c {
+        return Err(NetsError::Shape(format!(
+            "SE gradients do not fit C = {c}, M = {m}"
+        )));
+    }
+    let hw = x.plane();
     let mut dx = Tensor::zeros(x.n, c, x.h, x.w);
     if dx.data.is_empty() {
         return Ok(dx);
     }
     let per_task = (PAR_MIN / hw).max(1);
-    // The plane-sized work (dL/dgate and the gated gradient) in parallel; the small dense
-    // layers below stay serial, in the original order.
+    // The plane-sized work (dL/dgate and the gated gradient) in parallel.
     let dgate: Vec<f32> = dx
         .data
         .par_chunks_mut(hw)
@@ -131,28 +141,60 @@ pub fn se_vjp(
             dg
         })
         .collect();
-    let mut ds_all = vec![0.0f32; x.n * c];
-    for n in 0..x.n {
-        let ds = &mut ds_all[n * c..][..c];
-        let mut dz = vec![0.0f32; m];
-        for ch in 0..c {
-            let av = cache.a[n * c + ch];
-            let da = dgate[n * c + ch] * Act::HSigmoid.deriv(av);
-            gr.b2[ch] += da;
-            for j in 0..m {
-                gr.w2[ch * m + j] += da * Act::Relu.apply(cache.z[n * m + j]);
-                dz[j] += da * wt.w2[ch * m + j];
-            }
-        }
-        for j in 0..m {
-            let dzj = dz[j] * Act::Relu.deriv(cache.z[n * m + j]);
-            gr.b1[j] += dzj;
-            for ch in 0..c {
-                gr.w1[j * c + ch] += dzj * cache.s[n * c + ch];
-                ds[ch] += dzj * wt.w1[j * c + ch];
-            }
-        }
+    // The dense layers' backward as GEMMs over the batch (N × C and N × M matrices).
+    let n = x.n;
+    let da: Vec<f32> = dgate
+        .iter()
+        .zip(&cache.a)
+        .map(|(&g, &av)| g * Act::HSigmoid.deriv(av))
+        .collect();
+    let r: Vec<f32> = cache.z.iter().map(|&v| Act::Relu.apply(v)).collect();
+    for row in da.chunks_exact(c) {
+        gr.b2.iter_mut().zip(row).for_each(|(g, &d)| *g += d);
     }
+    // dL/dW2 (C × M) += daᵀ·ReLU(z).
+    matmul(
+        MatMut::from_row_major_slice_mut(gr.w2, c, m),
+        Accum::Add,
+        MatRef::from_row_major_slice(&da, n, c).transpose(),
+        MatRef::from_row_major_slice(&r, n, m),
+        1.0f32,
+        Par::Seq,
+    );
+    // dL/dz (N × M) = (da·W2) ⊙ ReLU′(z).
+    let mut dz = vec![0.0f32; n * m];
+    matmul(
+        MatMut::from_row_major_slice_mut(&mut dz, n, m),
+        Accum::Replace,
+        MatRef::from_row_major_slice(&da, n, c),
+        MatRef::from_row_major_slice(wt.w2, c, m),
+        1.0f32,
+        Par::Seq,
+    );
+    dz.iter_mut()
+        .zip(&cache.z)
+        .for_each(|(d, &zv)| *d *= Act::Relu.deriv(zv));
+    for row in dz.chunks_exact(m.max(1)) {
+        gr.b1.iter_mut().zip(row).for_each(|(g, &d)| *g += d);
+    }
+    // dL/dW1 (M × C) += dzᵀ·S; dL/dS (N × C) = dz·W1.
+    matmul(
+        MatMut::from_row_major_slice_mut(gr.w1, m, c),
+        Accum::Add,
+        MatRef::from_row_major_slice(&dz, n, m).transpose(),
+        MatRef::from_row_major_slice(&cache.s, n, c),
+        1.0f32,
+        Par::Seq,
+    );
+    let mut ds_all = vec![0.0f32; n * c];
+    matmul(
+        MatMut::from_row_major_slice_mut(&mut ds_all, n, c),
+        Accum::Replace,
+        MatRef::from_row_major_slice(&dz, n, m),
+        MatRef::from_row_major_slice(wt.w1, m, c),
+        1.0f32,
+        Par::Seq,
+    );
     dx.data
         .par_chunks_mut(hw)
         .zip(&ds_all)
