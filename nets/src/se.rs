@@ -1,10 +1,10 @@
 //! Squeeze-and-excitation: y = x ⊙ h-sigmoid(W2·ReLU(W1·GAP(x) + b1) + b2).
 
 use crate::act::{Act, PAR_MIN};
+use crate::dense::{gemm, rm};
 use crate::error::{NetsError, Result};
 use crate::tensor::Tensor;
-use faer::linalg::matmul::matmul;
-use faer::{Accum, MatMut, MatRef, Par};
+use faer::Accum;
 use rayon::prelude::*;
 
 /// Weights of one SE module: W1 (M, C), b1 (M), W2 (C, M), b2 (C), all row-major.
@@ -68,23 +68,23 @@ pub fn se_forward(x: &Tensor, wt: &SeWeights) -> Result<(Tensor, SeCache)> {
     // batch, where per-image dot products ran serially.
     let n = x.n;
     let mut z: Vec<f32> = (0..n).flat_map(|_| wt.b1.iter().copied()).collect();
-    matmul(
-        MatMut::from_row_major_slice_mut(&mut z, n, m),
+    gemm(
+        &mut z,
+        n,
+        m,
         Accum::Add,
-        MatRef::from_row_major_slice(&s, n, c),
-        MatRef::from_row_major_slice(wt.w1, m, c).transpose(),
-        1.0f32,
-        Par::Seq,
+        rm(&s, n, c),
+        rm(wt.w1, m, c).transpose(),
     );
     let r: Vec<f32> = z.iter().map(|&v| Act::Relu.apply(v)).collect();
     let mut a: Vec<f32> = (0..n).flat_map(|_| wt.b2.iter().copied()).collect();
-    matmul(
-        MatMut::from_row_major_slice_mut(&mut a, n, c),
+    gemm(
+        &mut a,
+        n,
+        c,
         Accum::Add,
-        MatRef::from_row_major_slice(&r, n, m),
-        MatRef::from_row_major_slice(wt.w2, c, m).transpose(),
-        1.0f32,
-        Par::Seq,
+        rm(&r, n, m),
+        rm(wt.w2, c, m).transpose(),
     );
     let mut y = x.clone();
     y.data
@@ -153,23 +153,23 @@ pub fn se_vjp(
         gr.b2.iter_mut().zip(row).for_each(|(g, &d)| *g += d);
     }
     // dL/dW2 (C × M) += daᵀ·ReLU(z).
-    matmul(
-        MatMut::from_row_major_slice_mut(gr.w2, c, m),
+    gemm(
+        gr.w2,
+        c,
+        m,
         Accum::Add,
-        MatRef::from_row_major_slice(&da, n, c).transpose(),
-        MatRef::from_row_major_slice(&r, n, m),
-        1.0f32,
-        Par::Seq,
+        rm(&da, n, c).transpose(),
+        rm(&r, n, m),
     );
     // dL/dz (N × M) = (da·W2) ⊙ ReLU′(z).
     let mut dz = vec![0.0f32; n * m];
-    matmul(
-        MatMut::from_row_major_slice_mut(&mut dz, n, m),
+    gemm(
+        &mut dz,
+        n,
+        m,
         Accum::Replace,
-        MatRef::from_row_major_slice(&da, n, c),
-        MatRef::from_row_major_slice(wt.w2, c, m),
-        1.0f32,
-        Par::Seq,
+        rm(&da, n, c),
+        rm(wt.w2, c, m),
     );
     dz.iter_mut()
         .zip(&cache.z)
@@ -178,22 +178,22 @@ pub fn se_vjp(
         gr.b1.iter_mut().zip(row).for_each(|(g, &d)| *g += d);
     }
     // dL/dW1 (M × C) += dzᵀ·S; dL/dS (N × C) = dz·W1.
-    matmul(
-        MatMut::from_row_major_slice_mut(gr.w1, m, c),
+    gemm(
+        gr.w1,
+        m,
+        c,
         Accum::Add,
-        MatRef::from_row_major_slice(&dz, n, m).transpose(),
-        MatRef::from_row_major_slice(&cache.s, n, c),
-        1.0f32,
-        Par::Seq,
+        rm(&dz, n, m).transpose(),
+        rm(&cache.s, n, c),
     );
     let mut ds_all = vec![0.0f32; n * c];
-    matmul(
-        MatMut::from_row_major_slice_mut(&mut ds_all, n, c),
+    gemm(
+        &mut ds_all,
+        n,
+        c,
         Accum::Replace,
-        MatRef::from_row_major_slice(&dz, n, m),
-        MatRef::from_row_major_slice(wt.w1, m, c),
-        1.0f32,
-        Par::Seq,
+        rm(&dz, n, m),
+        rm(wt.w1, m, c),
     );
     dx.data
         .par_chunks_mut(hw)
