@@ -13,9 +13,12 @@ fn main() {
         Some("max") => Arch::max(),
         _ => Arch::min(),
     };
-    let (h, w, runs) = (arg(2, 174), arg(3, 278), arg(4, 2000));
+    let (h, w, runs) = (arg(2, 174), arg(3, 278), arg(4, 2000).max(1));
     let net = Supernet::new(SupernetConfig::default(), 1).expect("net");
-    let mut inf = Inference::new(&net, &arch, h, w).expect("compile");
+    let mut inf = Inference::new(&net, &arch, h, w).unwrap_or_else(|e| {
+        eprintln!("infer_prof: H and W: {e}");
+        std::process::exit(2)
+    });
     let x: Vec<f32> = (0..h * w)
         .map(|i| ((i * 7919) % 1000) as f32 / 1000.0)
         .collect();

@@ -33,13 +33,37 @@ pub struct SeGrads<'a> {
     pub b2: &'a mut [f32],
 }
 
-/// What the SE backward pass needs: pooled input, squeeze and excite pre-activations.
+/// What the SE backward pass needs: pooled input, squeeze activations ReLU(z) (their
+/// derivative is read from them: ReLU(z) > 0 exactly where z > 0), excite pre-activations.
 #[derive(Clone, Debug)]
 pub struct SeCache {
     s: Vec<f32>,
-    z: Vec<f32>,
+    r: Vec<f32>,
     a: Vec<f32>,
     m: usize,
+}
+
+/// One dense layer for the whole batch: Y (n × out) = X (n × inp)·Wᵀ + b, with W (out × inp)
+/// row-major and out = `b.len()`; one GEMM where per-image dot products would run serially.
+fn dense_rows(x: &[f32], n: usize, inp: usize, w: &[f32], b: &[f32]) -> Vec<f32> {
+    let out = b.len();
+    let mut y: Vec<f32> = (0..n).flat_map(|_| b.iter().copied()).collect();
+    gemm(
+        &mut y,
+        n,
+        out,
+        Accum::Add,
+        rm(x, n, inp),
+        rm(w, out, inp).transpose(),
+    );
+    y
+}
+
+/// Adds every row of `rows` (rows of `acc.len()` values) into `acc`: a bias gradient.
+fn add_rows(acc: &mut [f32], rows: &[f32]) {
+    for row in rows.chunks_exact(acc.len().max(1)) {
+        acc.iter_mut().zip(row).for_each(|(g, &d)| *g += d);
+    }
 }
 
 fn check(x: &Tensor, wt: &SeWeights) -> Result<usize> {
@@ -64,28 +88,11 @@ pub fn se_forward(x: &Tensor, wt: &SeWeights) -> Result<(Tensor, SeCache)> {
         .with_min_len(per_task)
         .map(|p| p.iter().sum::<f32>() / hw as f32)
         .collect();
-    // z = S·W1ᵀ + b1 (N × M), a = ReLU(z)·W2ᵀ + b2 (N × C): one GEMM each for the whole
-    // batch, where per-image dot products ran serially.
+    // z = S·W1ᵀ + b1 (N × M), a = ReLU(z)·W2ᵀ + b2 (N × C).
     let n = x.n;
-    let mut z: Vec<f32> = (0..n).flat_map(|_| wt.b1.iter().copied()).collect();
-    gemm(
-        &mut z,
-        n,
-        m,
-        Accum::Add,
-        rm(&s, n, c),
-        rm(wt.w1, m, c).transpose(),
-    );
-    let r: Vec<f32> = z.iter().map(|&v| Act::Relu.apply(v)).collect();
-    let mut a: Vec<f32> = (0..n).flat_map(|_| wt.b2.iter().copied()).collect();
-    gemm(
-        &mut a,
-        n,
-        c,
-        Accum::Add,
-        rm(&r, n, m),
-        rm(wt.w2, c, m).transpose(),
-    );
+    let mut r = dense_rows(&s, n, c, wt.w1, wt.b1);
+    r.iter_mut().for_each(|v| *v = Act::Relu.apply(*v));
+    let a = dense_rows(&r, n, m, wt.w2, wt.b2);
     let mut y = x.clone();
     y.data
         .par_chunks_mut(hw.max(1))
@@ -95,7 +102,7 @@ pub fn se_forward(x: &Tensor, wt: &SeWeights) -> Result<(Tensor, SeCache)> {
             let g = Act::HSigmoid.apply(av);
             p.iter_mut().for_each(|v| *v *= g);
         });
-    Ok((y, SeCache { s, z, a, m }))
+    Ok((y, SeCache { s, r, a, m }))
 }
 
 /// VJP of [`se_forward`]: returns dL/dx and accumulates the weight gradients.
@@ -148,10 +155,8 @@ pub fn se_vjp(
         .zip(&cache.a)
         .map(|(&g, &av)| g * Act::HSigmoid.deriv(av))
         .collect();
-    let r: Vec<f32> = cache.z.iter().map(|&v| Act::Relu.apply(v)).collect();
-    for row in da.chunks_exact(c) {
-        gr.b2.iter_mut().zip(row).for_each(|(g, &d)| *g += d);
-    }
+    let r = &cache.r;
+    add_rows(gr.b2, &da);
     // dL/dW2 (C × M) += daᵀ·ReLU(z).
     gemm(
         gr.w2,
@@ -159,7 +164,7 @@ pub fn se_vjp(
         m,
         Accum::Add,
         rm(&da, n, c).transpose(),
-        rm(&r, n, m),
+        rm(r, n, m),
     );
     // dL/dz (N × M) = (da·W2) ⊙ ReLU′(z).
     let mut dz = vec![0.0f32; n * m];
@@ -172,11 +177,9 @@ pub fn se_vjp(
         rm(wt.w2, c, m),
     );
     dz.iter_mut()
-        .zip(&cache.z)
-        .for_each(|(d, &zv)| *d *= Act::Relu.deriv(zv));
-    for row in dz.chunks_exact(m.max(1)) {
-        gr.b1.iter_mut().zip(row).for_each(|(g, &d)| *g += d);
-    }
+        .zip(r)
+        .for_each(|(d, &rv)| *d *= Act::Relu.deriv(rv));
+    add_rows(gr.b1, &dz);
     // dL/dW1 (M × C) += dzᵀ·S; dL/dS (N × C) = dz·W1.
     gemm(
         gr.w1,
