@@ -22,7 +22,8 @@ pub struct TrackArgs {
     /// Run directory (checkpoint.bin, rig.json).
     #[arg(long)]
     model: PathBuf,
-    /// Directory of frames (.npy, .png), read in name order.
+    /// Directory of frames (.npy, .png), read in name order; in a `nanoeye sim` output
+    /// directory (it holds sim.json), its sensor.npy only.
     #[arg(long, conflicts_with = "stdin")]
     frames: Option<PathBuf>,
     /// Read raw frames from standard input (header NEYE, u32 w, u32 h, u32 0, f32 DN).
@@ -328,6 +329,18 @@ pub fn track(a: TrackArgs) -> Result<()> {
             .map(|e| e.path())
             .filter(|p| p.extension().is_some_and(|e| e == "npy" || e == "png"))
             .collect();
+        // A `nanoeye sim` output directory also holds the ground-truth masks (mask.npy); they
+        // are not frames, and tracking them would report nonsense gaze for every one.
+        if dir.join("sim.json").is_file() {
+            let before = files.len();
+            files.retain(|p| p.file_name().is_some_and(|n| n == "sensor.npy"));
+            if files.len() < before {
+                eprintln!(
+                    "--frames {}: a `nanoeye sim` output (sim.json); tracking only sensor.npy",
+                    dir.display()
+                );
+            }
+        }
         files.sort();
         if files.is_empty() {
             bail!("--frames {}: no .npy or .png files", dir.display());

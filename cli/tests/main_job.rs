@@ -236,6 +236,25 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         "{}",
         lines[3]
     );
+    // sim's own output directory tracks as its frames: the ground-truth mask.npy beside them
+    // is not a frame.
+    let o = Command::new(bin)
+        .args(["track", "--model"])
+        .arg(out.join("runs/learned"))
+        .arg("--frames")
+        .arg(&sim)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let sources: Vec<String> = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["source"].to_string())
+        .collect();
+    assert_eq!(sources.len(), 3, "{sources:?}");
+    assert!(
+        sources.iter().all(|s| s.contains("sensor.npy")),
+        "{sources:?}"
+    );
     // A bad stdin header gives an error line, not a crash.
     let mut child = Command::new(bin)
         .args(["track", "--stdin", "--model"])

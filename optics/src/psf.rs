@@ -212,6 +212,18 @@ fn map_key(map: &PhaseMap) -> Vec<u64> {
     key
 }
 
+/// Whether `key` is [`map_key`]`(map)`, without building the key.
+fn same_map(key: &[u64], map: &PhaseMap) -> bool {
+    let n = map.phase_rad.nrows() * map.phase_rad.ncols();
+    key.len() == 2 * n
+        && [&map.phase_rad, &map.amplitude]
+            .into_iter()
+            .flat_map(|m| m.col_iter())
+            .flat_map(|c| c.iter())
+            .zip(key)
+            .all(|(v, &b)| v.to_bits() == b)
+}
+
 /// Smallest n' ≥ n whose prime factors are all in {2, 3, 5, 7} (fast FFT sizes).
 pub fn fast_fft_size(n: usize) -> usize {
     let mut m = n.max(1);
@@ -1128,13 +1140,15 @@ impl AsmPsf {
     }
 
     /// The last stack's fields if they are `map`'s, taken out of the model while a VJP runs
-    /// (give them back with [`AsmPsf::put_memo`]).
+    /// (give them back with [`AsmPsf::put_memo`]). Another map's fields stay where they are:
+    /// a VJP at some other map must not cost the next VJP at the stack's map its reuse.
     fn take_memo(&self, map: &PhaseMap) -> Option<FieldMemo> {
-        self.memo
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .take()
-            .filter(|m| m.key == map_key(map))
+        let mut slot = self.memo.lock().unwrap_or_else(|e| e.into_inner());
+        if slot.as_ref().is_some_and(|m| same_map(&m.key, map)) {
+            slot.take()
+        } else {
+            None
+        }
     }
 
     /// Gives back what [`AsmPsf::take_memo`] took, unless a stack computed meanwhile left its own.
@@ -1235,5 +1249,71 @@ impl AsmPsf {
             gp[s] += (gu * u.conj()).im;
             ga[s] += (gu.conj() * e).re;
         }
+    }
+}
+
+#[cfg(test)]
+mod memo_tests {
+    use super::*;
+
+    fn model_and_maps() -> (AsmPsf, PhaseMap, PhaseMap) {
+        let grid = ApertureGrid::new(40e-6, 2e-6).unwrap();
+        let k = std::f64::consts::TAU / 940e-9;
+        let lens = |f: f64| {
+            Mat::from_fn(grid.n, grid.n, |i, j| {
+                let (y, x) = (grid.coord(i), grid.coord(j));
+                -k * (x * x + y * y) / (2.0 * f)
+            })
+        };
+        let ones = Mat::from_fn(grid.n, grid.n, |_, _| 1.0);
+        let a = PhaseMap::new(grid, lens(90e-6), ones.clone()).unwrap();
+        let b = PhaseMap::new(grid, lens(95e-6), ones).unwrap();
+        let cfg = PsfConfig {
+            sensor_distance_m: 100e-6,
+            pitch_m: 1e-6,
+            window_px: 8,
+            ..PsfConfig::default()
+        };
+        (AsmPsf::new(cfg, grid).unwrap(), a, b)
+    }
+
+    /// The memo key test agrees with building the key, and one changed sample (phase or
+    /// amplitude) is a different map.
+    #[test]
+    fn same_map_is_the_key_comparison() {
+        let (_, a, b) = model_and_maps();
+        let key = map_key(&a);
+        assert!(same_map(&key, &a));
+        assert!(!same_map(&key, &b));
+        let mut c = a.clone();
+        c.amplitude[(3, 4)] = f64::from_bits(c.amplitude[(3, 4)].to_bits() - 1);
+        assert!(!same_map(&key, &c));
+        assert!(!same_map(&key[1..], &a));
+    }
+
+    /// A VJP at another map leaves the stack's fields in the model (it used to drop them), and
+    /// the VJP at the stack's map takes and gives them back.
+    #[test]
+    fn a_vjp_at_another_map_keeps_the_stacks_fields() {
+        let (model, a, b) = model_and_maps();
+        let depths = [0.8e-3, 1.0e-3];
+        model.planes_f64(&a, &depths, None).unwrap();
+        let held = |m: &PhaseMap| {
+            model
+                .memo
+                .lock()
+                .unwrap()
+                .as_ref()
+                .is_some_and(|f| same_map(&f.key, m) && f.fields.len() == depths.len())
+        };
+        assert!(held(&a));
+        let g: Vec<Mat<f64>> = depths
+            .iter()
+            .map(|_| Mat::from_fn(8, 8, |_, _| 1.0))
+            .collect();
+        model.vjp(&b, &depths, &g, None).unwrap();
+        assert!(held(&a), "a VJP at another map dropped the stack's fields");
+        model.vjp(&a, &depths, &g, None).unwrap();
+        assert!(held(&a));
     }
 }
