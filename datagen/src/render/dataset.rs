@@ -12,6 +12,7 @@ use crate::states::{self, Protocol, State};
 use faer::Mat;
 use nanoeye_gaze::{Rig, Vec3};
 use rand::Rng;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -694,7 +695,6 @@ pub fn render_frames(
     frames: &[usize],
     progress: bool,
 ) -> Result<DatasetSummary, RenderError> {
-    let rig = &plan.manifest.rig;
     let fdir = opts.out_dir.join("frames");
     std::fs::create_dir_all(&fdir).map_err(|e| io_err(&fdir, e))?;
     if let Some(&i) = frames.iter().find(|&&i| i >= plan.planned.len()) {
@@ -709,88 +709,109 @@ pub fn render_frames(
         indicatif::ProgressBar::hidden()
     };
     let (mut written, mut skipped) = (0, 0);
-    for &i in frames {
-        let f = &plan.planned[i];
-        let stem = format!("frames/{i:06}");
-        let record_path = opts.out_dir.join(format!("{stem}.json"));
-        if finished_record(&opts.out_dir, i).is_some() {
-            skipped += 1;
-            bar.inc(1);
-            continue;
-        }
-        let pixel_seed = opts.seed ^ (i as u64).wrapping_mul(0xA076_1D64_78BD_642F);
-        let (frame, lm) = render_planned(rig, &opts.source, f, opts.spp, pixel_seed, opts.layers)?;
-        let files = FrameFiles {
-            preview: format!("{stem}_preview.png"),
-            radiance: format!("{stem}_radiance.npy"),
-            depth: format!("{stem}_depth.npy"),
-            mask_visible_pupil: format!("{stem}_mask_visible_pupil.png"),
-            mask_pupil: format!("{stem}_mask_pupil.png"),
-            layers: Some(format!("{stem}_layers.npy")),
-            masks: Some(format!("{stem}_masks.npy")),
-        };
-        let (w, h) = (rig.camera.width_px, rig.camera.height_px);
-        let put = |rel: &str, bytes: Vec<u8>| write_atomic(&opts.out_dir.join(rel), &bytes);
-        put(&files.preview, png_bytes(tone_map(&frame.radiance), w, h)?)?;
-        put(&files.radiance, npy_bytes(&frame.radiance)?)?;
-        put(&files.depth, npy_bytes(&frame.depth_m)?)?;
-        put(
-            &files.mask_visible_pupil,
-            mask_png(&frame.mask_visible_pupil)?,
-        )?;
-        put(&files.mask_pupil, mask_png(&frame.mask_pupil)?)?;
-        let kept: Vec<(usize, &super::trace::DepthLayer)> = frame
-            .layers
-            .layers
-            .iter()
-            .enumerate()
-            .filter(|(_, l)| !l.empty)
+    // Frames in groups of one per thread, each frame's rows parallel inside: a frame's serial
+    // parts (scene build, PNG and NPY encoding, writes) then overlap another frame's work
+    // instead of leaving a core idle. A frame's content depends only on its index, and a group
+    // bounds the frames held in memory at once.
+    for group in frames.chunks(rayon::current_num_threads().max(1)) {
+        let done: Vec<Result<bool, RenderError>> = group
+            .par_iter()
+            .map(|&i| {
+                let r = render_one(opts, plan, i);
+                bar.inc(1);
+                r
+            })
             .collect();
-        let planes: Vec<&Mat<f32>> = kept
-            .iter()
-            .flat_map(|(_, l)| [&l.radiance, &l.alpha])
-            .collect();
-        if let Some(p) = &files.layers {
-            put(p, npy_stack(&planes, Some(kept.len()))?)?;
+        for d in done {
+            if d? {
+                written += 1;
+            } else {
+                skipped += 1;
+            }
         }
-        if let Some(p) = &files.masks {
-            put(
-                p,
-                npy_stack(&[&frame.mask_visible_pupil, &frame.mask_pupil], None)?,
-            )?;
-        }
-        let rec = FrameRecord {
-            frame: i,
-            item: f.item,
-            role: f.role.to_string(),
-            subject: f.subject,
-            state: f.state,
-            gaze: f.state.gaze(),
-            pupil_center_px: lm.pupil_center.px,
-            pupil_center_refracted_px: lm.pupil_center_refracted_px,
-            landmarks: lm,
-            files,
-            layers: kept
-                .iter()
-                .map(|(k, l)| LayerInfo {
-                    index: *k,
-                    near_m: l.near_m,
-                    far_m: l.far_m,
-                })
-                .collect(),
-            pupil_visible_fraction: visible_fraction(&frame.mask_visible_pupil, &frame.mask_pupil),
-        };
-        let line = serde_json::to_string(&rec).map_err(|e| RenderError::Encode {
-            path: record_path.display().to_string(),
-            reason: e.to_string(),
-        })?;
-        // The record is written last: its presence marks the frame complete.
-        write_atomic(&record_path, line.as_bytes())?;
-        written += 1;
-        bar.inc(1);
     }
     bar.finish_and_clear();
     Ok(DatasetSummary { written, skipped })
+}
+
+/// Renders and writes frame `i` of `plan` (record last); false when it was already complete.
+fn render_one(opts: &DatasetOptions, plan: &DatasetPlan, i: usize) -> Result<bool, RenderError> {
+    let rig = &plan.manifest.rig;
+    let f = &plan.planned[i];
+    let stem = format!("frames/{i:06}");
+    let record_path = opts.out_dir.join(format!("{stem}.json"));
+    if finished_record(&opts.out_dir, i).is_some() {
+        return Ok(false);
+    }
+    let pixel_seed = opts.seed ^ (i as u64).wrapping_mul(0xA076_1D64_78BD_642F);
+    let (frame, lm) = render_planned(rig, &opts.source, f, opts.spp, pixel_seed, opts.layers)?;
+    let files = FrameFiles {
+        preview: format!("{stem}_preview.png"),
+        radiance: format!("{stem}_radiance.npy"),
+        depth: format!("{stem}_depth.npy"),
+        mask_visible_pupil: format!("{stem}_mask_visible_pupil.png"),
+        mask_pupil: format!("{stem}_mask_pupil.png"),
+        layers: Some(format!("{stem}_layers.npy")),
+        masks: Some(format!("{stem}_masks.npy")),
+    };
+    let (w, h) = (rig.camera.width_px, rig.camera.height_px);
+    let put = |rel: &str, bytes: Vec<u8>| write_atomic(&opts.out_dir.join(rel), &bytes);
+    put(&files.preview, png_bytes(tone_map(&frame.radiance), w, h)?)?;
+    put(&files.radiance, npy_bytes(&frame.radiance)?)?;
+    put(&files.depth, npy_bytes(&frame.depth_m)?)?;
+    put(
+        &files.mask_visible_pupil,
+        mask_png(&frame.mask_visible_pupil)?,
+    )?;
+    put(&files.mask_pupil, mask_png(&frame.mask_pupil)?)?;
+    let kept: Vec<(usize, &super::trace::DepthLayer)> = frame
+        .layers
+        .layers
+        .iter()
+        .enumerate()
+        .filter(|(_, l)| !l.empty)
+        .collect();
+    let planes: Vec<&Mat<f32>> = kept
+        .iter()
+        .flat_map(|(_, l)| [&l.radiance, &l.alpha])
+        .collect();
+    if let Some(p) = &files.layers {
+        put(p, npy_stack(&planes, Some(kept.len()))?)?;
+    }
+    if let Some(p) = &files.masks {
+        put(
+            p,
+            npy_stack(&[&frame.mask_visible_pupil, &frame.mask_pupil], None)?,
+        )?;
+    }
+    let rec = FrameRecord {
+        frame: i,
+        item: f.item,
+        role: f.role.to_string(),
+        subject: f.subject,
+        state: f.state,
+        gaze: f.state.gaze(),
+        pupil_center_px: lm.pupil_center.px,
+        pupil_center_refracted_px: lm.pupil_center_refracted_px,
+        landmarks: lm,
+        files,
+        layers: kept
+            .iter()
+            .map(|(k, l)| LayerInfo {
+                index: *k,
+                near_m: l.near_m,
+                far_m: l.far_m,
+            })
+            .collect(),
+        pupil_visible_fraction: visible_fraction(&frame.mask_visible_pupil, &frame.mask_pupil),
+    };
+    let line = serde_json::to_string(&rec).map_err(|e| RenderError::Encode {
+        path: record_path.display().to_string(),
+        reason: e.to_string(),
+    })?;
+    // The record is written last: its presence marks the frame complete.
+    write_atomic(&record_path, line.as_bytes())?;
+    Ok(true)
 }
 
 /// Writes frames.jsonl (every frame's record, in order) and the contact sheet once every
