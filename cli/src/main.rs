@@ -120,7 +120,38 @@ fn distributes(command: &Command) -> bool {
     )
 }
 
+/// AVX2 and FMA in the CPU and enabled by the OS, asked of CPUID itself:
+/// `is_x86_feature_detected!` answers true without asking when the build enables the feature.
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+fn cpu_has_avx2_fma() -> bool {
+    use std::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
+    // SAFETY: CPUID exists on every x86-64 CPU; XGETBV is executed only when CPUID reports
+    // OSXSAVE (bit 27 of leaf 1's ECX), i.e. the OS enabled it.
+    unsafe {
+        let l1 = __cpuid(1);
+        let (fma, osxsave, avx) = (
+            l1.ecx & (1 << 12) != 0,
+            l1.ecx & (1 << 27) != 0,
+            l1.ecx & (1 << 28) != 0,
+        );
+        if !(fma && osxsave && avx) || _xgetbv(0) & 0b110 != 0b110 {
+            return false;
+        }
+        __cpuid(0).eax >= 7 && __cpuid_count(7, 0).ebx & (1 << 5) != 0
+    }
+}
+
 fn main() -> ExitCode {
+    // .cargo/config.toml builds for x86-64-v3: say so instead of dying on an illegal
+    // instruction somewhere later.
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    if !cpu_has_avx2_fma() {
+        eprintln!(
+            "error: this nanoeye was built for x86-64-v3 (AVX2 + FMA) and this CPU lacks them; \
+             rebuild with RUSTFLAGS=\"\" (see .cargo/config.toml)"
+        );
+        return ExitCode::FAILURE;
+    }
     keep_freed_memory();
     let _session = dist::init();
     let w = dist::world();
