@@ -713,7 +713,12 @@ pub fn render_frames(
     // parts (scene build, PNG and NPY encoding, writes) then overlap another frame's work
     // instead of leaving a core idle. A frame's content depends only on its index, and a group
     // bounds the frames held in memory at once.
-    for group in frames.chunks(rayon::current_num_threads().max(1)) {
+    let group_len = frames_in_flight(
+        rayon::current_num_threads(),
+        &plan.manifest.rig.camera,
+        opts.layers.count,
+    );
+    for group in frames.chunks(group_len) {
         let done: Vec<Result<bool, RenderError>> = group
             .par_iter()
             .map(|&i| {
@@ -732,6 +737,22 @@ pub fn render_frames(
     }
     bar.finish_and_clear();
     Ok(DatasetSummary { written, skipped })
+}
+
+/// Most bytes of frames in flight at once in [`render_frames`].
+const FRAMES_IN_FLIGHT_BYTES: usize = 2 << 30;
+
+/// Frames [`render_frames`] renders at once: one per thread, as many as fit in
+/// [`FRAMES_IN_FLIGHT_BYTES`] (at least one). A frame holds its interleaved sample buffer, the
+/// planes gathered from it and their encodings: about three times (4 + 2K) f32 per pixel.
+fn frames_in_flight(threads: usize, camera: &nanoeye_gaze::Camera, layers: usize) -> usize {
+    let per_frame = camera
+        .width_px
+        .saturating_mul(camera.height_px)
+        .saturating_mul(4 + 2 * layers)
+        .saturating_mul(3 * std::mem::size_of::<f32>())
+        .max(1);
+    threads.min(FRAMES_IN_FLIGHT_BYTES / per_frame).max(1)
 }
 
 /// Renders and writes frame `i` of `plan` (record last); false when it was already complete.
@@ -885,4 +906,25 @@ fn visible_fraction(visible: &Mat<f32>, unoccluded: &Mat<f32>) -> Option<f64> {
     };
     let total = sum(unoccluded);
     (total > 0.0).then(|| (sum(visible) / total).min(1.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One frame per thread at the main job's size; at 1280×800 with 8 layers (≈ 246 MB a
+    /// frame) the 2 GiB bound keeps 8 of 64 threads' frames; never fewer than one, whatever
+    /// the size.
+    #[test]
+    fn frames_in_flight_is_bounded_by_memory() {
+        let mut cam = Rig::default().camera;
+        (cam.width_px, cam.height_px) = (320, 200);
+        assert_eq!(frames_in_flight(2, &cam, 8), 2);
+        assert_eq!(frames_in_flight(64, &cam, 8), 64);
+        (cam.width_px, cam.height_px) = (1280, 800);
+        assert_eq!(frames_in_flight(64, &cam, 8), 8);
+        (cam.width_px, cam.height_px) = (usize::MAX, usize::MAX);
+        assert_eq!(frames_in_flight(64, &cam, 256), 1);
+        assert_eq!(frames_in_flight(0, &cam, 8), 1);
+    }
 }
