@@ -187,13 +187,19 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     std::fs::create_dir(&frames).unwrap();
     std::fs::copy(sim.join("sensor.npy"), frames.join("a.npy")).unwrap();
     std::fs::write(frames.join("b.npy"), b"not an npy file").unwrap();
-    let o = Command::new(bin)
-        .args(["track", "--model"])
-        .arg(out.join("runs/learned"))
-        .arg("--frames")
-        .arg(&frames)
-        .output()
-        .unwrap();
+    // `nanoeye track` on the learned run with `extra` flags, the frames in `dir`.
+    let track = |extra: &[&str], dir: &std::path::Path| {
+        Command::new(bin)
+            .arg("track")
+            .args(extra)
+            .arg("--model")
+            .arg(out.join("runs/learned"))
+            .arg("--frames")
+            .arg(dir)
+            .output()
+            .unwrap()
+    };
+    let o = track(&[], &frames);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&o.stdout)
         .lines()
@@ -207,13 +213,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     std::fs::copy(out.join("runs/learned/tracker_arch.json"), &arch_file).unwrap();
     let file_subnet = format!("file:{}", arch_file.display());
     for subnet in ["min", "max", file_subnet.as_str()] {
-        let o = Command::new(bin)
-            .args(["track", "--subnet", subnet, "--model"])
-            .arg(out.join("runs/learned"))
-            .arg("--frames")
-            .arg(&frames)
-            .output()
-            .unwrap();
+        let o = track(&["--subnet", subnet], &frames);
         assert!(o.status.success());
         let err = String::from_utf8_lossy(&o.stderr);
         let warned = err.contains(&format!("--subnet {subnet}")) && err.contains("recalibrated");
@@ -238,13 +238,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     );
     // sim's own output directory tracks as its frames: the ground-truth mask.npy beside them
     // is not a frame.
-    let o = Command::new(bin)
-        .args(["track", "--model"])
-        .arg(out.join("runs/learned"))
-        .arg("--frames")
-        .arg(&sim)
-        .output()
-        .unwrap();
+    let o = track(&[], &sim);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let sources: Vec<String> = String::from_utf8_lossy(&o.stdout)
         .lines()
