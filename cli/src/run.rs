@@ -10,6 +10,7 @@
 use crate::util;
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use faer::Mat;
 use nanoeye_datagen::render::{
     Dataset, DatasetOptions, LayerSpec, RenderSet, SceneSource, write_dataset,
 };
@@ -21,6 +22,7 @@ use nanoeye_search::{
 use serde::{Deserialize, Serialize};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 /// Which state set the supernet trains on.
@@ -487,9 +489,6 @@ pub fn run(a: RunArgs) -> Result<()> {
         c
     };
     let chain = CameraChain::for_dataset(&train, chain_cfg.clone())?;
-    let proto_chain = CameraChain::for_dataset(&proto, chain_cfg.clone())?;
-    let seq_chain = CameraChain::for_dataset(&seq, chain_cfg.clone())?;
-    let tcfg = |fixed: bool| train_config(&cfg, fixed);
 
     // 2. Fisher initialization of the learned lens (A.2): the hyperbolic phase moved towards
     // PSFs that keep depth information under the sensor's binning at the initial p̂.
@@ -519,66 +518,25 @@ pub fn run(a: RunArgs) -> Result<()> {
     };
     stage("fisher", t.elapsed().as_secs_f64(), &mut stages)?;
 
-    // 3. Sandwich training per lens.
-    for (name, lens) in LENSES {
-        let t = Instant::now();
-        let ck = out.join(format!("runs/{name}/checkpoint.bin"));
-        let r = &chain.config().radiometry;
-        let map = lens
-            .parse::<LensSpec>()
-            .map_err(anyhow::Error::msg)?
-            .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)?;
-        let phase = match (&learned_init, name) {
-            (Some(p), "learned") => p.clone(),
-            _ => map.phase_rad,
-        };
-        let mut tr = Trainer::new(&chain, &train, tcfg(name != "learned"), phase)?;
-        if ck.exists() {
-            tr.load(&ck).context("--out (resume)")?;
+    // 3. Sandwich training, the three lenses at once. One training keeps 2 cores ~165 % busy
+    // (its serial parts: optimizer, batching, the chain's per-frame glue), so the three share
+    // the rayon pool and fill each other's gaps. Each has its own chain (a chain keeps the
+    // last PSF stack it computed, and the learned lens's would evict a fixed lens's); the
+    // results do not depend on the threads (a training is bit-identical on 1 or 2 threads).
+    let t = Instant::now();
+    for_each_lens(|name, lens, failed| {
+        LensTraining {
+            name,
+            lens,
+            init: learned_init.as_ref().filter(|_| name == "learned"),
+            train: &train,
+            chain_cfg: &chain_cfg,
+            cfg: &cfg,
+            out: &out,
         }
-        if tr.step < cfg.train_steps {
-            note(&format!(
-                "training the supernet behind the {name} lens ({} steps)",
-                cfg.train_steps
-            ));
-        }
-        while tr.step < cfg.train_steps {
-            let rec = tr.train_step()?;
-            if (rec.step + 1) % (cfg.train_steps / 4).max(1) == 0 {
-                note(&format!(
-                    "  {name} step {}: L_max {:.3}, L_min {:.3}, p̂ {:.2} µm",
-                    rec.step + 1,
-                    rec.loss_max,
-                    rec.loss_min,
-                    rec.pitch_um
-                ));
-                tr.save(&ck)?;
-            }
-        }
-        tr.save(&ck)?;
-        util::write_atomic(
-            &out.join(format!("runs/{name}/rig.json")),
-            serde_json::to_string_pretty(&train.manifest.rig)?.as_bytes(),
-        )?;
-        util::write_atomic(
-            &out.join(format!("runs/{name}/phase.npy")),
-            &crate::sim::npy_mat64(&tr.phase)?,
-        )?;
-        let lines: String = tr
-            .history
-            .iter()
-            .map(|h| serde_json::to_string(h).unwrap_or_default() + "\n")
-            .collect();
-        util::write_atomic(
-            &out.join(format!("runs/{name}/history.jsonl")),
-            lines.as_bytes(),
-        )?;
-        stage(
-            &format!("train_{name}"),
-            t.elapsed().as_secs_f64(),
-            &mut stages,
-        )?;
-    }
+        .run(&note, failed)
+    })?;
+    stage("train", t.elapsed().as_secs_f64(), &mut stages)?;
 
     // 4. Short REA on the co-designed run.
     let t = Instant::now();
@@ -594,7 +552,9 @@ pub fn run(a: RunArgs) -> Result<()> {
         cfg.rea_population, cfg.rea_cycles
     ));
     let rea_dir = out.join("runs/learned");
-    rea.run(&mut |s: &ReaState| {
+    // Two candidates at once, each thread on its own chain (the result is the sequential one).
+    let chain_b = CameraChain::for_dataset(&train, chain_cfg.clone())?;
+    rea.run_threads(&[&chain, &chain_b], &mut |s: &ReaState| {
         let io = |e: anyhow::Error| nanoeye_search::SearchError::Param {
             name: "out",
             reason: e.to_string(),
@@ -622,7 +582,9 @@ pub fn run(a: RunArgs) -> Result<()> {
     // not only a slice of the supernet.
     let t = Instant::now();
     let rc = rea_config(&cfg);
-    for (name, _) in LENSES {
+    // The three at once, as in training, each with its own chain.
+    for_each_lens(|name, _, failed| {
+        let chain = CameraChain::for_dataset(&train, chain_cfg.clone())?;
         let sel = out.join(format!("runs/{name}/selected.bin"));
         // A resume that finds the fine-tune done only rewrites its lens.
         let tr = if sel.exists() {
@@ -635,6 +597,9 @@ pub fn run(a: RunArgs) -> Result<()> {
             let ck = out.join(format!("runs/{name}/checkpoint.bin"));
             let mut tr = Trainer::from_checkpoint(&chain, &train, &ck)?;
             for _ in 0..cfg.final_steps {
+                if failed.load(Ordering::Relaxed) {
+                    return Ok(());
+                }
                 tr.finetune_step(&best.arch, rc.budget_macs, rc.lambda_budget, FINAL_LR_SCALE)?;
             }
             tr.save(&sel)?;
@@ -643,19 +608,20 @@ pub fn run(a: RunArgs) -> Result<()> {
         util::write_atomic(
             &out.join(format!("runs/{name}/phase.npy")),
             &crate::sim::npy_mat64(&tr.phase)?,
-        )?;
-    }
+        )
+    })?;
     stage("finetune", t.elapsed().as_secs_f64(), &mut stages)?;
 
     // 6. The acquisition protocol through each lens's chain with the selected subnet.
     let t = Instant::now();
     note("evaluating the acquisition protocol (49 targets × 7 slippage states)");
-    let mut protocol = serde_json::Map::new();
-    let mut pitch = 0.0;
-    let mut demo = serde_json::Value::Null;
-    let mut psf_depths_mm = Vec::new();
-    for (name, _) in LENSES {
+    // The three lenses at once (one thread each, as in training); merged in `LENSES` order.
+    let evals = for_each_lens(|name, _, _| {
+        let mut ev = LensEval::default();
         let ck = out.join(format!("runs/{name}/selected.bin"));
+        // Chains of its own: a chain keeps the last PSF stack it computed.
+        let proto_chain = CameraChain::for_dataset(&proto, chain_cfg.clone())?;
+        let chain = CameraChain::for_dataset(&train, chain_cfg.clone())?;
         let mut tr = Trainer::from_checkpoint(&proto_chain, &proto, &ck)?;
         // BN statistics from the training set's chain, then the protocol frames.
         let mut trn = Trainer::from_checkpoint(&chain, &train, &ck)?;
@@ -760,13 +726,13 @@ pub fn run(a: RunArgs) -> Result<()> {
                 v["dice"] = (e.dice.iter().sum::<f64>() / n).into();
                 v["slip_rmse_mm"] = (e.slip_sq_mm2.iter().sum::<f64>() / n).sqrt().into();
             }
-            protocol.insert(key.clone(), v);
+            ev.entries.push((key.clone(), v));
         }
         // Figures for the report: the lens's PSFs over depth, and three protocol frames
         // (centre target; slippage states 0, 3 and 6) as the network sees them.
         let (psf_png, depths) = crate::figures::psf_strip(&proto_chain, &map)?;
         util::write_atomic(&out.join(format!("runs/{name}/psfs.png")), &psf_png)?;
-        psf_depths_mm = depths;
+        ev.psf_depths_mm = depths;
         let ids: Vec<usize> = [24, 3 * 49 + 24, 6 * 49 + 24]
             .into_iter()
             .filter(|&i| i < proto.len())
@@ -774,10 +740,10 @@ pub fn run(a: RunArgs) -> Result<()> {
         let ex = crate::figures::example_strip(&mut tr.net, &setup, &ids)?;
         util::write_atomic(&out.join(format!("runs/{name}/examples.png")), &ex)?;
         if name == "learned" {
-            pitch = tr.pitch_um;
+            ev.pitch_um = Some(tr.pitch_um);
             // The demo sequence through the learned chain, frame by frame.
             let seq_setup = nanoeye_search::EvalSetup {
-                chain: &seq_chain,
+                chain: &CameraChain::for_dataset(&seq, chain_cfg.clone())?,
                 data: &seq,
                 ..setup
             };
@@ -806,9 +772,21 @@ pub fn run(a: RunArgs) -> Result<()> {
                 lines.push('\n');
             }
             util::write_atomic(&out.join("demo.jsonl"), lines.as_bytes())?;
-            demo = summarize(&e.errors_deg);
+            let mut demo = summarize(&e.errors_deg);
             demo["fallbacks"] = fallbacks(&e).into();
+            ev.demo = Some(demo);
         }
+        Ok(ev)
+    })?;
+    let mut protocol = serde_json::Map::new();
+    let mut pitch = 0.0;
+    let mut demo = serde_json::Value::Null;
+    let mut psf_depths_mm = Vec::new();
+    for ev in evals {
+        protocol.extend(ev.entries);
+        pitch = ev.pitch_um.unwrap_or(pitch);
+        demo = ev.demo.unwrap_or(demo);
+        psf_depths_mm = ev.psf_depths_mm;
     }
     stage("protocol", t.elapsed().as_secs_f64(), &mut stages)?;
     let result = serde_json::json!({
@@ -832,6 +810,145 @@ pub fn run(a: RunArgs) -> Result<()> {
         crate::report::html(&out, &result)?.as_bytes(),
     )?;
     print_result(&result, a.json)
+}
+
+/// One lens's share of the protocol stage's result.
+#[derive(Default)]
+struct LensEval {
+    /// `result.json`'s `protocol` entries of this lens: (key, summary).
+    entries: Vec<(String, serde_json::Value)>,
+    /// The final p̂ (µm), for the learned lens.
+    pitch_um: Option<f64>,
+    /// The demo sequence's summary, for the learned lens.
+    demo: Option<serde_json::Value>,
+    /// Depths (mm) of the PSF strip.
+    psf_depths_mm: Vec<f64>,
+}
+
+/// Runs `job(name, lens spec, failed)` for the three lenses at once, one thread each (their
+/// parallel parts share the rayon pool), and returns the results in `LENSES` order or the
+/// first error once all have stopped; `failed` is set as soon as one job fails, so that the
+/// long ones can stop early.
+fn for_each_lens<T: Send>(
+    job: impl Fn(&'static str, &'static str, &AtomicBool) -> Result<T> + Sync,
+) -> Result<Vec<T>> {
+    let failed = AtomicBool::new(false);
+    let results: Vec<Result<T>> = std::thread::scope(|s| {
+        let threads: Vec<_> = LENSES
+            .iter()
+            .map(|&(name, lens)| {
+                let (job, failed) = (&job, &failed);
+                // The main thread's stack size, not a spawned thread's 2 MiB default.
+                std::thread::Builder::new()
+                    .name(format!("lens-{name}"))
+                    .stack_size(8 << 20)
+                    .spawn_scoped(s, move || {
+                        let r = job(name, lens, failed);
+                        if r.is_err() {
+                            failed.store(true, Ordering::Relaxed);
+                        }
+                        r
+                    })
+            })
+            .collect();
+        threads
+            .into_iter()
+            .map(|t| {
+                t.context("starting a lens's thread")?
+                    .join()
+                    .unwrap_or_else(|_| Err(anyhow::anyhow!("a lens's thread panicked")))
+            })
+            .collect()
+    });
+    results.into_iter().collect()
+}
+
+/// One lens's sandwich training (stage 3 of the main job), resumed from its checkpoint; writes
+/// `runs/<name>/` (checkpoint, rig, phase map, history).
+struct LensTraining<'a> {
+    name: &'static str,
+    lens: &'static str,
+    /// The Fisher-initialized phase map (rad), for the learned lens.
+    init: Option<&'a Mat<f64>>,
+    train: &'a Dataset,
+    chain_cfg: &'a ChainConfig,
+    cfg: &'a RunConfig,
+    out: &'a Path,
+}
+
+impl LensTraining<'_> {
+    /// Trains to `cfg.train_steps`; stops early (without error) once `failed` is set by
+    /// another lens's training.
+    fn run(&self, note: &(dyn Fn(&str) + Sync), failed: &AtomicBool) -> Result<()> {
+        let (name, cfg, out) = (self.name, self.cfg, self.out);
+        let chain = CameraChain::for_dataset(self.train, self.chain_cfg.clone())?;
+        let ck = out.join(format!("runs/{name}/checkpoint.bin"));
+        let r = &chain.config().radiometry;
+        let map = self
+            .lens
+            .parse::<LensSpec>()
+            .map_err(anyhow::Error::msg)?
+            .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)?;
+        let phase = self.init.cloned().unwrap_or(map.phase_rad);
+        let mut tr = Trainer::new(
+            &chain,
+            self.train,
+            train_config(cfg, name != "learned"),
+            phase,
+        )?;
+        if ck.exists() {
+            tr.load(&ck).context("--out (resume)")?;
+        }
+        let ran = tr.step < cfg.train_steps;
+        if ran {
+            note(&format!(
+                "training the supernet behind the {name} lens ({} steps)",
+                cfg.train_steps
+            ));
+        }
+        let t = Instant::now();
+        while tr.step < cfg.train_steps {
+            if failed.load(Ordering::Relaxed) {
+                return Ok(());
+            }
+            let rec = tr.train_step()?;
+            if (rec.step + 1) % (cfg.train_steps / 4).max(1) == 0 {
+                note(&format!(
+                    "  {name} step {}: L_max {:.3}, L_min {:.3}, p̂ {:.2} µm",
+                    rec.step + 1,
+                    rec.loss_max,
+                    rec.loss_min,
+                    rec.pitch_um
+                ));
+                tr.save(&ck)?;
+            }
+        }
+        tr.save(&ck)?;
+        util::write_atomic(
+            &out.join(format!("runs/{name}/rig.json")),
+            serde_json::to_string_pretty(&self.train.manifest.rig)?.as_bytes(),
+        )?;
+        util::write_atomic(
+            &out.join(format!("runs/{name}/phase.npy")),
+            &crate::sim::npy_mat64(&tr.phase)?,
+        )?;
+        let lines: String = tr
+            .history
+            .iter()
+            .map(|h| serde_json::to_string(h).unwrap_or_default() + "\n")
+            .collect();
+        util::write_atomic(
+            &out.join(format!("runs/{name}/history.jsonl")),
+            lines.as_bytes(),
+        )?;
+        if ran {
+            note(&format!(
+                "  {name} trained in {:.0} s (beside the other lenses)",
+                t.elapsed().as_secs_f64()
+            ));
+        }
+        Ok(())
+    }
 }
 
 fn print_result(result: &serde_json::Value, json: bool) -> Result<()> {

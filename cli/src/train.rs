@@ -7,7 +7,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::Arch;
-use nanoeye_search::{LensSpec, StepRecord, TrainConfig, Trainer};
+use nanoeye_search::{CameraChain, LensSpec, StepRecord, TrainConfig, Trainer};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -539,6 +539,10 @@ pub struct ReaArgs {
     /// Seed.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Candidates evaluated at once, one thread and chain each (the result does not depend on
+    /// it; under MPI each worker rank evaluates one instead).
+    #[arg(long, default_value_t = 2)]
+    parallel: usize,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -548,6 +552,12 @@ pub struct ReaArgs {
 pub fn rea(a: ReaArgs) -> Result<()> {
     use nanoeye_search::{Rea, ReaConfig, ReaState};
     let t0 = Instant::now();
+    if !(1..=64).contains(&a.parallel) {
+        bail!(
+            "--parallel must be 1 to 64 candidates at once, got {}",
+            a.parallel
+        );
+    }
     let (ds, chain) = a.chain.build()?;
     let val = match &a.val {
         Some(p) => Some(Dataset::open(p).with_context(|| format!("--val {}", p.display()))?),
@@ -640,7 +650,12 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         pool.stop();
         done?;
     } else {
-        r.run(&mut save)?;
+        // A chain per thread: each keeps the last PSF stack it computed.
+        let extra = (1..a.parallel)
+            .map(|_| CameraChain::for_dataset(&ds, chain.config().clone()))
+            .collect::<nanoeye_search::Result<Vec<_>>>()?;
+        let chains: Vec<&CameraChain> = std::iter::once(&chain).chain(&extra).collect();
+        r.run_threads(&chains, &mut save)?;
     }
     bar.finish_and_clear();
     let best = r.best().context("the search evaluated nothing")?;

@@ -19,6 +19,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
+use std::sync::{Mutex, mpsc};
 
 /// REA hyper-parameters; defaults are Table S1's.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -216,6 +217,30 @@ impl EvalPool for Inline<'_> {
     }
 }
 
+/// Threads of this process, one [`Evaluator`] each, fed through a channel: what
+/// [`Rea::run_threads`] hands to [`Rea::run_pool`].
+struct Threads {
+    slots: usize,
+    tasks: mpsc::Sender<(usize, Arch)>,
+    results: mpsc::Receiver<Result<Individual>>,
+}
+
+fn stopped() -> crate::error::SearchError {
+    param("pool", "the evaluating threads have stopped")
+}
+
+impl EvalPool for Threads {
+    fn slots(&self) -> usize {
+        self.slots
+    }
+    fn submit(&mut self, id: usize, arch: &Arch) -> Result<()> {
+        self.tasks.send((id, arch.clone())).map_err(|_| stopped())
+    }
+    fn next(&mut self) -> Result<Individual> {
+        self.results.recv().map_err(|_| stopped())?
+    }
+}
+
 /// A cycle whose child was sent out: what its record needs once the child is back.
 struct Dispatched {
     population: Vec<usize>,
@@ -336,6 +361,67 @@ impl<'a> Rea<'a> {
             queue: VecDeque::new(),
         };
         self.run_pool(&mut pool, save)
+    }
+
+    /// Runs (or continues) the search with `chains.len()` candidates evaluated at once, one
+    /// thread per chain (their parallel parts share the rayon pool), with the result of
+    /// [`Rea::run`]: same individuals, cycles and saved states. The chains must be built
+    /// alike (as this search's own); each thread needs its own because a chain keeps the last
+    /// PSF stack it computed.
+    pub fn run_threads(
+        &mut self,
+        chains: &[&CameraChain],
+        save: &mut dyn FnMut(&ReaState) -> Result<()>,
+    ) -> Result<()> {
+        if chains.len() <= 1 {
+            return self.run(save);
+        }
+        let (task_tx, task_rx) = mpsc::channel::<(usize, Arch)>();
+        let task_rx = Mutex::new(task_rx);
+        let (res_tx, res_rx) = mpsc::channel::<Result<Individual>>();
+        let (train, val) = (self.train, self.val);
+        let (run, config) = (self.run.clone(), self.state.config.clone());
+        std::thread::scope(|s| {
+            for &chain in chains {
+                let ev = Evaluator {
+                    chain,
+                    train,
+                    val,
+                    run: run.clone(),
+                    config: config.clone(),
+                };
+                let (rx, tx) = (&task_rx, res_tx.clone());
+                s.spawn(move || {
+                    loop {
+                        // Only waiting for a task holds the lock, not evaluating one.
+                        let task = match rx.lock() {
+                            Ok(r) => r.recv(),
+                            Err(_) => break,
+                        };
+                        let Ok((id, arch)) = task else { break };
+                        // A panic becomes an error, so the search does not wait for it forever.
+                        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                            ev.evaluate(id, &arch)
+                        }))
+                        .unwrap_or_else(|_| {
+                            Err(param("pool", format!("evaluating candidate {id} panicked")))
+                        });
+                        if tx.send(r).is_err() {
+                            break;
+                        }
+                    }
+                });
+            }
+            drop(res_tx);
+            let mut pool = Threads {
+                slots: chains.len(),
+                tasks: task_tx,
+                results: res_rx,
+            };
+            // Dropping the pool closes the task channel: idle threads leave, busy ones after
+            // their candidate.
+            self.run_pool(&mut pool, save)
+        })
     }
 
     /// Population ids, oldest first, at the start of cycle `c` (≥ cycles done): the current

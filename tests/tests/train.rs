@@ -300,3 +300,35 @@ fn a_pool_answering_out_of_order_gives_the_sequential_search() {
     // difference either.
     assert_eq!(par_saves, seq_saves);
 }
+
+#[test]
+fn threads_with_their_own_chains_give_the_sequential_search() {
+    use nanoeye_search::Rea;
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 5);
+    let c = chain(&ds);
+    let run = trained_run(d.path(), &c, &ds);
+    // With fine-tuning (φ moves), so each thread's chain computes its own PSF stacks.
+    let cfg = nanoeye_search::ReaConfig {
+        population: 3,
+        cycles: 4,
+        ..rea_cfg()
+    };
+    let mut seq = Rea::new(&c, &ds, &ds, &run, cfg.clone()).unwrap();
+    let mut seq_saves = Vec::new();
+    seq.run(&mut |s| {
+        seq_saves.push(serde_json::to_string(s).unwrap());
+        Ok(())
+    })
+    .unwrap();
+    let c2 = chain(&ds);
+    let mut par = Rea::new(&c, &ds, &ds, &run, cfg).unwrap();
+    let mut par_saves = Vec::new();
+    par.run_threads(&[&c, &c2], &mut |s| {
+        par_saves.push(serde_json::to_string(s).unwrap());
+        Ok(())
+    })
+    .unwrap();
+    assert_eq!(par_saves.len(), 3 + 4);
+    assert_eq!(par_saves, seq_saves);
+}
