@@ -255,26 +255,40 @@ impl nanoeye_search::EvalPool for NewestFirst<'_> {
     }
 }
 
+/// A one-pair dataset, its chain and a 2-step trained run, in `dir`.
+fn search_fixture(dir: &std::path::Path) -> (Dataset, CameraChain, std::path::PathBuf) {
+    let ds = dataset(dir, 5);
+    let c = chain(&ds);
+    let run = trained_run(dir, &c, &ds);
+    (ds, c, run)
+}
+
+type Save<'s> = dyn FnMut(&nanoeye_search::ReaState) -> nanoeye_search::Result<()> + 's;
+
+/// Every state a search saves, as JSON, in order.
+fn saved_states(search: impl FnOnce(&mut Save) -> nanoeye_search::Result<()>) -> Vec<String> {
+    let mut saves = Vec::new();
+    search(&mut |s| {
+        saves.push(serde_json::to_string(s).unwrap());
+        Ok(())
+    })
+    .unwrap();
+    saves
+}
+
 #[test]
 fn a_pool_answering_out_of_order_gives_the_sequential_search() {
     use nanoeye_search::Rea;
     let d = tempfile::tempdir().unwrap();
-    let ds = dataset(d.path(), 5);
-    let c = chain(&ds);
-    let run = trained_run(d.path(), &c, &ds);
+    let (ds, c, run) = search_fixture(d.path());
     let cfg = nanoeye_search::ReaConfig {
         epochs: 0.0,
         population: 4,
         cycles: 8,
         ..rea_cfg()
     };
-    let mut seq = Rea::new(&c, &ds, &ds, &run, cfg.clone()).unwrap();
-    let mut seq_saves = Vec::new();
-    seq.run(&mut |s| {
-        seq_saves.push(serde_json::to_string(s).unwrap());
-        Ok(())
-    })
-    .unwrap();
+    let seq_saves =
+        saved_states(|save| Rea::new(&c, &ds, &ds, &run, cfg.clone()).unwrap().run(save));
     let mut par = Rea::new(&c, &ds, &ds, &run, cfg).unwrap();
     let mut pool = NewestFirst {
         eval: par.evaluator(),
@@ -283,12 +297,7 @@ fn a_pool_answering_out_of_order_gives_the_sequential_search() {
         most_in_flight: 0,
         submitted: Vec::new(),
     };
-    let mut par_saves = Vec::new();
-    par.run_pool(&mut pool, &mut |s| {
-        par_saves.push(serde_json::to_string(s).unwrap());
-        Ok(())
-    })
-    .unwrap();
+    let par_saves = saved_states(|save| par.run_pool(&mut pool, save));
     assert_eq!(pool.most_in_flight, 3, "the pool was kept busy");
     // Some cycle's child went out before an earlier cycle's (its tournament was ready first).
     assert!(
@@ -305,30 +314,18 @@ fn a_pool_answering_out_of_order_gives_the_sequential_search() {
 fn threads_with_their_own_chains_give_the_sequential_search() {
     use nanoeye_search::Rea;
     let d = tempfile::tempdir().unwrap();
-    let ds = dataset(d.path(), 5);
-    let c = chain(&ds);
-    let run = trained_run(d.path(), &c, &ds);
+    let (ds, c, run) = search_fixture(d.path());
     // With fine-tuning (φ moves), so each thread's chain computes its own PSF stacks.
     let cfg = nanoeye_search::ReaConfig {
         population: 3,
         cycles: 4,
         ..rea_cfg()
     };
-    let mut seq = Rea::new(&c, &ds, &ds, &run, cfg.clone()).unwrap();
-    let mut seq_saves = Vec::new();
-    seq.run(&mut |s| {
-        seq_saves.push(serde_json::to_string(s).unwrap());
-        Ok(())
-    })
-    .unwrap();
+    let seq_saves =
+        saved_states(|save| Rea::new(&c, &ds, &ds, &run, cfg.clone()).unwrap().run(save));
     let c2 = chain(&ds);
     let mut par = Rea::new(&c, &ds, &ds, &run, cfg).unwrap();
-    let mut par_saves = Vec::new();
-    par.run_threads(&[&c, &c2], &mut |s| {
-        par_saves.push(serde_json::to_string(s).unwrap());
-        Ok(())
-    })
-    .unwrap();
+    let par_saves = saved_states(|save| par.run_threads(&[&c, &c2], save));
     assert_eq!(par_saves.len(), 3 + 4);
     assert_eq!(par_saves, seq_saves);
 }
