@@ -13,13 +13,26 @@ use crate::psf::fast_fft_size;
 use faer::{Mat, c64};
 use rustfft::{Fft, FftPlanner};
 use std::ops::Range;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// Columns per block in the column pass of the 2-D FFT.
 const COLS: usize = 16;
 
 /// Side of the square tiles in which a column-major matrix meets a row-major grid.
 const TILE: usize = 32;
+
+/// Rows packed at once from a layer's column-major matrices: each column then gives 16
+/// consecutive f32 (one cache line) per band instead of one value per row, and the band
+/// (16 padded rows, 344 KB at 1344 columns) stays in cache until its rows are transformed.
+const PACK_ROWS: usize = 16;
+
+/// Work spaces kept for reuse per imager: more than the threads that image frames at once
+/// is never needed.
+const POOL_MAX: usize = 16;
+
+/// Spent gradient spectra kept for reuse per imager: a batch's frames in flight times the
+/// kernels (8 slabs × 4 frames in `search`), beyond which they are freed.
+const SPARE_MAX: usize = 32;
 
 /// The columns of a column-major matrix as slices (faer stores an owned `Mat` that way).
 fn columns(m: &Mat<f32>) -> Vec<&[f32]> {
@@ -82,6 +95,13 @@ pub struct LayeredImager {
     fx: Arc<dyn Fft<f64>>,
     iy: Arc<dyn Fft<f64>>,
     ix: Arc<dyn Fft<f64>>,
+    /// Work spaces of finished spectral calls, taken by the next ones: a padded grid is
+    /// 19 MB at 1280×800, and allocating and zeroing two per frame showed in profiles.
+    pool: Mutex<Vec<SpectralBuffers>>,
+    /// Spectra of merged or finished gradient accumulators (ny·nx each, contents stale): a
+    /// frame's accumulator needs one per kernel, 19 MB each at 1280×800, and fresh ones were
+    /// most of the page faults of a backward pass.
+    spare: Mutex<Vec<Vec<c64>>>,
 }
 
 /// Per layer kept for the VJP: the image below it I⁽ᵏ⁻¹⁾ and its occlusion α∗P.
@@ -93,6 +113,8 @@ struct SpectralBuffers {
     blk: Vec<c64>,
     blk2: Vec<c64>,
     scratch: Vec<c64>,
+    /// The gradient's padded grid of [`LayeredImager::vjp_kernels`] (empty until needed).
+    g: Vec<c64>,
 }
 
 struct Buffers {
@@ -127,6 +149,8 @@ impl LayeredImager {
             fx: pl.plan_fft_forward(nx),
             iy: pl.plan_fft_inverse(ny),
             ix: pl.plan_fft_inverse(nx),
+            pool: Mutex::new(Vec::new()),
+            spare: Mutex::new(Vec::new()),
         })
     }
 
@@ -445,18 +469,19 @@ impl LayeredImager {
                     }
                     self.fx
                         .process_with_scratch(&mut sb.a[..self.wp * nx], &mut sb.scratch);
-                    let mut out = vec![c64::new(0.0, 0.0); nx * ny];
+                    let mut out = Vec::with_capacity(nx * ny);
                     for c0 in (0..nx).step_by(COLS) {
                         let bw = COLS.min(nx - c0);
                         let blk = &mut sb.blk[..bw * ny];
                         self.gather(&sb.a, c0, rows.clone(), blk);
                         self.fy.process_with_scratch(blk, &mut sb.scratch);
-                        out[c0 * ny..(c0 + bw) * ny].copy_from_slice(blk);
+                        out.extend_from_slice(blk);
                     }
                     spec.push(Some(out));
                 }
             }
         }
+        self.give_back(sb);
         Ok(KernelSpectra { spec })
     }
 
@@ -497,9 +522,13 @@ impl LayeredImager {
         Ok(())
     }
 
-    /// Work space of the spectral path: one padded grid (rows are written before use), two
-    /// column blocks and FFT scratch.
+    /// Work space of the spectral path: one padded grid (every row is written before it is
+    /// read, so a reused one needs no clearing), two column blocks and FFT scratch; one a
+    /// finished call returned when there is one.
     fn spectral_buffers(&self) -> SpectralBuffers {
+        if let Some(sb) = self.pool.lock().ok().and_then(|mut p| p.pop()) {
+            return sb;
+        }
         let s = self.scratch_len();
         let z = c64::new(0.0, 0.0);
         SpectralBuffers {
@@ -507,6 +536,38 @@ impl LayeredImager {
             blk: vec![z; COLS * self.ny],
             blk2: vec![z; COLS * self.ny],
             scratch: vec![z; s],
+            g: Vec::new(),
+        }
+    }
+
+    /// Returns a work space for the next call.
+    fn give_back(&self, sb: SpectralBuffers) {
+        if let Ok(mut p) = self.pool.lock() {
+            if p.len() < POOL_MAX {
+                p.push(sb);
+            }
+        }
+    }
+
+    /// An empty spectrum with room for the padded grid, reused when one was given back.
+    fn spare_spectrum(&self) -> Vec<c64> {
+        let n = self.ny * self.nx;
+        match self.spare.lock().ok().and_then(|mut s| s.pop()) {
+            Some(mut v) => {
+                v.clear();
+                v.reserve_exact(n);
+                v
+            }
+            None => Vec::with_capacity(n),
+        }
+    }
+
+    /// Keeps a spent spectrum for [`Self::spare_spectrum`].
+    fn recycle(&self, v: Vec<c64>) {
+        if let Ok(mut s) = self.spare.lock() {
+            if s.len() < SPARE_MAX {
+                s.push(v);
+            }
         }
     }
 
@@ -538,19 +599,33 @@ impl LayeredImager {
     }
 
     /// Packs αL + iα of a layer into rows 0..H of `a` (zero beyond column W) and transforms
-    /// each row while it is still in cache; the column transform happens block by block in
-    /// the caller.
-    fn layer_rows(&self, l: &SpectralLayer, a: &mut [c64], scratch: &mut [c64]) {
+    /// each row that holds data while it is still in cache; the column transform happens
+    /// block by block in the caller. Returns the rows from the first to the last with data:
+    /// a row with α ≡ 0 is zero (αL = 0 too) and so is its transform, which is skipped, and
+    /// the caller's column pass need not read the rows outside.
+    fn layer_rows(&self, l: &SpectralLayer, a: &mut [c64], scratch: &mut [c64]) -> Range<usize> {
         let (h, w, nx) = (self.h, self.w, self.nx);
         let (al, rad) = (columns(l.alpha), columns(l.radiance));
-        for (r, row) in a.chunks_exact_mut(nx).take(h).enumerate() {
-            for ((v, al), rad) in row.iter_mut().zip(&al).zip(&rad) {
-                let x = al[r] as f64;
-                *v = c64::new(x * rad[r] as f64, x);
+        let (mut first, mut end) = (h, 0);
+        for r0 in (0..h).step_by(PACK_ROWS) {
+            let r1 = (r0 + PACK_ROWS).min(h);
+            let band = &mut a[r0 * nx..r1 * nx];
+            for (c, (al, rad)) in al.iter().zip(&rad).enumerate() {
+                for (i, (&x, &y)) in al[r0..r1].iter().zip(&rad[r0..r1]).enumerate() {
+                    let x = x as f64;
+                    band[i * nx + c] = c64::new(x * y as f64, x);
+                }
             }
-            row[w..].fill(c64::new(0.0, 0.0));
-            self.fx.process_with_scratch(row, scratch);
+            for (i, row) in band.chunks_exact_mut(nx).enumerate() {
+                row[w..].fill(c64::new(0.0, 0.0));
+                if row[..w].iter().any(|v| v.im != 0.0) {
+                    first = first.min(r0 + i);
+                    end = r0 + i + 1;
+                    self.fx.process_with_scratch(row, scratch);
+                }
+            }
         }
+        first.min(end)..end
     }
 
     /// S1 with precomputed kernel spectra (two FFTs per non-empty layer); keeps the tape the
@@ -577,12 +652,12 @@ impl LayeredImager {
                 saved.push(None);
                 continue;
             }
-            self.layer_rows(l, &mut sb.a, &mut sb.scratch);
+            let live = self.layer_rows(l, &mut sb.a, &mut sb.scratch);
             let p = ks.spec[l.kernel].as_ref().expect("checked");
             for c0 in (0..nx).step_by(COLS) {
                 let bw = COLS.min(nx - c0);
                 let blk = &mut sb.blk[..bw * ny];
-                self.gather(&sb.a, c0, 0..h, blk);
+                self.gather(&sb.a, c0, live.clone(), blk);
                 self.fy.process_with_scratch(blk, &mut sb.scratch);
                 blk.iter_mut()
                     .zip(&p[c0 * ny..(c0 + bw) * ny])
@@ -605,6 +680,7 @@ impl LayeredImager {
             }
             saved.push(Some((std::mem::replace(&mut prev, cur), o)));
         }
+        self.give_back(sb);
         let image = prev;
         let mut m = Mat::<f32>::zeros(h, w);
         tiles(h, w, |r, c| m[(r, c)] = image[r * w + c]);
@@ -638,7 +714,10 @@ impl LayeredImager {
         let mut gi = vec![0.0f64; h * w];
         tiles(h, w, |r, c| gi[r * w + c] = grad[(r, c)]);
         let mut sb = self.spectral_buffers();
-        let mut g = vec![c64::new(0.0, 0.0); ny * nx];
+        // Rows cy .. cy + H are written for every layer before they are read, the others
+        // never read: a reused grid needs no clearing.
+        let mut g = std::mem::take(&mut sb.g);
+        g.resize(ny * nx, c64::new(0.0, 0.0));
         let norm = 1.0 / (ny * nx) as f64;
         let n = layers.len();
         // I⁽ᵏ⁾ of each layer: the next non-empty layer's `prev`, or the final image.
@@ -672,31 +751,49 @@ impl LayeredImager {
                 self.fx.process_with_scratch(row, &mut sb.scratch);
             }
             let live = cy..cy + h;
-            self.layer_rows(l, &mut sb.a, &mut sb.scratch);
-            let slot = acc.spec[l.kernel].get_or_insert_with(|| vec![c64::new(0.0, 0.0); g.len()]);
+            let rows = self.layer_rows(l, &mut sb.a, &mut sb.scratch);
+            // A kernel's first term is written, not added to zeros: the accumulator of a
+            // frame (nx·ny per kernel) is then filled once instead of cleared and summed into.
+            let fresh = acc.spec[l.kernel].is_none();
+            let slot = acc.spec[l.kernel].get_or_insert_with(|| self.spare_spectrum());
             for c0 in (0..nx).step_by(COLS) {
                 let bw = COLS.min(nx - c0);
                 let (gb, ab) = (&mut sb.blk[..bw * ny], &mut sb.blk2[..bw * ny]);
                 self.gather(&g, c0, live.clone(), gb);
                 self.fy.process_with_scratch(gb, &mut sb.scratch);
-                self.gather(&sb.a, c0, 0..h, ab);
+                self.gather(&sb.a, c0, rows.clone(), ab);
                 self.fy.process_with_scratch(ab, &mut sb.scratch);
-                slot[c0 * ny..(c0 + bw) * ny]
-                    .iter_mut()
-                    .zip(gb.iter().zip(ab.iter()))
-                    .for_each(|(s, (gg, a))| *s += gg * a.conj() * norm);
+                let term = gb.iter().zip(ab.iter()).map(|(gg, a)| gg * a.conj() * norm);
+                if fresh {
+                    slot.extend(term);
+                } else {
+                    slot[c0 * ny..(c0 + bw) * ny]
+                        .iter_mut()
+                        .zip(term)
+                        .for_each(|(s, t)| *s += t);
+                }
             }
             acc.radiance_scale[l.kernel] += dot;
             above = prev;
         }
+        sb.g = g;
+        self.give_back(sb);
         Ok(())
     }
 
-    /// Sums `other` into `acc` (per-thread accumulators of a batch).
-    pub fn merge_kernel_grads(acc: &mut KernelGradAccumulator, other: KernelGradAccumulator) {
+    /// Sums `other` into `acc` (per-frame accumulators of a batch); its spent spectra are
+    /// kept for the next frames' accumulators.
+    pub fn merge_kernel_grads(
+        &self,
+        acc: &mut KernelGradAccumulator,
+        other: KernelGradAccumulator,
+    ) {
         for (a, o) in acc.spec.iter_mut().zip(other.spec) {
             match (a.as_mut(), o) {
-                (Some(x), Some(y)) => x.iter_mut().zip(&y).for_each(|(p, q)| *p += q),
+                (Some(x), Some(y)) => {
+                    x.iter_mut().zip(&y).for_each(|(p, q)| *p += q);
+                    self.recycle(y);
+                }
                 (None, Some(y)) => *a = Some(y),
                 _ => {}
             }
@@ -712,7 +809,8 @@ impl LayeredImager {
         let (nx, ny, wp) = (self.nx, self.ny, self.wp);
         let mut sb = self.spectral_buffers();
         let mut row = vec![c64::new(0.0, 0.0); nx];
-        acc.spec
+        let grads = acc
+            .spec
             .into_iter()
             .map(|s| match s {
                 None => Mat::zeros(wp, wp),
@@ -728,10 +826,13 @@ impl LayeredImager {
                             out[(r, c)] = row[c].re;
                         }
                     }
+                    self.recycle(v);
                     out
                 }
             })
-            .collect()
+            .collect();
+        self.give_back(sb);
+        grads
     }
 }
 

@@ -141,3 +141,117 @@ fn saving_over_a_symlink_is_refused() {
     assert!(nanoeye_optics::io::save_stack_npy(&stack, &link).is_err());
     assert!(!target.exists());
 }
+
+/// A layer whose α is zero outside `rows` and on every row `r` with `r % gap == 0`.
+fn banded_alpha(h: usize, w: usize, rows: std::ops::Range<usize>, gap: usize) -> Mat<f32> {
+    Mat::from_fn(h, w, |i, j| {
+        if rows.contains(&i) && i % gap != 0 {
+            0.2 + ((i * 3 + j * 7) % 5) as f32 / 8.0
+        } else {
+            0.0
+        }
+    })
+}
+
+/// Forward image and ∂loss/∂P of the spectral path.
+fn spectral_run(
+    im: &LayeredImager,
+    layers: &[SpectralLayer],
+    psfs: &[Mat<f32>],
+    g: &Mat<f64>,
+) -> (Mat<f32>, Vec<Mat<f64>>, Vec<f64>) {
+    let ks = im
+        .kernel_spectra(&psfs.iter().map(Some).collect::<Vec<_>>())
+        .unwrap();
+    let (img, tape) = im.forward_spectral(layers, &ks).unwrap();
+    let mut acc = im.kernel_grad_accumulator(psfs.len());
+    im.vjp_kernels(layers, &tape, g, &mut acc).unwrap();
+    // A second frame merged in, as a batch does: the merged spectra are reused.
+    let mut other = im.kernel_grad_accumulator(psfs.len());
+    im.vjp_kernels(layers, &tape, g, &mut other).unwrap();
+    im.merge_kernel_grads(&mut acc, other);
+    let scale = acc.radiance_scale.clone();
+    (img, im.kernel_grads(acc), scale)
+}
+
+#[test]
+fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
+    // 40 rows: several 16-row packing bands; data in a few rows of each layer only.
+    let (h, w, wp) = (40, 19, 5);
+    let im = LayeredImager::new(h, w, wp).unwrap();
+    let psfs: Vec<Mat<f32>> = (0..2)
+        .map(|s| Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + ((i + s) * (j + 2)) as f32)))
+        .collect();
+    let rad: Vec<Mat<f32>> = (0..3).map(|s| img(h, w, s)).collect();
+    let al = [
+        banded_alpha(h, w, 3..9, 100),
+        banded_alpha(h, w, 20..38, 5),
+        banded_alpha(h, w, 15..17, 100),
+    ];
+    let kernel = [0usize, 1, 0];
+    let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
+    let spectral: Vec<SpectralLayer> = (0..3)
+        .map(|l| SpectralLayer {
+            radiance: &rad[l],
+            alpha: &al[l],
+            kernel: kernel[l],
+        })
+        .collect();
+    let reference: Vec<Layer> = (0..3)
+        .map(|l| Layer {
+            radiance: &rad[l],
+            alpha: &al[l],
+            psf: &psfs[kernel[l]],
+        })
+        .collect();
+    // Dense layers first, so that the sparse run below gets work spaces full of their data.
+    let dense_al: Vec<Mat<f32>> = (0..3).map(|s| alpha(h, w, s)).collect();
+    let dense: Vec<SpectralLayer> = (0..3)
+        .map(|l| SpectralLayer {
+            radiance: &rad[l],
+            alpha: &dense_al[l],
+            kernel: kernel[l],
+        })
+        .collect();
+    spectral_run(&im, &dense, &psfs, &g);
+    let (got, kg, scale) = spectral_run(&im, &spectral, &psfs, &g);
+    let want = im.forward_f64_image(&reference).unwrap();
+    for i in 0..h {
+        for j in 0..w {
+            assert!(
+                (got[(i, j)] as f64 - want[(i, j)]).abs() < 1e-5 * (1.0 + want[(i, j)].abs()),
+                "({i},{j}): {} vs {}",
+                got[(i, j)],
+                want[(i, j)]
+            );
+        }
+    }
+    let lg = im.vjp(&reference, &g).unwrap();
+    for k in 0..2 {
+        for i in 0..wp {
+            for j in 0..wp {
+                // Two frames of the same layers were merged.
+                let want: f64 = 2.0
+                    * (0..3)
+                        .filter(|&l| kernel[l] == k)
+                        .map(|l| lg.psf[l][(i, j)])
+                        .sum::<f64>();
+                assert!(
+                    (kg[k][(i, j)] - want).abs() < 1e-4 * (1.0 + want.abs()),
+                    "kernel {k} ({i},{j}): {} vs {want}",
+                    kg[k][(i, j)]
+                );
+            }
+        }
+    }
+    // The same calls again on the imager's reused work spaces: the same bits.
+    let (got2, kg2, scale2) = spectral_run(&im, &spectral, &psfs, &g);
+    assert_eq!(got, got2);
+    assert_eq!(kg, kg2);
+    assert_eq!(scale, scale2);
+    // And on a fresh imager, whose work spaces are new.
+    let fresh = LayeredImager::new(h, w, wp).unwrap();
+    let (got3, kg3, _) = spectral_run(&fresh, &spectral, &psfs, &g);
+    assert_eq!(got, got3);
+    assert_eq!(kg, kg3);
+}

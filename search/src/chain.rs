@@ -630,7 +630,7 @@ impl CameraChain {
             for r in per {
                 let (dp, local) = r?;
                 acc.p_hat += dp;
-                LayeredImager::merge_kernel_grads(&mut acc.kernels, local);
+                self.imager.merge_kernel_grads(&mut acc.kernels, local);
             }
         }
         Ok(())
