@@ -1,7 +1,9 @@
 //! Batch-1 inference of one subnet on the calling thread, for the tracker: batch norms folded
 //! into the convolutions before them, elastic kernels and weight sub-matrices extracted once,
 //! every activation buffer allocated once at construction, no gradient state. Computes the same
-//! function as [`Supernet::forward`] in [`crate::BnMode::Eval`] (to float rounding).
+//! function as [`Supernet::forward`] in [`crate::BnMode::Eval`] to float rounding, except that
+//! the calibration head's hidden layer holds its weights in half precision (`HalfDense`: the
+//! tracker's one memory-bound layer), which moves Δt by a bounded amount the tests check.
 //!
 //! Features are stored pixel-major (HWC: one row of C channels per pixel), not in the
 //! supernet's NCHW planes. At the subnets' deep stages a plane holds 6–24 pixels but there are
@@ -126,6 +128,102 @@ impl Pointwise {
             Par::Seq,
         );
         bias_act(y, &self.b, self.act);
+    }
+}
+
+/// A dense layer y = act(W x + b) whose weights are stored in IEEE half precision: the
+/// calibration head's hidden layer (1360 → 1280 at the default head, 7 MB in f32) is the
+/// largest weight matrix of the tracker and is streamed whole for every frame, so its bytes,
+/// not its 1.7 M multiply-adds, bound it. Rounding each weight to f16 (relative error ≤ 2⁻¹¹,
+/// absolute ≤ 2⁻²⁵ below f16's normal range) moves each output by at most
+/// 2⁻¹¹·Σᵢ|xᵢ wᵢⱼ| + 2⁻²⁵·Σᵢ|xᵢ| (the bound the tests check); sums are in f32.
+struct HalfDense {
+    /// Wᵀ (cin × cout), row-major, as f16 bits.
+    wt: Vec<u16>,
+    b: Vec<f32>,
+    cin: usize,
+    cout: usize,
+    act: Act,
+}
+
+impl HalfDense {
+    fn new(d: &crate::supernet::Dense, cin: usize, act: Act) -> Self {
+        let wt = transpose(&d.w.value, d.cout, cin)
+            .into_iter()
+            .map(|v| half::f16::from_f32(v).to_bits())
+            .collect();
+        Self {
+            wt,
+            b: d.b.value.clone(),
+            cin,
+            cout: d.cout,
+            act,
+        }
+    }
+
+    /// y (cout) = act(W x + b) for one input x (cin).
+    fn run(&self, x: &[f32], y: &mut [f32]) {
+        let (x, y) = (&x[..self.cin], &mut y[..self.cout]);
+        y.fill(0.0);
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx")
+            && std::arch::is_x86_feature_detected!("fma")
+            && std::arch::is_x86_feature_detected!("f16c")
+        {
+            // SAFETY: AVX, FMA and F16C were detected on this CPU just above.
+            unsafe { self.accumulate_f16c(x, y) };
+            bias_act(y, &self.b, self.act);
+            return;
+        }
+        for (&xi, row) in x.iter().zip(self.wt.chunks_exact(self.cout)) {
+            for (v, &w) in y.iter_mut().zip(row) {
+                *v += xi * half::f16::from_bits(w).to_f32();
+            }
+        }
+        bias_act(y, &self.b, self.act);
+    }
+
+    /// y += Wᵀ-rows · x: four input rows per sweep over y, so y is loaded and stored once per
+    /// four rows; eight outputs per instruction, f16 → f32 by F16C.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx,fma,f16c")]
+    fn accumulate_f16c(&self, x: &[f32], y: &mut [f32]) {
+        use std::arch::x86_64::*;
+        let n = self.cout;
+        let full = n / 8 * 8;
+        let mut rows = self.wt.chunks_exact(n).zip(x);
+        loop {
+            let mut r: [(&[u16], f32); 4] = [(&[], 0.0); 4];
+            let mut m = 0;
+            for slot in r.iter_mut() {
+                match rows.next() {
+                    Some((row, &xi)) => {
+                        *slot = (row, xi);
+                        m += 1;
+                    }
+                    None => break,
+                }
+            }
+            if m == 0 {
+                break;
+            }
+            for j in (0..full).step_by(8) {
+                // SAFETY: j + 8 ≤ n = the length of y and of every row.
+                unsafe {
+                    let mut acc = _mm256_loadu_ps(y.as_ptr().add(j));
+                    for &(row, xi) in &r[..m] {
+                        let w = _mm256_cvtph_ps(_mm_loadu_si128(row.as_ptr().add(j).cast()));
+                        acc = _mm256_fmadd_ps(w, _mm256_set1_ps(xi), acc);
+                    }
+                    _mm256_storeu_ps(y.as_mut_ptr().add(j), acc);
+                }
+            }
+            for (j, v) in y.iter_mut().enumerate().skip(full) {
+                for &(row, xi) in &r[..m] {
+                    *v = xi.mul_add(half::f16::from_bits(row[j]).to_f32(), *v);
+                }
+            }
+        }
     }
 }
 
@@ -367,7 +465,7 @@ pub struct Inference {
     head_hw: (usize, usize),
     /// The stride-8 feature map (rows, columns).
     head_hw8: (usize, usize),
-    hidden: Pointwise,
+    hidden: HalfDense,
     hidden_out: Vec<f32>,
     slip_head: Pointwise,
 }
@@ -545,7 +643,7 @@ impl Inference {
             head_g: vec![0.0; head_inputs(cfg.head_expand)],
             head_hw: size,
             head_hw8: size8,
-            hidden: dense(&net.head_hidden, head_inputs(cfg.head_expand), Act::HSwish),
+            hidden: HalfDense::new(&net.head_hidden, head_inputs(cfg.head_expand), Act::HSwish),
             hidden_out: vec![0.0; cfg.head_hidden],
             slip_head: dense(&net.head_out, cfg.head_hidden, Act::Identity),
         })
@@ -653,7 +751,7 @@ impl Inference {
         let (m32, m8) = rest.split_at_mut(2 * c_last);
         moments_hwc(&f32_.out, self.head_hw, m32);
         moments_hwc(&f8.out, self.head_hw8, m8);
-        self.hidden.run(&self.head_g, 1, &mut self.hidden_out);
+        self.hidden.run(&self.head_g, &mut self.hidden_out);
         let mut slip = [0.0f32; 3];
         self.slip_head.run(&self.hidden_out, 1, &mut slip);
         slip
@@ -739,15 +837,98 @@ mod tests {
             // Twice: buffers reused across frames must not leak state between them.
             for _ in 0..2 {
                 let got = inf.run(&x).unwrap();
-                let err = maxdiff(got.mask_logits, &want.mask_logits.data);
+                let (logits, slip) = (got.mask_logits.to_vec(), got.slip);
+                let err = maxdiff(&logits, &want.mask_logits.data);
                 assert!(
                     err <= tol_logits,
                     "logits differ by {err} (tolerance {tol_logits})"
                 );
-                let err = maxdiff(&got.slip, &want.slip.data);
+                // The hidden layer's f16 weights (HalfDense): its outputs move by at most
+                // 2⁻¹¹·Σ|xᵢwᵢⱼ| + 2⁻²⁵·Σ|xᵢ|, hard-swish passes at most 1.5× that on, and
+                // the slip head sums it with its weights' magnitudes.
+                let (hid, out) = (&net.head_hidden, &net.head_out);
+                let cin_h = inf.head_g.len();
+                let sx: f32 = inf.head_g.iter().map(|v| v.abs()).sum();
+                let dy: Vec<f32> = (0..hid.cout)
+                    .map(|j| {
+                        let row = &hid.w.value[j * cin_h..(j + 1) * cin_h];
+                        let sxw: f32 = row
+                            .iter()
+                            .zip(&inf.head_g)
+                            .map(|(a, b)| (a * b).abs())
+                            .sum();
+                        2f32.powi(-11) * sxw + 2f32.powi(-25) * sx
+                    })
+                    .collect();
+                let f16_bound = (0..3)
+                    .map(|k| {
+                        let row = &out.w.value[k * hid.cout..(k + 1) * hid.cout];
+                        row.iter()
+                            .zip(&dy)
+                            .map(|(a, d)| a.abs() * 1.5 * d)
+                            .sum::<f32>()
+                    })
+                    .fold(0.0f32, f32::max);
+                let err = maxdiff(&slip, &want.slip.data);
                 assert!(
-                    err <= tol_slip,
-                    "slip differs by {err} (tolerance {tol_slip})"
+                    err <= tol_slip + f16_bound,
+                    "slip differs by {err} (tolerance {tol_slip} + f16 bound {f16_bound})"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn half_dense_computes_the_product_with_the_rounded_weights() {
+        use crate::supernet::Dense;
+        use crate::tensor::Param;
+        // Odd sizes: the four-row groups and the eight-wide columns both leave remainders.
+        for (cin, cout) in [(7, 37), (8, 16), (1, 3), (13, 1), (1360, 1280)] {
+            let mut rng = ChaCha8Rng::seed_from_u64((cin * 1000 + cout) as u64);
+            // Weights over many magnitudes, down into f16's subnormal range.
+            let w: Vec<f32> = (0..cin * cout)
+                .map(|_| rng.random_range(-1.0f32..1.0) * 10f32.powi(rng.random_range(-7..1)))
+                .collect();
+            let b: Vec<f32> = (0..cout).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let x: Vec<f32> = (0..cin).map(|_| rng.random_range(-2.0..2.0)).collect();
+            let d = Dense {
+                w: Param::new(w.clone()),
+                b: Param::new(b.clone()),
+                cout,
+            };
+            let hd = HalfDense::new(&d, cin, Act::Identity);
+            let mut y = vec![f32::NAN; cout];
+            hd.run(&x, &mut y);
+            for j in 0..cout {
+                let row = &w[j * cin..(j + 1) * cin];
+                // The same product in f64 with each weight rounded to f16 first ...
+                let want: f64 = b[j] as f64
+                    + row
+                        .iter()
+                        .zip(&x)
+                        .map(|(&wi, &xi)| half::f16::from_f32(wi).to_f64() * xi as f64)
+                        .sum::<f64>();
+                let mag: f64 = row.iter().zip(&x).map(|(a, b)| (a * b).abs() as f64).sum();
+                // ... which an f32 sum of cin terms meets within cin ulps of its magnitude.
+                let tol = (cin as f64 + 2.0) * f32::EPSILON as f64 * (mag + b[j].abs() as f64);
+                assert!(
+                    (y[j] as f64 - want).abs() <= tol,
+                    "{cin}×{cout}, output {j}: {} vs {want} (tolerance {tol})",
+                    y[j]
+                );
+                // And the rounding itself stays within its bound of the f32 weights' product.
+                let exact: f64 = b[j] as f64
+                    + row
+                        .iter()
+                        .zip(&x)
+                        .map(|(&wi, &xi)| wi as f64 * xi as f64)
+                        .sum::<f64>();
+                let sx: f64 = x.iter().map(|v| v.abs() as f64).sum();
+                let bound = 2f64.powi(-11) * mag + 2f64.powi(-25) * sx;
+                assert!(
+                    (want - exact).abs() <= bound,
+                    "rounding {} > {bound}",
+                    want - exact
                 );
             }
         }
