@@ -648,6 +648,33 @@ impl Inference {
             slip_head: dense(&net.head_out, cfg.head_hidden, Act::Identity),
         })
     }
+    /// The most (any axis, in Δt's unit) by which the half-precision weights of the
+    /// calibration head's hidden layer can have moved the last [`Self::run`]'s Δt from what
+    /// f32 weights give: each weight's rounding (≤ 2⁻¹¹ of it, ≤ 2⁻²⁵ below f16's normal
+    /// range) summed with the layer's inputs, through hard-swish (Lipschitz 1.5) and the slip
+    /// head. 0 before the first run.
+    pub fn slip_rounding_bound(&self) -> f32 {
+        let hd = &self.hidden;
+        let x = &self.head_g;
+        let sx: f32 = x.iter().map(|v| v.abs()).sum();
+        // |w| ≤ |w₁₆|/(1 − 2⁻¹¹) for a normal weight, so its rounding is ≤ 2⁻¹¹/(1 − 2⁻¹¹)·|w₁₆|.
+        let rel = 2f32.powi(-11) / (1.0 - 2f32.powi(-11));
+        let mut dy = vec![2f32.powi(-25) * sx; hd.cout];
+        for (&xi, row) in x.iter().zip(hd.wt.chunks_exact(hd.cout)) {
+            for (d, &w) in dy.iter_mut().zip(row) {
+                *d += rel * (xi * half::f16::from_bits(w).to_f32()).abs();
+            }
+        }
+        let sh = &self.slip_head;
+        (0..sh.cout)
+            .map(|k| {
+                dy.iter()
+                    .enumerate()
+                    .map(|(j, d)| sh.wt[j * sh.cout + k].abs() * 1.5 * d)
+                    .sum::<f32>()
+            })
+            .fold(0.0, f32::max)
+    }
 
     /// Input size (height, width) in pixels.
     pub fn input_size(&self) -> (usize, usize) {
@@ -843,32 +870,9 @@ mod tests {
                     err <= tol_logits,
                     "logits differ by {err} (tolerance {tol_logits})"
                 );
-                // The hidden layer's f16 weights (HalfDense): its outputs move by at most
-                // 2⁻¹¹·Σ|xᵢwᵢⱼ| + 2⁻²⁵·Σ|xᵢ|, hard-swish passes at most 1.5× that on, and
-                // the slip head sums it with its weights' magnitudes.
-                let (hid, out) = (&net.head_hidden, &net.head_out);
-                let cin_h = inf.head_g.len();
-                let sx: f32 = inf.head_g.iter().map(|v| v.abs()).sum();
-                let dy: Vec<f32> = (0..hid.cout)
-                    .map(|j| {
-                        let row = &hid.w.value[j * cin_h..(j + 1) * cin_h];
-                        let sxw: f32 = row
-                            .iter()
-                            .zip(&inf.head_g)
-                            .map(|(a, b)| (a * b).abs())
-                            .sum();
-                        2f32.powi(-11) * sxw + 2f32.powi(-25) * sx
-                    })
-                    .collect();
-                let f16_bound = (0..3)
-                    .map(|k| {
-                        let row = &out.w.value[k * hid.cout..(k + 1) * hid.cout];
-                        row.iter()
-                            .zip(&dy)
-                            .map(|(a, d)| a.abs() * 1.5 * d)
-                            .sum::<f32>()
-                    })
-                    .fold(0.0f32, f32::max);
+                // The hidden layer's f16 weights (HalfDense) move Δt by at most this.
+                let f16_bound = inf.slip_rounding_bound();
+                assert!(f16_bound > 0.0 && f16_bound.is_finite());
                 let err = maxdiff(&slip, &want.slip.data);
                 assert!(
                     err <= tol_slip + f16_bound,

@@ -185,6 +185,8 @@ fn inference_matches_the_supernet(h: usize, w: usize, seed: u64) -> Result<(), T
         arch
     );
     let err = maxdiff(&got.slip, &want.slip.data);
+    // Plus what the calibration head's half-precision hidden layer may move Δt (docs/nets.md).
+    let slip_tol = slip_tol + inf.slip_rounding_bound();
     prop_assert!(
         err <= slip_tol,
         "slip differs by {} (tolerance {})",
