@@ -166,18 +166,22 @@ impl HalfDense {
         let (x, y) = (&x[..self.cin], &mut y[..self.cout]);
         y.fill(0.0);
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx")
+        let f16c = std::arch::is_x86_feature_detected!("avx")
             && std::arch::is_x86_feature_detected!("fma")
-            && std::arch::is_x86_feature_detected!("f16c")
-        {
+            && std::arch::is_x86_feature_detected!("f16c");
+        #[cfg(not(target_arch = "x86_64"))]
+        let f16c = false;
+        if f16c {
+            #[cfg(target_arch = "x86_64")]
             // SAFETY: AVX, FMA and F16C were detected on this CPU just above.
-            unsafe { self.accumulate_f16c(x, y) };
-            bias_act(y, &self.b, self.act);
-            return;
-        }
-        for (&xi, row) in x.iter().zip(self.wt.chunks_exact(self.cout)) {
-            for (v, &w) in y.iter_mut().zip(row) {
-                *v += xi * half::f16::from_bits(w).to_f32();
+            unsafe {
+                self.accumulate_f16c(x, y)
+            };
+        } else {
+            for (&xi, row) in x.iter().zip(self.wt.chunks_exact(self.cout)) {
+                for (v, &w) in y.iter_mut().zip(row) {
+                    *v += xi * half::f16::from_bits(w).to_f32();
+                }
             }
         }
         bias_act(y, &self.b, self.act);
@@ -191,27 +195,12 @@ impl HalfDense {
         use std::arch::x86_64::*;
         let n = self.cout;
         let full = n / 8 * 8;
-        let mut rows = self.wt.chunks_exact(n).zip(x);
-        loop {
-            let mut r: [(&[u16], f32); 4] = [(&[], 0.0); 4];
-            let mut m = 0;
-            for slot in r.iter_mut() {
-                match rows.next() {
-                    Some((row, &xi)) => {
-                        *slot = (row, xi);
-                        m += 1;
-                    }
-                    None => break,
-                }
-            }
-            if m == 0 {
-                break;
-            }
+        for (rows, xs) in self.wt.chunks(4 * n).zip(x.chunks(4)) {
             for j in (0..full).step_by(8) {
                 // SAFETY: j + 8 ≤ n = the length of y and of every row.
                 unsafe {
                     let mut acc = _mm256_loadu_ps(y.as_ptr().add(j));
-                    for &(row, xi) in &r[..m] {
+                    for (row, &xi) in rows.chunks_exact(n).zip(xs) {
                         let w = _mm256_cvtph_ps(_mm_loadu_si128(row.as_ptr().add(j).cast()));
                         acc = _mm256_fmadd_ps(w, _mm256_set1_ps(xi), acc);
                     }
@@ -219,7 +208,7 @@ impl HalfDense {
                 }
             }
             for (j, v) in y.iter_mut().enumerate().skip(full) {
-                for &(row, xi) in &r[..m] {
+                for (row, &xi) in rows.chunks_exact(n).zip(xs) {
                     *v = xi.mul_add(half::f16::from_bits(row[j]).to_f32(), *v);
                 }
             }

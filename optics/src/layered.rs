@@ -34,6 +34,35 @@ const POOL_MAX: usize = 16;
 /// kernels (8 slabs × 4 frames in `search`), beyond which they are freed.
 const SPARE_MAX: usize = 32;
 
+/// Values handed back by finished calls for the next ones to take, at most `max` kept.
+struct Pool<T> {
+    items: Mutex<Vec<T>>,
+    max: usize,
+}
+
+impl<T> Pool<T> {
+    fn new(max: usize) -> Self {
+        Self {
+            items: Mutex::new(Vec::new()),
+            max,
+        }
+    }
+
+    /// A kept value, if any (a poisoned lock only costs the reuse).
+    fn take(&self) -> Option<T> {
+        self.items.lock().ok()?.pop()
+    }
+
+    /// Keeps `v` unless `max` are kept already.
+    fn give(&self, v: T) {
+        if let Ok(mut items) = self.items.lock() {
+            if items.len() < self.max {
+                items.push(v);
+            }
+        }
+    }
+}
+
 /// The columns of a column-major matrix as slices (faer stores an owned `Mat` that way).
 fn columns(m: &Mat<f32>) -> Vec<&[f32]> {
     (0..m.ncols())
@@ -97,11 +126,11 @@ pub struct LayeredImager {
     ix: Arc<dyn Fft<f64>>,
     /// Work spaces of finished spectral calls, taken by the next ones: a padded grid is
     /// 19 MB at 1280×800, and allocating and zeroing two per frame showed in profiles.
-    pool: Mutex<Vec<SpectralBuffers>>,
+    pool: Pool<SpectralBuffers>,
     /// Spectra of merged or finished gradient accumulators (ny·nx each, contents stale): a
     /// frame's accumulator needs one per kernel, 19 MB each at 1280×800, and fresh ones were
     /// most of the page faults of a backward pass.
-    spare: Mutex<Vec<Vec<c64>>>,
+    spare: Pool<Vec<c64>>,
 }
 
 /// Per layer kept for the VJP: the image below it I⁽ᵏ⁻¹⁾ and its occlusion α∗P.
@@ -149,8 +178,8 @@ impl LayeredImager {
             fx: pl.plan_fft_forward(nx),
             iy: pl.plan_fft_inverse(ny),
             ix: pl.plan_fft_inverse(nx),
-            pool: Mutex::new(Vec::new()),
-            spare: Mutex::new(Vec::new()),
+            pool: Pool::new(POOL_MAX),
+            spare: Pool::new(SPARE_MAX),
         })
     }
 
@@ -481,7 +510,7 @@ impl LayeredImager {
                 }
             }
         }
-        self.give_back(sb);
+        self.pool.give(sb);
         Ok(KernelSpectra { spec })
     }
 
@@ -526,7 +555,7 @@ impl LayeredImager {
     /// read, so a reused one needs no clearing), two column blocks and FFT scratch; one a
     /// finished call returned when there is one.
     fn spectral_buffers(&self) -> SpectralBuffers {
-        if let Some(sb) = self.pool.lock().ok().and_then(|mut p| p.pop()) {
+        if let Some(sb) = self.pool.take() {
             return sb;
         }
         let s = self.scratch_len();
@@ -540,34 +569,16 @@ impl LayeredImager {
         }
     }
 
-    /// Returns a work space for the next call.
-    fn give_back(&self, sb: SpectralBuffers) {
-        if let Ok(mut p) = self.pool.lock() {
-            if p.len() < POOL_MAX {
-                p.push(sb);
-            }
-        }
-    }
-
     /// An empty spectrum with room for the padded grid, reused when one was given back.
     fn spare_spectrum(&self) -> Vec<c64> {
         let n = self.ny * self.nx;
-        match self.spare.lock().ok().and_then(|mut s| s.pop()) {
+        match self.spare.take() {
             Some(mut v) => {
                 v.clear();
                 v.reserve_exact(n);
                 v
             }
             None => Vec::with_capacity(n),
-        }
-    }
-
-    /// Keeps a spent spectrum for [`Self::spare_spectrum`].
-    fn recycle(&self, v: Vec<c64>) {
-        if let Ok(mut s) = self.spare.lock() {
-            if s.len() < SPARE_MAX {
-                s.push(v);
-            }
         }
     }
 
@@ -680,7 +691,7 @@ impl LayeredImager {
             }
             saved.push(Some((std::mem::replace(&mut prev, cur), o)));
         }
-        self.give_back(sb);
+        self.pool.give(sb);
         let image = prev;
         let mut m = Mat::<f32>::zeros(h, w);
         tiles(h, w, |r, c| m[(r, c)] = image[r * w + c]);
@@ -777,7 +788,7 @@ impl LayeredImager {
             above = prev;
         }
         sb.g = g;
-        self.give_back(sb);
+        self.pool.give(sb);
         Ok(())
     }
 
@@ -792,7 +803,7 @@ impl LayeredImager {
             match (a.as_mut(), o) {
                 (Some(x), Some(y)) => {
                     x.iter_mut().zip(&y).for_each(|(p, q)| *p += q);
-                    self.recycle(y);
+                    self.spare.give(y);
                 }
                 (None, Some(y)) => *a = Some(y),
                 _ => {}
@@ -826,12 +837,12 @@ impl LayeredImager {
                             out[(r, c)] = row[c].re;
                         }
                     }
-                    self.recycle(v);
+                    self.spare.give(v);
                     out
                 }
             })
             .collect();
-        self.give_back(sb);
+        self.pool.give(sb);
         grads
     }
 }
