@@ -142,13 +142,7 @@ impl ChirpOp {
                 }
                 row[n_in..].fill(zero);
             }
-            self.fft.process_with_scratch(buf, scratch);
-            for row in buf.chunks_exact_mut(len) {
-                row.iter_mut()
-                    .zip(&self.kernel_hat)
-                    .for_each(|(r, k)| *r *= k);
-            }
-            self.ifft.process_with_scratch(buf, scratch);
+            self.convolve(buf, scratch);
             for (v, row) in buf.chunks_exact(len).enumerate() {
                 for (j, r) in row[..n_out].iter().enumerate() {
                     set(first + v, j, *r);
@@ -156,6 +150,18 @@ impl ChirpOp {
             }
             first += nv;
         }
+    }
+
+    /// The bare convolution in place on whole vectors of [`Self::len`] values each: input i
+    /// of a vector at its index i (< n_in), zeros after; output j at index j (< n_out).
+    pub(crate) fn convolve(&self, buf: &mut [c64], scratch: &mut [c64]) {
+        self.fft.process_with_scratch(buf, scratch);
+        for row in buf.chunks_exact_mut(self.len()) {
+            row.iter_mut()
+                .zip(&self.kernel_hat)
+                .for_each(|(r, k)| *r *= k);
+        }
+        self.ifft.process_with_scratch(buf, scratch);
     }
 }
 

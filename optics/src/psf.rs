@@ -244,11 +244,18 @@ pub fn fast_fft_size(n: usize) -> usize {
 /// Band columns per batched FFT call (bounds the column buffer to COL_CHUNK·N_L values).
 const COL_CHUNK: usize = 16;
 
+/// Rows of the folded grid per batched row-FFT call in [`AsmPsf::field`]: the block stays in
+/// cache while its band columns are copied out.
+const ROW_BLOCK: usize = 16;
+
 /// Aperture samples of one phase map, structure-of-arrays so the per-depth loop streams
 /// 24 bytes per sample.
 struct Samples {
-    /// Index into the folded N_L×N_L buffer.
+    /// Index into the folded N_L×N_L grid (row-major), ascending: samples are ordered by
+    /// it, so a block of the grid's rows holds a contiguous range of samples.
     fold: Vec<u32>,
+    /// Samples of fold row r: `row_at[r]..row_at[r + 1]` (fold_rows + 1 offsets).
+    row_at: Vec<u32>,
     /// Index into `d2` of the sample's distance to the source.
     wave: Vec<u32>,
     /// Amplitude a × pupil weight × e^{iφ}.
@@ -274,11 +281,13 @@ impl Samples {
 struct Workspace {
     /// Spherical-wave factor e^{ik(r−z)} per distinct radius.
     wave: Vec<c64>,
-    buf: Vec<c64>,
-    cols: Vec<c64>,
+    /// ROW_BLOCK rows of the folded N_L×N_L grid (row-major): the grid is only ever streamed
+    /// through a block of rows, never stored whole.
+    blk: Vec<c64>,
+    /// The band columns of the folded grid, column-major N_b × N_L.
+    colbuf: Vec<c64>,
     scratch: Vec<c64>,
     cbuf: Vec<c64>,
-    m: Mat<c64>,
     t: Mat<c64>,
     v: Mat<c64>,
     /// |V|² (or its upstream gradient), n_ext × n_ext.
@@ -656,6 +665,7 @@ impl AsmPsf {
         let cap = n * n;
         let mut out = Samples {
             fold: Vec::with_capacity(cap),
+            row_at: Vec::new(),
             wave: Vec::with_capacity(cap),
             ua: Vec::with_capacity(cap),
             unit: Vec::with_capacity(cap),
@@ -700,6 +710,25 @@ impl AsmPsf {
                 out.cell.push((i * n + j) as u32);
             }
         }
+        // Grids wider than the folded one wrap rows onto rows: order by fold index (stable,
+        // so samples sharing a fold cell keep their order of summation).
+        if !out.fold.is_sorted() {
+            let mut perm: Vec<usize> = (0..out.fold.len()).collect();
+            perm.sort_by_key(|&s| out.fold[s]);
+            fn permute<T: Copy>(v: &mut Vec<T>, perm: &[usize]) {
+                *v = perm.iter().map(|&s| v[s]).collect();
+            }
+            permute(&mut out.fold, &perm);
+            permute(&mut out.wave, &perm);
+            permute(&mut out.ua, &perm);
+            permute(&mut out.unit, &perm);
+            permute(&mut out.amp, &perm);
+            permute(&mut out.cell, &perm);
+        }
+        let nl = self.n_fold;
+        out.row_at = (0..=self.fold_rows)
+            .map(|r| out.fold.partition_point(|&f| (f as usize) < r * nl) as u32)
+            .collect();
         out
     }
 
@@ -728,10 +757,9 @@ impl AsmPsf {
         Workspace {
             wave: Vec::new(),
             cbuf: vec![c64::new(0.0, 0.0); ops.iter().map(|o| o.buf_len()).max().unwrap_or(0)],
-            buf: vec![c64::new(0.0, 0.0); nl * nl],
-            cols: vec![c64::new(0.0, 0.0); COL_CHUNK * nl],
+            blk: vec![c64::new(0.0, 0.0); ROW_BLOCK * nl],
+            colbuf: vec![c64::new(0.0, 0.0); nb * nl],
             scratch: vec![c64::new(0.0, 0.0); scratch_len],
-            m: Mat::zeros(nb, nb),
             t: Mat::zeros(ne, nb),
             v: Mat::zeros(ne, ne),
             iv: Mat::zeros(ne, ne),
@@ -744,44 +772,61 @@ impl AsmPsf {
     fn field(&self, samples: &Samples, z: f64, ws: &mut Workspace) {
         let nl = self.n_fold;
         let rows = self.fold_rows;
-        ws.buf[..rows * nl].fill(c64::new(0.0, 0.0));
-        self.spherical_wave(samples, z, &mut ws.wave);
-        for ((&f, &w), &ua) in samples.fold.iter().zip(&samples.wave).zip(&samples.ua) {
-            ws.buf[f as usize] += ua * ws.wave[w as usize];
-        }
-        // Rows past `fold_rows` hold no samples: their FFTs would be of zeros.
-        self.fft
-            .process_with_scratch(&mut ws.buf[..rows * nl], &mut ws.scratch);
-        // Band columns, COL_CHUNK at a time through one batched FFT call.
         let nb = self.band.len();
+        let zero = c64::new(0.0, 0.0);
+        self.spherical_wave(samples, z, &mut ws.wave);
+        // The folded grid a block of rows at a time (rows past `fold_rows` hold no samples:
+        // their FFTs would be of zeros): scatter the block's samples, FFT its rows, copy its
+        // band columns out. The block stays in cache throughout; writing the whole folded grid
+        // (14 MB on the default rig), reading it back along columns and zeroing it made a plane
+        // 6–8 % slower (examples/plane_floor.rs, with the product M below stored).
+        for r0 in (0..rows).step_by(ROW_BLOCK) {
+            let nr = ROW_BLOCK.min(rows - r0);
+            let blk = &mut ws.blk[..nr * nl];
+            blk.fill(zero);
+            let base = r0 * nl;
+            for s in samples.row_at[r0] as usize..samples.row_at[r0 + nr] as usize {
+                blk[samples.fold[s] as usize - base] +=
+                    samples.ua[s] * ws.wave[samples.wave[s] as usize];
+            }
+            self.fft.process_with_scratch(blk, &mut ws.scratch);
+            for (col, &cx) in ws.colbuf.chunks_exact_mut(nl).zip(&self.band_at) {
+                for (d, row) in col[r0..r0 + nr].iter_mut().zip(blk.chunks_exact(nl)) {
+                    *d = row[cx];
+                }
+            }
+        }
+        // Band columns, COL_CHUNK at a time through one batched FFT call; each, times H, is
+        // the input of the window DFT along y, T = E_y (F ⊙ H), straight away: the product
+        // M = F ⊙ H (N_b², 14 MB on the default rig) is never stored and read back.
+        let len = self.ey.len();
+        let ne = self.n_ext;
         for b0 in (0..nb).step_by(COL_CHUNK) {
             let nc = COL_CHUNK.min(nb - b0);
-            let cols = &mut ws.cols[..nc * nl];
-            for (c, col) in cols.chunks_exact_mut(nl).enumerate() {
-                let cx = self.band_at[b0 + c];
-                for (r, v) in col[..rows].iter_mut().enumerate() {
-                    *v = ws.buf[r * nl + cx];
-                }
-                col[rows..].fill(c64::new(0.0, 0.0));
+            let cols = &mut ws.colbuf[b0 * nl..(b0 + nc) * nl];
+            for col in cols.chunks_exact_mut(nl) {
+                col[rows..].fill(zero);
             }
             self.fft.process_with_scratch(cols, &mut ws.scratch);
-            for (c, col) in cols.chunks_exact(nl).enumerate() {
-                let b = b0 + c;
-                for (a, &iy) in self.band_at.iter().enumerate() {
-                    ws.m[(a, b)] = col[iy] * self.h[(a, b)];
+            let cbuf = &mut ws.cbuf[..nc * len];
+            for (c, (col, row)) in cols
+                .chunks_exact_mut(nl)
+                .zip(cbuf.chunks_exact_mut(len))
+                .enumerate()
+            {
+                let hc = self.h.col_as_slice(b0 + c);
+                for ((r, &iy), &hv) in row.iter_mut().zip(&self.band_at).zip(hc) {
+                    *r = col[iy] * hv;
                 }
+                row[nb..].fill(zero);
+            }
+            self.ey.convolve(cbuf, &mut ws.scratch);
+            for (c, row) in cbuf.chunks_exact(len).enumerate() {
+                ws.t.col_as_slice_mut(b0 + c).copy_from_slice(&row[..ne]);
             }
         }
-        // T = E_y M (down the columns of M), V = T E_xᵀ (along the rows of T).
-        let (m, t, v) = (&ws.m, &mut ws.t, &mut ws.v);
-        let ne = t.nrows();
-        self.ey.apply_conv(
-            nb,
-            &mut ws.cbuf,
-            &mut ws.scratch,
-            |b, a| m[(a, b)],
-            |b, j, y| t[(j, b)] = y,
-        );
+        // V = T E_xᵀ (along the rows of T).
+        let (t, v) = (&ws.t, &mut ws.v);
         self.ex.apply_conv(
             ne,
             &mut ws.cbuf,
@@ -1202,7 +1247,7 @@ impl AsmPsf {
         }
         // V = K_y M K_xᵀ (bare convolutions, diagonals folded into H) ⇒ gT = gV·conj(K_x)
         // (rows), gM = K_yᴴ·gT (columns).
-        let (m, t, v) = (&mut ws.m, &mut ws.t, &ws.v);
+        let (t, v) = (&mut ws.t, &ws.v);
         let nb = self.band.len();
         self.ex_adj.apply_conv(
             ne,
@@ -1211,43 +1256,55 @@ impl AsmPsf {
             |r, j| v[(r, j)],
             |r, b, y| t[(r, b)] = y,
         );
-        self.ey_adj.apply_conv(
-            nb,
-            &mut ws.cbuf,
-            &mut ws.scratch,
-            |b, j| t[(j, b)],
-            |b, a, y| m[(a, b)] = y,
-        );
+        // gM = K_yᴴ·gT a chunk of columns at a time, times conj(H) into the band rows of the
+        // folded columns, inverse FFT (as in `field`, M itself is never stored) ...
         let nl = self.n_fold;
         let rows = self.fold_rows;
-        ws.buf[..rows * nl].fill(c64::new(0.0, 0.0));
+        let zero = c64::new(0.0, 0.0);
+        let len = self.ey_adj.len();
         for b0 in (0..nb).step_by(COL_CHUNK) {
             let nc = COL_CHUNK.min(nb - b0);
-            let cols = &mut ws.cols[..nc * nl];
-            cols.fill(c64::new(0.0, 0.0));
-            for (c, col) in cols.chunks_exact_mut(nl).enumerate() {
-                for (a, &iy) in self.band_at.iter().enumerate() {
-                    col[iy] = ws.m[(a, b0 + c)] * self.h[(a, b0 + c)].conj();
+            let cbuf = &mut ws.cbuf[..nc * len];
+            for (c, row) in cbuf.chunks_exact_mut(len).enumerate() {
+                row[..ne].copy_from_slice(ws.t.col_as_slice(b0 + c));
+                row[ne..].fill(zero);
+            }
+            self.ey_adj.convolve(cbuf, &mut ws.scratch);
+            let cols = &mut ws.colbuf[b0 * nl..(b0 + nc) * nl];
+            cols.fill(zero);
+            for (c, (col, row)) in cols
+                .chunks_exact_mut(nl)
+                .zip(cbuf.chunks_exact(len))
+                .enumerate()
+            {
+                let hc = self.h.col_as_slice(b0 + c);
+                for ((&iy, &hv), &g) in self.band_at.iter().zip(hc).zip(row) {
+                    col[iy] = g * hv.conj();
                 }
             }
             self.ifft.process_with_scratch(cols, &mut ws.scratch);
-            // Only rows that hold samples are read back.
-            for (c, col) in cols.chunks_exact(nl).enumerate() {
-                let cx = self.band_at[b0 + c];
-                for (r, v) in col[..rows].iter().enumerate() {
-                    ws.buf[r * nl + cx] = *v;
+        }
+        // ... then the rows a block at a time: the band columns in, inverse FFT, and the
+        // block's samples read out (only rows that hold samples are needed).
+        for r0 in (0..rows).step_by(ROW_BLOCK) {
+            let nr = ROW_BLOCK.min(rows - r0);
+            let blk = &mut ws.blk[..nr * nl];
+            blk.fill(zero);
+            for (col, &cx) in ws.colbuf.chunks_exact(nl).zip(&self.band_at) {
+                for (row, &v) in blk.chunks_exact_mut(nl).zip(&col[r0..r0 + nr]) {
+                    row[cx] = v;
                 }
             }
-        }
-        self.ifft
-            .process_with_scratch(&mut ws.buf[..rows * nl], &mut ws.scratch);
-        // `field` left e^{ik(r−z)} per distinct radius in ws.wave.
-        for s in 0..samples.len() {
-            let gu = ws.buf[samples.fold[s] as usize];
-            let e = samples.unit[s] * ws.wave[samples.wave[s] as usize];
-            let u = e * samples.amp[s];
-            gp[s] += (gu * u.conj()).im;
-            ga[s] += (gu.conj() * e).re;
+            self.ifft.process_with_scratch(blk, &mut ws.scratch);
+            // `field` left e^{ik(r−z)} per distinct radius in ws.wave.
+            let base = r0 * nl;
+            for s in samples.row_at[r0] as usize..samples.row_at[r0 + nr] as usize {
+                let gu = blk[samples.fold[s] as usize - base];
+                let e = samples.unit[s] * ws.wave[samples.wave[s] as usize];
+                let u = e * samples.amp[s];
+                gp[s] += (gu * u.conj()).im;
+                ga[s] += (gu.conj() * e).re;
+            }
         }
     }
 }

@@ -25,6 +25,11 @@ fn dot(a: &Mat<f64>, b: &Mat<f64>) -> f64 {
 /// Small rig (D = 40 µm, Δ = 2 µm, s = 100 µm, 8×8 window at 1 µm): a lens with a random
 /// aberration so every pixel depends on the phase.
 fn small_model() -> (AsmPsf, PhaseMap, Vec<f64>) {
+    small_model_with_period(None)
+}
+
+/// [`small_model`] with the spectrum period `period_m` (default: D + W p + margin).
+fn small_model_with_period(period_m: Option<f64>) -> (AsmPsf, PhaseMap, Vec<f64>) {
     let grid = ApertureGrid::new(40e-6, 2e-6).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(7);
     let k = std::f64::consts::TAU / 940e-9;
@@ -39,6 +44,7 @@ fn small_model() -> (AsmPsf, PhaseMap, Vec<f64>) {
         sensor_distance_m: 100e-6,
         pitch_m: 1e-6,
         window_px: 8,
+        period_m,
         ..PsfConfig::default()
     };
     (
@@ -92,7 +98,25 @@ fn psf_vjp_after_the_stack_reuses_its_fields_bit_for_bit() {
 
 #[test]
 fn psf_vjp_matches_finite_differences() {
-    let (model, map, depths) = small_model();
+    psf_vjp_matches_finite_differences_at(None);
+}
+
+/// A period shorter than the aperture (26 µm for D = 40 µm) folds several aperture rows onto
+/// one row of the spectral grid: the samples are then reordered by fold row and streamed a
+/// block of rows at a time, forward and adjoint alike.
+#[test]
+fn psf_vjp_matches_finite_differences_when_the_period_folds_the_aperture() {
+    psf_vjp_matches_finite_differences_at(Some(26e-6));
+}
+
+fn psf_vjp_matches_finite_differences_at(period_m: Option<f64>) {
+    let (model, map, depths) = small_model_with_period(period_m);
+    if let Some(p) = period_m {
+        assert!(
+            model.sizes().0 < map.grid.n,
+            "period {p} does not fold the aperture"
+        );
+    }
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let gp: Vec<Mat<f64>> = depths
         .iter()
