@@ -37,8 +37,9 @@ pub struct SolverArgs {
     /// Factorisation rule: laurent | nv.
     #[arg(long, default_value = DEFAULT_RULE.name())]
     rule: String,
-    /// Tabulated pillar material (n, k interpolated at the wavelength), e.g.
-    /// pierce-spicer-1972, franta-2013-asih, karaman-2025-asi, green-2008-csi;
+    /// Tabulated pillar material (n, k interpolated at the wavelength): pierce-spicer-1972,
+    /// franta-2013-asih, karaman-2025-asi, green-2008-csi, sputtered-2020-asi,
+    /// sputtered-2020-asih;
     /// --n-pillar/--k-pillar, when given, override its n/k.
     #[arg(long)]
     material: Option<String>,

@@ -30,7 +30,7 @@ pub struct DispersionTable {
 }
 
 /// The embedded tables, as (file name, text).
-const SOURCES: [(&str, &str); 4] = [
+const SOURCES: [(&str, &str); 6] = [
     (
         "pierce-spicer-1972.csv",
         include_str!("../data/materials/pierce-spicer-1972.csv"),
@@ -46,6 +46,14 @@ const SOURCES: [(&str, &str); 4] = [
     (
         "green-2008-csi.csv",
         include_str!("../data/materials/green-2008-csi.csv"),
+    ),
+    (
+        "sputtered-2020-asi.csv",
+        include_str!("../data/materials/sputtered-2020-asi.csv"),
+    ),
+    (
+        "sputtered-2020-asih.csv",
+        include_str!("../data/materials/sputtered-2020-asih.csv"),
     ),
 ];
 
@@ -321,6 +329,39 @@ mod tests {
         // Franta 2013 between 933.254 nm and 954.993 nm.
         let (n, k) = by_name("franta-2013-asih").unwrap().nk_at(940e-9).unwrap();
         assert!(n < 3.787655 && n > 3.774782 && k < 1.904373e-3 && k > 1.663291e-3);
+    }
+
+    /// The two sputtered-film tables are the Cody–Lorentz model of their parameters
+    /// (`cody_lorentz::SPUTTERED_2020`) evaluated at every row, to the digits printed.
+    #[test]
+    fn sputtered_tables_are_their_cody_lorentz_model() {
+        for (name, model, _) in crate::cody_lorentz::SPUTTERED_2020 {
+            let t = by_name(name).unwrap();
+            assert_eq!(t.rows.len(), 51, "{name}: 700-1200 nm every 10 nm");
+            for &(l, n, k) in &t.rows {
+                let (mn, mk) = model.nk_at(l * 1e-9).unwrap();
+                assert!((n - mn).abs() <= 5e-7, "{name} at {l} nm: n {n} vs {mn}");
+                assert!(
+                    (k - mk).abs() <= 5e-7 * mk.max(1e-300),
+                    "{name} at {l} nm: k {k} vs {mk}"
+                );
+            }
+        }
+        // 940 nm is a row: above the unhydrogenated film's gap (lossy), below the
+        // hydrogenated film's (k = 0, no Urbach tail in the source).
+        let (n, k) = by_name("sputtered-2020-asi")
+            .unwrap()
+            .nk_at(940e-9)
+            .unwrap();
+        assert!(
+            (n - 4.157).abs() < 1e-3 && (k - 0.0446).abs() < 1e-4,
+            "{n} {k}"
+        );
+        let (n, k) = by_name("sputtered-2020-asih")
+            .unwrap()
+            .nk_at(940e-9)
+            .unwrap();
+        assert!((n - 3.639).abs() < 1e-3 && k == 0.0, "{n} {k}");
     }
 
     #[test]

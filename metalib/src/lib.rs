@@ -7,6 +7,7 @@ pub mod library;
 
 pub use error::MetalibError;
 pub use library::{PillarLibrary, TabulatedLibrary};
+pub mod cody_lorentz;
 pub mod dispersion;
 pub mod material;
 pub mod rcwa;

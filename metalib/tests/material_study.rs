@@ -96,8 +96,9 @@ fn dropping_monotonicity_measures_the_phase_span_of_the_whole_run() {
 
 #[test]
 fn no_pillar_index_on_the_study_grid_is_viable_at_700_by_530_under_d1() {
-    // The study's headline (docs/metalib.md, N = 10) on its whole default grid — the four
-    // tables and n 3.0–4.0 × k {0, 0.002, 0.005, 0.01} — at N = 3, where it holds as well.
+    // The study's headline (docs/metalib.md, N = 10) on its whole default grid — every
+    // embedded table and n 3.0–4.0 × k {0, 0.002, 0.005, 0.01} — at N = 3, where it holds as
+    // well.
     let cfg = StudyConfig {
         heights_m: Range {
             start: 700e-9,
