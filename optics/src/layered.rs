@@ -21,10 +21,12 @@ const COLS: usize = 16;
 /// Side of the square tiles in which a column-major matrix meets a row-major grid.
 const TILE: usize = 32;
 
-/// Rows packed at once from a layer's column-major matrices: each column then gives 16
-/// consecutive f32 (one cache line) per band instead of one value per row, and the band
-/// (16 padded rows, 344 KB at 1344 columns) stays in cache until its rows are transformed.
-const PACK_ROWS: usize = 16;
+/// Rows packed at once from a layer's column-major matrices: each column then gives 128
+/// consecutive f32 (eight cache lines, which the prefetcher streams) per band instead of one
+/// value per row, and the band (128 padded rows, 2.75 MB at 1344 columns) stays in the last-
+/// level cache until its rows are transformed. With 16 rows (one line per column) the loads
+/// waited on memory: packing took 18 % of `chain_floor`'s samples, 12 % with 128.
+const PACK_ROWS: usize = 128;
 
 /// Work spaces kept for reuse per imager: more than the threads that image frames at once
 /// is never needed.

@@ -176,8 +176,9 @@ fn spectral_run(
 
 #[test]
 fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
-    // 40 rows: several 16-row packing bands; data in a few rows of each layer only.
-    let (h, w, wp) = (40, 19, 5);
+    // 300 rows: three 128-row packing bands, the last one partial; data in a few rows of
+    // each layer only, one layer's rows crossing two band edges.
+    let (h, w, wp) = (300, 19, 5);
     let im = LayeredImager::new(h, w, wp).unwrap();
     let psfs: Vec<Mat<f32>> = (0..2)
         .map(|s| Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + ((i + s) * (j + 2)) as f32)))
@@ -185,8 +186,8 @@ fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
     let rad: Vec<Mat<f32>> = (0..3).map(|s| img(h, w, s)).collect();
     let al = [
         banded_alpha(h, w, 3..9, 100),
-        banded_alpha(h, w, 20..38, 5),
-        banded_alpha(h, w, 15..17, 100),
+        banded_alpha(h, w, 120..290, 5),
+        banded_alpha(h, w, 200..202, 100),
     ];
     let kernel = [0usize, 1, 0];
     let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
