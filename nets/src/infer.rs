@@ -144,6 +144,8 @@ struct HalfDense {
     cin: usize,
     cout: usize,
     act: Act,
+    /// Whether this CPU has AVX, FMA and F16C (the vector kernel), detected once.
+    f16c: bool,
 }
 
 impl HalfDense {
@@ -158,6 +160,7 @@ impl HalfDense {
             cin,
             cout: d.cout,
             act,
+            f16c: has_f16c(),
         }
     }
 
@@ -165,15 +168,9 @@ impl HalfDense {
     fn run(&self, x: &[f32], y: &mut [f32]) {
         let (x, y) = (&x[..self.cin], &mut y[..self.cout]);
         y.fill(0.0);
-        #[cfg(target_arch = "x86_64")]
-        let f16c = std::arch::is_x86_feature_detected!("avx")
-            && std::arch::is_x86_feature_detected!("fma")
-            && std::arch::is_x86_feature_detected!("f16c");
-        #[cfg(not(target_arch = "x86_64"))]
-        let f16c = false;
-        if f16c {
+        if self.f16c {
             #[cfg(target_arch = "x86_64")]
-            // SAFETY: AVX, FMA and F16C were detected on this CPU just above.
+            // SAFETY: AVX, FMA and F16C were detected on this CPU at construction (`self.f16c`).
             unsafe {
                 self.accumulate_f16c(x, y)
             };
@@ -213,6 +210,20 @@ impl HalfDense {
                 }
             }
         }
+    }
+}
+
+/// Whether this CPU has AVX, FMA and F16C ([`HalfDense`]'s vector kernel).
+fn has_f16c() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx")
+            && std::arch::is_x86_feature_detected!("fma")
+            && std::arch::is_x86_feature_detected!("f16c")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
     }
 }
 

@@ -54,13 +54,11 @@ fn invalid(path: &Path, reason: impl std::fmt::Display) -> RenderError {
     }
 }
 
-/// Reads an f32 NPY file; returns (shape, data in C order).
-pub fn read_npy_f32(path: &Path) -> Result<(Vec<u64>, Vec<f32>), RenderError> {
-    let bytes = std::fs::read(path).map_err(|e| RenderError::Io {
-        path: path.display().to_string(),
-        cause: e,
-    })?;
-    let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| invalid(path, e))?;
+/// The shape of an NPY file's array, refused when implausibly large or not in C order.
+fn c_order_shape<R: std::io::Read>(
+    path: &Path,
+    npy: &npyz::NpyFile<R>,
+) -> Result<Vec<u64>, RenderError> {
     let shape = npy.shape().to_vec();
     if shape.iter().any(|&d| d > MAX_SIDE * MAX_SIDE) {
         return Err(invalid(path, format!("implausible shape {shape:?}")));
@@ -68,6 +66,17 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<u64>, Vec<f32>), RenderError> {
     if npy.order() != npyz::Order::C {
         return Err(invalid(path, "Fortran-ordered arrays are not supported"));
     }
+    Ok(shape)
+}
+
+/// Reads an f32 NPY file; returns (shape, data in C order).
+pub fn read_npy_f32(path: &Path) -> Result<(Vec<u64>, Vec<f32>), RenderError> {
+    let bytes = std::fs::read(path).map_err(|e| RenderError::Io {
+        path: path.display().to_string(),
+        cause: e,
+    })?;
+    let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| invalid(path, e))?;
+    let shape = c_order_shape(path, &npy)?;
     let data: Vec<f32> = npy
         .into_vec()
         .map_err(|e| invalid(path, format!("not a little-endian f32 array ({e})")))?;
@@ -95,13 +104,7 @@ pub fn read_npy_planes(path: &Path, expect: &[u64]) -> Result<Vec<Mat<f32>>, Ren
     let file = std::fs::File::open(path).map_err(io)?;
     let mut rd = std::io::BufReader::with_capacity(1 << 20, file);
     let npy = npyz::NpyFile::new(&mut rd).map_err(|e| invalid(path, e))?;
-    let shape = npy.shape().to_vec();
-    if shape.iter().any(|&d| d > MAX_SIDE * MAX_SIDE) {
-        return Err(invalid(path, format!("implausible shape {shape:?}")));
-    }
-    if npy.order() != npyz::Order::C {
-        return Err(invalid(path, "Fortran-ordered arrays are not supported"));
-    }
+    let shape = c_order_shape(path, &npy)?;
     let little = match npy.dtype() {
         npyz::DType::Plain(t) if t.to_string() == "<f4" => true,
         npyz::DType::Plain(t) if t.to_string() == ">f4" => false,
