@@ -3,12 +3,13 @@
 //! Each (image, channel) plane is copied once into a zero-padded scratch whose columns are
 //! split by parity of the stride (phase q = column mod s), so every tap (ky, kx) of every
 //! output row reads one contiguous, bounds-free run of `wo` values: the inner loops are
-//! straight-line multiply–adds the compiler vectorizes. The forward pass computes two or four
-//! output rows at a time so that several accumulator registers are in flight; at stride 2
-//! the phase split is a pairwise column copy. On x86-64 with AVX2 and FMA (checked
-//! at run time) the same code is compiled a second time with fused multiply–adds.
-//! Scratch lives per rayon task, not per plane; planes are grouped so a task carries enough
-//! work to pay for the scheduling.
+//! straight-line multiply–adds the compiler vectorizes. The forward pass computes up to four
+//! output rows at a time so that several accumulator registers are in flight, with one
+//! bounds check per plane; at stride 2 the phase split is a pairwise column copy (register
+//! shuffles with AVX2). On x86-64 with AVX2 and FMA (checked at run time) the same code is
+//! compiled a second time with fused multiply–adds. Scratch lives per rayon task, not per
+//! plane, and its zero padding is written once per geometry; planes are grouped so a task
+//! carries enough work to pay for the scheduling.
 
 use rayon::prelude::*;
 
@@ -62,21 +63,27 @@ pub(crate) fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
 }
 
 /// Copies plane `x` (h × w) into the zero-padded, phase-split scratch.
+///
+/// A geometry writes the same interior cells for every plane, so the padding is zeroed only
+/// when `shape` (the geometry the scratch was last laid out for) changes.
 #[inline(always)]
-fn fill(g: &Geom, x: &[f32], buf: &mut Vec<f32>) {
-    buf.clear();
-    buf.resize(g.scratch_len(), 0.0);
+fn fill<const AVX2: bool>(g: &Geom, x: &[f32], buf: &mut Vec<f32>, shape: &mut Option<[usize; 4]>) {
+    let key = [g.h, g.w, g.k, g.s];
+    if *shape != Some(key) {
+        buf.clear();
+        buf.resize(g.scratch_len(), 0.0);
+        *shape = Some(key);
+    }
     let (p, s, cw, w) = (g.pad(), g.s, g.cw(), g.w);
     for (iy, row) in x.chunks_exact(w).enumerate() {
         let r = iy + p;
         if s == 1 {
-            buf[r * cw + p..][..w].copy_from_slice(row);
+            copy_run(&mut buf[r * cw + p..][..w], row);
             continue;
         }
         if s == 2 {
-            // Column pairs of the input row go to the two phases: one strided-load loop the
-            // compiler vectorizes with shuffles (the generic step_by copy below made the
-            // stride-2 forward benches 1.3–2.2× slower).
+            // Column pairs of the input row go to the two phases (the generic step_by copy
+            // below made the stride-2 forward benches 1.3–2.2× slower).
             let (row0, row1) = buf[r * 2 * cw..][..2 * cw].split_at_mut(cw);
             // Input column 0 lands in phase p mod 2 at phase column p / 2.
             let (a, b) = if p % 2 == 0 {
@@ -84,12 +91,38 @@ fn fill(g: &Geom, x: &[f32], buf: &mut Vec<f32>) {
             } else {
                 (row1, row0)
             };
-            let (a, b) = (&mut a[p / 2..], &mut b[p.div_ceil(2)..]);
-            let pairs = row.chunks_exact(2);
-            if let Some(&last) = pairs.remainder().first() {
-                a[w / 2] = last;
+            let (a, b) = (
+                &mut a[p / 2..][..w.div_ceil(2)],
+                &mut b[p.div_ceil(2)..][..w / 2],
+            );
+            if w % 2 == 1 {
+                a[w / 2] = row[w - 1];
             }
-            for ((pr, x), y) in pairs.zip(a.iter_mut()).zip(b.iter_mut()) {
+            let a = &mut a[..w / 2];
+            // Sixteen inputs to eight of each phase at a time: with AVX2, two shuffles and two
+            // lane permutes (the compiler left any loop over pairs scalar, one load and store
+            // per value: 40 % of a stride-2 16×16 plane's forward pass).
+            let mut blocks = row.chunks_exact(2 * HALF);
+            let mut xa = a.chunks_exact_mut(HALF);
+            let mut xb = b.chunks_exact_mut(HALF);
+            for ((pr, x), y) in (&mut blocks).zip(&mut xa).zip(&mut xb) {
+                let pr: &[f32; 2 * HALF] = pr.try_into().expect("block of 2·HALF");
+                let x: &mut [f32; HALF] = x.try_into().expect("block of HALF");
+                let y: &mut [f32; HALF] = y.try_into().expect("block of HALF");
+                #[cfg(target_arch = "x86_64")]
+                if AVX2 {
+                    // SAFETY: AVX2 is enabled wherever this is instantiated with AVX2 = true
+                    // (the `_fma` entry points); the arrays hold 16 and 8 values.
+                    unsafe { deinterleave_avx2(pr, x, y) };
+                    continue;
+                }
+                for i in 0..HALF {
+                    x[i] = pr[2 * i];
+                    y[i] = pr[2 * i + 1];
+                }
+            }
+            let (x, y) = (xa.into_remainder(), xb.into_remainder());
+            for ((pr, x), y) in blocks.remainder().chunks_exact(2).zip(x).zip(y) {
                 *x = pr[0];
                 *y = pr[1];
             }
@@ -107,6 +140,69 @@ fn fill(g: &Geom, x: &[f32], buf: &mut Vec<f32>) {
     }
 }
 
+/// `dst` ← `src` (equal lengths) in register-wide pieces: rows are short (16–160 values), and a
+/// call to `memmove` per row cost a sixth of a 16×16 plane's forward pass.
+#[inline(always)]
+fn copy_run(dst: &mut [f32], src: &[f32]) {
+    let mut d = dst.chunks_exact_mut(HALF);
+    let mut s = src.chunks_exact(HALF);
+    for (d, s) in (&mut d).zip(&mut s) {
+        let v: [f32; HALF] = s.try_into().expect("chunk of HALF");
+        d.copy_from_slice(&v);
+    }
+    for (d, &v) in d.into_remainder().iter_mut().zip(s.remainder()) {
+        *d = v;
+    }
+}
+
+/// Even and odd values of `pr` into `x` and `y`.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn deinterleave_avx2(pr: &[f32; 2 * HALF], x: &mut [f32; HALF], y: &mut [f32; HALF]) {
+    use std::arch::x86_64::*;
+    // SAFETY: AVX2 by the contract; unaligned loads and stores of exactly the arrays' 8 values.
+    unsafe {
+        let lo = _mm256_loadu_ps(pr.as_ptr());
+        let hi = _mm256_loadu_ps(pr.as_ptr().add(HALF));
+        // Per 128-bit lane: [lo0 lo2 hi0 hi2 | lo4 lo6 hi4 hi6]; the 64-bit permute (0 2 1 3)
+        // puts the pairs in order.
+        let ev = _mm256_shuffle_ps::<0b10_00_10_00>(lo, hi);
+        let od = _mm256_shuffle_ps::<0b11_01_11_01>(lo, hi);
+        let ev = _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(ev)));
+        let od = _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(od)));
+        _mm256_storeu_ps(x.as_mut_ptr(), ev);
+        _mm256_storeu_ps(y.as_mut_ptr(), od);
+    }
+}
+
+/// `x` and `y` interleaved into `pr` (the inverse of [`deinterleave_avx2`]).
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn interleave_avx2(x: &[f32; HALF], y: &[f32; HALF], pr: &mut [f32; 2 * HALF]) {
+    use std::arch::x86_64::*;
+    // SAFETY: AVX2 by the contract; unaligned loads and stores of exactly the arrays' values.
+    unsafe {
+        let ev = _mm256_loadu_ps(x.as_ptr());
+        let od = _mm256_loadu_ps(y.as_ptr());
+        // Per 128-bit lane: [e0 o0 e1 o1 | e4 o4 e5 o5] and [e2 o2 e3 o3 | e6 o6 e7 o7].
+        let lo = _mm256_unpacklo_ps(ev, od);
+        let hi = _mm256_unpackhi_ps(ev, od);
+        _mm256_storeu_ps(pr.as_mut_ptr(), _mm256_permute2f128_ps::<0x20>(lo, hi));
+        _mm256_storeu_ps(
+            pr.as_mut_ptr().add(HALF),
+            _mm256_permute2f128_ps::<0x31>(lo, hi),
+        );
+    }
+}
+
 /// Phase `q` of a padded row (pad `p`, stride `s`) starts at input column `first` (the first
 /// with (first + p) mod s = q), stored at phase column `j0` = (first + p) / s.
 #[inline(always)]
@@ -117,7 +213,7 @@ fn phase_start(q: usize, p: usize, s: usize) -> (usize, usize) {
 
 /// The inverse of [`fill`] on the interior: padded, phase-split `buf` → plane `x`.
 #[inline(always)]
-fn unfill(g: &Geom, buf: &[f32], x: &mut [f32]) {
+fn unfill<const AVX2: bool>(g: &Geom, buf: &[f32], x: &mut [f32]) {
     let (p, s, cw, w) = (g.pad(), g.s, g.cw(), g.w);
     for (iy, row) in x.chunks_exact_mut(w).enumerate() {
         let r = iy + p;
@@ -133,14 +229,34 @@ fn unfill(g: &Geom, buf: &[f32], x: &mut [f32]) {
             } else {
                 (row1, row0)
             };
-            let (a, b) = (&a[p / 2..], &b[p.div_ceil(2)..]);
-            let mut pairs = row.chunks_exact_mut(2);
-            for ((pr, &x), &y) in (&mut pairs).zip(a).zip(b) {
+            let (a, b) = (&a[p / 2..][..w.div_ceil(2)], &b[p.div_ceil(2)..][..w / 2]);
+            if w % 2 == 1 {
+                row[w - 1] = a[w / 2];
+            }
+            let a = &a[..w / 2];
+            // Eight of each phase to sixteen outputs at a time, as in `fill`.
+            let mut blocks = row.chunks_exact_mut(2 * HALF);
+            let mut xa = a.chunks_exact(HALF);
+            let mut xb = b.chunks_exact(HALF);
+            for ((pr, x), y) in (&mut blocks).zip(&mut xa).zip(&mut xb) {
+                let pr: &mut [f32; 2 * HALF] = pr.try_into().expect("block of 2·HALF");
+                let x: &[f32; HALF] = x.try_into().expect("block of HALF");
+                let y: &[f32; HALF] = y.try_into().expect("block of HALF");
+                #[cfg(target_arch = "x86_64")]
+                if AVX2 {
+                    // SAFETY: as in `fill`.
+                    unsafe { interleave_avx2(x, y, pr) };
+                    continue;
+                }
+                for i in 0..HALF {
+                    pr[2 * i] = x[i];
+                    pr[2 * i + 1] = y[i];
+                }
+            }
+            let (x, y) = (xa.remainder(), xb.remainder());
+            for ((pr, &x), &y) in blocks.into_remainder().chunks_exact_mut(2).zip(x).zip(y) {
                 pr[0] = x;
                 pr[1] = y;
-            }
-            if let Some(last) = pairs.into_remainder().first_mut() {
-                *last = a[w / 2];
             }
             continue;
         }
@@ -173,6 +289,8 @@ fn tap_offsets(g: &Geom, offs: &mut Vec<usize>) {
 #[derive(Default)]
 pub(crate) struct Scratch {
     buf: Vec<f32>,
+    /// The geometry (h, w, k, s) `buf`'s zero padding is laid out for.
+    shape: Option<[usize; 4]>,
     dbuf: Vec<f32>,
     offs: Vec<usize>,
     /// The kernel turned by 180° (stride-1 dL/dx).
@@ -187,7 +305,7 @@ fn forward_plane<const FMA: bool>(
     sc: &mut Scratch,
     out: &mut [f32],
 ) {
-    fill(g, x, &mut sc.buf);
+    fill::<FMA>(g, x, &mut sc.buf, &mut sc.shape);
     tap_offsets(g, &mut sc.offs);
     forward_padded::<FMA>(g, &sc.buf, &sc.offs, wk, out);
 }
@@ -201,29 +319,52 @@ fn forward_padded<const FMA: bool>(
     wk: &[f32],
     out: &mut [f32],
 ) {
-    // Several output rows per pass keep four or more independent accumulator registers in
-    // flight (one row's chain of k² fused multiply–adds alone is latency-bound); each output
-    // still sums its taps in the same order, so the result is the same bit for bit.
+    // One bounds check per plane for every tap read of the blocks below: the furthest is the
+    // last output row's largest tap offset plus a row of `wo`.
+    let row_step = g.s * g.s * g.cw();
+    let reach = offs.iter().max().map_or(0, |&m| m + g.wo);
+    assert!(
+        g.ho == 0 || (g.ho - 1) * row_step + reach <= buf.len(),
+        "depthwise scratch too short for {g:?}"
+    );
+    assert!(out.len() >= g.ho * g.wo && wk.len() >= offs.len());
+    // Several output rows per pass keep eight accumulator registers in flight (one row's
+    // chain of k² fused multiply–adds alone is latency-bound, and more rows share each
+    // weight's broadcast); each output still sums its taps in the same order, so the result
+    // is the same bit for bit.
     let ho = g.ho;
     let mut oy = 0;
-    if g.wo < LANES {
-        while oy + 4 <= ho {
-            forward_rows::<FMA, 4>(g, buf, offs, wk, oy, out);
-            oy += 4;
-        }
+    // SAFETY (all three calls): rows oy .. oy + R ≤ ho, checked against `buf` above.
+    while oy + 4 <= ho {
+        unsafe { forward_rows::<FMA, 4>(g, buf, offs, wk, oy, out) };
+        oy += 4;
     }
     while oy + 2 <= ho {
-        forward_rows::<FMA, 2>(g, buf, offs, wk, oy, out);
+        unsafe { forward_rows::<FMA, 2>(g, buf, offs, wk, oy, out) };
         oy += 2;
     }
     if oy < ho {
-        forward_rows::<FMA, 1>(g, buf, offs, wk, oy, out);
+        unsafe { forward_rows::<FMA, 1>(g, buf, offs, wk, oy, out) };
     }
 }
 
-/// Output rows `oy .. oy + R` of one plane from its padded scratch `buf`.
+/// `N` values of `buf` from `at`, unchecked.
+///
+/// # Safety
+/// `at + N ≤ buf.len()`.
 #[inline(always)]
-fn forward_rows<const FMA: bool, const R: usize>(
+unsafe fn run<const N: usize>(buf: &[f32], at: usize) -> &[f32; N] {
+    // SAFETY: the caller keeps `at + N` inside `buf`; f32 has no alignment beyond 4.
+    unsafe { &*(buf.as_ptr().add(at) as *const [f32; N]) }
+}
+
+/// Output rows `oy .. oy + R` of one plane from its padded scratch `buf`.
+///
+/// # Safety
+/// `oy + R ≤ g.ho` and `(g.ho − 1)·s²·cw + max(offs) + g.wo ≤ buf.len()` (checked once per
+/// plane by [`forward_padded`]); `out` holds ho × wo values and `wk` one weight per offset.
+#[inline(always)]
+unsafe fn forward_rows<const FMA: bool, const R: usize>(
     g: &Geom,
     buf: &[f32],
     offs: &[usize],
@@ -238,7 +379,8 @@ fn forward_rows<const FMA: bool, const R: usize>(
         let mut acc = [[0.0f32; LANES]; R];
         for (&wv, &off) in wk.iter().zip(offs) {
             for (r, acc) in acc.iter_mut().enumerate() {
-                let src = &buf[base + r * row_step + off + x0..][..LANES];
+                // SAFETY: row oy + r < ho and x0 + LANES ≤ wo (see the contract).
+                let src = unsafe { run::<LANES>(buf, base + r * row_step + off + x0) };
                 for (a, &v) in acc.iter_mut().zip(src) {
                     *a = madd::<FMA>(wv, v, *a);
                 }
@@ -254,7 +396,8 @@ fn forward_rows<const FMA: bool, const R: usize>(
         let mut acc = [[0.0f32; HALF]; R];
         for (&wv, &off) in wk.iter().zip(offs) {
             for (r, acc) in acc.iter_mut().enumerate() {
-                let src = &buf[base + r * row_step + off + x0..][..HALF];
+                // SAFETY: as above, x0 + HALF ≤ wo.
+                let src = unsafe { run::<HALF>(buf, base + r * row_step + off + x0) };
                 for (a, &v) in acc.iter_mut().zip(src) {
                     *a = madd::<FMA>(wv, v, *a);
                 }
@@ -290,7 +433,7 @@ fn backward_plane<const FMA: bool>(
     dx: &mut [f32],
     dw: &mut [f32],
 ) {
-    fill(g, x, &mut sc.buf);
+    fill::<FMA>(g, x, &mut sc.buf, &mut sc.shape);
     tap_offsets(g, &mut sc.offs);
     weight_grad::<FMA>(g, &sc.buf, &sc.offs, dy, dw);
     if g.s == 1 {
@@ -299,7 +442,7 @@ fn backward_plane<const FMA: bool>(
         // rows instead of a scatter that loads and stores dL/dx once per tap.
         sc.flip.clear();
         sc.flip.extend(wk.iter().rev());
-        fill(g, dy, &mut sc.buf);
+        fill::<FMA>(g, dy, &mut sc.buf, &mut sc.shape);
         forward_padded::<FMA>(g, &sc.buf, &sc.offs, &sc.flip, dx);
         return;
     }
@@ -313,7 +456,7 @@ fn backward_plane<const FMA: bool>(
             }
         }
     }
-    unfill(g, &sc.dbuf, dx);
+    unfill::<FMA>(g, &sc.dbuf, dx);
 }
 
 /// Most taps whose weight gradients one pass over dL/dy accumulates side by side.
