@@ -74,11 +74,39 @@ fn history(path: &Path) -> Vec<StepRecord> {
         .collect()
 }
 
-/// True (lines) and tracked (dots) azimuth and elevation over the sequence.
+/// True (lines) and tracked (dots) azimuth and elevation over the sequence (degrees).
 fn demo_svg(rows: &[serde_json::Value]) -> String {
+    series_svg(
+        rows,
+        ("true_deg", "tracked_deg"),
+        &[(0, "#c0392b"), (1, "#2471a3")],
+        (-40.0, 40.0),
+        "degrees (−40 … 40)",
+    )
+}
+
+/// True (lines) and estimated (dots) slippage x, y, z over the sequence (mm).
+fn demo_slip_svg(rows: &[serde_json::Value]) -> String {
+    series_svg(
+        rows,
+        ("true_slip_mm", "tracked_slip_mm"),
+        &[(0, "#c0392b"), (1, "#27ae60"), (2, "#2471a3")],
+        (-6.0, 6.0),
+        "slippage, mm (−6 … 6)",
+    )
+}
+
+/// One value per frame: `keys.0[axis]` as a line and `keys.1[axis]` as dots for each
+/// (axis, colour), on a vertical range `lo … hi` (values beyond sit on its edge).
+fn series_svg(
+    rows: &[serde_json::Value],
+    keys: (&str, &str),
+    axes: &[(usize, &str)],
+    (lo, hi): (f64, f64),
+    label: &str,
+) -> String {
     let (w, ht, m) = (720.0, 300.0, 45.0);
     let n = rows.len().max(2) as f64;
-    let (lo, hi) = (-40.0, 40.0);
     let x = |k: usize| m + (w - 2.0 * m) * k as f64 / (n - 1.0);
     let y = |d: f64| ht - m - (ht - 2.0 * m) * ((d.clamp(lo, hi) - lo) / (hi - lo));
     let mut s = format!(
@@ -87,7 +115,7 @@ fn demo_svg(rows: &[serde_json::Value]) -> String {
 <line x1="{m}" y1="{b}" x2="{r}" y2="{b}" stroke="black"/><line x1="{m}" y1="{m}" x2="{m}" y2="{b}" stroke="black"/>
 <line x1="{m}" y1="{z}" x2="{r}" y2="{z}" stroke="#ccc"/>
 <text x="{cx}" y="{tb}" text-anchor="middle">frame</text>
-<text x="12" y="{cy}" transform="rotate(-90 12 {cy})" text-anchor="middle">degrees (−40 … 40)</text>
+<text x="12" y="{cy}" transform="rotate(-90 12 {cy})" text-anchor="middle">{label}</text>
 "##,
         b = ht - m,
         r = w - m,
@@ -96,12 +124,12 @@ fn demo_svg(rows: &[serde_json::Value]) -> String {
         tb = ht - 10.0,
         cy = ht / 2.0
     );
-    for (axis, color) in [(0usize, "#c0392b"), (1, "#2471a3")] {
+    for &(axis, color) in axes {
         let pts: Vec<String> = rows
             .iter()
             .enumerate()
             .filter_map(|(k, r)| {
-                r["true_deg"][axis]
+                r[keys.0][axis]
                     .as_f64()
                     .map(|d| format!("{:.1},{:.1}", x(k), y(d)))
             })
@@ -111,7 +139,7 @@ fn demo_svg(rows: &[serde_json::Value]) -> String {
             pts.join(" ")
         );
         for (k, r) in rows.iter().enumerate() {
-            if let Some(d) = r["tracked_deg"][axis].as_f64() {
+            if let Some(d) = r[keys.1][axis].as_f64() {
                 s += &format!(
                     "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"2.5\" fill=\"{color}\"/>\n",
                     x(k),
@@ -484,6 +512,16 @@ dots: tracked by the learned chain (mean error {}°). demo.jsonl has every frame
                 num(&r["demo_sequence"]["mean_deg"]),
                 demo_svg(&rows)
             )?;
+            if rows.iter().any(|r| r["tracked_slip_mm"].is_array()) {
+                writeln!(
+                    h,
+                    "<p>The slippage the calibration head read on the same frames. Lines: the \
+true slippage along x (red), y (green) and z (blue); dots: the network's estimate (RMSE {} mm), \
+which the solver uses to place the eye.</p>{}",
+                    num(&r["demo_sequence"]["slip_rmse_mm"]),
+                    demo_slip_svg(&rows)
+                )?;
+            }
         }
     }
     writeln!(

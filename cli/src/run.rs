@@ -765,6 +765,8 @@ pub fn run(a: RunArgs) -> Result<()> {
                     "true_deg": [ta.to_degrees(), te.to_degrees()],
                     "tracked_deg": est,
                     "slip_m": rec.state.slip_m,
+                    "true_slip_mm": rec.state.slip_m.map(|v| v * 1e3),
+                    "tracked_slip_mm": e.slip_mm[k],
                     "error_deg": e.errors_deg[k],
                     "fallback": e.fallback[k],
                 })
@@ -774,6 +776,8 @@ pub fn run(a: RunArgs) -> Result<()> {
             util::write_atomic(&out.join("demo.jsonl"), lines.as_bytes())?;
             let mut demo = summarize(&e.errors_deg);
             demo["fallbacks"] = fallbacks(&e).into();
+            let n = e.slip_sq_mm2.len().max(1) as f64;
+            demo["slip_rmse_mm"] = (e.slip_sq_mm2.iter().sum::<f64>() / n).sqrt().into();
             ev.demo = Some(demo);
         }
         Ok(ev)

@@ -118,16 +118,32 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     assert_ne!(p["hyperbolic"]["mean_deg"], p["double_helix"]["mean_deg"]);
     assert!(r["macs"].as_u64().unwrap() > 0);
     assert_eq!(r["demo_sequence"]["frames"], 5);
-    assert_eq!(
-        std::fs::read_to_string(out.join("demo.jsonl"))
-            .unwrap()
-            .lines()
-            .count(),
-        5
+    let demo: Vec<serde_json::Value> = std::fs::read_to_string(out.join("demo.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(demo.len(), 5);
+    // Each frame carries the true and the estimated slippage; their RMSE is the summary's.
+    let mut sq = 0.0;
+    for d in &demo {
+        for a in 0..3 {
+            let t = d["true_slip_mm"][a].as_f64().unwrap();
+            let e = d["tracked_slip_mm"][a].as_f64().unwrap();
+            assert!(e.is_finite());
+            assert!((t - d["slip_m"][a].as_f64().unwrap() * 1e3).abs() < 1e-9);
+            sq += (e - t) * (e - t);
+        }
+    }
+    let rmse = r["demo_sequence"]["slip_rmse_mm"].as_f64().unwrap();
+    assert!(
+        (rmse - (sq / 5.0).sqrt()).abs() < 1e-3 * (1.0 + rmse),
+        "{rmse}"
     );
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert!(html.contains("data:image/png;base64,") && html.contains("<svg"));
     assert!(html.contains("Slippage estimate"));
+    assert!(html.contains("The slippage the calibration head read"));
     // The report states this run's own sizes (the test's config), not the default's.
     assert!(
         html.contains(
