@@ -243,25 +243,35 @@ fn stdin_frame(r: &mut impl Read) -> Option<Frame> {
     Some(Ok(("stdin".into(), m)))
 }
 
-fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, String> {
+/// Why a frame gave no gaze: its input was not a valid frame for this model, or the chain
+/// found no solution in a valid frame (no pupil, say).
+enum FrameError {
+    Input(String),
+    Solve(String),
+}
+
+fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, FrameError> {
     let (h, w) = m.shape;
     if (img.nrows(), img.ncols()) != (h, w) {
-        return Err(format!(
+        return Err(FrameError::Input(format!(
             "frame is {}×{}, the model's sensor grid at p̂ is {w}×{h}",
             img.ncols(),
             img.nrows()
-        ));
+        )));
     }
     for i in 0..h {
         for j in 0..w {
             let v = img[(i, j)];
             if !v.is_finite() {
-                return Err(format!("non-finite value at ({i}, {j})"));
+                return Err(FrameError::Input(format!("non-finite value at ({i}, {j})")));
             }
             m.x[i * w + j] = (v - m.black) / m.span;
         }
     }
-    let o = m.inf.run(&m.x).map_err(|e| e.to_string())?;
+    let o = m
+        .inf
+        .run(&m.x)
+        .map_err(|e| FrameError::Solve(e.to_string()))?;
     // S9 takes the soft mask, as in training and evaluation. Confidence: the largest pupil
     // probability in the frame (a frame without any confident pupil pixel says so).
     let mut conf = 0.0f32;
@@ -276,7 +286,7 @@ fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, String>
     let sol = m
         .solver
         .solve_mask(m.probs.as_ref(), slip)
-        .map_err(|e| e.to_string())?;
+        .map_err(|e| FrameError::Solve(e.to_string()))?;
     let conf = conf as f64;
     Ok(serde_json::json!({
         "gaze": sol.gaze,
@@ -296,11 +306,26 @@ pub fn track(a: TrackArgs) -> Result<()> {
     let max_dn = m.max_dn;
     let out = std::io::stdout();
     let mut out = BufWriter::new(out.lock());
+    // Frames that were not valid input (the first one's index, source and reason, and how
+    // many): the tracker goes on past them, then exits non-zero.
+    let mut invalid: Option<(usize, String, String)> = None;
+    let mut n_invalid = 0usize;
     let mut emit = |i: usize, name: &str, f: std::result::Result<Mat<f32>, String>| -> Result<()> {
         let t = Instant::now();
         let ran = f.is_ok();
-        let r = f.and_then(|img| track_one(&mut m, &img));
+        let r = match f {
+            Ok(img) => track_one(&mut m, &img),
+            Err(e) => Err(FrameError::Input(e)),
+        };
         let us = t.elapsed().as_micros() as u64;
+        let r = r.map_err(|e| match e {
+            FrameError::Input(e) => {
+                n_invalid += 1;
+                invalid.get_or_insert_with(|| (i, name.to_string(), e.clone()));
+                e
+            }
+            FrameError::Solve(e) => e,
+        });
         let line = match r {
             Ok(mut v) => {
                 v["frame"] = i.into();
@@ -376,5 +401,11 @@ pub fn track(a: TrackArgs) -> Result<()> {
         }
     }
     out.flush()?;
+    if let Some((i, name, e)) = invalid {
+        let e = e.strip_prefix(&format!("{name}: ")).unwrap_or(&e);
+        bail!(
+            "{n_invalid} input frame(s) were not valid frames for this model (each has its error line); the first, frame {i} from {name}: {e}"
+        );
+    }
     Ok(())
 }

@@ -207,7 +207,13 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
             .unwrap()
     };
     let o = track(&[], &frames);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // The tracker goes on past a file that is not a frame, then names it and exits non-zero.
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("1 input frame(s)") && err.contains("b.npy"),
+        "{err}"
+    );
     let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&o.stdout)
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
@@ -220,8 +226,8 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     std::fs::copy(out.join("runs/learned/tracker_arch.json"), &arch_file).unwrap();
     let file_subnet = format!("file:{}", arch_file.display());
     for subnet in ["min", "max", file_subnet.as_str()] {
-        let o = track(&["--subnet", subnet], &frames);
-        assert!(o.status.success());
+        let o = track(&["--subnet", subnet], &sim);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let err = String::from_utf8_lossy(&o.stderr);
         let warned = err.contains(&format!("--subnet {subnet}")) && err.contains("recalibrated");
         assert_eq!(warned, subnet.starts_with("file:"), "{subnet}: {err}");
@@ -270,7 +276,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         si.write_all(b"JUNKJUNKJUNKJUNK").unwrap();
     }
     let o = child.wait_with_output().unwrap();
-    assert!(o.status.success());
+    assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stdout).contains("NEYE"));
 
     // Finished: the second call reports the same result without redoing any stage.
