@@ -703,6 +703,11 @@ pub fn render_frames(
             reason: format!("frame {i} out of 0..{}", plan.planned.len()),
         });
     }
+    check_frame_memory(
+        &plan.manifest.rig.camera,
+        opts.layers.count,
+        available_memory(),
+    )?;
     let bar = if progress {
         indicatif::ProgressBar::new(frames.len() as u64)
     } else {
@@ -742,17 +747,63 @@ pub fn render_frames(
 /// Most bytes of frames in flight at once in [`render_frames`].
 const FRAMES_IN_FLIGHT_BYTES: usize = 2 << 30;
 
-/// Frames [`render_frames`] renders at once: one per thread, as many as fit in
-/// [`FRAMES_IN_FLIGHT_BYTES`] (at least one). A frame holds its interleaved sample buffer, the
-/// planes gathered from it and their encodings: about three times (4 + 2K) f32 per pixel.
-fn frames_in_flight(threads: usize, camera: &nanoeye_gaze::Camera, layers: usize) -> usize {
-    let per_frame = camera
+/// Bytes one frame holds while it is rendered and written: its interleaved sample buffer, the
+/// planes gathered from it and their encodings, about three times (4 + 2K) f32 per pixel.
+fn frame_bytes(camera: &nanoeye_gaze::Camera, layers: usize) -> usize {
+    camera
         .width_px
         .saturating_mul(camera.height_px)
         .saturating_mul(4 + 2 * layers)
         .saturating_mul(3 * std::mem::size_of::<f32>())
-        .max(1);
-    threads.min(FRAMES_IN_FLIGHT_BYTES / per_frame).max(1)
+        .max(1)
+}
+
+/// Frames [`render_frames`] renders at once: one per thread, as many as fit in
+/// [`FRAMES_IN_FLIGHT_BYTES`] (at least one).
+fn frames_in_flight(threads: usize, camera: &nanoeye_gaze::Camera, layers: usize) -> usize {
+    threads
+        .min(FRAMES_IN_FLIGHT_BYTES / frame_bytes(camera, layers))
+        .max(1)
+}
+
+/// Memory the system can still give this process (bytes): Linux's `MemAvailable`; None
+/// where it cannot be read.
+fn available_memory() -> Option<usize> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let kb: usize = text
+        .lines()
+        .find_map(|l| l.strip_prefix("MemAvailable:"))?
+        .trim()
+        .strip_suffix("kB")?
+        .trim()
+        .parse()
+        .ok()?;
+    Some(kb.saturating_mul(1024))
+}
+
+/// Refuses a frame size that cannot fit in `available` bytes (None: not known, not checked):
+/// a width off by a digit would otherwise end in the kernel's out-of-memory kill, not an error.
+fn check_frame_memory(
+    camera: &nanoeye_gaze::Camera,
+    layers: usize,
+    available: Option<usize>,
+) -> Result<(), RenderError> {
+    let need = frame_bytes(camera, layers);
+    match available {
+        Some(have) if need > have => Err(RenderError::Invalid {
+            what: "width",
+            reason: format!(
+                "a {}×{} px frame with {layers} depth layers needs about {:.1} GB while rendered, \
+                 and this machine has {:.1} GB available: lower the width and height (or the \
+                 layer count)",
+                camera.width_px,
+                camera.height_px,
+                need as f64 / 1e9,
+                have as f64 / 1e9
+            ),
+        }),
+        _ => Ok(()),
+    }
 }
 
 /// Renders and writes frame `i` of `plan` (record last); false when it was already complete.
@@ -911,6 +962,25 @@ fn visible_fraction(visible: &Mat<f32>, unoccluded: &Mat<f32>) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A frame larger than the memory available is refused, one that fits is not; without a
+    /// figure for the available memory nothing is refused.
+    #[test]
+    fn frames_that_cannot_fit_in_memory_are_refused_before_rendering() {
+        let cam = Rig::default().camera;
+        let need = frame_bytes(&cam, 8);
+        // (4 + 2·8) f32 three times over per pixel.
+        assert_eq!(need, cam.width_px * cam.height_px * 20 * 12);
+        assert!(check_frame_memory(&cam, 8, Some(need)).is_ok());
+        assert!(check_frame_memory(&cam, 8, None).is_ok());
+        let e = check_frame_memory(&cam, 8, Some(need - 1)).unwrap_err();
+        assert!(e.to_string().contains("width and height"), "{e}");
+        // This machine's own figure, when it has one, is finite and a frame of the default
+        // size fits in it.
+        if let Some(have) = available_memory() {
+            assert!(have > need, "{have} bytes available");
+        }
+    }
 
     /// One frame per thread at the main job's size; at 1280×800 with 8 layers (≈ 246 MB a
     /// frame) the 2 GiB bound keeps 8 of 64 threads' frames; never fewer than one, whatever
