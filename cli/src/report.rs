@@ -324,7 +324,10 @@ difference to <i>learned</i> is the network's share. <i>network_mask_true_slip</
 segmentation's and the slippage estimate's shares are separate. <i>sphere_solver_…</i> / \
 <i>refractive_solver_…</i>: the same with the other solver (the paper's S12 sphere of the \
 rig's eye radius, or the refraction-aware solver that looks through the cornea, \
-docs/gaze.md), so the refraction correction's effect is visible. Dice: mean overlap of the \
+docs/gaze.md), so the refraction correction's effect is visible. \
+<i>solver_true_mask_eye_equivalent_slip</i>: the true mask with the slippage's translation and \
+the camera's rotation folded into one translation about the eye centre, so what S11's \
+translation-only model costs is visible (docs/gaze.md). Dice: mean overlap of the \
 predicted and true pupil masks; slip RMSE: root mean square of the predicted slippage's error \
 (mm) — the network's two outputs against the truth.</p>\
 <table><tr><th>chain</th><th>mean °</th><th>median °</th><th>p95 °</th><th>failures</th><th>frames</th>\

@@ -17,7 +17,8 @@ use nanoeye_datagen::render::{
 use nanoeye_gaze::{Rig, SolverKind};
 use nanoeye_nets::Arch;
 use nanoeye_search::{
-    CameraChain, ChainConfig, LensSpec, Rea, ReaConfig, ReaState, SolverInput, TrainConfig, Trainer,
+    CameraChain, ChainConfig, LensSpec, Rea, ReaConfig, ReaState, SlipTarget, SolverInput,
+    TrainConfig, Trainer,
 };
 use serde::{Deserialize, Serialize};
 use std::io::IsTerminal;
@@ -126,6 +127,9 @@ pub struct RunConfig {
     /// Gaze solver: "refractive" (the pupil seen through the rig's cornea) or "sphere" (S12's
     /// sphere of radius `rig.eye_radius_m`, the paper's seed).
     pub solver: SolverKind,
+    /// What the calibration head learns: "translation" (the camera's, as S11 is written) or
+    /// "eye_equivalent" (its rotation folded in about the eye centre, docs/gaze.md).
+    pub slip_target: SlipTarget,
 }
 
 impl Default for RunConfig {
@@ -164,6 +168,7 @@ impl Default for RunConfig {
             rig: None,
             sequence_frames: 60,
             solver: SolverKind::Refractive,
+            slip_target: SlipTarget::Translation,
         }
     }
 }
@@ -479,6 +484,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     let chain_cfg = {
         let mut c = ChainConfig {
             aperture_step_m: cfg.aperture_step_um * 1e-6,
+            slip_target: cfg.slip_target,
             ..ChainConfig::default()
         };
         c.radiometry.exposure_s = cfg.exposure_ms * 1e-3;
@@ -669,6 +675,13 @@ pub fn run(a: RunArgs) -> Result<()> {
                 SolverInput::Truth,
                 other,
             ));
+            // What S11's neglect of the camera's rotation costs the solver, whatever the head
+            // learns: the true mask with the eye-equivalent translation.
+            solves.push((
+                "solver_true_mask_eye_equivalent_slip".into(),
+                SolverInput::TruthEyeEquivalent,
+                cfg.solver,
+            ));
             // The chain's error split between its two heads: each fed the truth in turn.
             solves.push((
                 "network_mask_true_slip".into(),
@@ -706,7 +719,7 @@ pub fn run(a: RunArgs) -> Result<()> {
                 "tracked_gaze": e.gaze[k],
                 "error_deg": e.errors_deg[k],
                 "dice": e.dice[k],
-                "true_slip_mm": rec.state.slip_m.map(|v| v * 1e3),
+                "true_slip_mm": e.true_slip_mm[k],
                 "tracked_slip_mm": e.slip_mm[k],
                 "fallback": e.fallback[k],
             })
@@ -765,7 +778,7 @@ pub fn run(a: RunArgs) -> Result<()> {
                     "true_deg": [ta.to_degrees(), te.to_degrees()],
                     "tracked_deg": est,
                     "slip_m": rec.state.slip_m,
-                    "true_slip_mm": rec.state.slip_m.map(|v| v * 1e3),
+                    "true_slip_mm": e.true_slip_mm[k],
                     "tracked_slip_mm": e.slip_mm[k],
                     "error_deg": e.errors_deg[k],
                     "fallback": e.fallback[k],

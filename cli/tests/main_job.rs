@@ -62,6 +62,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         "geometric_no_slip",
         "solver_true_mask_true_slip",
         "sphere_solver_true_mask_true_slip",
+        "solver_true_mask_eye_equivalent_slip",
         "network_mask_true_slip",
         "true_mask_network_slip",
     ] {

@@ -231,6 +231,25 @@ impl Camera {
         }
     }
 
+    /// The translation (m) that S11's translation-only model stands for when the camera moved
+    /// by `slip_m` and turned by `rot_rad` about its own centre (as in
+    /// [`Camera::slipped_pose`]): turn the whole slipped rig about the eye centre (the world
+    /// origin) back to the nominal orientation; where the camera then sits, minus T_nom. The
+    /// eye, a sphere about that centre, looks to the nominal camera placed there as it does to
+    /// the slipped one with its gaze turned by the same rotation, so the solver given this
+    /// translation errs by the rotation's angle, not by the ≈ 2–3× larger angle that a camera
+    /// turned about its own centre costs when its translation alone is given (docs/gaze.md).
+    pub fn eye_equivalent_slip(&self, slip_m: Vec3, rot_rad: Vec3) -> Vec3 {
+        let w = geom::rot_from_vector(rot_rad);
+        // Turning back by Wᵀ takes R = W·R_nom to R_nom and the centre T_nom + Δt to
+        // Wᵀ·(T_nom + Δt); minus T_nom, grouped so that W = I gives Δt exactly.
+        let t = self.position_m;
+        geom::add(
+            geom::mul_mtv(&w, slip_m),
+            geom::sub(geom::mul_mtv(&w, t), t),
+        )
+    }
+
     /// Checks every field; the error names the first bad one.
     pub fn validate(&self) -> Result<(), GazeError> {
         let pos = |field, v: f64| {

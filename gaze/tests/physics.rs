@@ -296,3 +296,69 @@ fn pupil_sphere_bias_vanishes_at_the_true_radius_and_grows_away_from_it() {
     let (m11, m12, m13) = (mean(11.0), mean(12.0), mean(13.0));
     assert!(0.0 < m11 && m11 < m12 && m12 < m13, "{m11} {m12} {m13}");
 }
+
+#[test]
+fn eye_equivalent_slip_is_the_slip_without_rotation_and_zero_for_a_turn_about_the_eye() {
+    let cam = Rig::default().camera;
+    for slip in SLIPS {
+        assert_eq!(cam.eye_equivalent_slip(slip, [0.0; 3]), slip);
+    }
+    // The nominal camera carried round the eye centre by W: a gaze rotation in disguise.
+    for w in [[0.02, -0.01, 0.03], [-0.3, 0.2, 0.1], [0.0, 0.0, 1e-7]] {
+        let wm = geom::rot_from_vector(w);
+        let slip = geom::sub(geom::mul_mv(&wm, cam.position_m), cam.position_m);
+        let eq = cam.eye_equivalent_slip(slip, w);
+        assert!(geom::norm(eq) < 1e-17, "w {w:?}: {eq:?}");
+    }
+}
+
+/// A camera turned about its own centre, solved with S11's translation only: given the
+/// eye-equivalent translation the solver returns the gaze turned back by exactly the camera's
+/// rotation (so it errs by at most that angle); given the physical translation it errs by more.
+#[test]
+fn the_eye_equivalent_slip_costs_the_solver_at_most_the_rotation_angle() {
+    let rig = solver_rig();
+    let solver = SphereSolver::new(&rig).unwrap();
+    let cam = &rig.camera;
+    let mut worse = 0;
+    let mut n = 0;
+    for (k, w) in [
+        [0.014, -0.002, 0.022],
+        [-0.01, 0.008, 0.0],
+        [0.0, 0.03, -0.01],
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let wm = geom::rot_from_vector(w);
+        let slip = SLIPS[k + 1];
+        let pose = cam.slipped_pose(slip, w);
+        for az in [-20.0f64, 0.0, 15.0] {
+            for el in [-10.0f64, 5.0, 20.0] {
+                let g = eye::gaze_from_angles(az.to_radians(), el.to_radians());
+                let px = project(cam, &pose, rig.pupil_center(g)).unwrap();
+                let eq = solver
+                    .solve_pixel(px, cam.eye_equivalent_slip(slip, w))
+                    .unwrap();
+                let turned = geom::mul_mtv(&wm, g);
+                assert!(
+                    angular_error(eq.gaze, turned) < 1e-9,
+                    "w {w:?} ({az}, {el})"
+                );
+                assert!(angular_error(eq.gaze, g) <= geom::norm(w) + 1e-12);
+                n += 1;
+                let phys = solver
+                    .solve_pixel(px, slip)
+                    .map(|s| angular_error(s.gaze, g));
+                if phys.map_or(true, |e| e > angular_error(eq.gaze, g)) {
+                    worse += 1;
+                }
+            }
+        }
+    }
+    assert!(
+        worse * 10 >= n * 9,
+        "the physical translation did better on {} of {n}",
+        n - worse
+    );
+}

@@ -22,6 +22,7 @@ use crate::split::{DepthSplit, OneProcess, map_gather};
 use faer::Mat;
 use nanoeye_datagen::render::{Dataset, FrameRecord, LayerSpec, Light, StoredFrame, Subject};
 use nanoeye_datagen::states::State;
+use nanoeye_gaze::Camera;
 use nanoeye_nets::Tensor;
 use nanoeye_optics::psf::{add_cells, depths_with_gradient};
 use nanoeye_optics::{
@@ -46,6 +47,34 @@ pub struct ChainConfig {
     /// PSF window side (m); rounded to an odd number of native pixels so the kernel has a
     /// centre pixel.
     pub psf_window_m: f64,
+    /// What the calibration head is trained to estimate (S8's Δt*).
+    #[serde(default)]
+    pub slip_target: SlipTarget,
+}
+
+/// The slippage target Δt* of S8, from a frame's state.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SlipTarget {
+    /// The camera's translation (m), as S11 is written.
+    #[default]
+    Translation,
+    /// The translation with the camera's rotation folded in about the eye centre, so that
+    /// S11's translation-only model costs the rotation's angle
+    /// (`Camera::eye_equivalent_slip`, docs/gaze.md).
+    EyeEquivalent,
+}
+
+impl SlipTarget {
+    /// Δt* (m) for `state` seen by `camera` (only its nominal position matters).
+    pub fn of(self, camera: &Camera, state: &State) -> [f64; 3] {
+        match self {
+            SlipTarget::Translation => state.slip_m,
+            SlipTarget::EyeEquivalent => {
+                camera.eye_equivalent_slip(state.slip_m, state.cam_rot_rad)
+            }
+        }
+    }
 }
 
 impl Default for ChainConfig {
@@ -58,6 +87,7 @@ impl Default for ChainConfig {
             sensor: SensorConfig::default(),
             aperture_step_m: 1.5e-6,
             psf_window_m: 192e-6,
+            slip_target: SlipTarget::Translation,
         }
     }
 }
@@ -146,7 +176,7 @@ pub struct ChainForward {
     pub dn: Vec<Mat<f32>>,
     /// Visible-pupil coverage on the p̂ grid (N, 1, H, W), the segmentation target.
     pub mask: Tensor,
-    /// Slippage targets Δt* in mm (N, 3, 1, 1).
+    /// Slippage targets Δt* in mm (N, 3, 1, 1), as [`ChainConfig::slip_target`] defines them.
     pub slip_mm: Tensor,
     /// True pupil centre in p̂ pixels (None where it projects behind the camera).
     pub pupil_center_px: Vec<Option<[f64; 2]>>,
@@ -551,7 +581,11 @@ impl CameraChain {
                     mi[i * w + j] = m[(i, j)];
                 }
             }
-            for (a, v) in frames[b].record.state.slip_m.iter().enumerate() {
+            let target = self
+                .cfg
+                .slip_target
+                .of(&grid.camera, &frames[b].record.state);
+            for (a, v) in target.iter().enumerate() {
                 slip.data[b * 3 + a] = (*v * 1e3) as f32;
             }
             dns.push(dn);

@@ -15,7 +15,8 @@ pub mod task;
 pub mod train;
 
 pub use chain::{
-    CameraChain, ChainConfig, ChainForward, ChainFrame, ChainGrad, PsfGradAccumulator, StepPsfs,
+    CameraChain, ChainConfig, ChainForward, ChainFrame, ChainGrad, PsfGradAccumulator, SlipTarget,
+    StepPsfs,
 };
 pub use error::{Result, SearchError};
 pub use geometry::{NativeGrid, PitchGrid};

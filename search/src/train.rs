@@ -767,9 +767,13 @@ pub enum SolverInput {
     Predicted,
     /// The network's mask, zero slippage (the geometric solver that ignores slippage).
     NoSlip,
-    /// The true visible-pupil mask on the p̂ grid and the true slippage: the solver's own
-    /// error on rendered frames, without the network.
+    /// The true visible-pupil mask on the p̂ grid and the true slippage (the head's target,
+    /// [`FrameEval::true_slip_mm`]): the solver's own error on rendered frames, without the
+    /// network.
     Truth,
+    /// As `Truth`, with the eye-equivalent translation whatever the head's target
+    /// (`Camera::eye_equivalent_slip`): what the camera's unmodelled rotation costs the solver.
+    TruthEyeEquivalent,
     /// The network's mask with the true slippage: the segmentation's share of the error.
     PredictedMaskTrueSlip,
     /// The true mask with the network's slippage: the calibration head's share of the error.
@@ -790,6 +794,9 @@ pub struct FrameEval {
     pub gaze: Vec<Option<[f64; 3]>>,
     /// The network's slippage estimate per frame (mm, rig frame).
     pub slip_mm: Vec<[f64; 3]>,
+    /// The slippage it is trained to estimate per frame (mm, rig frame; the chain's
+    /// [`crate::SlipTarget`]).
+    pub true_slip_mm: Vec<[f64; 3]>,
     /// Per frame: the solver fell back to its nearest estimate
     /// ([`nanoeye_gaze::GazeSolution::fallback`]); false where it failed.
     pub fallback: Vec<bool>,
@@ -891,18 +898,26 @@ pub fn evaluate_frames_multi(
             });
             let truth = Mat::from_fn(h, w, |i, j| fwd.mask.image(b)[i * w + j]);
             let net_slip_mm = [0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64);
+            // In f64 from the state (the tensor holds it in f32 for the loss).
+            let target_m = chain.config().slip_target.of(&rig.camera, &f.record.state);
+            let true_slip_mm = target_m.map(|v| v * 1e3);
             for ((&(input, _), solver), e) in solves.iter().zip(&solvers).zip(out.iter_mut()) {
                 e.dice.push(dice);
                 e.slip_sq_mm2.push(slip_sq);
                 e.slip_mm.push(net_slip_mm);
+                e.true_slip_mm.push(true_slip_mm);
                 let probs = match input {
-                    SolverInput::Truth | SolverInput::TrueMaskPredictedSlip => &truth,
+                    SolverInput::Truth
+                    | SolverInput::TruthEyeEquivalent
+                    | SolverInput::TrueMaskPredictedSlip => &truth,
                     _ => &predicted,
                 };
                 let slip = match input {
                     SolverInput::NoSlip => [0.0; 3],
-                    SolverInput::Truth | SolverInput::PredictedMaskTrueSlip => {
-                        f.record.state.slip_m
+                    SolverInput::Truth | SolverInput::PredictedMaskTrueSlip => target_m,
+                    SolverInput::TruthEyeEquivalent => {
+                        let st = &f.record.state;
+                        rig.camera.eye_equivalent_slip(st.slip_m, st.cam_rot_rad)
                     }
                     SolverInput::Predicted | SolverInput::TrueMaskPredictedSlip => {
                         net_slip_mm.map(|v| v * 1e-3)

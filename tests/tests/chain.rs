@@ -12,7 +12,8 @@ use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig};
 use nanoeye_optics::PhaseMap;
 use nanoeye_optics::PsfModel;
 use nanoeye_search::{
-    CameraChain, ChainConfig, ChainFrame, DepthSplit, LensSpec, NativeGrid, StepPsfs, task_loss,
+    CameraChain, ChainConfig, ChainFrame, DepthSplit, LensSpec, NativeGrid, SlipTarget, StepPsfs,
+    task_loss,
 };
 use nanoeye_sensor::{BoxIntegrator, NoiseMode};
 use proptest::prelude::*;
@@ -758,4 +759,46 @@ fn chain_gradients_do_not_depend_on_the_thread_count() {
     assert_eq!(a.0, b.0, "loss");
     assert_eq!(a.1, b.1, "∂L/∂p̂");
     assert!(a.2 == b.2, "∂L/∂φ");
+}
+
+/// The calibration head's targets are the frames' translations in mm by default and the
+/// eye-equivalent translations with `SlipTarget::EyeEquivalent`; the rendered cameras turned,
+/// so the two differ.
+#[test]
+fn slip_targets_follow_the_configured_definition() {
+    let (_dir, ds) = tiny_dataset();
+    let ids: Vec<usize> = (0..ds.len()).collect();
+    let targets = |t: SlipTarget| {
+        let chain = CameraChain::for_dataset(
+            &ds,
+            ChainConfig {
+                slip_target: t,
+                ..test_cfg()
+            },
+        )
+        .unwrap();
+        let frames = chain.load(&ds, &ids).unwrap();
+        let map = hyperbolic(&chain);
+        let psfs = chain.psfs(&map, &chain.active(&frames)).unwrap();
+        let fwd = chain
+            .forward(&frames, &psfs, 48e-6, NoiseMode::None, 0)
+            .unwrap();
+        fwd.slip_mm.data
+    };
+    let (tr, eq) = (
+        targets(SlipTarget::Translation),
+        targets(SlipTarget::EyeEquivalent),
+    );
+    let cam = &ds.manifest.rig.camera;
+    let mut turned = 0;
+    for (b, r) in ds.records.iter().enumerate() {
+        let e = cam.eye_equivalent_slip(r.state.slip_m, r.state.cam_rot_rad);
+        for a in 0..3 {
+            assert_eq!(tr[b * 3 + a], (r.state.slip_m[a] * 1e3) as f32);
+            assert_eq!(eq[b * 3 + a], (e[a] * 1e3) as f32);
+        }
+        turned += usize::from(r.state.cam_rot_rad != [0.0; 3]);
+    }
+    assert!(turned > 0, "no rendered camera turned");
+    assert_ne!(tr, eq);
 }
