@@ -230,6 +230,27 @@ pub fn pointwise_forward(
         }
         return Ok(y);
     }
+    if hw <= SMALL_PLANE {
+        // Few pixels per image (the deep stages): one GEMM over the batch's N·HW columns,
+        // instead of N GEMMs whose fixed costs outweigh their few columns.
+        let nhw = x.n * hw;
+        let xp = pack_planes(&x.data, x.n, cin, hw);
+        let mut yp = vec![0.0f32; cout * nhw];
+        gemm_col_blocks(
+            MatMut::from_row_major_slice_mut(&mut yp, cout, nhw),
+            Accum::Replace,
+            wm,
+            MatRef::from_row_major_slice(&xp, cin, nhw),
+        );
+        unpack_planes(&yp, &mut y.data, x.n, cout, hw);
+        if let Some(b) = bias {
+            for (i, row) in y.data.chunks_mut(hw).enumerate() {
+                let bo = b[i % cout];
+                row.iter_mut().for_each(|v| *v += bo);
+            }
+        }
+        return Ok(y);
+    }
     y.data
         .par_chunks_mut(cout * hw)
         .enumerate()
@@ -281,6 +302,28 @@ pub fn pointwise_vjp(
         gemm_row_blocks(dxm, Accum::Replace, wm.transpose(), g);
         let dwm = MatMut::from_row_major_slice_mut(dw, cout, cin);
         gemm_row_blocks(dwm, Accum::Add, g, xm.transpose());
+    } else if hw <= SMALL_PLANE {
+        // As in the forward pass: the batch as N·HW columns, dX = Wᵀ·dY in column blocks and
+        // dW += dY·Xᵀ with N·HW as the inner dimension (no per-image partial sums).
+        let nhw = x.n * hw;
+        let g = pack_planes(&dy.data, x.n, cout, hw);
+        let xp = pack_planes(&x.data, x.n, cin, hw);
+        let gm = MatRef::from_row_major_slice(&g, cout, nhw);
+        let mut dxp = vec![0.0f32; cin * nhw];
+        gemm_col_blocks(
+            MatMut::from_row_major_slice_mut(&mut dxp, cin, nhw),
+            Accum::Replace,
+            wm.transpose(),
+            gm,
+        );
+        unpack_planes(&dxp, &mut dx.data, x.n, cin, hw);
+        let dwm = MatMut::from_row_major_slice_mut(dw, cout, cin);
+        gemm_row_blocks(
+            dwm,
+            Accum::Add,
+            gm,
+            MatRef::from_row_major_slice(&xp, cin, nhw).transpose(),
+        );
     } else {
         pointwise_weight_grad(x, cout, dy, &mut dx, wm, dw);
     }
@@ -293,6 +336,58 @@ pub fn pointwise_vjp(
         }
     }
     Ok(dx)
+}
+
+/// Largest plane (pixels per image and channel) that [`pointwise_forward`] and
+/// [`pointwise_vjp`] run as one GEMM over the batch.
+const SMALL_PLANE: usize = 64;
+
+/// Columns of a GEMM output per parallel task in [`gemm_col_blocks`]: fixed, like
+/// [`ROW_BLOCK`].
+const COL_BLOCK: usize = 256;
+
+/// NCHW planes (`n` images of `c` planes of `hw`) as a row-major C × (N·HW) matrix.
+fn pack_planes(src: &[f32], n: usize, c: usize, hw: usize) -> Vec<f32> {
+    let nhw = n * hw;
+    let mut out = vec![0.0f32; c * nhw];
+    for (i, plane) in src.chunks_exact(hw).enumerate() {
+        let (img, ch) = (i / c, i % c);
+        out[ch * nhw + img * hw..][..hw].copy_from_slice(plane);
+    }
+    out
+}
+
+/// Inverse of [`pack_planes`]: a row-major C × (N·HW) matrix back into NCHW `dst`.
+fn unpack_planes(src: &[f32], dst: &mut [f32], n: usize, c: usize, hw: usize) {
+    let nhw = n * hw;
+    for (i, plane) in dst.chunks_exact_mut(hw).enumerate() {
+        let (img, ch) = (i / c, i % c);
+        plane.copy_from_slice(&src[ch * nhw + img * hw..][..hw]);
+    }
+}
+
+/// dst (+)= a·b with the columns of `dst` (and `b`) split into blocks of [`COL_BLOCK`], one
+/// sequential GEMM per block, the blocks in parallel.
+fn gemm_col_blocks(dst: MatMut<'_, f32>, accum: Accum, a: MatRef<'_, f32>, b: MatRef<'_, f32>) {
+    let mut blocks = Vec::with_capacity(dst.ncols().div_ceil(COL_BLOCK));
+    let mut rest = dst;
+    while rest.ncols() > COL_BLOCK {
+        let (left, right) = rest.split_at_col_mut(COL_BLOCK);
+        blocks.push(left);
+        rest = right;
+    }
+    blocks.push(rest);
+    blocks.into_par_iter().enumerate().for_each(|(i, blk)| {
+        let cols = blk.ncols();
+        matmul(
+            blk,
+            accum,
+            a,
+            b.subcols(i * COL_BLOCK, cols),
+            1.0f32,
+            Par::Seq,
+        );
+    });
 }
 
 /// Rows of a GEMM output per parallel task in [`gemm_row_blocks`]: fixed, so that which kernel

@@ -177,19 +177,30 @@ fn pointwise_vjp_matches_fd_and_dense_reference() {
 /// thread count.
 #[test]
 fn pointwise_on_one_pixel_planes_matches_reference_fd_and_thread_counts() {
-    let mut rng = ChaCha8Rng::seed_from_u64(31);
-    let (cin, cout) = (70, 130);
-    let x = t(&mut rng, [3, cin, 1, 1]);
+    check_batched_pointwise(31, [3, 70, 1, 1], 130);
+}
+
+/// Small planes (≤ 64 pixels, the deep stages) run as one GEMM over the batch's N·HW columns:
+/// the same checks, with more columns than one parallel column block (9 · 35 > 256) and more
+/// weight-gradient rows than one row block.
+#[test]
+fn pointwise_on_small_planes_matches_reference_fd_and_thread_counts() {
+    check_batched_pointwise(32, [9, 20, 7, 5], 70);
+    check_batched_pointwise(33, [2, 3, 8, 8], 5);
+}
+
+fn check_batched_pointwise(seed: u64, shape: [usize; 4], cout: usize) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let cin = shape[1];
+    let hw = shape[2] * shape[3];
+    let x = t(&mut rng, shape);
     let w = rnd(&mut rng, cout * cin);
     let b = rnd(&mut rng, cout);
     let y = pointwise_forward(&x, &w, cout, Some(&b)).unwrap();
     let yr = conv2d_forward(&x, &w, cout, 1, 1).unwrap();
     for (i, (a, c)) in y.data.iter().zip(&yr.data).enumerate() {
-        assert!(
-            (a - c - b[i % cout]).abs() < 1e-5,
-            "y[{i}]: {a} vs {}",
-            c + b[i % cout]
-        );
+        let o = (i / hw) % cout;
+        assert!((a - c - b[o]).abs() < 1e-5, "y[{i}]: {a} vs {}", c + b[o]);
     }
     let r = rnd(&mut rng, y.len());
     let dy = Tensor {
