@@ -176,29 +176,16 @@ fn check_job(job: &Job, root: &Path) -> PathBuf {
     let wall = run_ok(job.args, &a);
     let mut landed = Vec::new();
     for (k, f) in kill_fractions(job.kills, job.seed).into_iter().enumerate() {
-        // The uninterrupted run may have shared the cores with other tests and this one not:
-        // a run that finishes before its kill point is redone, killed at the same fraction of
-        // its own wall time, in a fresh directory.
-        let mut delay = wall.mul_f64(f);
-        let mut b = PathBuf::new();
-        for attempt in 0..3 {
-            b = root.join(format!("{}-b{k}-{attempt}", job.name));
-            std::fs::create_dir_all(&b).unwrap();
-            (job.setup)(&b);
-            match kill_after(job.args, &b, delay) {
-                Ok(()) => {
-                    landed.push(format!("{delay:.2?}"));
-                    break;
-                }
-                Err(own) => delay = own.mul_f64(f),
-            }
+        let (b, killed) = killed_run(job, root, k, wall.mul_f64(f), f);
+        if let Some(delay) = killed {
+            landed.push(format!("{delay:.2?}"));
         }
         run_ok(job.args, &b);
         assert_same_outputs(
             &a.join(job.out),
             &b.join(job.out),
             &job.timing,
-            &format!("{} killed at {delay:.2?} of {wall:.2?}", job.name),
+            &format!("{} killed at {killed:.2?} of {wall:.2?}", job.name),
         );
     }
     eprintln!(
@@ -211,6 +198,31 @@ fn check_job(job: &Job, root: &Path) -> PathBuf {
         job.name
     );
     a
+}
+
+/// Kill point `k` of `job`: a fresh directory set up, the job started and killed after
+/// `delay`; returns the directory and the delay at which it was killed (None: it finished
+/// first every time). The uninterrupted run may have shared the cores with other tests and
+/// this one not, so a run that finishes before its kill point is redone, killed at the same
+/// `fraction` of its own wall time (three tries).
+fn killed_run(
+    job: &Job,
+    root: &Path,
+    k: usize,
+    mut delay: Duration,
+    fraction: f64,
+) -> (PathBuf, Option<Duration>) {
+    for attempt in 0.. {
+        let b = root.join(format!("{}-b{k}-{attempt}", job.name));
+        std::fs::create_dir_all(&b).unwrap();
+        (job.setup)(&b);
+        match kill_after(job.args, &b, delay) {
+            Ok(()) => return (b, Some(delay)),
+            Err(_) if attempt == 2 => return (b, None),
+            Err(own) => delay = own.mul_f64(fraction),
+        }
+    }
+    unreachable!()
 }
 
 fn no_setup(_: &Path) {}

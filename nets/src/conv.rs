@@ -366,55 +366,47 @@ fn unpack_planes(src: &[f32], dst: &mut [f32], n: usize, c: usize, hw: usize) {
     }
 }
 
-/// dst (+)= a·b with the columns of `dst` (and `b`) split into blocks of [`COL_BLOCK`], one
-/// sequential GEMM per block, the blocks in parallel.
+/// dst (+)= a·b with the columns of `dst` (and `b`) split into blocks of [`COL_BLOCK`]: the
+/// row blocks of the transposed product, dstᵀ (+)= bᵀ·aᵀ.
 fn gemm_col_blocks(dst: MatMut<'_, f32>, accum: Accum, a: MatRef<'_, f32>, b: MatRef<'_, f32>) {
-    let mut blocks = Vec::with_capacity(dst.ncols().div_ceil(COL_BLOCK));
-    let mut rest = dst;
-    while rest.ncols() > COL_BLOCK {
-        let (left, right) = rest.split_at_col_mut(COL_BLOCK);
-        blocks.push(left);
-        rest = right;
-    }
-    blocks.push(rest);
-    blocks.into_par_iter().enumerate().for_each(|(i, blk)| {
-        let cols = blk.ncols();
-        matmul(
-            blk,
-            accum,
-            a,
-            b.subcols(i * COL_BLOCK, cols),
-            1.0f32,
-            Par::Seq,
-        );
-    });
+    gemm_blocks(
+        dst.transpose_mut(),
+        accum,
+        b.transpose(),
+        a.transpose(),
+        COL_BLOCK,
+    );
 }
 
 /// Rows of a GEMM output per parallel task in [`gemm_row_blocks`]: fixed, so that which kernel
 /// call computes an output element does not depend on the thread count.
 const ROW_BLOCK: usize = 64;
 
-/// dst (+)= a·b with the rows of `dst` (and `a`) split into blocks of [`ROW_BLOCK`], one
-/// sequential GEMM per block, the blocks in parallel.
+/// dst (+)= a·b with the rows of `dst` (and `a`) split into blocks of [`ROW_BLOCK`].
 fn gemm_row_blocks(dst: MatMut<'_, f32>, accum: Accum, a: MatRef<'_, f32>, b: MatRef<'_, f32>) {
-    let mut blocks = Vec::with_capacity(dst.nrows().div_ceil(ROW_BLOCK));
+    gemm_blocks(dst, accum, a, b, ROW_BLOCK);
+}
+
+/// dst (+)= a·b with the rows of `dst` (and `a`) split into blocks of `block`, one sequential
+/// GEMM per block, the blocks in parallel.
+fn gemm_blocks(
+    dst: MatMut<'_, f32>,
+    accum: Accum,
+    a: MatRef<'_, f32>,
+    b: MatRef<'_, f32>,
+    block: usize,
+) {
+    let mut blocks = Vec::with_capacity(dst.nrows().div_ceil(block));
     let mut rest = dst;
-    while rest.nrows() > ROW_BLOCK {
-        let (top, bottom) = rest.split_at_row_mut(ROW_BLOCK);
+    while rest.nrows() > block {
+        let (top, bottom) = rest.split_at_row_mut(block);
         blocks.push(top);
         rest = bottom;
     }
     blocks.push(rest);
     blocks.into_par_iter().enumerate().for_each(|(i, blk)| {
         let rows = blk.nrows();
-        matmul(
-            blk,
-            accum,
-            a.subrows(i * ROW_BLOCK, rows),
-            b,
-            1.0f32,
-            Par::Seq,
-        );
+        matmul(blk, accum, a.subrows(i * block, rows), b, 1.0f32, Par::Seq);
     });
 }
 
