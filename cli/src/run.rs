@@ -213,9 +213,26 @@ fn load_config(p: Option<&Path>) -> Result<RunConfig> {
     let cfg: RunConfig = if is_toml {
         toml::from_str(text).with_context(|| format!("--config {}", p.display()))?
     } else {
-        serde_json::from_str(text).with_context(|| format!("--config {}", p.display()))?
+        serde_json::from_str(text).map_err(|e| match bad_json_key(text) {
+            Some(k) => anyhow::anyhow!("--config {}: key \"{k}\": {e}", p.display()),
+            None => anyhow::anyhow!("--config {}: {e}", p.display()),
+        })?
     };
     Ok(cfg)
+}
+
+/// The first key of a JSON object that does not deserialize on its own (serde's error for an
+/// enum given a number or null names only a column).
+fn bad_json_key(text: &str) -> Option<String> {
+    let serde_json::Value::Object(m) = serde_json::from_str(text).ok()? else {
+        return None;
+    };
+    m.into_iter()
+        .find(|(k, v)| {
+            let one = serde_json::Value::Object([(k.clone(), v.clone())].into_iter().collect());
+            serde_json::from_value::<RunConfig>(one).is_err()
+        })
+        .map(|(k, _)| k)
 }
 
 fn check(cfg: &RunConfig) -> Result<()> {

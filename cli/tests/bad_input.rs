@@ -632,6 +632,10 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         (r#"{"train_items": 0}"#, "train_items"),
         (r#"{"train_set": "protocol"}"#, "train_set"),
         (r#"{"train_blink_fraction": 1.5}"#, "train_blink_fraction"),
+        (r#"{"slip_target": null}"#, "slip_target"),
+        (r#"{"slip_target": -1}"#, "slip_target"),
+        (r#"{"slip_target": "eye"}"#, "slip_target"),
+        (r#"{"seed": 1, "solver": 0}"#, "solver"),
         (
             r#"{"train_set": "ambiguity", "train_blink_fraction": 0.1}"#,
             "train_blink_fraction",
