@@ -380,6 +380,27 @@ unsafe fn forward_rows<const FMA: bool, const R: usize>(
 ) {
     let (wo, row_step) = (g.wo, g.s * g.s * g.cw());
     let base = oy * row_step;
+    #[cfg(target_arch = "x86_64")]
+    if FMA {
+        // LLVM left the one-register blocks below scalar, accumulators spilled to the stack
+        // (65 % of the max subnet's forward samples at 278×174 were scalar FMAs); written
+        // with intrinsics they are the same fused multiply–adds in the same order.
+        let mut x0 = 0;
+        while x0 < wo {
+            // SAFETY: FMA = true only inside the avx2+fma entry points; rows and reach are
+            // this function's contract, each block reads at most `wo` rounded up to HALF.
+            unsafe {
+                if x0 + LANES <= wo {
+                    block_fma::<R, 2>(buf, base, row_step, offs, wk, (oy, x0), wo, out);
+                    x0 += LANES;
+                } else {
+                    block_fma::<R, 1>(buf, base, row_step, offs, wk, (oy, x0), wo, out);
+                    x0 += HALF;
+                }
+            }
+        }
+        return;
+    }
     let mut x0 = 0;
     while x0 + LANES <= wo {
         let mut acc = [[0.0f32; LANES]; R];
@@ -397,28 +418,10 @@ unsafe fn forward_rows<const FMA: bool, const R: usize>(
         }
         x0 += LANES;
     }
-    // Maps narrower than LANES (stride-2 layers at the low resolutions): one register per row.
-    if x0 + HALF <= wo {
-        let mut acc = [[0.0f32; HALF]; R];
-        for (&wv, &off) in wk.iter().zip(offs) {
-            for (r, acc) in acc.iter_mut().enumerate() {
-                // SAFETY: as above, x0 + HALF ≤ wo.
-                let src = unsafe { run::<HALF>(buf, base + r * row_step + off + x0) };
-                for (a, &v) in acc.iter_mut().zip(src) {
-                    *a = madd::<FMA>(wv, v, *a);
-                }
-            }
-        }
-        for (r, acc) in acc.iter().enumerate() {
-            out[(oy + r) * wo + x0..][..HALF].copy_from_slice(acc);
-        }
-        x0 += HALF;
-    }
-    // The last partial block (and maps narrower than HALF, the deep stages at low
-    // resolution): a whole register per row, the lanes past `wo` computed from whatever the
-    // scratch holds there and dropped. Summed through memory one column at a time, each tap's
-    // multiply–add waited on the previous one's store (7–8 % of a min subnet's samples).
-    if x0 < wo {
+    // Maps narrower than LANES (stride-2 layers at the low resolutions) and the last partial
+    // block: a whole register per row, the lanes past `wo` computed from whatever the scratch
+    // holds there and dropped.
+    while x0 < wo {
         let mut acc = [[0.0f32; HALF]; R];
         for (&wv, &off) in wk.iter().zip(offs) {
             for (r, acc) in acc.iter_mut().enumerate() {
@@ -429,9 +432,66 @@ unsafe fn forward_rows<const FMA: bool, const R: usize>(
                 }
             }
         }
+        let cols = (wo - x0).min(HALF);
         for (r, acc) in acc.iter().enumerate() {
-            out[(oy + r) * wo + x0..][..wo - x0].copy_from_slice(&acc[..wo - x0]);
+            out[(oy + r) * wo + x0..][..cols].copy_from_slice(&acc[..cols]);
         }
+        x0 += HALF;
+    }
+}
+
+/// Output rows `oy .. oy + R`, columns `x0 .. min(x0 + V·HALF, wo)` of one plane: each output
+/// sums its taps in `offs` order by fused multiply–adds, R·V registers in flight.
+///
+/// # Safety
+/// The CPU must have AVX2 and FMA; `base + (R − 1)·row_step + max(offs) + x0 + V·HALF ≤
+/// buf.len()`; `out` holds rows up to `oy + R` of `wo` values, `wk` one weight per offset.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+#[allow(clippy::too_many_arguments)]
+unsafe fn block_fma<const R: usize, const V: usize>(
+    buf: &[f32],
+    base: usize,
+    row_step: usize,
+    offs: &[usize],
+    wk: &[f32],
+    (oy, x0): (usize, usize),
+    wo: usize,
+    out: &mut [f32],
+) {
+    use std::arch::x86_64::*;
+    let mut acc = [[_mm256_setzero_ps(); V]; R];
+    let p = buf.as_ptr();
+    for (&wv, &off) in wk.iter().zip(offs) {
+        let w = _mm256_set1_ps(wv);
+        for (r, acc) in acc.iter_mut().enumerate() {
+            // SAFETY: inside `buf` by the contract.
+            let src = unsafe { p.add(base + r * row_step + off + x0) };
+            for (v, a) in acc.iter_mut().enumerate() {
+                // SAFETY: as above; unaligned loads.
+                *a = _mm256_fmadd_ps(w, unsafe { _mm256_loadu_ps(src.add(v * HALF)) }, *a);
+            }
+        }
+    }
+    let cols = (wo - x0).min(V * HALF);
+    if cols == V * HALF {
+        for (r, acc) in acc.iter().enumerate() {
+            let dst = &mut out[(oy + r) * wo + x0..][..V * HALF];
+            for (v, a) in acc.iter().enumerate() {
+                // SAFETY: HALF values at v·HALF inside `dst`, whose length was checked.
+                unsafe { _mm256_storeu_ps(dst.as_mut_ptr().add(v * HALF), *a) };
+            }
+        }
+        return;
+    }
+    for (r, acc) in acc.iter().enumerate() {
+        let mut lanes = [[0.0f32; HALF]; V];
+        for (l, a) in lanes.iter_mut().zip(acc) {
+            // SAFETY: a store of exactly HALF values into `l`.
+            unsafe { _mm256_storeu_ps(l.as_mut_ptr(), *a) };
+        }
+        out[(oy + r) * wo + x0..][..cols].copy_from_slice(&lanes.as_flattened()[..cols]);
     }
 }
 
@@ -511,15 +571,26 @@ fn tap_group<const FMA: bool, const T: usize>(
     let offs: [usize; T] = std::array::from_fn(|t| offs[t]);
     let mut lanes = [[0.0f32; HALF]; T];
     let mut rest = [0.0f32; T];
+    let x0 = wo - wo % HALF;
+    #[cfg(target_arch = "x86_64")]
+    if FMA {
+        // The blocks as the forward's (the loop below reloaded each block of dL/dy once per
+        // tap, two loads per multiply–add); the same fused multiply–adds in the same order.
+        let reach = offs.iter().max().map_or(0, |&m| m + x0);
+        assert!(g.ho == 0 || (g.ho - 1) * row_step + reach <= buf.len() && dy.len() >= g.ho * wo);
+        // SAFETY: FMA = true only inside the avx2+fma entry points; the reads are inside
+        // `buf` and `dy` by the assertion.
+        unsafe { tap_lanes_fma::<T>(buf, &offs, dy, (g.ho, wo, row_step), &mut lanes) };
+    }
     for (oy, grow) in dy.chunks_exact(wo).enumerate() {
         let row = &buf[oy * row_step..];
-        let blocks = grow.chunks_exact(HALF);
-        let x0 = wo - blocks.remainder().len();
-        for (b, gb) in blocks.enumerate() {
-            for t in 0..T {
-                let src = &row[offs[t] + b * HALF..][..HALF];
-                for l in 0..HALF {
-                    lanes[t][l] = madd::<FMA>(gb[l], src[l], lanes[t][l]);
+        if !FMA {
+            for (b, gb) in grow.chunks_exact(HALF).enumerate() {
+                for t in 0..T {
+                    let src = &row[offs[t] + b * HALF..][..HALF];
+                    for l in 0..HALF {
+                        lanes[t][l] = madd::<FMA>(gb[l], src[l], lanes[t][l]);
+                    }
                 }
             }
         }
@@ -531,6 +602,43 @@ fn tap_group<const FMA: bool, const T: usize>(
     }
     for t in 0..T {
         dw[t] = lanes[t].iter().sum::<f32>() + rest[t];
+    }
+}
+
+/// The whole-register blocks of [`tap_group`]: lane sums of dL/dy · x over every output row's
+/// first `wo − wo mod HALF` columns, per tap, into `lanes`.
+///
+/// # Safety
+/// The CPU must have AVX2 and FMA; `(ho − 1)·row_step + max(offs) + wo − wo mod HALF ≤
+/// buf.len()` and `dy` holds ho·wo values.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn tap_lanes_fma<const T: usize>(
+    buf: &[f32],
+    offs: &[usize; T],
+    dy: &[f32],
+    (ho, wo, row_step): (usize, usize, usize),
+    lanes: &mut [[f32; HALF]; T],
+) {
+    use std::arch::x86_64::*;
+    let mut acc = [_mm256_setzero_ps(); T];
+    let (p, q) = (buf.as_ptr(), dy.as_ptr());
+    for oy in 0..ho {
+        for b in 0..wo / HALF {
+            // SAFETY: inside `dy` and `buf` by the contract; unaligned loads.
+            unsafe {
+                let gb = _mm256_loadu_ps(q.add(oy * wo + b * HALF));
+                let row = p.add(oy * row_step + b * HALF);
+                for (a, &o) in acc.iter_mut().zip(offs) {
+                    *a = _mm256_fmadd_ps(gb, _mm256_loadu_ps(row.add(o)), *a);
+                }
+            }
+        }
+    }
+    for (l, a) in lanes.iter_mut().zip(&acc) {
+        // SAFETY: a store of exactly HALF values into `l`.
+        unsafe { _mm256_storeu_ps(l.as_mut_ptr(), *a) };
     }
 }
 
