@@ -95,6 +95,8 @@ pub struct RunConfig {
     pub lr_pitch_um: f64,
     /// Slippage loss weight (per mm²).
     pub lambda_slip: f64,
+    /// Relative weight of the slippage axes (x, y, z) in the slippage loss.
+    pub slip_axis_weights: [f64; 3],
     /// Initial effective pitch (µm).
     pub pitch_init_um: f64,
     /// Effective pitch range (µm).
@@ -153,6 +155,7 @@ impl Default for RunConfig {
             lr_phase_rad: 2e-2,
             lr_pitch_um: 5e-2,
             lambda_slip: 0.3,
+            slip_axis_weights: [1.0; 3],
             pitch_init_um: 14.0,
             pitch_range_um: [12.0, 24.0],
             rea_cycles: 4,
@@ -307,6 +310,7 @@ fn train_config(cfg: &RunConfig, fixed_lens: bool) -> TrainConfig {
         lr_phase_rad: cfg.lr_phase_rad,
         lr_pitch_um: cfg.lr_pitch_um,
         lambda_slip: cfg.lambda_slip,
+        slip_axis_weights: cfg.slip_axis_weights,
         pitch_init_um: cfg.pitch_init_um,
         pitch_range_um: cfg.pitch_range_um,
         fixed_lens,

@@ -370,7 +370,7 @@ fn loss(a: LossArgs) -> Result<()> {
         &fwd.input,
         &fwd.mask,
         &fwd.slip_mm,
-        a.lambda_slip,
+        [a.lambda_slip; 3],
         BnMode::Train,
     )?;
     let t_net = lap();

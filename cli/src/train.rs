@@ -55,6 +55,9 @@ pub struct TrainArgs {
     /// Weight of the slippage MSE (per mm²).
     #[arg(long, default_value_t = 0.1)]
     lambda_slip: f64,
+    /// Relative weight of the slippage axes in that MSE, X,Y,Z.
+    #[arg(long, default_value = "1,1,1")]
+    slip_axis_weights: String,
     /// Smallest and largest effective pitch (µm).
     #[arg(long, default_value = "3:12")]
     pitch_range_um: String,
@@ -93,6 +96,16 @@ fn with_flag(
         _ => fallback,
     };
     anyhow::anyhow!("{flag}: {e}")
+}
+
+/// Three comma-separated numbers X,Y,Z.
+fn parse_axes(s: &str) -> Result<[f64; 3]> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e| anyhow::anyhow!("expected X,Y,Z numbers, got '{s}' ({e})"))?;
+    <[f64; 3]>::try_from(v).map_err(|v| anyhow::anyhow!("expected 3 values X,Y,Z, got {}", v.len()))
 }
 
 /// A 640×360 line plot of `n` points over x = 0 … n − 1 and y = 0 … `ymax`.
@@ -266,6 +279,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
         lr_phase_rad: a.lr_phase_rad,
         lr_pitch_um: a.lr_pitch_um,
         lambda_slip: a.lambda_slip,
+        slip_axis_weights: parse_axes(&a.slip_axis_weights).context("--slip-axis-weights")?,
         pitch_init_um: a.chain.pitch_um,
         pitch_range_um: [lo, hi],
         fixed_lens: a.fixed_lens,
@@ -285,6 +299,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
                 ("lr_phase_rad", "--lr-phase-rad"),
                 ("lr_pitch_um", "--lr-pitch-um"),
                 ("lambda_slip", "--lambda-slip"),
+                ("slip_axis_weights", "--slip-axis-weights"),
                 ("pitch_range_um", "--pitch-range-um"),
                 ("pitch_init_um", "--pitch-um"),
             ],

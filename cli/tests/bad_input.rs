@@ -608,6 +608,31 @@ fn sim_and_search_loss_name_their_bad_flags() {
             vec!["search", "loss", "--dataset", "ds", "--lambda-slip", "NaN"],
             "--lambda-slip",
         ),
+        (
+            vec![
+                "search",
+                "train",
+                "--dataset",
+                "ds",
+                "--slip-axis-weights",
+                "1,2",
+                "--out",
+                "o",
+            ],
+            "--slip-axis-weights",
+        ),
+        (
+            vec![
+                "search",
+                "train",
+                "--dataset",
+                "ds",
+                "--slip-axis-weights=1,-1,1",
+                "--out",
+                "o",
+            ],
+            "--slip-axis-weights",
+        ),
     ] {
         refused(&args, flag, p);
     }
@@ -636,6 +661,8 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         (r#"{"slip_target": -1}"#, "slip_target"),
         (r#"{"slip_target": "eye"}"#, "slip_target"),
         (r#"{"seed": 1, "solver": 0}"#, "solver"),
+        (r#"{"slip_axis_weights": [4, -1, 1]}"#, "slip_axis_weights"),
+        (r#"{"slip_axis_weights": [4, 1]}"#, "slip_axis_weights"),
         (
             r#"{"train_set": "ambiguity", "train_blink_fraction": 0.1}"#,
             "train_blink_fraction",

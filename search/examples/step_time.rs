@@ -80,7 +80,7 @@ fn main() {
                 &fwd.input,
                 &fwd.mask,
                 &fwd.slip_mm,
-                0.1,
+                [0.1; 3],
                 BnMode::Train,
             )
             .expect("task loss");

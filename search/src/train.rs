@@ -40,6 +40,10 @@ pub struct TrainConfig {
     pub lr_pitch_um: f64,
     /// Weight of the slippage MSE (per mm²).
     pub lambda_slip: f64,
+    /// Relative weight of each slippage axis (x, y, z) in the MSE, multiplying `lambda_slip`
+    /// (absent in older checkpoints: 1, 1, 1).
+    #[serde(default = "unit_axes")]
+    pub slip_axis_weights: [f64; 3],
     /// Initial effective pitch (µm).
     pub pitch_init_um: f64,
     /// Allowed effective pitch range (µm).
@@ -67,6 +71,7 @@ impl Default for TrainConfig {
             lr_phase_rad: 2e-2,
             lr_pitch_um: 5e-2,
             lambda_slip: 0.1,
+            slip_axis_weights: unit_axes(),
             pitch_init_um: 9.5,
             pitch_range_um: [3.0, 12.0],
             fixed_lens: false,
@@ -78,7 +83,17 @@ impl Default for TrainConfig {
     }
 }
 
+/// Every slippage axis weighted alike.
+fn unit_axes() -> [f64; 3] {
+    [1.0; 3]
+}
+
 impl TrainConfig {
+    /// λ_slip per axis (x, y, z), per mm².
+    pub fn lambda_slip_axes(&self) -> [f64; 3] {
+        self.slip_axis_weights.map(|w| self.lambda_slip * w)
+    }
+
     /// Checks every field, naming the bad one.
     pub fn validate(&self) -> Result<()> {
         if self.steps == 0 || self.steps > 10_000_000 {
@@ -104,6 +119,14 @@ impl TrainConfig {
         ] {
             if !(v.is_finite() && (0.0..=1e3).contains(&v)) {
                 return Err(param(name, format!("must be finite in [0, 1000], got {v}")));
+            }
+        }
+        for (axis, &v) in ["x", "y", "z"].iter().zip(&self.slip_axis_weights) {
+            if !(v.is_finite() && (0.0..=1e3).contains(&v)) {
+                return Err(param(
+                    "slip_axis_weights",
+                    format!("the {axis} weight must be finite in [0, 1000], got {v}"),
+                ));
             }
         }
         let [lo, hi] = self.pitch_range_um;
@@ -397,7 +420,7 @@ impl<'a> Trainer<'a> {
                 &fwd.input,
                 &fwd.mask,
                 &fwd.slip_mm,
-                self.cfg.lambda_slip,
+                self.cfg.lambda_slip_axes(),
                 BnMode::Train,
             )?;
             dx.add_assign(&g);
@@ -533,7 +556,7 @@ impl<'a> Trainer<'a> {
             &s.fwd.input,
             &s.fwd.mask,
             &s.fwd.slip_mm,
-            self.cfg.lambda_slip,
+            self.cfg.lambda_slip_axes(),
             BnMode::Train,
         )?;
         if !l.total.is_finite() {

@@ -439,7 +439,7 @@ fn loss_at(
                 &fwd.input,
                 &fwd.mask,
                 &fwd.slip_mm,
-                0.1,
+                [0.1; 3],
                 BnMode::Train,
             )
             .unwrap();
