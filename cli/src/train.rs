@@ -98,14 +98,10 @@ fn with_flag(
     anyhow::anyhow!("{flag}: {e}")
 }
 
-/// Three comma-separated numbers X,Y,Z.
-fn parse_axes(s: &str) -> Result<[f64; 3]> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|t| t.trim().parse::<f64>())
-        .collect::<std::result::Result<_, _>>()
-        .map_err(|e| anyhow::anyhow!("expected X,Y,Z numbers, got '{s}' ({e})"))?;
-    <[f64; 3]>::try_from(v).map_err(|v| anyhow::anyhow!("expected 3 values X,Y,Z, got {}", v.len()))
+/// Three comma-separated numbers X,Y,Z for `flag`.
+fn parse_axes(flag: &str, text: &str) -> Result<[f64; 3]> {
+    <[f64; 3]>::try_from(util::parse_list(flag, text)?)
+        .map_err(|v| anyhow::anyhow!("{flag}: expected 3 values X,Y,Z, got {}", v.len()))
 }
 
 /// A 640×360 line plot of `n` points over x = 0 … n − 1 and y = 0 … `ymax`.
@@ -279,7 +275,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
         lr_phase_rad: a.lr_phase_rad,
         lr_pitch_um: a.lr_pitch_um,
         lambda_slip: a.lambda_slip,
-        slip_axis_weights: parse_axes(&a.slip_axis_weights).context("--slip-axis-weights")?,
+        slip_axis_weights: parse_axes("--slip-axis-weights", &a.slip_axis_weights)?,
         pitch_init_um: a.chain.pitch_um,
         pitch_range_um: [lo, hi],
         fixed_lens: a.fixed_lens,
