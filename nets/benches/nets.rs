@@ -148,13 +148,14 @@ fn layers(c: &mut Criterion) {
     }
     // Stage-2/3 maps (16², 240 channels), a stage-1 map at the default render (100×160,
     // 24 channels), and the stride-4 and stride-8 maps of the main job's 278×174 network input
-    // (widths 70 and 35: rows that end in a partial register block); stride 2 halves the
-    // output, so its MACs are a quarter.
+    // (widths 70 and 35: rows that end in a partial register block) and the stride-2 layer that
+    // reads the 44×70 map; stride 2 halves the output, so its MACs are a quarter.
     for (c, h, w, s) in [
         (240usize, 16usize, 16usize, 1usize),
         (240, 16, 16, 2),
         (24, 100, 160, 1),
         (96, 44, 70, 1),
+        (96, 44, 70, 2),
         (192, 22, 35, 1),
     ] {
         // The memory roofline of the shape: the least any depthwise pass must move, streamed

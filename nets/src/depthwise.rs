@@ -294,8 +294,11 @@ pub(crate) struct Scratch {
     /// The geometry (h, w, k, s) `buf`'s zero padding is laid out for.
     shape: Option<[usize; 4]>,
     dbuf: Vec<f32>,
+    /// dL/dy zero-padded for the strided dL/dx, and the geometry its padding is laid out for.
+    dpad: Vec<f32>,
+    dshape: Option<[usize; 4]>,
     offs: Vec<usize>,
-    /// The kernel turned by 180° (stride-1 dL/dx).
+    /// The kernel turned by 180° (stride-1 dL/dx) or one phase's sub-kernel (strided dL/dx).
     flip: Vec<f32>,
 }
 
@@ -321,35 +324,59 @@ fn forward_padded<const FMA: bool>(
     wk: &[f32],
     out: &mut [f32],
 ) {
-    // One bounds check per plane for every tap read of the blocks below: the furthest is the
-    // last output row's largest tap offset plus a row of `wo` rounded up to whole HALF blocks.
-    let row_step = g.s * g.s * g.cw();
+    let sw = Sweep {
+        rows: g.ho,
+        in_step: g.s * g.s * g.cw(),
+        out_step: g.wo,
+        cols: (0, g.wo),
+    };
+    sweep::<FMA>(&sw, buf, offs, wk, out);
+}
+
+/// A correlation over a rectangle of outputs: output row `m`, column `j` (`cols.0 ≤ j <
+/// cols.1`) is Σₜ wk[t]·buf[m·in_step + offs[t] + j], stored at `out[m·out_step + j]`.
+#[derive(Clone, Copy, Debug)]
+struct Sweep {
+    rows: usize,
+    in_step: usize,
+    out_step: usize,
+    cols: (usize, usize),
+}
+
+/// Every output of `sw`, its taps summed in `offs` order.
+#[inline(always)]
+fn sweep<const FMA: bool>(sw: &Sweep, buf: &[f32], offs: &[usize], wk: &[f32], out: &mut [f32]) {
+    let (lo, end) = sw.cols;
+    if sw.rows == 0 || lo >= end {
+        return;
+    }
+    // One bounds check per sweep for every tap read of the blocks below: the furthest is the
+    // last row's largest tap offset plus the columns rounded up to whole HALF blocks.
     let reach = offs
         .iter()
         .max()
-        .map_or(0, |&m| m + g.wo.next_multiple_of(HALF));
+        .map_or(0, |&m| m + lo + (end - lo).next_multiple_of(HALF));
     assert!(
-        g.ho == 0 || (g.ho - 1) * row_step + reach <= buf.len(),
-        "depthwise scratch too short for {g:?}"
+        (sw.rows - 1) * sw.in_step + reach <= buf.len(),
+        "depthwise scratch too short for {sw:?}"
     );
-    assert!(out.len() >= g.ho * g.wo && wk.len() >= offs.len());
+    assert!((sw.rows - 1) * sw.out_step + end <= out.len() && wk.len() >= offs.len());
     // Several output rows per pass keep eight accumulator registers in flight (one row's
     // chain of k² fused multiply–adds alone is latency-bound, and more rows share each
     // weight's broadcast); each output still sums its taps in the same order, so the result
     // is the same bit for bit.
-    let ho = g.ho;
-    let mut oy = 0;
-    // SAFETY (all three calls): rows oy .. oy + R ≤ ho, checked against `buf` above.
-    while oy + 4 <= ho {
-        unsafe { forward_rows::<FMA, 4>(g, buf, offs, wk, oy, out) };
-        oy += 4;
+    let mut m = 0;
+    // SAFETY (all three calls): rows m .. m + R ≤ rows, checked against `buf` and `out` above.
+    while m + 4 <= sw.rows {
+        unsafe { sweep_rows::<FMA, 4>(sw, buf, offs, wk, m, out) };
+        m += 4;
     }
-    while oy + 2 <= ho {
-        unsafe { forward_rows::<FMA, 2>(g, buf, offs, wk, oy, out) };
-        oy += 2;
+    while m + 2 <= sw.rows {
+        unsafe { sweep_rows::<FMA, 2>(sw, buf, offs, wk, m, out) };
+        m += 2;
     }
-    if oy < ho {
-        unsafe { forward_rows::<FMA, 1>(g, buf, offs, wk, oy, out) };
+    if m < sw.rows {
+        unsafe { sweep_rows::<FMA, 1>(sw, buf, offs, wk, m, out) };
     }
 }
 
@@ -363,89 +390,110 @@ unsafe fn run<const N: usize>(buf: &[f32], at: usize) -> &[f32; N] {
     unsafe { &*(buf.as_ptr().add(at) as *const [f32; N]) }
 }
 
-/// Output rows `oy .. oy + R` of one plane from its padded scratch `buf`.
+/// Output rows `m .. m + R` of `sw`.
 ///
 /// # Safety
-/// `oy + R ≤ g.ho` and `(g.ho − 1)·s²·cw + max(offs) + W ≤ buf.len()`, W being `g.wo` rounded
-/// up to a multiple of HALF (checked once per plane by [`forward_padded`]); `out` holds
-/// ho × wo values and `wk` one weight per offset.
+/// `m + R ≤ sw.rows`, and the reads and writes of those rows are inside `buf` and `out`, the
+/// columns rounded up to whole HALF blocks on the read side (checked once by [`sweep`]); `wk`
+/// holds one weight per offset.
 #[inline(always)]
-unsafe fn forward_rows<const FMA: bool, const R: usize>(
-    g: &Geom,
+unsafe fn sweep_rows<const FMA: bool, const R: usize>(
+    sw: &Sweep,
     buf: &[f32],
     offs: &[usize],
     wk: &[f32],
-    oy: usize,
+    m: usize,
     out: &mut [f32],
 ) {
-    let (wo, row_step) = (g.wo, g.s * g.s * g.cw());
-    let base = oy * row_step;
+    let ((lo, end), in_step, out_step) = (sw.cols, sw.in_step, sw.out_step);
+    let base = m * in_step;
     #[cfg(target_arch = "x86_64")]
     if FMA {
         // LLVM left the one-register blocks below scalar, accumulators spilled to the stack
         // (65 % of the max subnet's forward samples at 278×174 were scalar FMAs); written
         // with intrinsics they are the same fused multiply–adds in the same order.
-        let mut x0 = 0;
-        while x0 < wo {
+        let mut x0 = lo;
+        while x0 < end {
             // SAFETY: FMA = true only inside the avx2+fma entry points; rows and reach are
-            // this function's contract, each block reads at most `wo` rounded up to HALF.
+            // this function's contract, each block reads at most the columns rounded up to
+            // HALF.
             unsafe {
-                if x0 + LANES <= wo {
-                    block_fma::<R, 2>(buf, base, row_step, offs, wk, (oy, x0), wo, out);
+                if x0 + LANES <= end {
+                    block_fma::<R, 2>(
+                        buf,
+                        base,
+                        in_step,
+                        offs,
+                        wk,
+                        x0,
+                        end,
+                        &mut out[m * out_step..],
+                        out_step,
+                    );
                     x0 += LANES;
                 } else {
-                    block_fma::<R, 1>(buf, base, row_step, offs, wk, (oy, x0), wo, out);
+                    block_fma::<R, 1>(
+                        buf,
+                        base,
+                        in_step,
+                        offs,
+                        wk,
+                        x0,
+                        end,
+                        &mut out[m * out_step..],
+                        out_step,
+                    );
                     x0 += HALF;
                 }
             }
         }
         return;
     }
-    let mut x0 = 0;
-    while x0 + LANES <= wo {
+    let mut x0 = lo;
+    while x0 + LANES <= end {
         let mut acc = [[0.0f32; LANES]; R];
         for (&wv, &off) in wk.iter().zip(offs) {
             for (r, acc) in acc.iter_mut().enumerate() {
-                // SAFETY: row oy + r < ho and x0 + LANES ≤ wo (see the contract).
-                let src = unsafe { run::<LANES>(buf, base + r * row_step + off + x0) };
+                // SAFETY: row m + r < rows and x0 + LANES ≤ end (see the contract).
+                let src = unsafe { run::<LANES>(buf, base + r * in_step + off + x0) };
                 for (a, &v) in acc.iter_mut().zip(src) {
                     *a = madd::<FMA>(wv, v, *a);
                 }
             }
         }
         for (r, acc) in acc.iter().enumerate() {
-            out[(oy + r) * wo + x0..][..LANES].copy_from_slice(acc);
+            out[(m + r) * out_step + x0..][..LANES].copy_from_slice(acc);
         }
         x0 += LANES;
     }
-    // Maps narrower than LANES (stride-2 layers at the low resolutions) and the last partial
-    // block: a whole register per row, the lanes past `wo` computed from whatever the scratch
+    // Rows narrower than LANES (stride-2 layers at the low resolutions) and the last partial
+    // block: a whole register per row, the lanes past `end` computed from whatever the scratch
     // holds there and dropped.
-    while x0 < wo {
+    while x0 < end {
         let mut acc = [[0.0f32; HALF]; R];
         for (&wv, &off) in wk.iter().zip(offs) {
             for (r, acc) in acc.iter_mut().enumerate() {
-                // SAFETY: x0 + HALF ≤ wo rounded up to HALF, inside the reach checked above.
-                let src = unsafe { run::<HALF>(buf, base + r * row_step + off + x0) };
+                // SAFETY: x0 + HALF ≤ the columns rounded up to HALF, inside the reach checked.
+                let src = unsafe { run::<HALF>(buf, base + r * in_step + off + x0) };
                 for (a, &v) in acc.iter_mut().zip(src) {
                     *a = madd::<FMA>(wv, v, *a);
                 }
             }
         }
-        let cols = (wo - x0).min(HALF);
+        let cols = (end - x0).min(HALF);
         for (r, acc) in acc.iter().enumerate() {
-            out[(oy + r) * wo + x0..][..cols].copy_from_slice(&acc[..cols]);
+            out[(m + r) * out_step + x0..][..cols].copy_from_slice(&acc[..cols]);
         }
         x0 += HALF;
     }
 }
 
-/// Output rows `oy .. oy + R`, columns `x0 .. min(x0 + V·HALF, wo)` of one plane: each output
-/// sums its taps in `offs` order by fused multiply–adds, R·V registers in flight.
+/// Rows `0 .. R` of `out` (row stride `out_step`), columns `x0 .. min(x0 + V·HALF, end)`: each
+/// output sums its taps in `offs` order by fused multiply–adds, R·V registers in flight.
 ///
 /// # Safety
-/// The CPU must have AVX2 and FMA; `base + (R − 1)·row_step + max(offs) + x0 + V·HALF ≤
-/// buf.len()`; `out` holds rows up to `oy + R` of `wo` values, `wk` one weight per offset.
+/// The CPU must have AVX2 and FMA; `base + (R − 1)·in_step + max(offs) + x0 + V·HALF ≤
+/// buf.len()`; `out` holds `(R − 1)·out_step + end` values, `wk` one weight per offset.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 #[inline]
@@ -453,12 +501,13 @@ unsafe fn forward_rows<const FMA: bool, const R: usize>(
 unsafe fn block_fma<const R: usize, const V: usize>(
     buf: &[f32],
     base: usize,
-    row_step: usize,
+    in_step: usize,
     offs: &[usize],
     wk: &[f32],
-    (oy, x0): (usize, usize),
-    wo: usize,
+    x0: usize,
+    end: usize,
     out: &mut [f32],
+    out_step: usize,
 ) {
     use std::arch::x86_64::*;
     let mut acc = [[_mm256_setzero_ps(); V]; R];
@@ -467,17 +516,17 @@ unsafe fn block_fma<const R: usize, const V: usize>(
         let w = _mm256_set1_ps(wv);
         for (r, acc) in acc.iter_mut().enumerate() {
             // SAFETY: inside `buf` by the contract.
-            let src = unsafe { p.add(base + r * row_step + off + x0) };
+            let src = unsafe { p.add(base + r * in_step + off + x0) };
             for (v, a) in acc.iter_mut().enumerate() {
                 // SAFETY: as above; unaligned loads.
                 *a = _mm256_fmadd_ps(w, unsafe { _mm256_loadu_ps(src.add(v * HALF)) }, *a);
             }
         }
     }
-    let cols = (wo - x0).min(V * HALF);
+    let cols = (end - x0).min(V * HALF);
     if cols == V * HALF {
         for (r, acc) in acc.iter().enumerate() {
-            let dst = &mut out[(oy + r) * wo + x0..][..V * HALF];
+            let dst = &mut out[r * out_step + x0..][..V * HALF];
             for (v, a) in acc.iter().enumerate() {
                 // SAFETY: HALF values at v·HALF inside `dst`, whose length was checked.
                 unsafe { _mm256_storeu_ps(dst.as_mut_ptr().add(v * HALF), *a) };
@@ -491,7 +540,7 @@ unsafe fn block_fma<const R: usize, const V: usize>(
             // SAFETY: a store of exactly HALF values into `l`.
             unsafe { _mm256_storeu_ps(l.as_mut_ptr(), *a) };
         }
-        out[(oy + r) * wo + x0..][..cols].copy_from_slice(&lanes.as_flattened()[..cols]);
+        out[r * out_step + x0..][..cols].copy_from_slice(&lanes.as_flattened()[..cols]);
     }
 }
 
@@ -519,70 +568,72 @@ fn backward_plane<const FMA: bool>(
         forward_padded::<FMA>(g, &sc.buf, &sc.offs, &sc.flip, dx);
         return;
     }
-    sc.dbuf.clear();
-    sc.dbuf.resize(g.scratch_len(), 0.0);
-    let (wo, row_step) = (g.wo, g.s * g.s * g.cw());
-    #[cfg(target_arch = "x86_64")]
-    if FMA {
-        // LLVM compiled the loop below four lanes wide with its loop overhead per four values
-        // (a fifth of a stride-2 backward's samples); the same fused multiply–adds in the same
-        // order, eight at a time.
-        let reach = sc.offs.iter().max().map_or(0, |&m| m + wo);
-        assert!(g.ho == 0 || (g.ho - 1) * row_step + reach <= sc.dbuf.len());
-        assert!(dy.len() >= g.ho * wo && wk.len() >= sc.offs.len());
-        // SAFETY: FMA = true only inside the avx2+fma entry points; every access is inside
-        // `dbuf` and `dy` by the assertions.
-        unsafe { scatter_fma(&mut sc.dbuf, &sc.offs, wk, dy, (g.ho, wo, row_step)) };
-        unfill::<FMA>(g, &sc.dbuf, dx);
-        return;
+    strided_dx::<FMA>(g, wk, dy, sc, dx);
+}
+
+/// dL/dx of one plane at stride s ≥ 2, as s² stride-1 correlations of dL/dy, one per phase.
+///
+/// Padded input cell (r, c) = (s·oy + ky, s·ox + kx) takes w[ky, kx]·dL/dy[oy, ox], so the
+/// cells of one phase (r mod s, c mod s) = (ρ, γ) see only the taps ky ≡ ρ, kx ≡ γ, each at a
+/// fixed offset in dL/dy: a dense correlation with that sub-kernel, written once per cell
+/// into the phase-split scratch layout that [`unfill`] reads (a scatter instead loads and
+/// stores every cell once per tap). Each cell sums its taps in (ky, kx) order, the order of
+/// the scatter, with zero padding adding exact zeros: the same bits.
+#[inline(always)]
+fn strided_dx<const FMA: bool>(g: &Geom, wk: &[f32], dy: &[f32], sc: &mut Scratch, dx: &mut [f32]) {
+    let (p, s, k, cw) = (g.pad(), g.s, g.k, g.cw());
+    // dL/dy with p zero rows and columns before it and enough after for every cell's taps.
+    let hp = g.ho.max((p + g.h - 1) / s + 1) + p;
+    let wp = g.wo.max((p + g.w - 1) / s + 1) + p;
+    let key = [g.ho, g.wo, hp, wp];
+    if sc.dshape != Some(key) {
+        sc.dpad.clear();
+        // HALF values of slack: a row's last partial block is read a whole register wide.
+        sc.dpad.resize(hp * wp + HALF, 0.0);
+        sc.dshape = Some(key);
     }
-    for (&wv, &off) in wk.iter().zip(&sc.offs) {
-        for (oy, grow) in dy.chunks_exact(wo).enumerate() {
-            for (t, &gv) in sc.dbuf[oy * row_step + off..][..wo].iter_mut().zip(grow) {
-                *t = madd::<FMA>(wv, gv, *t);
+    for (oy, row) in dy.chunks_exact(g.wo).take(g.ho).enumerate() {
+        copy_run(&mut sc.dpad[(oy + p) * wp + p..][..g.wo], row);
+    }
+    // Every interior cell is written below and unfill reads only those: no zeroing.
+    if sc.dbuf.len() != g.scratch_len() {
+        sc.dbuf.resize(g.scratch_len(), 0.0);
+    }
+    // First phase row (column) at or after the padding, and one past the last inside the
+    // plane, for phase q of n interior cells.
+    let span = |q: usize, n: usize| {
+        (
+            p.saturating_sub(q).div_ceil(s),
+            (p + n).saturating_sub(q).div_ceil(s),
+        )
+    };
+    for rho in 0..s {
+        let (m0, m1) = span(rho, g.h);
+        for gamma in 0..s {
+            let (j0, j1) = span(gamma, g.w);
+            sc.offs.clear();
+            sc.flip.clear();
+            for ky in (rho..k).step_by(s) {
+                for kx in (gamma..k).step_by(s) {
+                    sc.offs
+                        .push((p - (ky - rho) / s) * wp + p - (kx - gamma) / s);
+                    sc.flip.push(wk[ky * k + kx]);
+                }
             }
+            let sw = Sweep {
+                rows: m1.saturating_sub(m0),
+                in_step: wp,
+                out_step: s * s * cw,
+                cols: (j0, j1),
+            };
+            if sw.rows == 0 {
+                continue;
+            }
+            let out = &mut sc.dbuf[m0 * s * s * cw + (rho * s + gamma) * cw..];
+            sweep::<FMA>(&sw, &sc.dpad[m0 * wp..], &sc.offs, &sc.flip, out);
         }
     }
     unfill::<FMA>(g, &sc.dbuf, dx);
-}
-
-/// dbuf[oy·row_step + off + j] += w·dL/dy[oy, j] for every tap (w, off) in order, then every
-/// output row `oy`, then every column `j` (the stride-2 dL/dx scatter).
-///
-/// # Safety
-/// The CPU must have AVX2 and FMA; `(ho − 1)·row_step + max(offs) + wo ≤ dbuf.len()`, `dy`
-/// holds ho·wo values and `wk` one weight per offset.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-#[inline]
-unsafe fn scatter_fma(
-    dbuf: &mut [f32],
-    offs: &[usize],
-    wk: &[f32],
-    dy: &[f32],
-    (ho, wo, row_step): (usize, usize, usize),
-) {
-    use std::arch::x86_64::*;
-    let (p, q) = (dbuf.as_mut_ptr(), dy.as_ptr());
-    for (&wv, &off) in wk.iter().zip(offs) {
-        let w = _mm256_set1_ps(wv);
-        for oy in 0..ho {
-            // SAFETY (the block): inside `dbuf` and `dy` by the contract; unaligned access.
-            unsafe {
-                let (t, g) = (p.add(oy * row_step + off), q.add(oy * wo));
-                let mut j = 0;
-                while j + HALF <= wo {
-                    let d = _mm256_loadu_ps(t.add(j));
-                    _mm256_storeu_ps(t.add(j), _mm256_fmadd_ps(w, _mm256_loadu_ps(g.add(j)), d));
-                    j += HALF;
-                }
-                while j < wo {
-                    *t.add(j) = wv.mul_add(*g.add(j), *t.add(j));
-                    j += 1;
-                }
-            }
-        }
-    }
 }
 
 /// Most taps whose weight gradients one pass over dL/dy accumulates side by side.
@@ -930,6 +981,42 @@ mod tests {
                     }
                 }
                 close(&dx, &dx0, "dx");
+                // dL/dx likewise sums each cell's taps in one fixed order: (ky, kx) descending
+                // at stride 1 (the turned kernel), ascending at stride s ≥ 2 (the phases'
+                // sub-kernels), zero padding adding exact zeros.
+                let mut taps: Vec<(usize, usize)> = (0..k)
+                    .flat_map(|ky| (0..k).map(move |kx| (ky, kx)))
+                    .collect();
+                if s == 1 {
+                    taps.reverse();
+                }
+                for iy in 0..h {
+                    for ix in 0..w {
+                        let mut acc = 0.0f32;
+                        for &(ky, kx) in &taps {
+                            let (ny, nx) = (iy + k / 2, ix + k / 2);
+                            if ny < ky || nx < kx || (ny - ky) % s != 0 || (nx - kx) % s != 0 {
+                                continue;
+                            }
+                            let (oy, ox) = ((ny - ky) / s, (nx - kx) / s);
+                            if oy >= g.ho || ox >= g.wo {
+                                continue;
+                            }
+                            let (wv, v) = (wk[ky * k + kx], dy[oy * g.wo + ox]);
+                            acc = if fma {
+                                wv.mul_add(v, acc)
+                            } else {
+                                wv * v + acc
+                            };
+                        }
+                        let got = dx[iy * w + ix];
+                        assert_eq!(
+                            got.to_bits(),
+                            acc.to_bits(),
+                            "dx[{iy},{ix}] {got} vs {acc} in {g:?}"
+                        );
+                    }
+                }
                 close(&dw, &dw0, "dw");
             }
         }
