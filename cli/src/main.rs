@@ -94,13 +94,17 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
 /// Keeps freed heap memory in the process. glibc's defaults hand large freed blocks back to
 /// the kernel and fault them in again on the next allocation; the RCWA sweep allocates and
 /// frees ~1 MB matrices thousands of times a second, which cost 12 % of its wall time
-/// (docs/bench/metalib.md).
+/// (docs/bench/metalib.md). One arena for every thread: a spawned thread's own arena lives in
+/// 64 MB heaps that are unmapped when they empty, so the training threads' tensors were
+/// faulted in afresh each step (the default main job: 12.7 M → 1.9 M page faults, 53 → 27 s of
+/// system time, docs/run.md).
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn keep_freed_memory() {
     // SAFETY: mallopt only sets allocator parameters; it runs before any other thread exists.
     unsafe {
         libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
         libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+        libc::mallopt(libc::M_ARENA_MAX, 1);
     }
 }
 

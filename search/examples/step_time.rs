@@ -34,6 +34,7 @@ fn main() {
     unsafe {
         libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
         libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+        libc::mallopt(libc::M_ARENA_MAX, 1);
     }
     let learned = args.get(6).is_none_or(|s| s != "fixed");
     let ds = Dataset::open(std::path::Path::new(dir)).expect("dataset");
