@@ -419,30 +419,10 @@ unsafe fn sweep_rows<const FMA: bool, const R: usize>(
             // HALF.
             unsafe {
                 if x0 + LANES <= end {
-                    block_fma::<R, 2>(
-                        buf,
-                        base,
-                        in_step,
-                        offs,
-                        wk,
-                        x0,
-                        end,
-                        &mut out[m * out_step..],
-                        out_step,
-                    );
+                    block_fma::<R, 2>(sw, buf, offs, wk, (m, x0), out);
                     x0 += LANES;
                 } else {
-                    block_fma::<R, 1>(
-                        buf,
-                        base,
-                        in_step,
-                        offs,
-                        wk,
-                        x0,
-                        end,
-                        &mut out[m * out_step..],
-                        out_step,
-                    );
+                    block_fma::<R, 1>(sw, buf, offs, wk, (m, x0), out);
                     x0 += HALF;
                 }
             }
@@ -488,35 +468,32 @@ unsafe fn sweep_rows<const FMA: bool, const R: usize>(
     }
 }
 
-/// Rows `0 .. R` of `out` (row stride `out_step`), columns `x0 .. min(x0 + V·HALF, end)`: each
-/// output sums its taps in `offs` order by fused multiply–adds, R·V registers in flight.
+/// Output rows `m .. m + R` of `sw`, columns `x0 .. min(x0 + V·HALF, sw.cols.1)`: each output
+/// sums its taps in `offs` order by fused multiply–adds, R·V registers in flight.
 ///
 /// # Safety
-/// The CPU must have AVX2 and FMA; `base + (R − 1)·in_step + max(offs) + x0 + V·HALF ≤
-/// buf.len()`; `out` holds `(R − 1)·out_step + end` values, `wk` one weight per offset.
+/// The CPU must have AVX2 and FMA; `(m + R − 1)·in_step + max(offs) + x0 + V·HALF ≤
+/// buf.len()`; `out` holds `(m + R − 1)·out_step + sw.cols.1` values, `wk` one weight per
+/// offset.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 #[inline]
-#[allow(clippy::too_many_arguments)]
 unsafe fn block_fma<const R: usize, const V: usize>(
+    sw: &Sweep,
     buf: &[f32],
-    base: usize,
-    in_step: usize,
     offs: &[usize],
     wk: &[f32],
-    x0: usize,
-    end: usize,
+    (m, x0): (usize, usize),
     out: &mut [f32],
-    out_step: usize,
 ) {
     use std::arch::x86_64::*;
     let mut acc = [[_mm256_setzero_ps(); V]; R];
-    let p = buf.as_ptr();
+    let (p, end, in_step, out_step) = (buf.as_ptr(), sw.cols.1, sw.in_step, sw.out_step);
     for (&wv, &off) in wk.iter().zip(offs) {
         let w = _mm256_set1_ps(wv);
         for (r, acc) in acc.iter_mut().enumerate() {
             // SAFETY: inside `buf` by the contract.
-            let src = unsafe { p.add(base + r * in_step + off + x0) };
+            let src = unsafe { p.add((m + r) * in_step + off + x0) };
             for (v, a) in acc.iter_mut().enumerate() {
                 // SAFETY: as above; unaligned loads.
                 *a = _mm256_fmadd_ps(w, unsafe { _mm256_loadu_ps(src.add(v * HALF)) }, *a);
@@ -526,7 +503,7 @@ unsafe fn block_fma<const R: usize, const V: usize>(
     let cols = (end - x0).min(V * HALF);
     if cols == V * HALF {
         for (r, acc) in acc.iter().enumerate() {
-            let dst = &mut out[r * out_step + x0..][..V * HALF];
+            let dst = &mut out[(m + r) * out_step + x0..][..V * HALF];
             for (v, a) in acc.iter().enumerate() {
                 // SAFETY: HALF values at v·HALF inside `dst`, whose length was checked.
                 unsafe { _mm256_storeu_ps(dst.as_mut_ptr().add(v * HALF), *a) };
@@ -540,7 +517,7 @@ unsafe fn block_fma<const R: usize, const V: usize>(
             // SAFETY: a store of exactly HALF values into `l`.
             unsafe { _mm256_storeu_ps(l.as_mut_ptr(), *a) };
         }
-        out[r * out_step + x0..][..cols].copy_from_slice(&lanes.as_flattened()[..cols]);
+        out[(m + r) * out_step + x0..][..cols].copy_from_slice(&lanes.as_flattened()[..cols]);
     }
 }
 
