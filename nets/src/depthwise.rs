@@ -6,7 +6,9 @@
 //! straight-line multiply–adds the compiler vectorizes. The forward pass computes up to four
 //! output rows at a time so that several accumulator registers are in flight, with one
 //! bounds check per plane; at stride 2 the phase split is a pairwise column copy (register
-//! shuffles with AVX2). On x86-64 with AVX2 and FMA (checked at run time) the same code is
+//! shuffles with AVX2). dL/dx runs through the same row blocks as a correlation of dL/dy: with
+//! the kernel turned by 180° at stride 1, with each phase's sub-kernel at stride s ≥ 2 (see
+//! [`strided_dx`]). On x86-64 with AVX2 and FMA (checked at run time) the same code is
 //! compiled a second time with fused multiply–adds. Scratch lives per rayon task, not per
 //! plane, and its zero padding is written once per geometry; planes are grouped so a task
 //! carries enough work to pay for the scheduling.
@@ -334,7 +336,7 @@ fn forward_padded<const FMA: bool>(
 }
 
 /// A correlation over a rectangle of outputs: output row `m`, column `j` (`cols.0 ≤ j <
-/// cols.1`) is Σₜ wk[t]·buf[m·in_step + offs[t] + j], stored at `out[m·out_step + j]`.
+/// cols.1`) is `Σₜ wk[t]·buf[m·in_step + offs[t] + j]`, stored at `out[m·out_step + j]`.
 #[derive(Clone, Copy, Debug)]
 struct Sweep {
     rows: usize,
