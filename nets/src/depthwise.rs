@@ -296,7 +296,8 @@ pub(crate) struct Scratch {
     /// The geometry (h, w, k, s) `buf`'s zero padding is laid out for.
     shape: Option<[usize; 4]>,
     dbuf: Vec<f32>,
-    /// dL/dy zero-padded for the strided dL/dx, and the geometry its padding is laid out for.
+    /// dL/dy zero-padded for the strided dL/dx, and the geometry (h, w, k, s) its padding is
+    /// laid out for.
     dpad: Vec<f32>,
     dshape: Option<[usize; 4]>,
     offs: Vec<usize>,
@@ -564,7 +565,7 @@ fn strided_dx<const FMA: bool>(g: &Geom, wk: &[f32], dy: &[f32], sc: &mut Scratc
     // dL/dy with p zero rows and columns before it and enough after for every cell's taps.
     let hp = g.ho.max((p + g.h - 1) / s + 1) + p;
     let wp = g.wo.max((p + g.w - 1) / s + 1) + p;
-    let key = [g.ho, g.wo, hp, wp];
+    let key = [g.h, g.w, g.k, g.s];
     if sc.dshape != Some(key) {
         sc.dpad.clear();
         // HALF values of slack: a row's last partial block is read a whole register wide.
