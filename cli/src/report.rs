@@ -264,7 +264,6 @@ fn esc(s: &str) -> String {
 /// The page for run directory `out` and its result JSON.
 pub fn html(out: &Path, r: &serde_json::Value) -> Result<String> {
     let mut h = String::new();
-    let num = |v: &serde_json::Value| v.as_f64().map_or("–".into(), |x| format!("{x:.2}"));
     // The run's own sizes, from the configuration it wrote ("–" where it is missing).
     let cfg: serde_json::Value = std::fs::read_to_string(out.join("config.json"))
         .ok()
@@ -489,6 +488,7 @@ oldest member removed. V = mean gaze error on the validation set (degrees).</p><
                 .collect();
             if !rows.is_empty() {
                 slips += &format!("<h3>{}</h3>{}", esc(lens), slip_svg(&rows));
+                slips += &head_fit_line(&r["protocol"][lens]["slip_head_fit"]);
             }
         }
     }
@@ -536,6 +536,34 @@ which the solver uses to place the eye.</p>{}",
     }
     writeln!(h, "</table></body></html>")?;
     Ok(h)
+}
+
+/// One line on a lens's head refit (`slip_head_fit` in result.json): RMS error per axis on the
+/// training frames before and after, and the leave-one-out estimate; empty without a refit.
+fn head_fit_line(fit: &serde_json::Value) -> String {
+    if !fit.is_object() {
+        return String::new();
+    }
+    let axes = |k: &str| {
+        (0..3)
+            .map(|a| num(&fit[k][a]))
+            .collect::<Vec<_>>()
+            .join(" / ")
+    };
+    format!(
+        "<p>Output layer solved on {} training frames (ridge, weight by leave-one-out error). \
+RMS error x / y / z on those frames: {} mm with the trained layer, {} mm solved; leave-one-out \
+{} mm.</p>",
+        fit["frames"],
+        axes("rmse_before_mm"),
+        axes("rmse_fit_mm"),
+        axes("loo_rmse_mm")
+    )
+}
+
+/// A JSON number with two decimals, or "–".
+fn num(v: &serde_json::Value) -> String {
+    v.as_f64().map_or("–".into(), |x| format!("{x:.2}"))
 }
 
 #[cfg(test)]

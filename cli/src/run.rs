@@ -132,6 +132,10 @@ pub struct RunConfig {
     /// What the calibration head learns: "translation" (the camera's, as S11 is written) or
     /// "eye_equivalent" (its rotation folded in about the eye centre, docs/gaze.md).
     pub slip_target: SlipTarget,
+    /// Solve the calibration head's output layer in closed form on the training frames before
+    /// the protocol (ridge, weight by leave-one-out error: `search::headfit`), for every
+    /// deployed subnet; false keeps the trained layer.
+    pub slip_head_refit: bool,
 }
 
 impl Default for RunConfig {
@@ -172,6 +176,7 @@ impl Default for RunConfig {
             sequence_frames: 60,
             solver: SolverKind::Refractive,
             slip_target: SlipTarget::Translation,
+            slip_head_refit: true,
         }
     }
 }
@@ -652,9 +657,19 @@ pub fn run(a: RunArgs) -> Result<()> {
         let mut tr = Trainer::from_checkpoint(&proto_chain, &proto, &ck)?;
         // BN statistics from the training set's chain, then the protocol frames.
         let mut trn = Trainer::from_checkpoint(&chain, &train, &ck)?;
-        // One set of training batches serves the selected, min and max subnets.
-        let recal = trn.recalibration_inputs(2)?;
-        trn.net.recalibrate_bn(&best.arch, &recal)?;
+        // Every training frame once through the chain: BN statistics over the whole set for
+        // the selected, min and max subnets (2 batches, 8 frames, until 2026-11-29), and the
+        // data of the head refit (search::headfit), each subnet after its own statistics.
+        let all = trn.all_frames()?;
+        trn.net.recalibrate_bn(&best.arch, &all.inputs)?;
+        let refit = |net: &mut nanoeye_nets::Supernet, arch: &Arch| -> Result<_> {
+            if !cfg.slip_head_refit {
+                return Ok(serde_json::Value::Null);
+            }
+            let fit = nanoeye_search::headfit::refit_slip_head(net, arch, &all)?;
+            Ok(serde_json::to_value(fit)?)
+        };
+        let head_fit = refit(&mut trn.net, &best.arch)?;
         let bytes = nanoeye_nets::checkpoint::to_bytes(&mut trn.net)?;
         // The tracker's model: the selected subnet with its exact BN statistics.
         util::write_atomic(&out.join(format!("runs/{name}/tracker_net.bin")), &bytes)?;
@@ -666,7 +681,8 @@ pub fn run(a: RunArgs) -> Result<()> {
         // The min and max subnets of the same weights with their own exact BN statistics, for
         // `track --subnet min|max` (the supernet's running statistics are a mixture).
         for (tag, arch) in [("min", Arch::min()), ("max", Arch::max())] {
-            trn.net.recalibrate_bn(&arch, &recal)?;
+            trn.net.recalibrate_bn(&arch, &all.inputs)?;
+            refit(&mut trn.net, &arch)?;
             util::write_atomic(
                 &out.join(format!("runs/{name}/tracker_net_{tag}.bin")),
                 &nanoeye_nets::checkpoint::to_bytes(&mut trn.net)?,
@@ -759,6 +775,7 @@ pub fn run(a: RunArgs) -> Result<()> {
                 let n = e.dice.len().max(1) as f64;
                 v["dice"] = (e.dice.iter().sum::<f64>() / n).into();
                 v["slip_rmse_mm"] = (e.slip_sq_mm2.iter().sum::<f64>() / n).sqrt().into();
+                v["slip_head_fit"] = head_fit.clone();
             }
             ev.entries.push((key.clone(), v));
         }

@@ -106,6 +106,19 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
             "{lens}: protocol.jsonl gives {} mm, the summary {slip} mm",
             ms.sqrt()
         );
+        // The head's output layer solved on every training frame (search::headfit): its
+        // leave-one-out error can only exceed its error on the frames it was fitted to.
+        let fit = &p[lens]["slip_head_fit"];
+        assert_eq!(
+            fit["frames"].as_u64(),
+            Some(train.len() as u64),
+            "{lens}: {fit}"
+        );
+        for a in 0..3 {
+            let f = fit["rmse_fit_mm"][a].as_f64().unwrap();
+            let l = fit["loo_rmse_mm"][a].as_f64().unwrap();
+            assert!(f.is_finite() && l.is_finite() && l >= f, "{lens}: {fit}");
+        }
         // The deployed model: the selected subnet fine-tuned behind this lens.
         assert!(
             out.join(format!("runs/{lens}/selected.bin")).exists(),

@@ -251,6 +251,12 @@ impl Supernet {
         Ok(SupernetOutput { mask_logits, slip })
     }
 
+    /// The calibration head's hidden activations of the last forward pass, (N, hidden, 1, 1):
+    /// what its output layer [`Supernet::head_out`] maps to Δt (None before any forward).
+    pub fn head_hidden_features(&self) -> Option<&Tensor> {
+        self.cache.as_ref().map(|c| &c.za)
+    }
+
     /// Backward pass of the last forward from dL/dlogits and dL/dslip; accumulates every
     /// parameter gradient and returns dL/dx, the gradient w.r.t. the input images.
     pub fn backward(&mut self, d_logits: &Tensor, d_slip: &Tensor) -> Result<Tensor> {

@@ -6,6 +6,7 @@
 pub mod chain;
 pub mod error;
 pub mod geometry;
+pub mod headfit;
 pub mod lens;
 pub mod pareto;
 pub mod radiometry;

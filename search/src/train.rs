@@ -356,12 +356,9 @@ impl<'a> Trainer<'a> {
     fn chain_step(&self, t: usize) -> Result<StepData> {
         let frames = self.frames(t)?;
         let map = self.phase_map()?;
-        let psfs = self.chain.psfs(&map, &self.chain.active(&frames))?;
-        let fwd = self.chain.forward(
+        let (psfs, fwd) = self.through_chain(
             &frames,
-            &psfs,
-            self.pitch_um * 1e-6,
-            NoiseMode::Gaussian,
+            &map,
             self.cfg.seed ^ (t as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
         )?;
         Ok(StepData {
@@ -370,6 +367,27 @@ impl<'a> Trainer<'a> {
             psfs,
             fwd,
         })
+    }
+
+    /// `frames` through the chain at φ = `map` and the current p̂, sensor noise from `seed`.
+    fn through_chain(
+        &self,
+        frames: &[ChainFrame],
+        map: &PhaseMap,
+        seed: u64,
+    ) -> Result<(
+        std::sync::Arc<crate::chain::StepPsfs>,
+        crate::chain::ChainForward,
+    )> {
+        let psfs = self.chain.psfs(map, &self.chain.active(frames))?;
+        let fwd = self.chain.forward(
+            frames,
+            &psfs,
+            self.pitch_um * 1e-6,
+            NoiseMode::Gaussian,
+            seed,
+        )?;
+        Ok((psfs, fwd))
     }
 
     /// The chain's backward from ∂L/∂input `dx`, then one Adam step of φ (unless the lens is
@@ -463,21 +481,30 @@ impl<'a> Trainer<'a> {
     /// several subnets (`net.recalibrate_bn(arch, &inputs)`).
     pub fn recalibration_inputs(&self, batches: usize) -> Result<Vec<Tensor>> {
         let map = self.phase_map()?;
-        let p_hat = self.pitch_um * 1e-6;
         let mut recal = Vec::new();
         for b in 0..batches.max(1) {
             let frames = self.frames(b)?;
-            let psfs = self.chain.psfs(&map, &self.chain.active(&frames))?;
-            let fwd = self.chain.forward(
-                &frames,
-                &psfs,
-                p_hat,
-                NoiseMode::Gaussian,
-                self.cfg.seed ^ 0xEEEE,
-            )?;
+            let (_, fwd) = self.through_chain(&frames, &map, self.cfg.seed ^ 0xEEEE)?;
             recal.push(fwd.input);
         }
         Ok(recal)
+    }
+
+    /// Every training frame in order through the chain at the current φ and p̂, one noise
+    /// draw each, in batches of the training batch size: BN statistics over the whole set
+    /// (`net.recalibrate_bn(arch, &frames.inputs)`) and the data of
+    /// [`crate::headfit::refit_slip_head`], computed once for any number of subnets.
+    pub fn all_frames(&self) -> Result<crate::headfit::FitFrames> {
+        let map = self.phase_map()?;
+        let ids: Vec<usize> = (0..self.ds.len()).collect();
+        let mut out = crate::headfit::FitFrames::default();
+        for chunk in ids.chunks(self.cfg.batch.max(1)) {
+            let frames = self.chain.load(self.ds, chunk)?;
+            let (_, fwd) = self.through_chain(&frames, &map, self.cfg.seed ^ 0x4EAD)?;
+            out.inputs.push(fwd.input);
+            out.targets_mm.push(fwd.slip_mm);
+        }
+        Ok(out)
     }
 
     /// Validation of subnet `arch` on `val` (all frames, in batches of the training batch

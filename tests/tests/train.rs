@@ -329,3 +329,42 @@ fn threads_with_their_own_chains_give_the_sequential_search() {
     assert_eq!(par_saves.len(), 3 + 4);
     assert_eq!(par_saves, seq_saves);
 }
+
+#[test]
+fn the_slip_head_refit_writes_the_layer_whose_error_it_reports() {
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 6);
+    let c = chain(&ds);
+    let mut t = Trainer::new(&c, &ds, cfg(2), phase0(&c)).unwrap();
+    for _ in 0..2 {
+        t.train_step().unwrap();
+    }
+    let arch = Arch::min();
+    t.recalibrate(&arch, 1).unwrap();
+    let frames = t.all_frames().unwrap();
+    assert_eq!(frames.inputs.iter().map(|x| x.n).sum::<usize>(), ds.len());
+    let before = t.net.head_out.w.value.clone();
+    let fit = nanoeye_search::headfit::refit_slip_head(&mut t.net, &arch, &frames).unwrap();
+    assert_eq!(fit.frames, ds.len());
+    assert_ne!(before, t.net.head_out.w.value, "the layer did not change");
+    // The network's own outputs after the refit give the in-sample error the solve reports
+    // (the weights landed in the layout the forward pass reads), and the targets are read
+    // in the same units.
+    let (mut sse, mut scale) = ([0.0f64; 3], 0.0f64);
+    for (x, y) in frames.inputs.iter().zip(&frames.targets_mm) {
+        let o = t.net.forward(&arch, x, nanoeye_nets::BnMode::Eval).unwrap();
+        for (k, (&p, &q)) in o.slip.data.iter().zip(&y.data).enumerate() {
+            sse[k % 3] += (p as f64 - q as f64).powi(2);
+            scale = scale.max((q as f64).abs());
+        }
+    }
+    for (a, &e) in sse.iter().enumerate() {
+        let rms = (e / fit.frames as f64).sqrt();
+        assert!(
+            (rms - fit.rmse_fit_mm[a]).abs() <= 1e-4 * scale.max(1.0),
+            "axis {a}: network {rms} mm, solve {} mm ({fit:?})",
+            fit.rmse_fit_mm[a]
+        );
+        assert!(fit.loo_rmse_mm[a].is_finite() && fit.loo_rmse_mm[a] >= fit.rmse_fit_mm[a]);
+    }
+}
