@@ -136,6 +136,9 @@ pub struct RunConfig {
     /// the protocol (ridge, weight by leave-one-out error: `search::headfit`), for every
     /// deployed subnet; false keeps the trained layer.
     pub slip_head_refit: bool,
+    /// Score the REA's candidates as the protocol stage deploys the pick (BN statistics over
+    /// every training frame, head refit); off by default (docs/run.md).
+    pub rea_head_refit: bool,
 }
 
 impl Default for RunConfig {
@@ -177,6 +180,7 @@ impl Default for RunConfig {
             solver: SolverKind::Refractive,
             slip_target: SlipTarget::Translation,
             slip_head_refit: true,
+            rea_head_refit: false,
         }
     }
 }
@@ -340,6 +344,7 @@ fn rea_config(cfg: &RunConfig) -> ReaConfig {
         gamma: cfg.gamma,
         budget_macs: cfg.budget_macs,
         seed: cfg.seed,
+        head_refit: cfg.rea_head_refit,
         ..ReaConfig::default()
     }
 }

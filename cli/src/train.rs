@@ -550,6 +550,10 @@ pub struct ReaArgs {
     /// Seed.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Score each candidate as `nanoeye run` deploys it: BN statistics over every training
+    /// frame and the calibration head's output layer solved on them (docs/run.md).
+    #[arg(long)]
+    head_refit: bool,
     /// Candidates evaluated at once, one thread and chain each (the result does not depend on
     /// it; under MPI each worker rank evaluates one instead).
     #[arg(long, default_value_t = 2)]
@@ -583,6 +587,7 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         mutation_rate: a.mutation_rate,
         budget_macs: a.budget_macs,
         seed: a.seed,
+        head_refit: a.head_refit,
         ..ReaConfig::default()
     };
     cfg.validate().map_err(|e| {

@@ -43,8 +43,14 @@ pub struct ReaConfig {
     pub lambda_budget: f64,
     /// Learning-rate scale of the fine-tune relative to the run's.
     pub lr_scale: f64,
-    /// Training batches for BN recalibration before each evaluation.
+    /// Training batches for BN recalibration before each evaluation (unused with
+    /// `head_refit`).
     pub recal_batches: usize,
+    /// Evaluate each candidate as `nanoeye run` deploys it: BN statistics over every training
+    /// frame and the calibration head's output layer solved on them
+    /// ([`crate::headfit::refit_slip_head`]). Off in Table S1's search.
+    #[serde(default)]
+    pub head_refit: bool,
     /// Seed.
     pub seed: u64,
 }
@@ -63,6 +69,7 @@ impl Default for ReaConfig {
             lambda_budget: 1.0,
             lr_scale: 0.1,
             recal_batches: 2,
+            head_refit: false,
             seed: 0,
         }
     }
@@ -270,7 +277,14 @@ impl Evaluator<'_> {
                 .finetune_step(arch, c.budget_macs, c.lambda_budget, c.lr_scale)?
                 .1;
         }
-        let m = t.evaluate(self.val, arch, c.recal_batches)?;
+        let m = if c.head_refit {
+            let all = t.all_frames()?;
+            t.net.recalibrate_bn(arch, &all.inputs)?;
+            crate::headfit::refit_slip_head(&mut t.net, arch, &all)?;
+            t.validate(self.val, arch)?
+        } else {
+            t.evaluate(self.val, arch, c.recal_batches)?
+        };
         if steps == 0 {
             let (h, w) = self.chain.native().at(t.pitch_um * 1e-6)?.shape();
             macs = nanoeye_nets::cost::subnet_cost(&t.config().supernet, arch, h, w)?.macs;

@@ -516,6 +516,12 @@ impl<'a> Trainer<'a> {
         recal_batches: usize,
     ) -> Result<Metrics> {
         self.recalibrate(arch, recal_batches)?;
+        self.validate(val, arch)
+    }
+
+    /// Validation of subnet `arch` on `val` with the network as it stands (BN statistics
+    /// already recalibrated).
+    pub fn validate(&mut self, val: &Dataset, arch: &Arch) -> Result<Metrics> {
         let map = self.phase_map()?;
         let s = EvalSetup {
             chain: self.chain,

@@ -368,3 +368,31 @@ fn the_slip_head_refit_writes_the_layer_whose_error_it_reports() {
         assert!(fit.loo_rmse_mm[a].is_finite() && fit.loo_rmse_mm[a] >= fit.rmse_fit_mm[a]);
     }
 }
+
+#[test]
+fn a_search_with_the_head_refit_scores_the_model_the_main_job_deploys() {
+    use nanoeye_search::{Rea, ReaConfig};
+    let d = tempfile::tempdir().unwrap();
+    let (ds, c, run) = search_fixture(d.path());
+    let arch = Arch::min();
+    let score = |head_refit| {
+        let cfg = ReaConfig {
+            epochs: 0.0,
+            head_refit,
+            ..rea_cfg()
+        };
+        let rea = Rea::new(&c, &ds, &ds, &run, cfg).unwrap();
+        rea.evaluator().evaluate(0, &arch).unwrap()
+    };
+    let got = score(true);
+    // By hand: BN over every training frame, the layer solved on them, then V.
+    let mut t = Trainer::from_checkpoint(&c, &ds, &run).unwrap();
+    let all = t.all_frames().unwrap();
+    t.net.recalibrate_bn(&arch, &all.inputs).unwrap();
+    nanoeye_search::headfit::refit_slip_head(&mut t.net, &arch, &all).unwrap();
+    let want = t.validate(&ds, &arch).unwrap();
+    assert_eq!(got.v, want.v_deg);
+    assert_eq!(got.metrics.slip_mse, want.slip_mse);
+    // The trained layer scores otherwise.
+    assert_ne!(score(false).metrics.slip_mse, got.metrics.slip_mse);
+}
