@@ -6,9 +6,10 @@
 //! error over the training set has a closed-form minimiser; the few hundred SGD steps of
 //! sandwich training leave the layer far from it (the heads read the x translation with a
 //! slope of 0.17 on their own training frames, docs/run.md). With more hidden units (1280)
-//! than frames (a few hundred) the plain minimiser interpolates, so the fit is ridge, in the
-//! dual (an n × n kernel, one eigendecomposition for every weight tried), with the weight
-//! picked per axis from a log grid by the closed-form leave-one-out residuals r_i / (1 − H_ii).
+//! than frames (a few hundred) the plain minimiser interpolates, so the fit is ridge, through
+//! one eigendecomposition of the n × n kernel (or of the d × d Gram matrix when there are more
+//! frames than units) for every weight tried, the weight picked per axis from a log grid by
+//! the closed-form leave-one-out residuals r_i / (1 − H_ii).
 
 use crate::error::{Result, param};
 use faer::{Mat, Side};
@@ -100,11 +101,11 @@ pub fn refit_slip_head(net: &mut Supernet, arch: &Arch, data: &FitFrames) -> Res
         ));
     }
     let z = Mat::from_fn(n, d, |i, k| rows[i * d + k] as f64);
-    let dual = Dual::new(&z, &y)?;
+    let ridge = Ridge::new(&z, &y)?;
     let mut best = [(f64::INFINITY, 0.0); 3];
     for k in GRID {
         let rel = 10f64.powf(k as f64 / 4.0);
-        let sse = dual.loo_sse(dual.mean_eigenvalue * rel);
+        let sse = ridge.loo_sse(ridge.mean_eigenvalue * rel);
         for a in 0..3 {
             if sse[a] < best[a].0 {
                 best[a] = (sse[a], rel);
@@ -112,7 +113,7 @@ pub fn refit_slip_head(net: &mut Supernet, arch: &Arch, data: &FitFrames) -> Res
         }
     }
     let lambda_rel = best.map(|(_, r)| r);
-    let (w, b) = dual.solve(lambda_rel.map(|r| dual.mean_eigenvalue * r));
+    let (w, b) = ridge.solve(lambda_rel.map(|r| ridge.mean_eigenvalue * r));
     for a in 0..3 {
         for k in 0..d {
             net.head_out.w.value[a * d + k] = w[(a, k)] as f32;
@@ -136,9 +137,10 @@ pub fn refit_slip_head(net: &mut Supernet, arch: &Arch, data: &FitFrames) -> Res
     })
 }
 
-/// Ridge regression of y (n × 3) on z (n × d) with an unpenalised intercept, in the dual: the
-/// centred data's kernel Zc Zcᵀ = U S Uᵀ, decomposed once.
-struct Dual {
+/// Ridge regression of y (n × 3) on z (n × d) with an unpenalised intercept through the
+/// centred data's kernel Zc Zcᵀ = U S Uᵀ (from the smaller of Zc Zcᵀ and Zcᵀ Zc), decomposed
+/// once for every ridge weight.
+struct Ridge {
     zm: Vec<f64>,
     ym: [f64; 3],
     zc: Mat<f64>,
@@ -150,8 +152,13 @@ struct Dual {
     mean_eigenvalue: f64,
 }
 
-impl Dual {
-    fn new(z: &Mat<f64>, y: &Mat<f64>) -> Result<Dual> {
+impl Ridge {
+    fn new(z: &Mat<f64>, y: &Mat<f64>) -> Result<Ridge> {
+        Ridge::decomposing(z, y, z.nrows() > z.ncols())
+    }
+
+    /// [`Ridge::new`] through Zcᵀ Zc (`gram`) or Zc Zcᵀ.
+    fn decomposing(z: &Mat<f64>, y: &Mat<f64>, gram: bool) -> Result<Ridge> {
         let (n, d) = (z.nrows(), z.ncols());
         let zm: Vec<f64> = (0..d)
             .map(|k| (0..n).map(|i| z[(i, k)]).sum::<f64>() / n as f64)
@@ -160,13 +167,44 @@ impl Dual {
             std::array::from_fn(|a| (0..n).map(|i| y[(i, a)]).sum::<f64>() / n as f64);
         let zc = Mat::from_fn(n, d, |i, k| z[(i, k)] - zm[k]);
         let yc = Mat::from_fn(n, 3, |i, a| y[(i, a)] - ym[a]);
-        let kern = &zc * zc.transpose();
-        let evd = kern
-            .self_adjoint_eigen(Side::Lower)
-            .map_err(|e| param("head features", format!("eigendecomposition failed: {e:?}")))?;
-        let sv = evd.S().column_vector();
-        // Round-off can leave tiny negative eigenvalues of a PSD kernel.
-        let s: Vec<f64> = (0..n).map(|j| sv[j].max(0.0)).collect();
+        // The nonzero eigenvalues of Zc Zcᵀ are those of Zcᵀ Zc: decompose the smaller one.
+        let (u, s) = if !gram {
+            let evd = (&zc * zc.transpose())
+                .self_adjoint_eigen(Side::Lower)
+                .map_err(|e| param("head features", format!("eigendecomposition failed: {e:?}")))?;
+            let sv = evd.S().column_vector();
+            // Round-off can leave tiny negative eigenvalues of a PSD kernel.
+            let s: Vec<f64> = (0..n).map(|j| sv[j].max(0.0)).collect();
+            (evd.U().to_owned(), s)
+        } else {
+            let evd = (zc.transpose() * &zc)
+                .self_adjoint_eigen(Side::Lower)
+                .map_err(|e| param("head features", format!("eigendecomposition failed: {e:?}")))?;
+            let sv = evd.S().column_vector();
+            let s: Vec<f64> = (0..d).map(|j| sv[j].max(0.0)).collect();
+            let top = s.iter().cloned().fold(0.0, f64::max);
+            // U = Zc V S^(-1/2) on the kept directions; a null direction gets a zero column
+            // and eigenvalue, so it neither fits nor counts in the hat matrix.
+            let zv = &zc * evd.U();
+            let keep: Vec<f64> = s
+                .iter()
+                .map(|&sj| {
+                    if sj > 1e-12 * top {
+                        1.0 / sj.sqrt()
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
+            let u = Mat::from_fn(n, d, |i, j| zv[(i, j)] * keep[j]);
+            let s = s
+                .iter()
+                .zip(&keep)
+                .map(|(&sj, &k)| if k > 0.0 { sj } else { 0.0 })
+                .collect();
+            (u, s)
+        };
+        // trace(Zc Zcᵀ) / n whichever side was decomposed, so `lambda_rel` means one thing.
         let mean_eigenvalue = s.iter().sum::<f64>() / n as f64;
         if !(mean_eigenvalue.is_finite() && mean_eigenvalue > 0.0) {
             return Err(param(
@@ -174,9 +212,8 @@ impl Dual {
                 "the head's activations do not vary over the frames, or are not finite",
             ));
         }
-        let u = evd.U().to_owned();
         let uy = u.transpose() * &yc;
-        Ok(Dual {
+        Ok(Ridge {
             zm,
             ym,
             zc,
@@ -191,7 +228,7 @@ impl Dual {
     /// Exact leave-one-out squared error per axis at ridge weight `lam`: the hat matrix is
     /// 11ᵀ/n + U diag(s/(s+λ)) Uᵀ, and removing frame i moves its residual to r_i/(1 − H_ii).
     fn loo_sse(&self, lam: f64) -> [f64; 3] {
-        let n = self.s.len();
+        let n = self.u.nrows();
         let shrink: Vec<f64> = self.s.iter().map(|&sj| sj / (sj + lam)).collect();
         let mut sse = [0.0; 3];
         for i in 0..n {
@@ -219,11 +256,16 @@ impl Dual {
         let mut w = Mat::<f64>::zeros(3, d);
         let mut b = [0.0; 3];
         for a in 0..3 {
-            let coef: Vec<f64> = (0..n)
+            let coef: Vec<f64> = (0..self.s.len())
                 .map(|j| self.uy[(j, a)] / (self.s[j] + lam[a]))
                 .collect();
             let alpha: Vec<f64> = (0..n)
-                .map(|i| (0..n).map(|j| self.u[(i, j)] * coef[j]).sum())
+                .map(|i| {
+                    coef.iter()
+                        .enumerate()
+                        .map(|(j, c)| self.u[(i, j)] * c)
+                        .sum()
+                })
                 .collect();
             for k in 0..d {
                 w[(a, k)] = (0..n).map(|i| alpha[i] * self.zc[(i, k)]).sum();
@@ -256,13 +298,13 @@ mod tests {
     fn loo_matches_refitting_without_each_frame() {
         for (n, d, lam) in [(9, 20, 0.3), (15, 4, 0.05), (12, 12, 2.0)] {
             let (z, y) = random(n, d, n as u64);
-            let loo = Dual::new(&z, &y).unwrap().loo_sse(lam);
+            let loo = Ridge::new(&z, &y).unwrap().loo_sse(lam);
             let mut brute = [0.0; 3];
             for i in 0..n {
                 let keep: Vec<usize> = (0..n).filter(|&r| r != i).collect();
                 let zi = Mat::from_fn(n - 1, d, |r, k| z[(keep[r], k)]);
                 let yi = Mat::from_fn(n - 1, 3, |r, a| y[(keep[r], a)]);
-                let (w, b) = Dual::new(&zi, &yi).unwrap().solve([lam; 3]);
+                let (w, b) = Ridge::new(&zi, &yi).unwrap().solve([lam; 3]);
                 let p = predict(&w, b, &z, i);
                 for a in 0..3 {
                     brute[a] += (p[a] - y[(i, a)]).powi(2);
@@ -288,11 +330,37 @@ mod tests {
         let w0 = Mat::from_fn(3, d, |a, k| (a as f64 + 1.0) * (k as f64 - 2.5));
         let b0 = [0.5, -1.25, 3.0];
         let y = Mat::from_fn(n, 3, |i, a| predict(&w0, b0, &z, i)[a]);
-        let (w, b) = Dual::new(&z, &y).unwrap().solve([1e-12; 3]);
+        let (w, b) = Ridge::new(&z, &y).unwrap().solve([1e-12; 3]);
         for a in 0..3 {
             assert!((b[a] - b0[a]).abs() < 1e-9, "b[{a}] {} vs {}", b[a], b0[a]);
             for k in 0..d {
                 assert!((w[(a, k)] - w0[(a, k)]).abs() < 1e-9);
+            }
+        }
+    }
+
+    /// Either side of the decomposition gives the same fit and leave-one-out error, with
+    /// more frames than features and with fewer.
+    #[test]
+    fn both_sides_of_the_decomposition_agree() {
+        for (n, d) in [(20, 5), (6, 9)] {
+            let (z, y) = random(n, d, 11);
+            let a = Ridge::decomposing(&z, &y, false).unwrap();
+            let b = Ridge::decomposing(&z, &y, true).unwrap();
+            assert!((a.mean_eigenvalue - b.mean_eigenvalue).abs() < 1e-12 * a.mean_eigenvalue);
+            for lam in [1e-3, 0.7] {
+                let (la, lb) = (a.loo_sse(lam), b.loo_sse(lam));
+                let ((wa, ba), (wb, bb)) = (a.solve([lam; 3]), b.solve([lam; 3]));
+                for k in 0..3 {
+                    assert!(
+                        (la[k] - lb[k]).abs() < 1e-9 * la[k],
+                        "{n}×{d}: {la:?} {lb:?}"
+                    );
+                    assert!((ba[k] - bb[k]).abs() < 1e-9);
+                    for j in 0..d {
+                        assert!((wa[(k, j)] - wb[(k, j)]).abs() < 1e-9);
+                    }
+                }
             }
         }
     }
@@ -302,6 +370,6 @@ mod tests {
     fn constant_features_are_refused() {
         let z = Mat::from_fn(5, 3, |_, k| k as f64);
         let y = Mat::from_fn(5, 3, |i, _| i as f64);
-        assert!(Dual::new(&z, &y).is_err());
+        assert!(Ridge::new(&z, &y).is_err());
     }
 }

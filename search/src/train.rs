@@ -22,6 +22,10 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
+/// Most network-input bytes [`Trainer::all_frames`] holds (a 100,000-frame training set would
+/// need 18 GB at the default 270 × 169 input; 240 frames need 44 MB).
+pub const ALL_FRAMES_BYTES: usize = 512 << 20;
+
 /// Training hyper-parameters (every one a CLI flag).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -490,17 +494,28 @@ impl<'a> Trainer<'a> {
         Ok(recal)
     }
 
-    /// Every training frame in order through the chain at the current φ and p̂, one noise
-    /// draw each, in batches of the training batch size: BN statistics over the whole set
-    /// (`net.recalibrate_bn(arch, &frames.inputs)`) and the data of
+    /// The training frames in order through the chain at the current φ and p̂, one noise
+    /// draw each, in batches of the training batch size, all of them or as many whole batches
+    /// as [`ALL_FRAMES_BYTES`] of network inputs hold (at least one): BN statistics over the
+    /// set (`net.recalibrate_bn(arch, &frames.inputs)`) and the data of
     /// [`crate::headfit::refit_slip_head`], computed once for any number of subnets.
     pub fn all_frames(&self) -> Result<crate::headfit::FitFrames> {
+        self.frames_within(ALL_FRAMES_BYTES)
+    }
+
+    /// [`Self::all_frames`] with at most `max_bytes` of network inputs (at least one batch).
+    pub fn frames_within(&self, max_bytes: usize) -> Result<crate::headfit::FitFrames> {
         let map = self.phase_map()?;
         let ids: Vec<usize> = (0..self.ds.len()).collect();
         let mut out = crate::headfit::FitFrames::default();
+        let mut bytes = 0;
         for chunk in ids.chunks(self.cfg.batch.max(1)) {
+            if bytes >= max_bytes {
+                break;
+            }
             let frames = self.chain.load(self.ds, chunk)?;
             let (_, fwd) = self.through_chain(&frames, &map, self.cfg.seed ^ 0x4EAD)?;
+            bytes += fwd.input.data.len() * std::mem::size_of::<f32>();
             out.inputs.push(fwd.input);
             out.targets_mm.push(fwd.slip_mm);
         }

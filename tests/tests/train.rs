@@ -343,6 +343,10 @@ fn the_slip_head_refit_writes_the_layer_whose_error_it_reports() {
     t.recalibrate(&arch, 1).unwrap();
     let frames = t.all_frames().unwrap();
     assert_eq!(frames.inputs.iter().map(|x| x.n).sum::<usize>(), ds.len());
+    // A memory bound below one batch still gives one whole batch, and no more.
+    let one = t.frames_within(1).unwrap();
+    assert_eq!((one.inputs.len(), one.targets_mm.len()), (1, 1));
+    assert_eq!(one.inputs[0].data, frames.inputs[0].data);
     let before = t.net.head_out.w.value.clone();
     let fit = nanoeye_search::headfit::refit_slip_head(&mut t.net, &arch, &frames).unwrap();
     assert_eq!(fit.frames, ds.len());
