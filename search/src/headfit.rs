@@ -48,49 +48,8 @@ pub struct FitFrames {
 /// Replaces `net.head_out` by the ridge fit of the targets of `data` on the head's hidden
 /// activations of subnet `arch` (BN in eval mode as it stands: recalibrate first).
 pub fn refit_slip_head(net: &mut Supernet, arch: &Arch, data: &FitFrames) -> Result<HeadFit> {
-    let n: usize = data.inputs.iter().map(|x| x.n).sum();
-    if n < 3 {
-        return Err(param(
-            "frames",
-            format!("a slippage head refit needs at least 3 frames, got {n}"),
-        ));
-    }
-    let mut rows: Vec<f32> = Vec::new();
-    let mut y = Mat::<f64>::zeros(n, 3);
-    let mut before = [0.0; 3];
-    let mut i = 0;
-    if data.targets_mm.len() != data.inputs.len() {
-        return Err(param(
-            "targets",
-            format!(
-                "{} target batches for {} input batches",
-                data.targets_mm.len(),
-                data.inputs.len()
-            ),
-        ));
-    }
-    for (x, t) in data.inputs.iter().zip(&data.targets_mm) {
-        if t.shape() != [x.n, 3, 1, 1] {
-            return Err(param(
-                "targets",
-                format!("shape {:?} for {} inputs", t.shape(), x.n),
-            ));
-        }
-        let o = net.forward(arch, x, BnMode::Eval)?;
-        let za = net
-            .head_hidden_features()
-            .ok_or_else(|| param("net", "no head features after a forward pass"))?;
-        rows.extend_from_slice(&za.data);
-        for b in 0..x.n {
-            for a in 0..3 {
-                let ta = t.data[b * 3 + a] as f64;
-                y[(i, a)] = ta;
-                before[a] += (o.slip.data[b * 3 + a] as f64 - ta).powi(2);
-            }
-            i += 1;
-        }
-    }
-    let d = rows.len() / n;
+    let (z, y, before) = features(net, arch, data)?;
+    let (n, d) = (z.nrows(), z.ncols());
     if d * 3 != net.head_out.w.value.len() {
         return Err(param(
             "net",
@@ -100,7 +59,6 @@ pub fn refit_slip_head(net: &mut Supernet, arch: &Arch, data: &FitFrames) -> Res
             ),
         ));
     }
-    let z = Mat::from_fn(n, d, |i, k| rows[i * d + k] as f64);
     let ridge = Ridge::new(&z, &y)?;
     let mut best = [(f64::INFINITY, 0.0); 3];
     for k in GRID {
@@ -135,6 +93,59 @@ pub fn refit_slip_head(net: &mut Supernet, arch: &Arch, data: &FitFrames) -> Res
         rmse_fit_mm: rms(fit),
         loo_rmse_mm: rms(best.map(|(e, _)| e)),
     })
+}
+
+/// The head's hidden activations of `arch` on `data` (n × d), the targets (n × 3, mm) and the
+/// head's squared error per axis as it stands.
+fn features(
+    net: &mut Supernet,
+    arch: &Arch,
+    data: &FitFrames,
+) -> Result<(Mat<f64>, Mat<f64>, [f64; 3])> {
+    let n: usize = data.inputs.iter().map(|x| x.n).sum();
+    if n < 3 {
+        return Err(param(
+            "frames",
+            format!("a slippage head refit needs at least 3 frames, got {n}"),
+        ));
+    }
+    if data.targets_mm.len() != data.inputs.len() {
+        return Err(param(
+            "targets",
+            format!(
+                "{} target batches for {} input batches",
+                data.targets_mm.len(),
+                data.inputs.len()
+            ),
+        ));
+    }
+    let mut rows: Vec<f32> = Vec::new();
+    let mut y = Mat::<f64>::zeros(n, 3);
+    let mut before = [0.0; 3];
+    let mut i = 0;
+    for (x, t) in data.inputs.iter().zip(&data.targets_mm) {
+        if t.shape() != [x.n, 3, 1, 1] {
+            return Err(param(
+                "targets",
+                format!("shape {:?} for {} inputs", t.shape(), x.n),
+            ));
+        }
+        let o = net.forward(arch, x, BnMode::Eval)?;
+        let za = net
+            .head_hidden_features()
+            .ok_or_else(|| param("net", "no head features after a forward pass"))?;
+        rows.extend_from_slice(&za.data);
+        for b in 0..x.n {
+            for a in 0..3 {
+                let ta = t.data[b * 3 + a] as f64;
+                y[(i, a)] = ta;
+                before[a] += (o.slip.data[b * 3 + a] as f64 - ta).powi(2);
+            }
+            i += 1;
+        }
+    }
+    let d = rows.len() / n;
+    Ok((Mat::from_fn(n, d, |i, k| rows[i * d + k] as f64), y, before))
 }
 
 /// Ridge regression of y (n × 3) on z (n × d) with an unpenalised intercept through the
