@@ -254,6 +254,13 @@ fn check(cfg: &RunConfig) -> Result<()> {
     if cfg.train_items > 100_000 || cfg.val_items > 100_000 || cfg.protocol_subjects > 1000 {
         bail!("--config: at most 100000 training items or pairs and 1000 protocol subjects");
     }
+    if (cfg.slip_head_refit || cfg.rea_head_refit) && cfg.train_items < 3 {
+        bail!(
+            "--config: train_items must be at least 3 for the head refit's leave-one-out error \
+             (got {}); or set slip_head_refit and rea_head_refit to false",
+            cfg.train_items
+        );
+    }
     let b = cfg.train_blink_fraction;
     if !(0.0..=1.0).contains(&b) {
         bail!("--config: train_blink_fraction must lie in [0, 1], got {b:?}");

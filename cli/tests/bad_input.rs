@@ -666,6 +666,11 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         (r#"{"slip_head_refit": 1}"#, "slip_head_refit"),
         (r#"{"slip_head_refit": null}"#, "slip_head_refit"),
         (r#"{"rea_head_refit": "yes"}"#, "rea_head_refit"),
+        (r#"{"train_items": 2}"#, "slip_head_refit"),
+        (
+            r#"{"train_items": 2, "slip_head_refit": false, "rea_head_refit": true}"#,
+            "train_items",
+        ),
         (
             r#"{"train_set": "ambiguity", "train_blink_fraction": 0.1}"#,
             "train_blink_fraction",
