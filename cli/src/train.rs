@@ -574,6 +574,13 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         );
     }
     let (ds, chain) = a.chain.build()?;
+    if a.head_refit && ds.len() < 3 {
+        bail!(
+            "--head-refit needs at least 3 training frames in --dataset for its leave-one-out \
+             error; the set has {}",
+            ds.len()
+        );
+    }
     let val = match &a.val {
         Some(p) => Some(Dataset::open(p).with_context(|| format!("--val {}", p.display()))?),
         None => None,

@@ -637,6 +637,23 @@ fn sim_and_search_loss_name_their_bad_flags() {
         refused(&args, flag, p);
     }
     assert!(!p.join("o").exists(), "a refused sim must write nothing");
+    // --head-refit on a set too small for its leave-one-out error: refused before the run
+    // is read.
+    let two = [
+        "datagen", "render", "--set", "envelope", "--n", "2", "--width", "80", "--height", "50",
+        "--spp", "1", "--out", "ds2",
+    ];
+    assert!(nanoeye(&two, p).status.success());
+    let rea = [
+        "search",
+        "rea",
+        "--dataset",
+        "ds2",
+        "--run",
+        "nope",
+        "--head-refit",
+    ];
+    refused(&rea, "--head-refit", p);
 }
 
 #[test]
