@@ -162,7 +162,17 @@ fn a_tree_deeper_than_the_stack_still_finds_every_hit() {
     // Rays along +x from before box k0, and slanted ones leaving through the side.
     for (k0, dy) in [(0usize, 0.0), (20, 0.0), (70, 0.0), (3, 1e-3), (10, 1e-200)] {
         let ray = Ray::new([x(k0) - 0.25, 0.0, 0.0], [1.0, dy, 0.0]);
-        let hit = |s: u32, t_max: f64| bounds[bvh.order[s as usize] as usize].hit(&ray, t_max);
+        // Per leaf, the nearest box below t_max, the lowest slot on a tie.
+        let hit = |first: u32, count: u32, t_max: f64| {
+            let mut best: Option<(u32, f64)> = None;
+            for s in first..first + count {
+                let tm = best.map_or(t_max, |b| b.1);
+                if let Some(t) = bounds[bvh.order[s as usize] as usize].hit(&ray, tm) {
+                    best = Some((s, t));
+                }
+            }
+            best
+        };
         let want = bounds
             .iter()
             .enumerate()
@@ -175,10 +185,11 @@ fn a_tree_deeper_than_the_stack_still_finds_every_hit() {
         // Any-hit of one box only: the farthest is pushed first (at the root), a box just
         // past the ray's first one is pushed ~90 levels down, beyond the fixed stack.
         for target in [bounds.len() - 1, k0 + 5] {
-            let only = |s: u32, t_max: f64| {
-                (bvh.order[s as usize] as usize == target)
-                    .then(|| bounds[target].hit(&ray, t_max))
-                    .flatten()
+            let only = |first: u32, count: u32, t_max: f64| {
+                (first..first + count).any(|s| {
+                    bvh.order[s as usize] as usize == target
+                        && bounds[target].hit(&ray, t_max).is_some()
+                })
             };
             assert_eq!(
                 bvh.any(&ray, f64::INFINITY, only),

@@ -77,21 +77,30 @@ impl Bvh {
         if bounds.is_empty() {
             return Bvh::default();
         }
-        let centroids: Vec<Vec3> = bounds.iter().map(|b| b.center()).collect();
-        let mut order: Vec<u32> = (0..bounds.len() as u32).collect();
-        let nodes = build_subtree(bounds, &centroids, &mut order, 0, PAR_LEVELS);
+        let mut items: Vec<Item> = bounds
+            .iter()
+            .enumerate()
+            .map(|(i, b)| Item {
+                bounds: *b,
+                cen: b.center(),
+                id: i as u32,
+            })
+            .collect();
+        let nodes = build_subtree(&mut items, 0, PAR_LEVELS);
+        let order = items.iter().map(|it| it.id).collect();
         let wide = widen(&nodes);
         Bvh { nodes, order, wide }
     }
 
-    /// Nearest hit: `hit(slot, t_max)` returns the hit distance below `t_max` of primitive
-    /// `order[slot]`. Returns (slot, distance).
+    /// Nearest hit: `leaf(first, count, t_max)` returns the nearest hit below `t_max` among
+    /// slots `first .. first + count` (primitives `order[slot]`) as (slot, distance), the
+    /// lowest slot on a tie. Returns (slot, distance).
     #[inline]
     pub fn closest(
         &self,
         ray: &Ray,
         t_max: f64,
-        mut hit: impl FnMut(u32, f64) -> Option<f64>,
+        mut leaf: impl FnMut(u32, u32, f64) -> Option<(u32, f64)>,
     ) -> Option<(u32, f64)> {
         let mut best: Option<(u32, f64)> = None;
         let mut t_best = t_max;
@@ -99,33 +108,32 @@ impl Bvh {
             ray,
             &mut t_best,
             #[inline(always)]
-            |s, t| {
-                let h = hit(s, t);
-                if let Some(th) = h {
+            |first, count, t: &mut f64| {
+                if let Some((s, th)) = leaf(first, count, *t) {
                     best = Some((s, th));
+                    *t = th;
                 }
-                h
             },
         );
         best
     }
 
-    /// True if any primitive is hit below `t_max` (shadow rays); `hit` as in [`Bvh::closest`].
+    /// True if any primitive is hit below `t_max` (shadow rays): `leaf(first, count, t_max)`
+    /// says whether one of slots `first .. first + count` is.
     #[inline]
-    pub fn any(&self, ray: &Ray, t_max: f64, mut hit: impl FnMut(u32, f64) -> Option<f64>) -> bool {
+    pub fn any(&self, ray: &Ray, t_max: f64, mut leaf: impl FnMut(u32, u32, f64) -> bool) -> bool {
         let mut t = t_max;
         let mut found = false;
         self.walk::<false>(
             ray,
             &mut t,
             #[inline(always)]
-            |s, tm| {
-                if hit(s, tm).is_some() {
+            |first, count, tm: &mut f64| {
+                if leaf(first, count, *tm) {
                     found = true;
                     // Every pending node is entered at t ≥ 0 > −1: the traversal ends here.
-                    return Some(-1.0);
+                    *tm = -1.0;
                 }
-                None
             },
         );
         found
@@ -136,15 +144,15 @@ impl Bvh {
         &self,
         ray: &Ray,
         t_max: &mut f64,
-        hit: impl FnMut(u32, f64) -> Option<f64>,
+        leaf: impl FnMut(u32, u32, &mut f64),
     ) {
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx") {
             // SAFETY: the CPU has AVX (checked just above).
-            unsafe { self.walk_avx::<NEAREST>(ray, t_max, hit) };
+            unsafe { self.walk_avx::<NEAREST>(ray, t_max, leaf) };
             return;
         }
-        self.walk_with::<NEAREST>(ray, t_max, hit, slab4);
+        self.walk_with::<NEAREST>(ray, t_max, leaf, slab4);
     }
 
     /// [`Bvh::walk`] compiled for AVX, the four slab tests of a node on 256-bit lanes.
@@ -154,10 +162,10 @@ impl Bvh {
         &self,
         ray: &Ray,
         t_max: &mut f64,
-        hit: impl FnMut(u32, f64) -> Option<f64>,
+        leaf: impl FnMut(u32, u32, &mut f64),
     ) {
         // SAFETY: this function only runs where AVX is present.
-        self.walk_with::<NEAREST>(ray, t_max, hit, |n, r, t| unsafe { slab4_avx(n, r, t) });
+        self.walk_with::<NEAREST>(ray, t_max, leaf, |n, r, t| unsafe { slab4_avx(n, r, t) });
     }
 
     #[inline(always)]
@@ -165,7 +173,7 @@ impl Bvh {
         &self,
         ray: &Ray,
         t_max: &mut f64,
-        mut hit: impl FnMut(u32, f64) -> Option<f64>,
+        mut leaf: impl FnMut(u32, u32, &mut f64),
         slab: impl Fn(&Wide, &Ray, f64) -> (u32, [f64; WIDTH]),
     ) {
         let Some(root) = self.nodes.first() else {
@@ -174,17 +182,6 @@ impl Bvh {
         if root.bounds.hit(ray, *t_max).is_none() {
             return;
         }
-        let mut leaf = |first: u32, count: u32, t_max: &mut f64| {
-            for s in first..first + count {
-                if let Some(t) = hit(s, *t_max) {
-                    *t_max = t;
-                    // An any-hit query is answered (see Bvh::any).
-                    if t < 0.0 {
-                        break;
-                    }
-                }
-            }
-        };
         if root.count > 0 {
             leaf(root.first, root.count, t_max);
             return;
@@ -208,42 +205,40 @@ impl Bvh {
             } else {
                 let n = &self.wide[cur.first as usize];
                 let (met, t) = slab(n, ray, *t_max);
-                // The children met, nearest first (stable: ties keep the child order).
-                let mut near = [Entry {
-                    first: 0,
-                    count: 0,
-                    t: 0.0,
-                }; WIDTH];
+                // The children met, nearest first (stable: ties keep the child order), as
+                // child indices: sorting 16-byte entries built field by field and reloading
+                // them whole stalled on store forwarding (a tenth of the traversal's samples).
+                let mut near = [0usize; WIDTH];
                 let mut m = 0;
                 for (i, &ti) in t.iter().enumerate() {
                     if met & (1 << i) == 0 {
                         continue;
                     }
-                    let e = Entry {
-                        first: n.first[i],
-                        count: n.count[i],
-                        t: ti,
-                    };
                     let mut j = m;
-                    while NEAREST && j > 0 && near[j - 1].t > ti {
+                    while NEAREST && j > 0 && t[near[j - 1]] > ti {
                         near[j] = near[j - 1];
                         j -= 1;
                     }
-                    near[j] = e;
+                    near[j] = i;
                     m += 1;
                 }
+                let child = |i: usize| Entry {
+                    first: n.first[i],
+                    count: n.count[i],
+                    t: t[i],
+                };
                 if m > 0 {
                     // Descend into the nearest child, keep the others for later, the farthest
                     // deepest in the stack.
-                    for &f in near[1..m].iter().rev() {
+                    for &i in near[1..m].iter().rev() {
                         if sp < STACK && spill.is_empty() {
-                            stack[sp] = f;
+                            stack[sp] = child(i);
                             sp += 1;
                         } else {
-                            spill.push(f);
+                            spill.push(child(i));
                         }
                     }
-                    cur = near[0];
+                    cur = child(near[0]);
                     continue;
                 }
             }
@@ -333,12 +328,15 @@ unsafe fn slab4_avx(n: &Wide, ray: &Ray, t_max: f64) -> (u32, [f64; WIDTH]) {
         };
         let ta = _mm256_mul_pd(_mm256_sub_pd(mn, o), inv);
         let tb = _mm256_mul_pd(_mm256_sub_pd(mx, o), inv);
-        // lo = ta < tb ? ta : tb; hi = ta < tb ? tb : ta.
-        let lt = _mm256_cmp_pd::<_CMP_LT_OQ>(ta, tb);
-        let lo = _mm256_blendv_pd(tb, ta, lt);
-        let hi = _mm256_blendv_pd(ta, tb, lt);
-        t0 = _mm256_blendv_pd(t0, lo, _mm256_cmp_pd::<_CMP_GT_OQ>(lo, t0));
-        t1 = _mm256_blendv_pd(t1, hi, _mm256_cmp_pd::<_CMP_LT_OQ>(hi, t1));
+        // vminpd(a, b) is exactly `a < b ? a : b` and vmaxpd(a, b) `a > b ? a : b`, NaN and
+        // signed zeros included, so these are slab4's selections bit for bit, one instruction
+        // each instead of a compare and a blend on the node's latency chain:
+        // lo = ta < tb ? ta : tb; hi = tb > ta ? tb : ta (= ta < tb ? tb : ta);
+        // t0 = lo > t0 ? lo : t0; t1 = hi < t1 ? hi : t1.
+        let lo = _mm256_min_pd(ta, tb);
+        let hi = _mm256_max_pd(tb, ta);
+        t0 = _mm256_max_pd(lo, t0);
+        t1 = _mm256_min_pd(hi, t1);
     }
     let met = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(t0, t1)) as u32 & ((1 << n.len) - 1);
     let mut t = [0.0; WIDTH];
@@ -455,60 +453,120 @@ fn join_point(a: &Aabb, p: Vec3) -> Aabb {
     join(a, &Aabb { min: p, max: p })
 }
 
-/// Bounds and centroid bounds of the primitives in `idx`.
-fn extent(idx: &[u32], bounds: &[Aabb], cen: &[Vec3]) -> (Aabb, Aabb) {
+/// The SAH bins' boxes while primitives are added. Written as `join` into an `[Aabb; BINS]`,
+/// the update was compiled to masked stores (store a corner only where it moved), which are
+/// slow on AMD cores and stall the next load of the same bin: two thirds of the scene build.
+/// Here each bin is two four-lane vectors, minima [x, y, z, ·] and maxima [·, x, y, z], updated
+/// with vminpd/vmaxpd and stored whole: the same selections as `lo`/`hi`, bit for bit.
+struct BinBoxes {
+    min: [[f64; 4]; BINS],
+    max: [[f64; 4]; BINS],
+}
+
+impl BinBoxes {
+    fn new() -> BinBoxes {
+        BinBoxes {
+            min: [[f64::INFINITY; 4]; BINS],
+            max: [[f64::NEG_INFINITY; 4]; BINS],
+        }
+    }
+
+    /// Bin `b` ∪= `x`.
+    #[inline(always)]
+    fn grow(&mut self, b: usize, x: &Aabb) {
+        #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
+        {
+            use std::arch::x86_64::*;
+            let p = (x as *const Aabb).cast::<f64>();
+            // SAFETY: Aabb is repr(C), six f64: lanes 0..4 and 2..6 are inside it; the build
+            // enables AVX (cfg above); the bin rows hold four f64 each.
+            unsafe {
+                let (lo, hi) = (_mm256_loadu_pd(p), _mm256_loadu_pd(p.add(2)));
+                let (m, n) = (self.min[b].as_mut_ptr(), self.max[b].as_mut_ptr());
+                // vminpd(a, b) = a < b ? a : b = lo(a, b); vmaxpd likewise hi.
+                _mm256_storeu_pd(m, _mm256_min_pd(_mm256_loadu_pd(m), lo));
+                _mm256_storeu_pd(n, _mm256_max_pd(_mm256_loadu_pd(n), hi));
+            }
+        }
+        #[cfg(not(all(target_arch = "x86_64", target_feature = "avx")))]
+        self.grow_scalar(b, x);
+    }
+
+    /// [`BinBoxes::grow`] without vectors.
+    #[cfg(any(test, not(all(target_arch = "x86_64", target_feature = "avx"))))]
+    fn grow_scalar(&mut self, b: usize, x: &Aabb) {
+        for a in 0..3 {
+            self.min[b][a] = lo(self.min[b][a], x.min[a]);
+            self.max[b][a + 1] = hi(self.max[b][a + 1], x.max[a]);
+        }
+    }
+
+    fn boxes(&self) -> [Aabb; BINS] {
+        std::array::from_fn(|b| Aabb {
+            min: [self.min[b][0], self.min[b][1], self.min[b][2]],
+            max: [self.max[b][1], self.max[b][2], self.max[b][3]],
+        })
+    }
+}
+
+/// A primitive during the build: its box, centroid and index. The build partitions these
+/// themselves, not indices into the boxes, so every pass over a node reads memory in order
+/// (through indices, each pass gathered from 2 MB of boxes at random).
+#[derive(Debug, Clone, Copy)]
+struct Item {
+    bounds: Aabb,
+    cen: Vec3,
+    id: u32,
+}
+
+/// Bounds and centroid bounds of `items`.
+fn extent(items: &[Item]) -> (Aabb, Aabb) {
     let mut bb = Aabb::EMPTY;
     let mut cb = Aabb::EMPTY;
-    for &i in idx {
-        bb = join(&bb, &bounds[i as usize]);
-        cb = join_point(&cb, cen[i as usize]);
+    for it in items {
+        bb = join(&bb, &it.bounds);
+        cb = join_point(&cb, it.cen);
     }
     (bb, cb)
 }
 
-/// Splits `idx` in place by the binned SAH: Some(mid) with `idx[..mid]` the left child, or
-/// None for a leaf.
-fn split(idx: &mut [u32], bounds: &[Aabb], cen: &[Vec3], cb: &Aabb, bb: &Aabb) -> Option<usize> {
-    let n = idx.len();
+/// Splits `items` in place by the binned SAH: Some(mid) with `items[..mid]` the left child,
+/// or None for a leaf.
+fn split(items: &mut [Item], cb: &Aabb, bb: &Aabb) -> Option<usize> {
+    let n = items.len();
     if n <= 1 {
         return None;
     }
-    let (axis, split) = best_split(idx, bounds, cen, cb, bb)?;
+    let (axis, split) = best_split(items, cb, bb)?;
     let (lo, scale) = bin_scale(cb, axis);
     let mut mid = 0;
     for k in 0..n {
-        if bin_of(cen[idx[k] as usize][axis], lo, scale) < split {
-            idx.swap(k, mid);
+        if bin_of(items[k].cen[axis], lo, scale) < split {
+            items.swap(k, mid);
             mid += 1;
         }
     }
     (mid != 0 && mid != n).then_some(mid)
 }
 
-/// Builds the subtree over `idx` (slots `base ..` of the order array) in local layout: root
+/// Builds the subtree over `items` (slots `base ..` of the order array) in local layout: root
 /// at 0, leaves' `first` already global slots. The top `par` levels split across threads.
-fn build_subtree(
-    bounds: &[Aabb],
-    cen: &[Vec3],
-    idx: &mut [u32],
-    base: usize,
-    par: u32,
-) -> Vec<Node> {
-    if par == 0 || idx.len() < PAR_MIN {
-        return build_serial(bounds, cen, idx, base);
+fn build_subtree(items: &mut [Item], base: usize, par: u32) -> Vec<Node> {
+    if par == 0 || items.len() < PAR_MIN {
+        return build_serial(items, base);
     }
-    let (bb, cb) = extent(idx, bounds, cen);
-    let Some(mid) = split(idx, bounds, cen, &cb, &bb) else {
+    let (bb, cb) = extent(items);
+    let Some(mid) = split(items, &cb, &bb) else {
         return vec![Node {
             bounds: bb,
             first: base as u32,
-            count: idx.len() as u32,
+            count: items.len() as u32,
         }];
     };
-    let (l, r) = idx.split_at_mut(mid);
+    let (l, r) = items.split_at_mut(mid);
     let (ln, rn) = rayon::join(
-        || build_subtree(bounds, cen, l, base, par - 1),
-        || build_subtree(bounds, cen, r, base + mid, par - 1),
+        || build_subtree(l, base, par - 1),
+        || build_subtree(r, base + mid, par - 1),
     );
     // Layout: root, the two child roots, then the rest of the left and of the right subtree.
     let (nl, nr) = (ln.len(), rn.len());
@@ -532,24 +590,24 @@ fn build_subtree(
 }
 
 /// Single-threaded build of a subtree (layout as in [`build_subtree`]).
-fn build_serial(bounds: &[Aabb], cen: &[Vec3], idx: &mut [u32], base: usize) -> Vec<Node> {
-    let mut nodes = Vec::with_capacity(2 * idx.len());
+fn build_serial(items: &mut [Item], base: usize) -> Vec<Node> {
+    let mut nodes = Vec::with_capacity(2 * items.len());
     nodes.push(Node {
         bounds: Aabb::EMPTY,
         first: 0,
         count: 0,
     });
     // Explicit work stack: (node index, start, end) – deep recursion cannot overflow.
-    let mut work = vec![(0usize, 0usize, idx.len())];
+    let mut work = vec![(0usize, 0usize, items.len())];
     while let Some((ni, start, end)) = work.pop() {
-        let slice = &mut idx[start..end];
-        let (bb, cb) = extent(slice, bounds, cen);
+        let slice = &mut items[start..end];
+        let (bb, cb) = extent(slice);
         nodes[ni] = Node {
             bounds: bb,
             first: (base + start) as u32,
             count: (end - start) as u32,
         };
-        let Some(mid) = split(slice, bounds, cen, &cb, &bb) else {
+        let Some(mid) = split(slice, &cb, &bb) else {
             continue;
         };
         let left = nodes.len();
@@ -583,31 +641,32 @@ fn bin_of(c: f64, lo: f64, scale: f64) -> usize {
 }
 
 /// Best (axis, bin split) by the binned SAH, or None when a leaf is cheaper.
-fn best_split(
-    idx: &[u32],
-    bounds: &[Aabb],
-    cen: &[Vec3],
-    cb: &Aabb,
-    bb: &Aabb,
-) -> Option<(usize, usize)> {
-    let n = idx.len();
+fn best_split(items: &[Item], cb: &Aabb, bb: &Aabb) -> Option<(usize, usize)> {
+    let n = items.len();
     let leaf_cost = n as f64;
     let parent_area = bb.area().max(1e-300);
     let mut best: Option<(f64, usize, usize)> = None;
+    // The three axes binned in one pass: each primitive's box and centroid are read once.
+    let scales = [0, 1, 2].map(|a| bin_scale(cb, a));
+    let mut bins = [BinBoxes::new(), BinBoxes::new(), BinBoxes::new()];
+    let mut counts = [[0usize; BINS]; 3];
+    for it in items {
+        let (c, x) = (it.cen, &it.bounds);
+        for a in 0..3 {
+            // An axis of zero or NaN extent bins anywhere (a NaN bin is 0) and is skipped below.
+            let b = bin_of(c[a], scales[a].0, scales[a].1);
+            bins[a].grow(b, x);
+            counts[a][b] += 1;
+        }
+    }
     #[allow(clippy::needless_range_loop)] // axis indexes three parallel arrays
     for axis in 0..3 {
         let ext = cb.max[axis] - cb.min[axis];
         if ext.is_nan() || ext <= 0.0 {
             continue;
         }
-        let (lo, scale) = bin_scale(cb, axis);
-        let mut bin_box = [Aabb::EMPTY; BINS];
-        let mut bin_n = [0usize; BINS];
-        for &i in idx {
-            let b = bin_of(cen[i as usize][axis], lo, scale);
-            bin_box[b] = join(&bin_box[b], &bounds[i as usize]);
-            bin_n[b] += 1;
-        }
+        let bin_box = bins[axis].boxes();
+        let bin_n = counts[axis];
         // Right-to-left sweep of cumulative area × count.
         let mut right_cost = [0.0; BINS];
         let mut acc = Aabb::EMPTY;
@@ -727,6 +786,40 @@ mod tests {
         assert!(differing > 200, "{differing}");
     }
 
+    /// The bins grown with vectors hold the boxes that `join` gives, bit for bit, signed
+    /// zeros included.
+    #[test]
+    fn bin_boxes_equal_join() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut simd = BinBoxes::new();
+        let mut scalar = BinBoxes::new();
+        let mut want = [Aabb::EMPTY; BINS];
+        for k in 0..5000 {
+            let pick = |r: &mut ChaCha8Rng| match r.random_range(0..4) {
+                0 => 0.0,
+                1 => -0.0,
+                _ => r.random_range(-1.0..1.0),
+            };
+            let c: [f64; 3] = std::array::from_fn(|_| pick(&mut rng));
+            let h: [f64; 3] = std::array::from_fn(|_| pick(&mut rng).abs());
+            let x = Aabb {
+                min: std::array::from_fn(|a| c[a] - h[a]),
+                max: std::array::from_fn(|a| c[a] + h[a]),
+            };
+            let b = k % BINS;
+            simd.grow(b, &x);
+            scalar.grow_scalar(b, &x);
+            want[b] = join(&want[b], &x);
+        }
+        let bits = |bx: &[Aabb; BINS]| -> Vec<u64> {
+            bx.iter()
+                .flat_map(|x| x.min.iter().chain(&x.max).map(|v| v.to_bits()))
+                .collect()
+        };
+        assert_eq!(bits(&simd.boxes()), bits(&want));
+        assert_eq!(bits(&scalar.boxes()), bits(&want));
+    }
+
     /// The portable walk (the path of CPUs without AVX) finds the same nearest hit and any-hit
     /// as brute force over random boxes.
     #[test]
@@ -757,12 +850,13 @@ mod tests {
             bvh.walk_with::<true>(
                 &ray,
                 &mut t,
-                |s, tm| {
-                    let h = bounds[bvh.order[s as usize] as usize].hit(&ray, tm);
-                    if h.is_some() {
-                        got = h;
+                |first, count, tm| {
+                    for s in first..first + count {
+                        if let Some(h) = bounds[bvh.order[s as usize] as usize].hit(&ray, *tm) {
+                            got = Some(h);
+                            *tm = h;
+                        }
                     }
-                    h
                 },
                 slab4,
             );
@@ -773,10 +867,15 @@ mod tests {
             bvh.walk_with::<false>(
                 &ray,
                 &mut t,
-                |s, tm| {
-                    let h = bounds[bvh.order[s as usize] as usize].hit(&ray, tm);
-                    any |= h.is_some();
-                    h.map(|_| -1.0)
+                |first, count, tm| {
+                    if (first..first + count).any(|s| {
+                        bounds[bvh.order[s as usize] as usize]
+                            .hit(&ray, *tm)
+                            .is_some()
+                    }) {
+                        any = true;
+                        *tm = -1.0;
+                    }
                 },
                 slab4,
             );

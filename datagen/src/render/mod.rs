@@ -9,6 +9,7 @@ pub mod dataset;
 pub mod export;
 pub mod face;
 pub mod landmarks;
+pub mod lanes;
 pub mod material;
 pub mod mesh;
 pub mod prim;

@@ -3,8 +3,10 @@
 use super::Ray;
 use nanoeye_gaze::{Vec3, geom};
 
-/// Axis-aligned bounding box (m).
+/// Axis-aligned bounding box (m). `repr(C)`: `min` then `max`, six contiguous f64, which the
+/// BVH build's binning loads as two overlapping four-lane vectors.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[repr(C)]
 pub struct Aabb {
     /// Minimum corner.
     pub min: Vec3,

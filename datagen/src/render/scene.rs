@@ -2,8 +2,9 @@
 
 use super::bvh::Bvh;
 use super::face::{self, Face, FacePart};
+use super::lanes::{LANES, TriLanes};
 use super::material::{IrisTexture, Material, MaterialKind, SkinTexture, TEAR_FILM_INDEX};
-use super::prim::{Clip, Shape, T_EPS, triangle_hit};
+use super::prim::{Clip, Shape, T_EPS};
 use super::{Ray, RenderError};
 use crate::states::State;
 use nanoeye_gaze::{Mat3, Pose, Rig, Vec3, geom};
@@ -157,10 +158,12 @@ pub struct Scene {
     pub materials: Vec<Material>,
     /// Hierarchy over `prims`.
     pub bvh: Bvh,
-    /// `prims` in the BVH's leaf order, triangles with their edges precomputed: a leaf's
-    /// primitives are then contiguous in memory and need no second lookup. Built by
-    /// [`Scene::new`]; rebuild the scene after changing `prims`.
+    /// `prims` in the BVH's leaf order: a leaf's primitives are then contiguous in memory.
+    /// Built by [`Scene::new`]; rebuild the scene after changing `prims`.
     pub slots: Vec<Slot>,
+    /// The slots' triangles (first vertex and edges precomputed) component by component, so
+    /// that a leaf's triangles are tested four at a time with no second lookup.
+    lanes: TriLanes,
     /// Primitive indices per class bit, and the bits whose list is short enough to scan
     /// without the BVH (see [`FEW`]).
     few: ([Vec<u32>; 8], u8),
@@ -184,12 +187,6 @@ pub const FEW: usize = 16;
 /// A primitive in traversal order (see [`Scene::slots`]).
 #[derive(Debug, Clone, Copy)]
 pub struct Slot {
-    /// First vertex (triangles; unused otherwise).
-    pub v0: Vec3,
-    /// Edge v1 − v0 (triangles).
-    pub e1: Vec3,
-    /// Edge v2 − v0 (triangles).
-    pub e2: Vec3,
     /// Index into [`Scene::prims`].
     pub prim: u32,
     /// Visibility class bit of the primitive.
@@ -242,27 +239,22 @@ impl Scene {
             });
         }
         let bvh = Bvh::build(&bounds);
-        let slots = bvh
+        let slots: Vec<Slot> = bvh
             .order
             .iter()
             .map(|&i| {
                 let p = &prims[i as usize];
-                let (v0, e1, e2, triangle) = match p.shape {
-                    Shape::Triangle { v } => {
-                        (v[0], geom::sub(v[1], v[0]), geom::sub(v[2], v[0]), true)
-                    }
-                    _ => ([0.0; 3], [0.0; 3], [0.0; 3], false),
-                };
                 Slot {
-                    v0,
-                    e1,
-                    e2,
                     prim: i,
                     layer: p.layer,
-                    triangle,
+                    triangle: matches!(p.shape, Shape::Triangle { .. }),
                 }
             })
             .collect();
+        let lanes = TriLanes::new(bvh.order.iter().map(|&i| match prims[i as usize].shape {
+            Shape::Triangle { v } => (v[0], geom::sub(v[1], v[0]), geom::sub(v[2], v[0])),
+            _ => ([0.0; 3], [0.0; 3], [0.0; 3]),
+        }));
         let mut lists: [Vec<u32>; 8] = Default::default();
         for (i, p) in prims.iter().enumerate() {
             for (b, l) in lists.iter_mut().enumerate() {
@@ -279,6 +271,7 @@ impl Scene {
             materials,
             bvh,
             slots,
+            lanes,
             few: (lists, few_bits),
             light,
             cornea_index,
@@ -306,7 +299,7 @@ impl Scene {
                 ray,
                 t_max,
                 #[inline(always)]
-                |s, tm| self.slot_hit(s, ray, tm, mask),
+                |first, count, tm| self.leaf_hit::<false>(first, count, ray, tm, mask),
             )
             .map(|(s, t)| Hit {
                 t,
@@ -326,7 +319,7 @@ impl Scene {
             ray,
             t_max,
             #[inline(always)]
-            |s, tm| self.slot_hit(s, ray, tm, mask),
+            |first, count, tm| self.leaf_hit::<true>(first, count, ray, tm, mask).is_some(),
         )
     }
 
@@ -345,17 +338,43 @@ impl Scene {
             .flat_map(|b| self.few.0[b].iter().copied())
     }
 
+    /// Nearest hit below `t_max` among slots `first .. first + count` whose class bit is in
+    /// `mask` (the lowest slot on a tie), as (slot, distance); with `ANY`, the first hit
+    /// found instead. Triangles are tested four at a time ([`TriLanes::hit4`]); the
+    /// lanes are then taken in slot order, as a one-by-one scan would.
     #[inline(always)]
-    fn slot_hit(&self, s: u32, ray: &Ray, t_max: f64, mask: u8) -> Option<f64> {
-        let sl = &self.slots[s as usize];
-        if sl.layer & mask == 0 {
-            return None;
+    fn leaf_hit<const ANY: bool>(
+        &self,
+        first: u32,
+        count: u32,
+        ray: &Ray,
+        t_max: f64,
+        mask: u8,
+    ) -> Option<(u32, f64)> {
+        let mut best = None;
+        let mut t_best = t_max;
+        let end = (first + count) as usize;
+        for base in (first as usize..end).step_by(LANES) {
+            let (met, t) = self.lanes.hit4(base, ray);
+            for (l, sl) in self.slots[base..end.min(base + LANES)].iter().enumerate() {
+                if sl.layer & mask == 0 {
+                    continue;
+                }
+                let h = if sl.triangle {
+                    (met & (1 << l) != 0 && t[l] < t_best).then_some(t[l])
+                } else {
+                    self.prims[sl.prim as usize].shape.intersect(ray, t_best)
+                };
+                if let Some(th) = h {
+                    best = Some(((base + l) as u32, th));
+                    if ANY {
+                        return best;
+                    }
+                    t_best = th;
+                }
+            }
         }
-        if sl.triangle {
-            triangle_hit(sl.v0, sl.e1, sl.e2, ray, t_max)
-        } else {
-            self.prims[sl.prim as usize].shape.intersect(ray, t_max)
-        }
+        best
     }
 
     /// Material of primitive `prim`.
