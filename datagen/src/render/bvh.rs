@@ -10,8 +10,16 @@ use nanoeye_gaze::Vec3;
 
 const BINS: usize = 12;
 const LEAF_MAX: usize = 4;
-// Relative cost of a ray–box test against a ray–primitive test in the SAH.
-const TRAVERSAL_COST: f64 = 0.5;
+/// Most primitives in any leaf (a [`Wide`] child's count is a u16): only coincident
+/// centroids leave the SAH without a split, and then a leaf beyond this is halved.
+pub const LEAF_HARD_MAX: usize = u16::MAX as usize;
+const _: () = assert!(std::mem::size_of::<Wide>() == 128);
+// Relative cost of a ray–box test against a ray–primitive test in the SAH. 0.5 while a leaf's
+// primitives were tested one by one; with a leaf's four triangles in one vector test
+// (render::lanes) a node costs more than a primitive: 1.0, 1.5 and 2.0 rendered the bench
+// scene 3-4 % faster than 0.5 on one thread (no difference among them beyond noise) and
+// built the tree faster (fewer nodes). Images are byte-identical (render_check, seeds 1, 7).
+const TRAVERSAL_COST: f64 = 1.5;
 // Pending entries kept on the call stack: a 4-wide node pushes up to three.
 const STACK: usize = 64;
 // Below this many primitives a subtree is built on the calling thread: spawning costs more.
@@ -35,7 +43,8 @@ pub struct Node {
 }
 
 /// An inner node in traversal layout: up to four children's boxes, axis by axis, so that one
-/// visit tests all of them with the same instructions on four lanes (two cache lines).
+/// visit tests all of them with the same instructions on four lanes; 128 bytes, two cache
+/// lines (with u32 counts it took three).
 #[derive(Debug, Clone, Copy, Default)]
 #[repr(C, align(64))]
 pub struct Wide {
@@ -45,8 +54,8 @@ pub struct Wide {
     pub max: [[f32; WIDTH]; 3],
     /// Per child: its wide index (inner) or its first primitive slot (leaf).
     pub first: [u32; WIDTH],
-    /// Per child: number of primitives (0 for an inner child).
-    pub count: [u32; WIDTH],
+    /// Per child: number of primitives (0 for an inner child; at most [`LEAF_HARD_MAX`]).
+    pub count: [u16; WIDTH],
     /// Number of children in use (2 ..= 4; the first `len` lanes).
     pub len: u32,
 }
@@ -224,7 +233,7 @@ impl Bvh {
                 }
                 let child = |i: usize| Entry {
                     first: n.first[i],
-                    count: n.count[i],
+                    count: n.count[i] as u32,
                     t: t[i],
                 };
                 if m > 0 {
@@ -407,7 +416,8 @@ fn widen(nodes: &[Node]) -> Vec<Wide> {
             }
             if node.count > 0 {
                 w.first[k] = node.first;
-                w.count[k] = node.count;
+                // The build keeps leaves at most LEAF_HARD_MAX = u16::MAX.
+                w.count[k] = node.count as u16;
             } else {
                 w.first[k] = out.len() as u32;
                 out.push(Wide::default());
@@ -537,7 +547,11 @@ fn split(items: &mut [Item], cb: &Aabb, bb: &Aabb) -> Option<usize> {
     if n <= 1 {
         return None;
     }
-    let (axis, split) = best_split(items, cb, bb)?;
+    let Some((axis, split)) = best_split(items, cb, bb) else {
+        // No SAH split (every centroid the same, or a leaf is cheaper): a leaf, unless it
+        // would hold more than a wide node's u16 count, then halves in the current order.
+        return (n > LEAF_HARD_MAX).then_some(n / 2);
+    };
     let (lo, scale) = bin_scale(cb, axis);
     let mut mid = 0;
     for k in 0..n {
@@ -784,6 +798,37 @@ mod tests {
         }
         // Partly met nodes, not only all-or-nothing.
         assert!(differing > 200, "{differing}");
+    }
+
+    /// Coincident boxes leave the SAH without a split: more of them than a wide node's u16
+    /// count still build, into leaves of at most LEAF_HARD_MAX, and are all found.
+    #[test]
+    fn coincident_boxes_beyond_a_u16_leaf_are_halved() {
+        let n = LEAF_HARD_MAX + 10;
+        let b = Aabb {
+            min: [-1.0; 3],
+            max: [1.0; 3],
+        };
+        let bvh = Bvh::build(&vec![b; n]);
+        let leaves: Vec<u32> = bvh
+            .nodes
+            .iter()
+            .filter(|x| x.count > 0)
+            .map(|x| x.count)
+            .collect();
+        assert!(leaves.len() >= 2 && leaves.iter().all(|&c| c as usize <= LEAF_HARD_MAX));
+        assert_eq!(leaves.iter().map(|&c| c as usize).sum::<usize>(), n);
+        let ray = Ray::new([-3.0, 0.1, 0.2], [1.0, 0.0, 0.0]);
+        let mut seen = 0usize;
+        let got = bvh.closest(&ray, f64::INFINITY, |first, count, tm| {
+            seen += count as usize;
+            (first..first + count)
+                .filter_map(|s| b.hit(&ray, tm).map(|t| (s, t)))
+                .min_by(|x, y| x.1.total_cmp(&y.1))
+        });
+        assert_eq!(got.map(|g| g.1), b.hit(&ray, f64::INFINITY));
+        assert!(seen >= 1);
+        assert!(bvh.any(&ray, f64::INFINITY, |_, count, _| count > 0));
     }
 
     /// The bins grown with vectors hold the boxes that `join` gives, bit for bit, signed

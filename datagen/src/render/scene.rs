@@ -164,9 +164,10 @@ pub struct Scene {
     /// The slots' triangles (first vertex and edges precomputed) component by component, so
     /// that a leaf's triangles are tested four at a time with no second lookup.
     lanes: TriLanes,
-    /// Primitive indices per class bit, and the bits whose list is short enough to scan
-    /// without the BVH (see [`FEW`]).
-    few: ([Vec<u32>; 8], u8),
+    /// For each query mask made only of classes short enough to scan without the BVH (see
+    /// [`FEW`]), its primitives (indexed by mask; empty for other masks), and those classes'
+    /// bits.
+    few: (Vec<Vec<u32>>, u8),
     /// Illuminator.
     pub light: Light,
     /// Refractive index of the cornea (and the aqueous behind it).
@@ -266,13 +267,27 @@ impl Scene {
         let few_bits = (0..8)
             .filter(|&b| lists[b].len() <= FEW)
             .fold(0u8, |m, b| m | (1 << b));
+        // Each mask's list, class by class in bit order (a primitive in several of the mask's
+        // classes repeats, which leaves a nearest or any hit unchanged), made once here
+        // instead of chained per ray.
+        let few_lists = (0..=255u8)
+            .map(|m| {
+                if m & !few_bits != 0 {
+                    return Vec::new();
+                }
+                (0..8)
+                    .filter(|b| m & (1 << b) != 0)
+                    .flat_map(|b| lists[b].iter().copied())
+                    .collect()
+            })
+            .collect();
         Ok(Scene {
             prims,
             materials,
             bvh,
             slots,
             lanes,
-            few: (lists, few_bits),
+            few: (few_lists, few_bits),
             light,
             cornea_index,
             pupil_bound: None,
@@ -329,13 +344,10 @@ impl Scene {
         mask & !self.few.1 == 0
     }
 
-    /// The primitives of the classes in `mask` (one with several bits in `mask` repeats,
-    /// which leaves a nearest or any hit unchanged).
+    /// The primitives of the classes in `mask` (`mask` passes [`Scene::is_few`]).
     #[inline]
     fn few_prims(&self, mask: u8) -> impl Iterator<Item = u32> + '_ {
-        (0..8)
-            .filter(move |b| mask & (1 << b) != 0)
-            .flat_map(|b| self.few.0[b].iter().copied())
+        self.few.0[mask as usize].iter().copied()
     }
 
     /// Nearest hit below `t_max` among slots `first .. first + count` whose class bit is in

@@ -2,7 +2,7 @@
 //! spherical NIR emitter, a Fresnel cornea (glint by reflection, pupil and iris by refraction),
 //! pupil masks, depth and the depth-layer decomposition. Rayon over image rows.
 
-use super::material::{MaterialKind, fresnel, reflect, refract};
+use super::material::{Material, MaterialKind, fresnel, reflect, refract};
 use super::scene::{Hit, LAYER_ALL, LAYER_EYE, LAYER_SKIN, Scene};
 use super::{Ray, RenderError};
 use faer::Mat;
@@ -374,7 +374,7 @@ fn diffuse(scene: &Scene, ray: &Ray, hit: &Hit, rng: &mut Rng64) -> f64 {
     } else {
         (0.0, 0.0)
     };
-    (1.0 - f) * lambert(scene, m.albedo_at(p), p, n, ns, rng) + glint
+    (1.0 - f) * lambert(scene, m, p, n, ns, rng) + glint
 }
 
 /// Fresnel reflectance of a wet coat of index `index` seen along `ray` at `p` (normal `n`
@@ -393,10 +393,11 @@ fn coat_glint(scene: &Scene, ray: &Ray, p: Vec3, n: Vec3, index: f64) -> (f64, f
     (f, glint)
 }
 
-/// Lambertian radiance (albedo `albedo`) at `p` with geometric normal `n` and shading normal
-/// `ns` facing the viewer.
+/// Lambertian radiance (albedo of material `m` at `p`) at `p` with geometric normal `n` and
+/// shading normal `ns` facing the viewer. The albedo (a texture lookup) is evaluated only for
+/// a lit sample.
 #[inline]
-fn lambert(scene: &Scene, albedo: f64, p: Vec3, n: Vec3, ns: Vec3, rng: &mut Rng64) -> f64 {
+fn lambert(scene: &Scene, m: &Material, p: Vec3, n: Vec3, ns: Vec3, rng: &mut Rng64) -> f64 {
     let light = &scene.light;
     let to_c = geom::sub(light.position_m, p);
     let dist_c = geom::norm(to_c);
@@ -427,5 +428,5 @@ fn lambert(scene: &Scene, albedo: f64, p: Vec3, n: Vec3, ns: Vec3, rng: &mut Rng
     }
     // Disc facing p: E = I(−l)·cosθ/d² (the disc's cos on the emitter side is 1).
     let e = light.intensity_along(geom::scale(l, -1.0)) * cos / (dist * dist);
-    albedo / PI * e
+    m.albedo_at(p) / PI * e
 }
