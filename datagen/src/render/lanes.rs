@@ -4,8 +4,9 @@
 //! first failed bound, a branch the CPU cannot predict. Here the slots' vertices and edges are
 //! stored component by component ([`TriLanes`]), so four consecutive slots load as four AVX
 //! lanes and every test runs to the end without a branch. The lanes compute the same
-//! operations in the same order as [`triangle_hit`] (no fused multiply-add: Rust never
-//! contracts), so the distances and verdicts are the same bits (tested).
+//! operations in the same order as [`prim::triangle_hit`](super::prim::triangle_hit) (no fused
+//! multiply-add: Rust never contracts), so the distances and verdicts are the same bits
+//! (tested).
 
 use super::Ray;
 use super::prim::T_EPS;
@@ -52,7 +53,7 @@ impl TriLanes {
     }
 
     /// Slots `base .. base + 4` against `ray`: bit l of the mask is set where slot base + l is
-    /// hit at a distance above [`T_EPS`], at distance t[l] (the caller compares it with its
+    /// hit at a distance above [`T_EPS`], at distance `t[l]` (the caller compares it with its
     /// t_max). Lanes past the last slot are zeros and never set. Panics if `base` ≥ len.
     #[inline(always)]
     pub fn hit4(&self, base: usize, ray: &Ray) -> (u32, [f64; LANES]) {
@@ -68,7 +69,8 @@ impl TriLanes {
         }
     }
 
-    /// [`TriLanes::hit4`] one lane at a time through [`triangle_hit`].
+    /// [`TriLanes::hit4`] one lane at a time through
+    /// [`prim::triangle_hit`](super::prim::triangle_hit).
     #[cfg(any(test, not(all(target_arch = "x86_64", target_feature = "avx"))))]
     fn hit4_scalar(&self, base: usize, ray: &Ray) -> (u32, [f64; LANES]) {
         #[cfg(test)]
@@ -87,8 +89,9 @@ impl TriLanes {
         (mask, t)
     }
 
-    /// The four lanes on AVX, operation for operation as [`triangle_hit`]; the early exits
-    /// become ordered comparisons folded into one mask.
+    /// The four lanes on AVX, operation for operation as
+    /// [`prim::triangle_hit`](super::prim::triangle_hit); the early exits become ordered
+    /// comparisons folded into one mask.
     #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
     #[inline(always)]
     unsafe fn hit4_avx(&self, base: usize, ray: &Ray) -> (u32, [f64; LANES]) {
