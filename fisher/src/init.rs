@@ -111,7 +111,7 @@ impl InitState {
 
     /// Writes the whole state and `cfg` as ONE file, `dir/checkpoint.bin`, atomically (temp
     /// file + rename): a kill at any moment leaves either the previous checkpoint or the new
-    /// one, never a mix. Layout: [`CHECKPOINT_MAGIC`], u64 LE length of the JSON metadata, the
+    /// one, never a mix. Layout: `CHECKPOINT_MAGIC`, u64 LE length of the JSON metadata, the
     /// metadata, then phase, Adam m and Adam v as n·n f64 LE each (row-major), then the u64 LE
     /// FNV-1a hash of all preceding bytes.
     pub fn save(&self, dir: &Path, cfg: &InitConfig) -> Result<(), FisherError> {

@@ -97,7 +97,7 @@ fn half_step(v: &[f64]) -> f64 {
     }
 }
 
-/// Heat map of `values` ([height][pitch], NaN grey) over pitch (x, nm) and height (y, nm) as
+/// Heat map of `values` (`[height][pitch]`, NaN grey) over pitch (x, nm) and height (y, nm) as
 /// SVG, with axes, a colour bar from `range.0` to `range.1` labelled `bar_label`, and a red
 /// ring at grid index `mark` = (height index, pitch index).
 pub fn heatmap_svg(

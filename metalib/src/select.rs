@@ -192,7 +192,7 @@ pub fn select_curve(
     }
 }
 
-/// Selection for every (height, pitch) of a sweep, ordered [height][pitch].
+/// Selection for every (height, pitch) of a sweep, ordered `[height][pitch]`.
 pub fn select_sweep(data: &SweepData, c: &Criteria) -> Vec<PairSelection> {
     let (nh, ns, nf) = (
         data.heights_m.len(),

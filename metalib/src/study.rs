@@ -156,7 +156,7 @@ pub struct Curves {
     pub heights_m: Vec<f64>,
     /// Diameters (m), ascending.
     pub diameters_m: Vec<f64>,
-    /// arg t, [height][diameter] flattened.
+    /// arg t, `[height][diameter]` flattened.
     pub phase: Vec<f64>,
     /// τ, same layout.
     pub transmittance: Vec<f64>,

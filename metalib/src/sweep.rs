@@ -312,7 +312,7 @@ fn solve_column(spec: &CellSpec, heights: &[f64]) -> Vec<[f64; 4]> {
     }
 }
 
-/// One pitch's results: (pitch index, [fraction][height] of (phase rad, τ, Re t, Im t)).
+/// One pitch's results: (pitch index, `[fraction][height]` of (phase rad, τ, Re t, Im t)).
 pub type PitchBlock = (usize, Vec<[f64; 4]>);
 
 /// The sampled axes of a validated sweep configuration.
@@ -561,7 +561,7 @@ pub fn open_sweep(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibE
 }
 
 /// Solves (or restores) the pitch blocks `share` of a sweep opened by [`open_sweep`] and
-/// returns them as (pitch index, block [fraction][height] of (phase, τ, Re t, Im t)).
+/// returns them as (pitch index, block `[fraction][height]` of (phase, τ, Re t, Im t)).
 /// Each block solved is checkpointed at once to `partial/pitch_XXXX.bin` with a side file
 /// `pitch_XXXX.fnv` (configuration hash and block hash), so an interrupted share resumes on
 /// any number of processes. `vouched` is the manifest's block record.

@@ -124,8 +124,8 @@ pub trait PsfModel: Send + Sync {
     ) -> Result<PsfStack>;
 
     /// Gradient w.r.t. `map` of a scalar loss whose gradient w.r.t. the stack is
-    /// `grad_planes[k]` (∂loss/∂planes[k], W×W) and optionally `grad_dz[k]`
-    /// (∂loss/∂dz_planes[k]). Planes whose total upstream gradient is zero are skipped.
+    /// `grad_planes[k]` (`∂loss/∂planes[k]`, W×W) and optionally `grad_dz[k]`
+    /// (`∂loss/∂dz_planes[k]`). Planes whose total upstream gradient is zero are skipped.
     fn vjp(
         &self,
         map: &PhaseMap,

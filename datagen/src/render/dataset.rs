@@ -132,7 +132,7 @@ pub struct DatasetManifest {
     pub spp: usize,
     /// Depth-layer slabs.
     pub layers: LayerSpec,
-    /// Geometry source: "procedural" or "mesh:<path>".
+    /// Geometry source: `"procedural"` or `"mesh:<path>"`.
     pub source: String,
     /// The rig at the rendered size: its camera is the native grid (pixel pitch, size,
     /// intrinsics) of every image in the dataset.

@@ -92,7 +92,7 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<u64>, Vec<f32>), RenderError> {
 const READ_ROWS: usize = 32;
 
 /// Reads an f32 NPY file (C order) whose shape must be `expect` = [.., H, W] straight into its
-/// H×W planes, in file order. The data is streamed through a buffer of [`READ_ROWS`] rows: no
+/// H×W planes, in file order. The data is streamed through a buffer of `READ_ROWS` rows: no
 /// copy of the whole file (64 MB per frame at 1280×800 with 8 layers) is made, and no
 /// element-by-element transposition of one runs down its columns.
 pub fn read_npy_planes(path: &Path, expect: &[u64]) -> Result<Vec<Mat<f32>>, RenderError> {
