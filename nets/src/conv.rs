@@ -1,6 +1,7 @@
 //! Convolutions with explicit vector–Jacobian products: dense k×k (the stem), depthwise k×k,
 //! and 1×1 (pointwise) on faer's GEMM. Padding is "same" (k/2), strides 1 or 2.
 
+use crate::act::PAR_MIN;
 use crate::depthwise;
 use crate::error::{NetsError, Result};
 use crate::tensor::Tensor;
@@ -43,29 +44,30 @@ pub fn conv2d_forward(
     stride: usize,
 ) -> Result<Tensor> {
     check_weights(w.len(), cout * x.c * k * k, "conv2d")?;
+    check_stride(stride)?;
     let (ho, wo) = (out_size(x.h, k, stride), out_size(x.w, k, stride));
     let mut y = Tensor::zeros(x.n, cout, ho, wo);
-    let p = k / 2;
+    if ho * wo == 0 || x.plane() == 0 {
+        return Ok(y);
+    }
+    let ph = Phases::of(x, stride, k / 2);
     let cin = x.c;
     y.data
         .par_chunks_mut(ho * wo)
         .enumerate()
         .for_each(|(idx, out)| {
             let (n, o) = (idx / cout, idx % cout);
+            // Per output element the taps add in (i, ky, kx) order, as a direct loop would.
             for i in 0..cin {
-                let xp = &x.data[(n * cin + i) * x.h * x.w..][..x.h * x.w];
                 for ky in 0..k {
-                    let (y0, y1) = valid_range(x.h, ho, stride, ky, p);
+                    let (y0, y1) = valid_range(x.h, ho, stride, ky, ph.pad);
                     for kx in 0..k {
                         let wv = w[((o * cin + i) * k + ky) * k + kx];
-                        let (x0, x1) = valid_range(x.w, wo, stride, kx, p);
+                        let (x0, x1) = valid_range(x.w, wo, stride, kx, ph.pad);
                         for oy in y0..y1 {
-                            let iy = oy * stride + ky - p;
-                            let row = &xp[iy * x.w..];
-                            let orow = &mut out[oy * wo..];
-                            for ox in x0..x1 {
-                                orow[ox] += wv * row[ox * stride + kx - p];
-                            }
+                            let src = ph.run(n * cin + i, oy * stride + ky - ph.pad, kx, x0, x1);
+                            let orow = &mut out[oy * wo + x0..oy * wo + x1];
+                            orow.iter_mut().zip(src).for_each(|(o, &v)| *o += wv * v);
                         }
                     }
                 }
@@ -86,6 +88,7 @@ pub fn conv2d_vjp(
 ) -> Result<Tensor> {
     check_weights(w.len(), cout * x.c * k * k, "conv2d")?;
     check_weights(dw.len(), w.len(), "conv2d gradient")?;
+    check_stride(stride)?;
     let (ho, wo) = (out_size(x.h, k, stride), out_size(x.w, k, stride));
     if dy.shape() != [x.n, cout, ho, wo] {
         return Err(NetsError::Shape(format!(
@@ -93,37 +96,42 @@ pub fn conv2d_vjp(
             dy.shape()
         )));
     }
-    let p = k / 2;
     let cin = x.c;
     let mut dx = Tensor::zeros(x.n, cin, x.h, x.w);
-    let dws: Vec<Vec<f32>> = dx
-        .data
-        .par_chunks_mut(cin * x.h * x.w)
+    if ho * wo == 0 || x.plane() == 0 {
+        return Ok(dx);
+    }
+    let ph = Phases::of(x, stride, k / 2);
+    let mut dph = vec![0.0f32; ph.data.len()];
+    let per_image = cin * ph.plane_len();
+    let dws: Vec<Vec<f32>> = dph
+        .par_chunks_mut(per_image)
         .enumerate()
         .map(|(n, dxi)| {
             let mut dwl = vec![0.0f32; w.len()];
+            // dL/dx adds its taps in (o, ky, kx) order per element, as a direct loop would;
+            // dL/dw sums each tap's products in LANES running sums (one dependent chain per
+            // tap was latency-bound).
             for o in 0..cout {
                 let g = &dy.data[(n * cout + o) * ho * wo..][..ho * wo];
                 for i in 0..cin {
-                    let xp = &x.data[(n * cin + i) * x.h * x.w..][..x.h * x.w];
-                    let dxp = &mut dxi[i * x.h * x.w..][..x.h * x.w];
                     for ky in 0..k {
-                        let (y0, y1) = valid_range(x.h, ho, stride, ky, p);
+                        let (y0, y1) = valid_range(x.h, ho, stride, ky, ph.pad);
                         for kx in 0..k {
                             let wi = ((o * cin + i) * k + ky) * k + kx;
                             let wv = w[wi];
-                            let (x0, x1) = valid_range(x.w, wo, stride, kx, p);
-                            let mut acc = 0.0f32;
+                            let (x0, x1) = valid_range(x.w, wo, stride, kx, ph.pad);
+                            let mut acc = [0.0f32; LANES];
                             for oy in y0..y1 {
-                                let iy = oy * stride + ky - p;
-                                for ox in x0..x1 {
-                                    let ix = ox * stride + kx - p;
-                                    let gv = g[oy * wo + ox];
-                                    acc += gv * xp[iy * x.w + ix];
-                                    dxp[iy * x.w + ix] += gv * wv;
-                                }
+                                let iy = oy * stride + ky - ph.pad;
+                                let gr = &g[oy * wo + x0..oy * wo + x1];
+                                let off = ph.offset(i, iy, kx, x0);
+                                let xr = &ph.data[n * per_image + off..][..x1 - x0];
+                                let dr = &mut dxi[off..][..x1 - x0];
+                                dr.iter_mut().zip(gr).for_each(|(d, &gv)| *d += gv * wv);
+                                lane_dot(&mut acc, gr, xr);
                             }
-                            dwl[wi] += acc;
+                            dwl[wi] += acc.iter().sum::<f32>();
                         }
                     }
                 }
@@ -131,12 +139,115 @@ pub fn conv2d_vjp(
             dwl
         })
         .collect();
+    // Images summed in index order: the same result for any thread count.
     for d in dws {
         for (a, b) in dw.iter_mut().zip(d) {
             *a += b;
         }
     }
+    ph.unsplit(&dph, &mut dx.data);
     Ok(dx)
+}
+
+/// Running sums per lane of `a`·`b`, element j into lane j mod LANES.
+#[inline]
+fn lane_dot(acc: &mut [f32; LANES], a: &[f32], b: &[f32]) {
+    let (ac, bc) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
+    for (l, (&u, &v)) in ac.remainder().iter().zip(bc.remainder()).enumerate() {
+        acc[l] += u * v;
+    }
+    for (u, v) in ac.zip(bc) {
+        for l in 0..LANES {
+            acc[l] += u[l] * v[l];
+        }
+    }
+}
+
+/// Lanes of [`lane_dot`].
+const LANES: usize = 8;
+
+/// The planes of a tensor split by column phase for a stride s: phase r of row y holds
+/// columns r, r + s, r + 2s, …, so the columns a stride-s tap reads are one contiguous run
+/// (vector loads instead of a gather).
+struct Phases {
+    data: Vec<f32>,
+    /// Stride s.
+    s: usize,
+    /// Padding ⌊k/2⌋ (input column of output o, tap t: o·s + t − pad).
+    pad: usize,
+    /// Rows per plane.
+    h: usize,
+    /// Columns per plane.
+    w: usize,
+    /// Entries per phase row, ⌈W/s⌉.
+    pw: usize,
+}
+
+impl Phases {
+    /// Every plane of `x` in phase layout: index ((plane·s + r)·H + y)·⌈W/s⌉ + j ↔ column j·s + r.
+    fn of(x: &Tensor, s: usize, pad: usize) -> Self {
+        let (h, w) = (x.h, x.w);
+        let pw = w.div_ceil(s);
+        let mut ph = Self {
+            data: vec![0.0f32; x.n * x.c * s * h * pw],
+            s,
+            pad,
+            h,
+            w,
+            pw,
+        };
+        let len = ph.plane_len();
+        let mut data = std::mem::take(&mut ph.data);
+        data.par_chunks_mut(len)
+            .zip(x.data.par_chunks(h * w))
+            .for_each(|(dst, src)| {
+                for (y, row) in src.chunks_exact(w).enumerate() {
+                    for r in 0..s {
+                        let d = &mut dst[(r * h + y) * pw..][..pw];
+                        for (dv, &v) in d.iter_mut().zip(row.iter().skip(r).step_by(s)) {
+                            *dv = v;
+                        }
+                    }
+                }
+            });
+        ph.data = data;
+        ph
+    }
+
+    /// Entries per plane, s·H·⌈W/s⌉.
+    fn plane_len(&self) -> usize {
+        self.s * self.h * self.pw
+    }
+
+    /// Index within a plane's phases of the run that tap column `kx` reads on input row `iy`
+    /// for outputs x0.. (input columns o·s + kx − pad, inside the row by `valid_range`),
+    /// offset by `plane` planes.
+    fn offset(&self, plane: usize, iy: usize, kx: usize, x0: usize) -> usize {
+        let first = x0 * self.s + kx - self.pad;
+        plane * self.plane_len() + ((first % self.s) * self.h + iy) * self.pw + first / self.s
+    }
+
+    /// The run of `plane`, input row `iy`, that tap column `kx` reads for outputs x0..x1.
+    fn run(&self, plane: usize, iy: usize, kx: usize, x0: usize, x1: usize) -> &[f32] {
+        &self.data[self.offset(plane, iy, kx, x0)..][..x1 - x0]
+    }
+
+    /// Phase-layout planes `src` (this layout's shape) back into row-major planes `dst`.
+    fn unsplit(&self, src: &[f32], dst: &mut [f32]) {
+        let (s, h, w, pw) = (self.s, self.h, self.w, self.pw);
+        dst.par_chunks_mut(h * w)
+            .zip(src.par_chunks(self.plane_len()))
+            .for_each(|(plane, ph)| {
+                for (y, row) in plane.chunks_exact_mut(w).enumerate() {
+                    for r in 0..s {
+                        let from = &ph[(r * h + y) * pw..][..pw];
+                        for (dv, &v) in row.iter_mut().skip(r).step_by(s).zip(from) {
+                            *dv = v;
+                        }
+                    }
+                }
+            });
+    }
 }
 
 /// Depthwise k×k convolution: weights (C, k, k), one filter per channel, no bias.
@@ -342,7 +453,7 @@ pub fn pointwise_vjp(
 /// [`pointwise_vjp`] run as one GEMM over the batch.
 const SMALL_PLANE: usize = 64;
 
-/// Columns of a GEMM output per parallel task in [`gemm_col_blocks`]: fixed, like
+/// Most columns of a GEMM output per parallel task in [`gemm_col_blocks`], like
 /// [`ROW_BLOCK`].
 const COL_BLOCK: usize = 256;
 
@@ -350,23 +461,30 @@ const COL_BLOCK: usize = 256;
 fn pack_planes(src: &[f32], n: usize, c: usize, hw: usize) -> Vec<f32> {
     let nhw = n * hw;
     let mut out = vec![0.0f32; c * nhw];
-    for (i, plane) in src.chunks_exact(hw).enumerate() {
-        let (img, ch) = (i / c, i % c);
-        out[ch * nhw + img * hw..][..hw].copy_from_slice(plane);
-    }
+    out.par_chunks_mut(nhw)
+        .enumerate()
+        .with_min_len((PAR_MIN / nhw.max(1)).max(1))
+        .for_each(|(ch, row)| {
+            for (img, dst) in row.chunks_exact_mut(hw).enumerate() {
+                dst.copy_from_slice(&src[(img * c + ch) * hw..][..hw]);
+            }
+        });
     out
 }
 
 /// Inverse of [`pack_planes`]: a row-major C × (N·HW) matrix back into NCHW `dst`.
 fn unpack_planes(src: &[f32], dst: &mut [f32], n: usize, c: usize, hw: usize) {
     let nhw = n * hw;
-    for (i, plane) in dst.chunks_exact_mut(hw).enumerate() {
-        let (img, ch) = (i / c, i % c);
-        plane.copy_from_slice(&src[ch * nhw + img * hw..][..hw]);
-    }
+    dst.par_chunks_mut(hw)
+        .enumerate()
+        .with_min_len((PAR_MIN / hw.max(1)).max(1))
+        .for_each(|(i, plane)| {
+            let (img, ch) = (i / c, i % c);
+            plane.copy_from_slice(&src[ch * nhw + img * hw..][..hw]);
+        });
 }
 
-/// dst (+)= a·b with the columns of `dst` (and `b`) split into blocks of [`COL_BLOCK`]: the
+/// dst (+)= a·b with the columns of `dst` (and `b`) split into blocks of at most [`COL_BLOCK`]: the
 /// row blocks of the transposed product, dstᵀ (+)= bᵀ·aᵀ.
 fn gemm_col_blocks(dst: MatMut<'_, f32>, accum: Accum, a: MatRef<'_, f32>, b: MatRef<'_, f32>) {
     gemm_blocks(
@@ -378,17 +496,20 @@ fn gemm_col_blocks(dst: MatMut<'_, f32>, accum: Accum, a: MatRef<'_, f32>, b: Ma
     );
 }
 
-/// Rows of a GEMM output per parallel task in [`gemm_row_blocks`]: fixed, so that which kernel
+/// Most rows of a GEMM output per parallel task in [`gemm_row_blocks`]; the split depends on
+/// the shape only, so that which kernel
 /// call computes an output element does not depend on the thread count.
 const ROW_BLOCK: usize = 64;
 
-/// dst (+)= a·b with the rows of `dst` (and `a`) split into blocks of [`ROW_BLOCK`].
+/// dst (+)= a·b with the rows of `dst` (and `a`) split into blocks of at most [`ROW_BLOCK`].
 fn gemm_row_blocks(dst: MatMut<'_, f32>, accum: Accum, a: MatRef<'_, f32>, b: MatRef<'_, f32>) {
     gemm_blocks(dst, accum, a, b, ROW_BLOCK);
 }
 
-/// dst (+)= a·b with the rows of `dst` (and `a`) split into blocks of `block`, one sequential
-/// GEMM per block, the blocks in parallel.
+/// dst (+)= a·b with the rows of `dst` (and `a`) split into equal blocks of at most
+/// `block` rows (multiples of 8), at least two where there are 16 rows or more so that both
+/// cores work on the small GEMMs of the deep stages too; one sequential GEMM per block, the
+/// blocks in parallel. The split depends on the shape only, not on the thread count.
 fn gemm_blocks(
     dst: MatMut<'_, f32>,
     accum: Accum,
@@ -396,6 +517,9 @@ fn gemm_blocks(
     b: MatRef<'_, f32>,
     block: usize,
 ) {
+    let rows = dst.nrows();
+    let count = rows.div_ceil(block).max(if rows >= 16 { 2 } else { 1 });
+    let block = rows.div_ceil(count).next_multiple_of(8).max(1);
     let mut blocks = Vec::with_capacity(dst.nrows().div_ceil(block));
     let mut rest = dst;
     while rest.nrows() > block {
@@ -441,6 +565,93 @@ fn pointwise_weight_grad(
     for d in dws {
         for (a, b) in dw.iter_mut().zip(d) {
             *a += b;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tensor(n: usize, c: usize, h: usize, w: usize, seed: usize) -> Tensor {
+        let data = (0..n * c * h * w)
+            .map(|i| (((i + seed) * 7919) % 2003) as f32 / 1001.0 - 1.0)
+            .collect();
+        Tensor::from_vec(n, c, h, w, data).unwrap()
+    }
+
+    /// The stem convolution, its input gradient and its weight gradient by their definitions
+    /// (taps in (i, ky, kx) order per output; dL/dx in (o, ky, kx) order per input), in f32
+    /// for y and dL/dx and f64 for dL/dw.
+    #[allow(clippy::type_complexity)]
+    fn direct(
+        x: &Tensor,
+        w: &[f32],
+        cout: usize,
+        k: usize,
+        s: usize,
+        dy: &Tensor,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f64>) {
+        let (ho, wo) = (out_size(x.h, k, s), out_size(x.w, k, s));
+        let p = (k / 2) as isize;
+        let mut y = vec![0.0f32; x.n * cout * ho * wo];
+        let mut dx = vec![0.0f32; x.data.len()];
+        let mut dw = vec![0.0f64; w.len()];
+        let at = |n: usize, i: usize, iy: isize, ix: isize| -> Option<usize> {
+            (iy >= 0 && ix >= 0 && (iy as usize) < x.h && (ix as usize) < x.w)
+                .then(|| ((n * x.c + i) * x.h + iy as usize) * x.w + ix as usize)
+        };
+        for n in 0..x.n {
+            for o in 0..cout {
+                for i in 0..x.c {
+                    for ky in 0..k {
+                        for kx in 0..k {
+                            let wi = ((o * x.c + i) * k + ky) * k + kx;
+                            for oy in 0..ho {
+                                for ox in 0..wo {
+                                    let iy = (oy * s + ky) as isize - p;
+                                    let ix = (ox * s + kx) as isize - p;
+                                    if let Some(j) = at(n, i, iy, ix) {
+                                        let oi = ((n * cout + o) * ho + oy) * wo + ox;
+                                        y[oi] += w[wi] * x.data[j];
+                                        dx[j] += dy.data[oi] * w[wi];
+                                        dw[wi] += dy.data[oi] as f64 * x.data[j] as f64;
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        (y, dx, dw)
+    }
+
+    #[test]
+    fn stem_convolution_matches_its_definition() {
+        for (n, c, h, w, cout, k, s) in [
+            (2, 1, 13, 22, 4, 3, 2),
+            (1, 2, 9, 7, 3, 3, 1),
+            (2, 1, 11, 17, 2, 5, 2),
+            (1, 1, 10, 19, 2, 3, 3),
+            (1, 1, 1, 1, 2, 3, 2),
+        ] {
+            let x = tensor(n, c, h, w, 1);
+            let wt: Vec<f32> = tensor(1, 1, 1, cout * c * k * k, 2).data;
+            let (ho, wo) = (out_size(h, k, s), out_size(w, k, s));
+            let dy = tensor(n, cout, ho, wo, 3);
+            let (y_ref, dx_ref, dw_ref) = direct(&x, &wt, cout, k, s, &dy);
+            let y = conv2d_forward(&x, &wt, cout, k, s).unwrap();
+            assert_eq!(y.data, y_ref, "forward, {:?}", (h, w, k, s));
+            let mut dw = vec![0.0f32; wt.len()];
+            let dx = conv2d_vjp(&x, &wt, cout, k, s, &dy, &mut dw).unwrap();
+            assert_eq!(dx.data, dx_ref, "dL/dx, {:?}", (h, w, k, s));
+            for (a, b) in dw.iter().zip(&dw_ref) {
+                assert!(
+                    (*a as f64 - b).abs() <= 1e-5 * (1.0 + b.abs()),
+                    "dL/dw {a} vs {b}"
+                );
+            }
         }
     }
 }

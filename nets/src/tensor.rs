@@ -1,6 +1,7 @@
 //! The crate's own dense 4D tensor (N, C, H, W), f32, row-major with W fastest.
 
 use crate::error::{NetsError, Result};
+use rayon::prelude::*;
 
 /// A dense f32 tensor of shape (N, C, H, W); dimensionless values (pixels, activations).
 #[derive(Clone, Debug, PartialEq)]
@@ -17,6 +18,18 @@ pub struct Tensor {
     pub data: Vec<f32>,
 }
 
+/// `len` zeros; large buffers are written by every thread of the pool, since a reused heap
+/// block is zeroed by `calloc` on one thread at memory speed.
+pub(crate) fn zeroed(len: usize) -> Vec<f32> {
+    const PAR_ZERO: usize = 1 << 16;
+    if len < PAR_ZERO {
+        return vec![0.0; len];
+    }
+    let mut v = Vec::with_capacity(len);
+    v.par_extend(rayon::iter::repeat_n(0.0f32, len));
+    v
+}
+
 impl Tensor {
     /// An all-zero tensor of the given shape.
     pub fn zeros(n: usize, c: usize, h: usize, w: usize) -> Self {
@@ -25,7 +38,7 @@ impl Tensor {
             c,
             h,
             w,
-            data: vec![0.0; n * c * h * w],
+            data: zeroed(n * c * h * w),
         }
     }
 
