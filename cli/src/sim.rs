@@ -34,6 +34,27 @@ pub struct ChainArgs {
     /// Effective pixel pitch p̂ (µm), between the dataset's pitch and the sensor size.
     #[arg(long, default_value_t = 9.0)]
     pub pitch_um: f64,
+    #[command(flatten)]
+    pub camera: CameraArgs,
+}
+
+impl ChainArgs {
+    /// Opens the dataset and builds the chain, naming the flag behind a bad value.
+    pub fn build(&self) -> Result<(Dataset, CameraChain)> {
+        let ds = Dataset::open(&self.dataset)
+            .with_context(|| format!("--dataset {}", self.dataset.display()))?;
+        if !(self.pitch_um.is_finite() && self.pitch_um > 0.0) {
+            bail!("--pitch-um: must be positive, got {}", self.pitch_um);
+        }
+        let chain = self.camera.chain(&ds)?;
+        Ok((ds, chain))
+    }
+}
+
+/// The camera chain's settings besides p̂: the metasurface's sampling, the exposure and the
+/// sensor's base pitch (a trained run is evaluated with the settings it was trained with).
+#[derive(Debug, Args)]
+pub struct CameraArgs {
     /// Metasurface sampling step (µm); a phase-map file must be sampled on this grid.
     #[arg(long, default_value_t = 1.5)]
     pub aperture_step_um: f64,
@@ -45,11 +66,9 @@ pub struct ChainArgs {
     pub base_pitch_um: Option<f64>,
 }
 
-impl ChainArgs {
-    /// Opens the dataset and builds the chain, naming the flag behind a bad value.
-    pub fn build(&self) -> Result<(Dataset, CameraChain)> {
-        let ds = Dataset::open(&self.dataset)
-            .with_context(|| format!("--dataset {}", self.dataset.display()))?;
+impl CameraArgs {
+    /// The chain for `ds`, naming the flag behind a bad value.
+    pub fn chain(&self, ds: &Dataset) -> Result<CameraChain> {
         let mut cfg = ChainConfig::default();
         if !(self.aperture_step_um.is_finite() && self.aperture_step_um > 0.0) {
             bail!(
@@ -72,11 +91,7 @@ impl ChainArgs {
             // The physical sensor's 3 µm, unless the dataset was rendered finer.
             None => cfg.sensor.base_pitch.min(native),
         };
-        if !(self.pitch_um.is_finite() && self.pitch_um > 0.0) {
-            bail!("--pitch-um: must be positive, got {}", self.pitch_um);
-        }
-        let chain = CameraChain::for_dataset(&ds, cfg).context("--dataset / chain parameters")?;
-        Ok((ds, chain))
+        CameraChain::for_dataset(ds, cfg).context("--dataset / chain parameters")
     }
 }
 

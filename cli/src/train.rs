@@ -800,6 +800,9 @@ pub struct ParetoArgs {
     /// Dataset for BN recalibration (default: the evaluation dataset).
     #[arg(long)]
     train: Option<PathBuf>,
+    /// The chain settings the runs were trained with.
+    #[command(flatten)]
+    camera: crate::sim::CameraArgs,
     /// Subnets per lens: the run's REA selections by fitness (the first run's, shared by all
     /// lenses), topped up with uniform draws (resolution scale U[0.3, 1]).
     #[arg(long, default_value_t = 100)]
@@ -807,6 +810,11 @@ pub struct ParetoArgs {
     /// Seed of the uniform draws.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Score each subnet as `nanoeye run` deploys it: BN statistics over every frame of the
+    /// BN set (`--train`, default the evaluation set) and the calibration head's output layer
+    /// solved on them (docs/run.md); without it, BN from 2 batches and the trained head.
+    #[arg(long)]
+    head_refit: bool,
     /// Plot file (SVG).
     #[arg(long, default_value = "pareto.svg")]
     plot: PathBuf,
@@ -869,7 +877,6 @@ fn pareto_svg(lenses: &[(String, Vec<nanoeye_search::pareto::Point>)]) -> String
 /// Runs `nanoeye search pareto`.
 pub fn pareto(a: ParetoArgs) -> Result<()> {
     use nanoeye_search::pareto::{Point, dominates, front};
-    use nanoeye_search::{CameraChain, ChainConfig};
     use rand::SeedableRng;
     let t0 = Instant::now();
     let runs: Vec<PathBuf> = a.runs.split(',').map(|s| PathBuf::from(s.trim())).collect();
@@ -885,6 +892,15 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         Some(p) => Dataset::open(p).with_context(|| format!("--train {}", p.display()))?,
         None => ds.clone(),
     };
+    if a.head_refit && train.len() < 3 {
+        bail!(
+            "--head-refit needs at least 3 frames in the BN set (--train, default --dataset) \
+             for its leave-one-out error; the set has {}",
+            train.len()
+        );
+    }
+    let chain = a.camera.chain(&ds)?;
+    let tchain = a.camera.chain(&train)?;
     // Subnets: REA selections of the first run by fitness, then uniform draws.
     let mut archs: Vec<Arch> = std::fs::read_to_string(runs[0].join("rea_state.json"))
         .ok()
@@ -905,21 +921,34 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         let ck = run.join("checkpoint.bin");
         let tcfg = nanoeye_search::train::read_config(&ck)
             .with_context(|| format!("--runs {}", run.display()))?;
-        let mut cc = ChainConfig::default();
-        cc.sensor.base_pitch = cc
-            .sensor
-            .base_pitch
-            .min(ds.manifest.rig.camera.pixel_pitch_m);
-        let chain = CameraChain::for_dataset(&ds, cc.clone())?;
-        let tchain = CameraChain::for_dataset(&train, cc)?;
-        let mut tr = Trainer::from_checkpoint(&tchain, &train, &ck)
-            .with_context(|| format!("--runs {}", run.display()))?;
+        let mut tr = Trainer::from_checkpoint(&tchain, &train, &ck).with_context(|| {
+            format!(
+                "--runs {}: read with this chain (--aperture-step-um, --exposure-ms and \
+                 --base-pitch-um must be those the run was trained with)",
+                run.display()
+            )
+        })?;
         let map = tr.phase_map()?;
         let p_hat = tr.pitch_um * 1e-6;
         let (h, w) = chain.native().at(p_hat)?.shape();
+        // The BN set through this lens once, for every subnet's statistics and head fit.
+        let all = if a.head_refit {
+            Some(tr.all_frames()?)
+        } else {
+            None
+        };
+        let trained_head = tr.net.head_out.clone();
         let mut pts = Vec::with_capacity(archs.len());
         for (k, arch) in archs.iter().enumerate() {
-            tr.recalibrate(arch, 2)?;
+            match &all {
+                Some(all) => {
+                    // Each subnet's fit starts from the trained head, not the last one's.
+                    tr.net.head_out = trained_head.clone();
+                    tr.net.recalibrate_bn(arch, &all.inputs)?;
+                    nanoeye_search::headfit::refit_slip_head(&mut tr.net, arch, all)?;
+                }
+                None => tr.recalibrate(arch, 2)?,
+            }
             let setup = nanoeye_search::EvalSetup {
                 chain: &chain,
                 data: &ds,

@@ -1,0 +1,142 @@
+//! `nanoeye search pareto` end to end on a tiny trained run: points and fronts as documented,
+//! the chain settings the run was trained with, and `--head-refit` scoring the same subnets
+//! with BN over every frame and the calibration head's output layer refitted.
+
+mod common;
+
+use common::{TINY_CHAIN, nanoeye};
+use serde_json::Value;
+use std::path::Path;
+
+/// `search pareto` on `run` with the tiny chain; returns the printed JSON.
+fn pareto(p: &Path, extra: &[&str]) -> Value {
+    let args: Vec<&str> = [
+        "search",
+        "pareto",
+        "--runs",
+        "run",
+        "--dataset",
+        "ds",
+        "--subnets",
+        "3",
+        "--aperture-step-um",
+        "10",
+        "--exposure-ms",
+        "0.0004",
+        "--json",
+    ]
+    .into_iter()
+    .chain(extra.iter().copied())
+    .collect();
+    let o = nanoeye(&args, p);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&o.stdout).expect("JSON")
+}
+
+fn points(v: &Value, key: &str) -> Vec<(u64, f64)> {
+    v["lenses"][0][key]
+        .as_array()
+        .expect(key)
+        .iter()
+        .map(|q| (q["macs"].as_u64().unwrap(), q["v_deg"].as_f64().unwrap()))
+        .collect()
+}
+
+#[test]
+fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
+    let root = tempfile::tempdir().unwrap();
+    let p = root.path();
+    let render = [
+        "datagen",
+        "render",
+        "--set",
+        "ambiguity",
+        "--n",
+        "2",
+        "--width",
+        "80",
+        "--height",
+        "50",
+        "--spp",
+        "1",
+        "--out",
+        "ds",
+    ];
+    assert!(nanoeye(&render, p).status.success());
+    let train: Vec<&str> = [&["search", "train"][..], &TINY_CHAIN]
+        .concat()
+        .into_iter()
+        .chain([
+            "--steps",
+            "2",
+            "--batch",
+            "2",
+            "--random-subnets",
+            "0",
+            "--pitch-range-um",
+            "48:120",
+            "--out",
+            "run",
+        ])
+        .collect();
+    let o = nanoeye(&train, p);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    let plain = pareto(p, &["--plot", "plain.svg"]);
+    let pts = points(&plain, "points");
+    assert_eq!(pts.len(), 3);
+    for &(macs, v) in &pts {
+        assert!(macs > 0 && v.is_finite() && v >= 0.0, "{macs} {v}");
+    }
+    // The front: points of the set, MACs ascending, V strictly falling, and no point of the
+    // set beats a front point in both.
+    let front = points(&plain, "front");
+    assert!(!front.is_empty());
+    for w in front.windows(2) {
+        assert!(w[0].0 < w[1].0 && w[0].1 > w[1].1, "{front:?}");
+    }
+    for f in &front {
+        assert!(pts.contains(f));
+        assert!(
+            !pts.iter()
+                .any(|q| q.0 <= f.0 && q.1 < f.1 || q.0 < f.0 && q.1 <= f.1)
+        );
+    }
+    let svg = std::fs::read_to_string(p.join("plain.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("polyline"));
+
+    // The refit scores the same subnets (same MACs), each from the trained head: the same
+    // numbers on a second run, and other V than the trained head's.
+    let refit = pareto(p, &["--head-refit", "--plot", "refit.svg"]);
+    let rp = points(&refit, "points");
+    assert_eq!(
+        rp,
+        points(
+            &pareto(p, &["--head-refit", "--plot", "again.svg"]),
+            "points"
+        )
+    );
+    assert_eq!(
+        rp.iter().map(|q| q.0).collect::<Vec<_>>(),
+        pts.iter().map(|q| q.0).collect::<Vec<_>>()
+    );
+    assert_ne!(rp, pts, "the refit changed no score");
+
+    // Read with another chain than the run's: refused, naming the flags to set.
+    let o = nanoeye(
+        &[
+            "search",
+            "pareto",
+            "--runs",
+            "run",
+            "--dataset",
+            "ds",
+            "--subnets",
+            "1",
+        ],
+        p,
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--aperture-step-um"), "{err}");
+}
