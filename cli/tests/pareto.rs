@@ -4,12 +4,12 @@
 
 mod common;
 
-use common::{TINY_CHAIN, nanoeye};
+use common::{TINY_CHAIN, nanoeye, tiny_dataset_of};
 use serde_json::Value;
 use std::path::Path;
 
-/// `search pareto` on `run` with the tiny chain; returns the printed JSON.
-fn pareto(p: &Path, extra: &[&str]) -> Value {
+/// `search pareto` of `subnets` subnets on `run` (dataset `ds`) with `extra` flags.
+fn pareto_run(p: &Path, subnets: &str, extra: &[&str]) -> std::process::Output {
     let args: Vec<&str> = [
         "search",
         "pareto",
@@ -18,17 +18,24 @@ fn pareto(p: &Path, extra: &[&str]) -> Value {
         "--dataset",
         "ds",
         "--subnets",
-        "3",
+        subnets,
+    ]
+    .into_iter()
+    .chain(extra.iter().copied())
+    .collect();
+    nanoeye(&args, p)
+}
+
+/// Three subnets with the run's own chain; returns the printed JSON.
+fn pareto(p: &Path, extra: &[&str]) -> Value {
+    let chain = [
         "--aperture-step-um",
         "10",
         "--exposure-ms",
         "0.0004",
         "--json",
-    ]
-    .into_iter()
-    .chain(extra.iter().copied())
-    .collect();
-    let o = nanoeye(&args, p);
+    ];
+    let o = pareto_run(p, "3", &[&chain[..], extra].concat());
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     serde_json::from_slice(&o.stdout).expect("JSON")
 }
@@ -46,23 +53,8 @@ fn points(v: &Value, key: &str) -> Vec<(u64, f64)> {
 fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     let root = tempfile::tempdir().unwrap();
     let p = root.path();
-    let render = [
-        "datagen",
-        "render",
-        "--set",
-        "ambiguity",
-        "--n",
-        "2",
-        "--width",
-        "80",
-        "--height",
-        "50",
-        "--spp",
-        "1",
-        "--out",
-        "ds",
-    ];
-    assert!(nanoeye(&render, p).status.success());
+    // Two items, four frames: the refit's leave-one-out error needs three.
+    assert!(nanoeye(&tiny_dataset_of("ds", "2"), p).status.success());
     let train: Vec<&str> = [&["search", "train"][..], &TINY_CHAIN]
         .concat()
         .into_iter()
@@ -123,19 +115,7 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     assert_ne!(rp, pts, "the refit changed no score");
 
     // Read with another chain than the run's: refused, naming the flags to set.
-    let o = nanoeye(
-        &[
-            "search",
-            "pareto",
-            "--runs",
-            "run",
-            "--dataset",
-            "ds",
-            "--subnets",
-            "1",
-        ],
-        p,
-    );
+    let o = pareto_run(p, "1", &[]);
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--aperture-step-um"), "{err}");

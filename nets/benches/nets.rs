@@ -1,14 +1,17 @@
 //! Criterion benches: supernet forward and forward+backward (min / max subnet, 64², 128² and
 //! 320×200, batch 16), per-layer-kind throughput (depthwise forward and backward at strides 1
 //! and 2, beside the memory roofline of each shape: a pass that only streams the bytes a depthwise
-//! pass must move), batch-1 inference (compiled, one thread) against the supernet's eval pass, and the 1×1 convolution against faer's GEMM on the same shape. MACs per pass come from the cost model and are printed once per case.
+//! pass must move), batch-1 inference (compiled, one thread) against the supernet's eval pass, the 1×1 convolution against faer's GEMM on the same shape, and the min subnet's ends (stem, resizes). MACs per pass come from the cost model and are printed once per case.
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, Par};
 use nanoeye_nets::arch::{Arch, SupernetConfig};
-use nanoeye_nets::conv::{depthwise_forward, depthwise_vjp, out_size, pointwise_forward};
+use nanoeye_nets::conv::{
+    conv2d_forward, conv2d_vjp, depthwise_forward, depthwise_vjp, out_size, pointwise_forward,
+};
 use nanoeye_nets::cost::subnet_cost;
+use nanoeye_nets::resize::{bilinear_forward, bilinear_vjp};
 use nanoeye_nets::se::{SeWeights, se_forward};
 use nanoeye_nets::{BnMode, Inference, Supernet, Tensor};
 use rayon::prelude::*;
@@ -246,5 +249,39 @@ fn layers(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, supernet, inference, layers);
+/// The min subnet's ends at a 320×200 input, batch 16: the stem (3×3, stride 2, 1 → 16
+/// channels at resolution scale 0.3, 60×96) and the bilinear resizes of the input and of the
+/// mask logits, each way.
+fn ends(c: &mut Criterion) {
+    alloc_like_cli();
+    let mut g = c.benchmark_group("ends");
+    g.sample_size(20);
+    let xr = image(BATCH, 1, 60, 96);
+    let w: Vec<f32> = (0..16 * 9).map(|i| (i % 7) as f32 * 0.1 - 0.3).collect();
+    let dy = image(BATCH, 16, 30, 48);
+    g.bench_function("stem/forward", |b| {
+        b.iter(|| black_box(conv2d_forward(&xr, &w, 16, 3, 2).expect("stem")))
+    });
+    g.bench_function("stem/vjp", |b| {
+        let mut dw = vec![0.0f32; w.len()];
+        b.iter(|| black_box(conv2d_vjp(&xr, &w, 16, 3, 2, &dy, &mut dw).expect("stem")))
+    });
+    let full = image(BATCH, 1, 200, 320);
+    let lo = image(BATCH, 1, 30, 48);
+    g.bench_function("resize/input_200x320_to_60x96", |b| {
+        b.iter(|| black_box(bilinear_forward(&full, 60, 96)))
+    });
+    g.bench_function("resize/logits_30x48_to_200x320", |b| {
+        b.iter(|| black_box(bilinear_forward(&lo, 200, 320)))
+    });
+    g.bench_function("resize_vjp/logits_200x320_to_30x48", |b| {
+        b.iter(|| black_box(bilinear_vjp([BATCH, 1, 30, 48], &full)))
+    });
+    g.bench_function("resize_vjp/input_60x96_to_200x320", |b| {
+        b.iter(|| black_box(bilinear_vjp([BATCH, 1, 200, 320], &xr)))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, supernet, inference, layers, ends);
 criterion_main!(benches);

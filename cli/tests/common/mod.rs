@@ -22,13 +22,18 @@ pub fn nanoeye(args: &[&str], cwd: &Path) -> Output {
 /// `datagen render` arguments of a 1-item (2-frame) ambiguity dataset at 80 × 50, 1 spp,
 /// written to `out`: the search jobs' smallest input.
 pub fn tiny_dataset(out: &str) -> [&str; 14] {
+    tiny_dataset_of(out, "1")
+}
+
+/// [`tiny_dataset`] with `items` ambiguity items (two frames each).
+pub fn tiny_dataset_of<'a>(out: &'a str, items: &'a str) -> [&'a str; 14] {
     [
         "datagen",
         "render",
         "--set",
         "ambiguity",
         "--n",
-        "1",
+        items,
         "--width",
         "80",
         "--height",
