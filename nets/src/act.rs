@@ -4,7 +4,9 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// Elements per rayon task of the element-wise passes (below this, one thread is faster).
-pub(crate) const PAR_MIN: usize = 1 << 15;
+/// 4 Ki since every pass runs inside the pool (a task no longer wakes a sleeping thread):
+/// 32 Ki left the deep stages' small tensors on one core (docs/bench/nets.md).
+pub(crate) const PAR_MIN: usize = 1 << 12;
 
 /// An element-wise activation; h-swish(x) = x·ReLU6(x+3)/6, h-sigmoid(x) = ReLU6(x+3)/6.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
