@@ -40,7 +40,9 @@ pub fn bilinear_forward(x: &Tensor, h: usize, w: usize) -> Tensor {
 /// Each source row is interpolated along x once, into `rows` (two rows, reused while the
 /// output rows read the same source rows), then each output row is one blend of two of them:
 /// the same expression, top·(1 − ly) + bottom·ly with top and bottom the x-blends, as a per-pixel
-/// four-tap loop, so the same bits.
+/// four-tap loop, so the same bits. Where the planes shrink to half their height or less
+/// (output rows rarely share source rows), that four-tap loop itself: it stores nothing in
+/// between.
 #[inline]
 pub(crate) fn resize_plane(
     p: &[f32],
@@ -51,6 +53,17 @@ pub(crate) fn resize_plane(
     rows: &mut Vec<f32>,
 ) {
     let w = tx.len();
+    if ty.len() * 2 <= p.len() / wi.max(1) {
+        for (orow, &(y0, y1, ly)) in out.chunks_exact_mut(w).zip(ty) {
+            let (r0, r1) = (&p[y0 * wi..][..wi], &p[y1 * wi..][..wi]);
+            for (o, &(x0, x1, lx)) in orow.iter_mut().zip(tx) {
+                let top = r0[x0] * (1.0 - lx) + r0[x1] * lx;
+                let bot = r1[x0] * (1.0 - lx) + r1[x1] * lx;
+                *o = top * (1.0 - ly) + bot * ly;
+            }
+        }
+        return;
+    }
     rows.resize(2 * w, 0.0);
     let (mut lo, mut hi) = rows.split_at_mut(w);
     let blend_row = |dst: &mut [f32], y: usize| {
