@@ -88,10 +88,14 @@ const MAX_STACK_VALUES: u128 = 1 << 28;
 /// 4.9e-324 mm passes a check in mm but is 0 in m.
 fn positive(flag: &str, v: f64, scale: f64) -> Result<f64> {
     let si = v * scale;
-    if v.is_finite() && si.is_finite() && si > 0.0 {
+    // A subnormal SI value has lost its precision and prints as no valid length.
+    if v.is_finite() && si.is_normal() && si > 0.0 {
         Ok(si)
     } else {
-        bail!("{flag}: must be finite and > 0, got {v}")
+        bail!(
+            "{flag}: must be finite and > 0 (at least {:e} in SI units), got {v}",
+            f64::MIN_POSITIVE
+        )
     }
 }
 

@@ -816,6 +816,8 @@ fn inputs_found_by_the_property_test_are_refused_naming_their_flag() {
         ("--depths-mm=20:22:1e-6", "--depths-mm"),
         // Positive in mm, 0 in m.
         ("--sensor-mm=4.9e-324", "--sensor-mm"),
+        // Subnormal in m: printed as a pitch no physical check accepts.
+        ("--pitch-um=1.1452463331739244e-302", "--pitch-um"),
         ("--aperture-mm=18446744073709551615", "--aperture-mm"),
     ] {
         refused(&[&psf[..], &["--window-px", "16", args]].concat(), flag, p);
