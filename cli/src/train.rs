@@ -902,15 +902,21 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     let chain = a.camera.chain(&ds)?;
     let tchain = a.camera.chain(&train)?;
     // Subnets: REA selections of the first run by fitness, then uniform draws.
-    let mut archs: Vec<Arch> = std::fs::read_to_string(runs[0].join("rea_state.json"))
-        .ok()
-        .and_then(|t| serde_json::from_str::<nanoeye_search::ReaState>(&t).ok())
-        .map(|st| {
+    // A run without a search has no state; a state that does not parse is refused, not
+    // silently replaced by uniform draws.
+    let state_path = runs[0].join("rea_state.json");
+    let mut archs: Vec<Arch> = match std::fs::read_to_string(&state_path) {
+        Ok(t) => {
+            let st: nanoeye_search::ReaState = serde_json::from_str(&t).with_context(|| {
+                format!("--runs: {} is not a search state", state_path.display())
+            })?;
             let mut e = st.evaluated;
             e.sort_by(|x, y| y.fitness.total_cmp(&x.fitness));
             e.into_iter().map(|i| i.arch).collect()
-        })
-        .unwrap_or_default();
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+        Err(e) => return Err(e).with_context(|| format!("--runs: {}", state_path.display())),
+    };
     archs.truncate(a.subnets);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
     while archs.len() < a.subnets {
@@ -937,15 +943,11 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         } else {
             None
         };
-        let trained_head = tr.net.head_out.clone();
         let mut pts = Vec::with_capacity(archs.len());
         for (k, arch) in archs.iter().enumerate() {
             match &all {
                 Some(all) => {
-                    // Each subnet's fit starts from the trained head, not the last one's.
-                    tr.net.head_out = trained_head.clone();
-                    tr.net.recalibrate_bn(arch, &all.inputs)?;
-                    nanoeye_search::headfit::refit_slip_head(&mut tr.net, arch, all)?;
+                    nanoeye_search::headfit::recalibrate_and_refit(&mut tr.net, arch, all)?;
                 }
                 None => tr.recalibrate(arch, 2)?,
             }

@@ -97,7 +97,7 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     let svg = std::fs::read_to_string(p.join("plain.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("polyline"));
 
-    // The refit scores the same subnets (same MACs), each from the trained head: the same
+    // The refit scores the same subnets (same MACs): the same
     // numbers on a second run, and other V than the trained head's.
     let refit = pareto(p, &["--head-refit", "--plot", "refit.svg"]);
     let rp = points(&refit, "points");
@@ -119,4 +119,18 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--aperture-step-um"), "{err}");
+
+    // A truncated search state: refused naming it, not replaced by uniform draws.
+    std::fs::write(p.join("run/rea_state.json"), "{\"evaluated\": [").unwrap();
+    let o = pareto_run(
+        p,
+        "1",
+        &["--aperture-step-um", "10", "--exposure-ms", "0.0004"],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--runs") && err.contains("rea_state.json"),
+        "{err}"
+    );
 }

@@ -192,6 +192,15 @@ impl Adjoint {
 mod tests {
     use super::*;
 
+    /// Two h × w planes of values in [−1, 1] from a multiplicative hash (factor, modulus).
+    fn planes(h: usize, w: usize, factor: usize, modulus: usize) -> Tensor {
+        let half = (modulus / 2) as f32;
+        let data = (0..2 * h * w)
+            .map(|i| ((i * factor) % modulus) as f32 / half - 1.0)
+            .collect();
+        Tensor::from_vec(2, 1, h, w, data).unwrap()
+    }
+
     #[test]
     fn resize_is_the_four_tap_blend_bit_for_bit_and_its_adjoint() {
         for (h, w, oh, ow) in [
@@ -200,16 +209,7 @@ mod tests {
             (7, 5, 7, 11),
             (1, 1, 3, 2),
         ] {
-            let x = Tensor::from_vec(
-                2,
-                1,
-                h,
-                w,
-                (0..2 * h * w)
-                    .map(|i| ((i * 7919) % 1009) as f32 / 500.0 - 1.0)
-                    .collect(),
-            )
-            .unwrap();
+            let x = planes(h, w, 7919, 1009);
             let y = bilinear_forward(&x, oh, ow);
             let (ty, tx) = (taps(h, oh), taps(w, ow));
             for n in 0..2 {
@@ -224,16 +224,7 @@ mod tests {
                 }
             }
             // ⟨resize(x), g⟩ = ⟨x, resizeᵀ(g)⟩ in f64.
-            let g = Tensor::from_vec(
-                2,
-                1,
-                oh,
-                ow,
-                (0..2 * oh * ow)
-                    .map(|i| ((i * 104_729) % 997) as f32 / 498.0 - 1.0)
-                    .collect(),
-            )
-            .unwrap();
+            let g = planes(oh, ow, 104_729, 997);
             let dx = bilinear_vjp(x.shape(), &g);
             let lhs: f64 = y
                 .data

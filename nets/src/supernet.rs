@@ -43,7 +43,6 @@ struct Cache {
 }
 
 /// A biased 1×1 convolution (or, on 1×1 maps, a linear layer): W (C_out × C_in), b.
-#[derive(Clone, Debug)]
 pub struct Dense {
     /// Weights.
     pub w: Param,

@@ -45,6 +45,15 @@ pub struct FitFrames {
     pub targets_mm: Vec<Tensor>,
 }
 
+/// Subnet `arch` as deployed: its BN statistics over every frame of `data`, then its head's
+/// output layer refitted on them ([`refit_slip_head`]). The fit replaces the layer whole and
+/// depends only on the hidden activations, so subnets scored one after another on one network
+/// do not carry one another's fit.
+pub fn recalibrate_and_refit(net: &mut Supernet, arch: &Arch, data: &FitFrames) -> Result<HeadFit> {
+    net.recalibrate_bn(arch, &data.inputs)?;
+    refit_slip_head(net, arch, data)
+}
+
 /// Replaces `net.head_out` by the ridge fit of the targets of `data` on the head's hidden
 /// activations of subnet `arch` (BN in eval mode as it stands: recalibrate first).
 pub fn refit_slip_head(net: &mut Supernet, arch: &Arch, data: &FitFrames) -> Result<HeadFit> {

@@ -279,8 +279,7 @@ impl Evaluator<'_> {
         }
         let m = if c.head_refit {
             let all = t.all_frames()?;
-            t.net.recalibrate_bn(arch, &all.inputs)?;
-            crate::headfit::refit_slip_head(&mut t.net, arch, &all)?;
+            crate::headfit::recalibrate_and_refit(&mut t.net, arch, &all)?;
             t.validate(self.val, arch)?
         } else {
             t.evaluate(self.val, arch, c.recal_batches)?

@@ -371,6 +371,23 @@ fn the_slip_head_refit_writes_the_layer_whose_error_it_reports() {
         );
         assert!(fit.loo_rmse_mm[a].is_finite() && fit.loo_rmse_mm[a] >= fit.rmse_fit_mm[a]);
     }
+    // The fit does not depend on the layer it replaces: subnets scored one after another on
+    // one network (search pareto, the main job's min and max trackers) carry nothing over.
+    nanoeye_search::headfit::recalibrate_and_refit(&mut t.net, &arch, &frames).unwrap();
+    let (w, b) = (
+        t.net.head_out.w.value.clone(),
+        t.net.head_out.b.value.clone(),
+    );
+    t.net.head_out.w.value.iter_mut().for_each(|v| *v = 0.5);
+    t.net.head_out.b.value.iter_mut().for_each(|v| *v = -3.0);
+    nanoeye_search::headfit::recalibrate_and_refit(&mut t.net, &arch, &frames).unwrap();
+    assert_eq!(
+        (
+            t.net.head_out.w.value.clone(),
+            t.net.head_out.b.value.clone()
+        ),
+        (w, b)
+    );
 }
 
 #[test]
