@@ -12,6 +12,7 @@ mod gaze;
 mod metalib;
 mod nets;
 mod optics;
+mod pareto;
 mod report;
 mod rig;
 mod run;

@@ -130,7 +130,7 @@ pub enum SearchCmd {
     /// Regularized evolution over subnets with inner-loop fine-tuning (S16–S21).
     Rea(crate::train::ReaArgs),
     /// Accuracy–compute Pareto fronts of several trained lenses (B.6, Fig. 8).
-    Pareto(crate::train::ParetoArgs),
+    Pareto(crate::pareto::ParetoArgs),
 }
 
 /// `nanoeye search loss` options.
@@ -334,7 +334,7 @@ pub fn search(cmd: SearchCmd) -> Result<()> {
         SearchCmd::Loss(a) => loss(a),
         SearchCmd::Train(a) => crate::train::train(a),
         SearchCmd::Rea(a) => crate::train::rea(a),
-        SearchCmd::Pareto(a) => crate::train::pareto(a),
+        SearchCmd::Pareto(a) => crate::pareto::pareto(a),
     }
 }
 

@@ -654,13 +654,15 @@ fn sim_and_search_loss_name_their_bad_flags() {
         "--head-refit",
     ];
     refused(&rea, "--head-refit", p);
-    // pareto: the refit's set, and the chain settings named like everywhere else, before any
-    // run is read.
+    // pareto: the refit's set, the chain settings named like everywhere else, and outputs that
+    // are directories, before any run is read.
     for (flag, value) in [
         ("--head-refit", "--json"),
         ("--aperture-step-um", "0"),
         ("--exposure-ms", "0"),
         ("--base-pitch-um", "nan"),
+        ("--plot", "."),
+        ("--state", "."),
     ] {
         let args = [
             "search",

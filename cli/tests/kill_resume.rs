@@ -1,10 +1,11 @@
 //! Kill-at-random-points test for every resumable job (issue 19, "Checks"): `fisher init`,
-//! `datagen render`, `metalib sweep`, `search train`, `search rea` and `nanoeye run`, each on a
-//! tiny configuration. Each job runs once uninterrupted into directory A; then, for each of a
-//! few kill points spread over A's wall time (seeded, so every run of the test uses the same
-//! fractions of it), a fresh directory B is given the same command, the process is sent SIGKILL
-//! at that point, and the same command is run again: it must exit 0 on that first rerun, and
-//! B's files must equal A's byte for byte, leftover temporary files included.
+//! `datagen render`, `metalib sweep`, `search train`, `search rea`, `search pareto` and
+//! `nanoeye run`, each on a tiny configuration. Each job runs once uninterrupted into
+//! directory A; then, for each of a few kill points spread over A's wall time (seeded, so every
+//! run of the test uses the same fractions of it), a fresh directory B is given the same
+//! command, the process is sent SIGKILL at that point, and the same command is run again: it
+//! must exit 0 on that first rerun, and B's files must equal A's byte for byte, leftover
+//! temporary files included.
 //!
 //! Only the timing fields the docs name are left out of the comparison: `seconds` and
 //! `seconds_per_step` in
@@ -383,7 +384,7 @@ fn search_train_and_rea_resume_to_the_same_bytes() {
         copy_dir(&trained.join("ds"), &cwd.join("ds"));
         copy_dir(&trained.join("run"), &cwd.join("run"));
     };
-    check_job(
+    let searched = check_job(
         &Job {
             name: "search-rea",
             args: &rea,
@@ -395,6 +396,38 @@ fn search_train_and_rea_resume_to_the_same_bytes() {
             },
             kills: 3,
             seed: 5,
+        },
+        root.path(),
+    );
+    // The Pareto points of the search's subnets and uniform draws; the run given twice, so
+    // that a kill can leave one lens finished and the next one partial in the state.
+    let pareto: Vec<&str> = [&["search", "pareto"][..], &TINY_CHAIN[4..]]
+        .concat()
+        .into_iter()
+        .chain([
+            "--runs",
+            "run,run",
+            "--dataset",
+            "ds",
+            "--subnets",
+            "5",
+            "--plot",
+            "pa/pareto.svg",
+        ])
+        .collect();
+    let from_searched = |cwd: &Path| {
+        copy_dir(&searched.join("ds"), &cwd.join("ds"));
+        copy_dir(&searched.join("run"), &cwd.join("run"));
+    };
+    check_job(
+        &Job {
+            name: "search-pareto",
+            args: &pareto,
+            out: "pa",
+            setup: &from_searched,
+            timing: Timing::default(),
+            kills: 3,
+            seed: 6,
         },
         root.path(),
     );

@@ -1,6 +1,7 @@
 //! `nanoeye search pareto` end to end on a tiny trained run: points and fronts as documented,
-//! the chain settings the run was trained with, and `--head-refit` scoring the same subnets
-//! with BN over every frame and the calibration head's output layer refitted.
+//! the chain settings the run was trained with, `--head-refit` scoring the same subnets
+//! with BN over every frame and the calibration head's output layer refitted, and a partial
+//! state continued (a changed or broken one refused).
 
 mod common;
 
@@ -96,6 +97,56 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     }
     let svg = std::fs::read_to_string(p.join("plain.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("polyline"));
+
+    // The state beside the plot holds the points; cut back to the first one (a run killed
+    // after one subnet), the rerun scores the other two to the same numbers.
+    let sp = p.join("plain.state.json");
+    let mut st: Value = serde_json::from_slice(&std::fs::read(&sp).unwrap()).unwrap();
+    assert_eq!(st["lenses"][0].as_array().unwrap().len(), 3);
+    st["lenses"][0].as_array_mut().unwrap().truncate(1);
+    std::fs::write(&sp, serde_json::to_vec(&st).unwrap()).unwrap();
+    assert_eq!(points(&pareto(p, &["--plot", "plain.svg"]), "points"), pts);
+    // Other inputs against that state: refused, naming what differs, the state kept.
+    let before = std::fs::read(&sp).unwrap();
+    let o = pareto_run(
+        p,
+        "2",
+        &[
+            "--aperture-step-um",
+            "10",
+            "--exposure-ms",
+            "0.0004",
+            "--plot",
+            "plain.svg",
+        ],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--state") && err.contains("--subnets"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(&sp).unwrap(), before);
+    // A state that is not one: refused naming --state.
+    std::fs::write(&sp, &before[..before.len() / 2]).unwrap();
+    let o = pareto_run(
+        p,
+        "3",
+        &[
+            "--aperture-step-um",
+            "10",
+            "--exposure-ms",
+            "0.0004",
+            "--plot",
+            "plain.svg",
+        ],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--state") && err.contains("plain.state.json"),
+        "{err}"
+    );
 
     // The refit scores the same subnets (same MACs): the same
     // numbers on a second run, and other V than the trained head's.

@@ -1,0 +1,376 @@
+//! `nanoeye search pareto`: subnets of trained runs scored on the ambiguity set, one
+//! (MACs, V) point each, the Pareto front per lens (B.6, Fig. 8), resumable.
+
+use crate::util;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use nanoeye_datagen::render::Dataset;
+use nanoeye_nets::Arch;
+use nanoeye_search::Trainer;
+use nanoeye_search::pareto::{Point, dominates, front};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// `nanoeye search pareto` options.
+#[derive(Debug, Args)]
+pub struct ParetoArgs {
+    /// Trained run directories, comma separated (one per lens).
+    #[arg(long)]
+    runs: String,
+    /// Evaluation dataset (the ambiguity set, C.3).
+    #[arg(long)]
+    dataset: PathBuf,
+    /// Dataset for BN recalibration (default: the evaluation dataset).
+    #[arg(long)]
+    train: Option<PathBuf>,
+    /// The chain settings the runs were trained with.
+    #[command(flatten)]
+    camera: crate::sim::CameraArgs,
+    /// Subnets per lens: the run's REA selections by fitness (the first run's, shared by all
+    /// lenses), topped up with uniform draws (resolution scale U[0.3, 1]).
+    #[arg(long, default_value_t = 100)]
+    subnets: usize,
+    /// Seed of the uniform draws.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Score each subnet as `nanoeye run` deploys it: BN statistics over every frame of the
+    /// BN set (`--train`, default the evaluation set) and the calibration head's output layer
+    /// solved on them (docs/run.md); without it, BN from 2 batches and the trained head.
+    #[arg(long)]
+    head_refit: bool,
+    /// Plot file (SVG).
+    #[arg(long, default_value = "pareto.svg")]
+    plot: PathBuf,
+    /// State file: the points scored so far and what they were scored from, written after
+    /// every subnet; a rerun with the same inputs continues from it, one with other inputs is
+    /// refused (default: the plot's path with the extension `state.json`).
+    #[arg(long)]
+    state: Option<PathBuf>,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+fn pareto_svg(lenses: &[(String, Vec<Point>)]) -> String {
+    let (w, ht, m) = (720.0, 420.0, 50.0);
+    let all: Vec<_> = lenses.iter().flat_map(|(_, p)| p.iter()).collect();
+    let xmax = all.iter().map(|p| p.macs as f64).fold(1.0, f64::max) * 1.05;
+    let ymax = all.iter().map(|p| p.v_deg).fold(1e-9, f64::max) * 1.05;
+    let xy = |p: &Point| {
+        (
+            m + (w - 2.0 * m) * p.macs as f64 / xmax,
+            ht - m - (ht - 2.0 * m) * p.v_deg / ymax,
+        )
+    };
+    let colors = ["#c0392b", "#2471a3", "#229954", "#7d3c98", "#b9770e"];
+    let mut s = format!(
+        r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{ht}" font-family="sans-serif" font-size="12">
+<rect width="100%" height="100%" fill="white"/>
+<line x1="{m}" y1="{b}" x2="{r}" y2="{b}" stroke="black"/><line x1="{m}" y1="{m}" x2="{m}" y2="{b}" stroke="black"/>
+<text x="{cx}" y="{tb}" text-anchor="middle">MACs (0 … {xmax:.3e})</text>
+<text x="14" y="{cy}" transform="rotate(-90 14 {cy})" text-anchor="middle">gaze error V, degrees (0 … {ymax:.1})</text>
+"##,
+        b = ht - m,
+        r = w - m,
+        cx = w / 2.0,
+        tb = ht - 10.0,
+        cy = ht / 2.0
+    );
+    for (k, (name, pts)) in lenses.iter().enumerate() {
+        let c = colors[k % colors.len()];
+        for p in pts {
+            let (x, y) = xy(p);
+            s += &format!(
+                "<circle cx=\"{x:.1}\" cy=\"{y:.1}\" r=\"2.5\" fill=\"{c}\" fill-opacity=\"0.5\"/>\n"
+            );
+        }
+        let f: Vec<String> = front(pts)
+            .iter()
+            .map(|p| {
+                let (x, y) = xy(p);
+                format!("{x:.1},{y:.1}")
+            })
+            .collect();
+        s += &format!(
+            "<polyline fill=\"none\" stroke=\"{c}\" stroke-width=\"2\" points=\"{}\"/>\n<text x=\"{}\" y=\"{}\" fill=\"{c}\">{name}</text>\n",
+            f.join(" "),
+            w - m - 150.0,
+            m + 16.0 * k as f64
+        );
+    }
+    s + "</svg>\n"
+}
+
+/// Runs `nanoeye search pareto`.
+pub fn pareto(a: ParetoArgs) -> Result<()> {
+    use rand::SeedableRng;
+    let t0 = Instant::now();
+    let runs: Vec<PathBuf> = a.runs.split(',').map(|s| PathBuf::from(s.trim())).collect();
+    if runs.is_empty() || runs.iter().any(|r| r.as_os_str().is_empty()) {
+        bail!("--runs: give run directories separated by commas");
+    }
+    if a.subnets == 0 || a.subnets > 100_000 {
+        bail!("--subnets: must be 1..=100000, got {}", a.subnets);
+    }
+    // Both outputs checked before minutes of scoring, not after.
+    let state_path = a
+        .state
+        .clone()
+        .unwrap_or_else(|| a.plot.with_extension("state.json"));
+    util::check_output_target(&a.plot).context("--plot")?;
+    util::check_output_target(&state_path).context("--state")?;
+    let ds =
+        Dataset::open(&a.dataset).with_context(|| format!("--dataset {}", a.dataset.display()))?;
+    let train = match &a.train {
+        Some(p) => Dataset::open(p).with_context(|| format!("--train {}", p.display()))?,
+        None => ds.clone(),
+    };
+    if a.head_refit && train.len() < 3 {
+        bail!(
+            "--head-refit needs at least 3 frames in the BN set (--train, default --dataset) \
+             for its leave-one-out error; the set has {}",
+            train.len()
+        );
+    }
+    let chain = a.camera.chain(&ds)?;
+    let tchain = a.camera.chain(&train)?;
+    // Subnets: REA selections of the first run by fitness, then uniform draws.
+    // A run without a search has no state; a state that does not parse is refused, not
+    // silently replaced by uniform draws.
+    let rea_path = runs[0].join("rea_state.json");
+    let mut archs: Vec<Arch> = match std::fs::read_to_string(&rea_path) {
+        Ok(t) => {
+            let st: nanoeye_search::ReaState = serde_json::from_str(&t)
+                .with_context(|| format!("--runs: {} is not a search state", rea_path.display()))?;
+            let mut e = st.evaluated;
+            e.sort_by(|x, y| y.fitness.total_cmp(&x.fitness));
+            e.into_iter().map(|i| i.arch).collect()
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+        Err(e) => return Err(e).with_context(|| format!("--runs: {}", rea_path.display())),
+    };
+    archs.truncate(a.subnets);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
+    while archs.len() < a.subnets {
+        archs.push(Arch::sample(&mut rng));
+    }
+    let key = Key::new(&a, &runs, &archs)?;
+    let mut state = match std::fs::read(&state_path) {
+        Ok(bytes) => State::resume(&bytes, &key, &state_path)?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => State {
+            key,
+            lenses: Vec::new(),
+        },
+        Err(e) => return Err(e).with_context(|| format!("--state {}", state_path.display())),
+    };
+    for (r, run) in runs.iter().enumerate() {
+        if state.lenses.get(r).is_some_and(|p| p.len() == archs.len()) {
+            continue;
+        }
+        if state.lenses.len() == r {
+            state.lenses.push(Vec::with_capacity(archs.len()));
+        }
+        let ck = run.join("checkpoint.bin");
+        let tcfg = nanoeye_search::train::read_config(&ck)
+            .with_context(|| format!("--runs {}", run.display()))?;
+        let mut tr = Trainer::from_checkpoint(&tchain, &train, &ck).with_context(|| {
+            format!(
+                "--runs {}: read with this chain (--aperture-step-um, --exposure-ms and \
+                 --base-pitch-um must be those the run was trained with)",
+                run.display()
+            )
+        })?;
+        let map = tr.phase_map()?;
+        let p_hat = tr.pitch_um * 1e-6;
+        let (h, w) = chain.native().at(p_hat)?.shape();
+        // The BN set through this lens once, for every subnet's statistics and head fit.
+        let all = if a.head_refit {
+            Some(tr.all_frames()?)
+        } else {
+            None
+        };
+        // Each subnet's score depends on the run and the subnet only (BN statistics and the
+        // head are recomputed from scratch), so a resumed run gives the same points.
+        for k in state.lenses[r].len()..archs.len() {
+            let arch = &archs[k];
+            match &all {
+                Some(all) => {
+                    nanoeye_search::headfit::recalibrate_and_refit(&mut tr.net, arch, all)?;
+                }
+                None => tr.recalibrate(arch, 2)?,
+            }
+            let setup = nanoeye_search::EvalSetup {
+                chain: &chain,
+                data: &ds,
+                map: &map,
+                p_hat_m: p_hat,
+                arch,
+                batch: tcfg.batch,
+                seed: tcfg.seed,
+            };
+            let m = nanoeye_search::evaluate_net(&mut tr.net, &setup, tcfg.solver)?;
+            let macs = nanoeye_nets::cost::subnet_cost(&tcfg.supernet, arch, h, w)?.macs;
+            state.lenses[r].push(Point {
+                macs,
+                v_deg: m.v_deg,
+            });
+            util::write_atomic(&state_path, &serde_json::to_vec(&state)?)
+                .with_context(|| format!("--state {}", state_path.display()))?;
+            if (k + 1) % (archs.len() / 5).max(1) == 0 {
+                eprintln!("{}: {}/{} subnets", run.display(), k + 1, archs.len());
+            }
+        }
+    }
+    let lenses: Vec<(String, Vec<Point>)> = runs
+        .iter()
+        .map(|r| r.display().to_string())
+        .zip(state.lenses)
+        .collect();
+    util::write_atomic(&a.plot, pareto_svg(&lenses).as_bytes())
+        .with_context(|| format!("--plot {}", a.plot.display()))?;
+    let mut dom = serde_json::Map::new();
+    for (na, pa) in &lenses {
+        for (nb, pb) in &lenses {
+            if na != nb {
+                dom.insert(
+                    format!("{na} > {nb}"),
+                    dominates(&front(pa), &front(pb)).into(),
+                );
+            }
+        }
+    }
+    let out = serde_json::json!({
+        "lenses": lenses.iter().map(|(n, p)| serde_json::json!({
+            "run": n, "points": p, "front": front(p),
+        })).collect::<Vec<_>>(),
+        "dominates": dom,
+        "subnets": archs.len(),
+        "plot": a.plot.display().to_string(),
+        "seconds": t0.elapsed().as_secs_f64(),
+    });
+    if a.json {
+        println!("{out}");
+    } else {
+        for (n, p) in &lenses {
+            let f = front(p);
+            println!("{n}: {} points, front of {}", p.len(), f.len());
+        }
+        for (k, v) in &dom {
+            println!("{k}: {v}");
+        }
+        println!("plot: {}", a.plot.display());
+    }
+    Ok(())
+}
+
+/// What a state's points were scored from; a rerun with another key is refused.
+#[derive(Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Key {
+    /// The runs as given, each with its checkpoint's size and digest.
+    runs: Vec<(String, u64, String)>,
+    /// The evaluation set as given, with its record files' digest.
+    dataset: (String, String),
+    /// The BN set as given (absent: the evaluation set), with its records' digest.
+    train: Option<(String, String)>,
+    /// The chain settings: metasurface step (µm), exposure (ms), base pitch (µm).
+    camera: (f64, f64, Option<f64>),
+    /// The subnets, in the order scored.
+    archs: Vec<Arch>,
+    /// Whether each subnet was scored with the head refit.
+    head_refit: bool,
+}
+
+impl Key {
+    fn new(a: &ParetoArgs, runs: &[PathBuf], archs: &[Arch]) -> Result<Key> {
+        let data = |flag: &str, dir: &Path| -> Result<(String, String)> {
+            let mut d = util::Digest::default();
+            for f in ["dataset.json", "frames.jsonl"] {
+                d.file(&dir.join(f))
+                    .with_context(|| format!("{flag} {}", dir.display()))?;
+            }
+            Ok((dir.display().to_string(), d.hex()))
+        };
+        Ok(Key {
+            runs: runs
+                .iter()
+                .map(|r| {
+                    let ck = r.join("checkpoint.bin");
+                    let mut d = util::Digest::default();
+                    let n = d
+                        .file(&ck)
+                        .with_context(|| format!("--runs {}", r.display()))?;
+                    Ok((r.display().to_string(), n, d.hex()))
+                })
+                .collect::<Result<_>>()?,
+            dataset: data("--dataset", &a.dataset)?,
+            train: a.train.as_deref().map(|t| data("--train", t)).transpose()?,
+            camera: (
+                a.camera.aperture_step_um,
+                a.camera.exposure_ms,
+                a.camera.base_pitch_um,
+            ),
+            archs: archs.to_vec(),
+            head_refit: a.head_refit,
+        })
+    }
+}
+
+/// A `search pareto` run's state file (docs/formats.md): the key and the points per run so
+/// far, in the order of `--runs` (the last one may be partial).
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct State {
+    key: Key,
+    lenses: Vec<Vec<Point>>,
+}
+
+impl State {
+    /// The state in `bytes` if it was scored from `key`; refused, naming what differs, if not.
+    fn resume(bytes: &[u8], key: &Key, path: &Path) -> Result<State> {
+        let st: State = serde_json::from_slice(bytes).with_context(|| {
+            format!(
+                "--state {}: not a `search pareto` state (delete it, or give another --state)",
+                path.display()
+            )
+        })?;
+        if &st.key != key {
+            let (old, new) = (serde_json::to_value(&st.key)?, serde_json::to_value(key)?);
+            let differ: Vec<&str> = [
+                ("runs", "--runs (or a run's checkpoint)"),
+                ("dataset", "--dataset"),
+                ("train", "--train"),
+                ("camera", "the chain flags"),
+                (
+                    "archs",
+                    "the subnets (--subnets, --seed or the first run's search)",
+                ),
+                ("head_refit", "--head-refit"),
+            ]
+            .into_iter()
+            .filter(|(f, _)| old[f] != new[f])
+            .map(|(_, flag)| flag)
+            .collect();
+            bail!(
+                "--state {} holds points scored from other inputs ({} differ); rerun with the \
+                 same inputs, give another --state, or delete it",
+                path.display(),
+                differ.join(", ")
+            );
+        }
+        let n = key.archs.len();
+        if st.lenses.len() > key.runs.len()
+            || st.lenses.iter().rev().skip(1).any(|p| p.len() != n)
+            || st.lenses.last().is_some_and(|p| p.len() > n)
+        {
+            bail!(
+                "--state {}: its points do not fit its {} runs of {n} subnets (delete it, or \
+                 give another --state)",
+                path.display(),
+                key.runs.len()
+            );
+        }
+        Ok(st)
+    }
+}
