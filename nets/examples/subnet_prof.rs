@@ -2,7 +2,8 @@
 //! (default 16), train-mode BN, under the CLI's allocator settings, N times; prints the mean
 //! time.
 //!
-//! Usage: `cargo run --release -p nanoeye-nets --example subnet_prof -- min|max H W [N] [B]`
+//! Usage: `cargo run --release -p nanoeye-nets --example subnet_prof -- min|max H W [N] [B]
+//! [fwd]` (`fwd`: the training-mode forward pass alone).
 
 use nanoeye_nets::arch::{Arch, SupernetConfig};
 use nanoeye_nets::{BnMode, Supernet, Tensor};
@@ -31,8 +32,13 @@ fn main() {
         .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
         .collect();
     let x = Tensor::from_vec(b, 1, h, w, data).expect("shape");
+    let fwd_only = args.get(6).is_some_and(|s| s == "fwd");
     let mut step = || {
         let out = net.forward(&arch, &x, BnMode::Train).expect("fwd");
+        if fwd_only {
+            std::hint::black_box(out);
+            return;
+        }
         let dl = Tensor {
             data: vec![1e-3; out.mask_logits.len()],
             ..out.mask_logits.clone()
@@ -49,7 +55,8 @@ fn main() {
         step();
     }
     eprintln!(
-        "{which} {h}x{w} batch {b} fwd+bwd: {:.2} ms",
+        "{which} {h}x{w} batch {b} {}: {:.2} ms",
+        if fwd_only { "fwd" } else { "fwd+bwd" },
         t.elapsed().as_secs_f64() * 1e3 / n as f64
     );
 }

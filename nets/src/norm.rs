@@ -8,6 +8,10 @@ use rayon::prelude::*;
 /// Running sums per channel statistic: independent chains the compiler keeps in registers.
 const LANES: usize = 8;
 
+/// Planes of fewer values than this are summed per position over the images and normalized
+/// image by image (the deep stages' 2×2 … 10×10 maps), larger ones plane by plane.
+const SMALL_PLANE: usize = 128;
+
 /// How batch-norm layers normalize during a forward pass.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BnMode {
@@ -96,31 +100,13 @@ impl BatchNorm {
             if m == 0.0 {
                 return Err(NetsError::Shape("batch norm over an empty batch".into()));
             }
-            // Per channel, images in order, in LANES running sums (one chain of dependent
-            // additions per channel was latency-bound): the same sums for any thread count.
-            let (s1, s2): (Vec<f64>, Vec<f64>) = (0..c)
-                .into_par_iter()
-                .map(|ch| {
-                    let (mut a, mut b) = ([0.0f64; LANES], [0.0f64; LANES]);
-                    for n in 0..x.n {
-                        let plane = &x.data[(n * c + ch) * hw..][..hw];
-                        let blocks = plane.chunks_exact(LANES);
-                        let tail = blocks.remainder();
-                        for blk in blocks {
-                            for l in 0..LANES {
-                                let v = blk[l] as f64;
-                                a[l] += v;
-                                b[l] += v * v;
-                            }
-                        }
-                        for (l, &v) in tail.iter().enumerate() {
-                            a[l] += v as f64;
-                            b[l] += (v as f64) * (v as f64);
-                        }
-                    }
-                    (a.iter().sum::<f64>(), b.iter().sum::<f64>())
-                })
-                .unzip();
+            let (s1, s2) = Pass {
+                c,
+                hw,
+                gamma: &[],
+                beta: &[],
+            }
+            .stats(x.n, &x.data);
             for ch in 0..c {
                 let mu = s1[ch] / m;
                 mean[ch] = mu as f32;
@@ -276,6 +262,69 @@ struct Pass<'a> {
 }
 
 impl Pass<'_> {
+    /// Channels per task of the small-plane passes: at least `PAR_MIN` values over `nb` images.
+    fn channels_per_task(&self, nb: usize) -> usize {
+        (PAR_MIN / (nb * self.hw).max(1)).clamp(1, self.c)
+    }
+
+    /// Per-channel Σx and Σx² over `nb` images (f64), the same sums for any thread count.
+    fn stats(&self, nb: usize, x: &[f32]) -> (Vec<f64>, Vec<f64>) {
+        let (c, hw) = (self.c, self.hw);
+        if hw < SMALL_PLANE {
+            // Per position of a block of channels, images in order, then per channel its
+            // positions in order: one vectorizable loop over each image's block, where the
+            // per-plane loops below ran a few values per plane.
+            let cb = self.channels_per_task(nb);
+            return (0..c.div_ceil(cb))
+                .into_par_iter()
+                .flat_map_iter(|blk| {
+                    let (c0, c1) = (blk * cb, ((blk + 1) * cb).min(c));
+                    let len = (c1 - c0) * hw;
+                    let (mut a, mut b) = (vec![0.0f64; len], vec![0.0f64; len]);
+                    for n in 0..nb {
+                        let xs = &x[(n * c + c0) * hw..][..len];
+                        for ((a, b), &v) in a.iter_mut().zip(b.iter_mut()).zip(xs) {
+                            let v = v as f64;
+                            *a += v;
+                            *b += v * v;
+                        }
+                    }
+                    (0..c1 - c0)
+                        .map(|k| {
+                            let at = k * hw..(k + 1) * hw;
+                            (a[at.clone()].iter().sum::<f64>(), b[at].iter().sum::<f64>())
+                        })
+                        .collect::<Vec<_>>()
+                })
+                .unzip();
+        }
+        // Per channel, images in order, in LANES running sums (one chain of dependent
+        // additions per channel was latency-bound): the same sums for any thread count.
+        (0..c)
+            .into_par_iter()
+            .map(|ch| {
+                let (mut a, mut b) = ([0.0f64; LANES], [0.0f64; LANES]);
+                for n in 0..nb {
+                    let plane = &x[(n * c + ch) * hw..][..hw];
+                    let blocks = plane.chunks_exact(LANES);
+                    let tail = blocks.remainder();
+                    for blk in blocks {
+                        for l in 0..LANES {
+                            let v = blk[l] as f64;
+                            a[l] += v;
+                            b[l] += v * v;
+                        }
+                    }
+                    for (l, &v) in tail.iter().enumerate() {
+                        a[l] += v as f64;
+                        b[l] += (v as f64) * (v as f64);
+                    }
+                }
+                (a.iter().sum::<f64>(), b.iter().sum::<f64>())
+            })
+            .unzip()
+    }
+
     /// y = f(γ·x̂ + β) with x̂ = (x − μ)·σ⁻¹ into `y`, plane by plane.
     fn normalize<F: Fn(f32) -> f32 + Sync>(
         &self,
@@ -286,6 +335,22 @@ impl Pass<'_> {
         y: &mut [f32],
     ) {
         let (c, hw) = (self.c, self.hw);
+        if hw < SMALL_PLANE {
+            // Image by image over per-position copies of the channel constants: one loop of
+            // C·H·W values instead of C loops of a few (the same expression, the same bits).
+            let [g, b, mu, is] =
+                [&self.gamma[..c], &self.beta[..c], mean, inv_std].map(|v| spread(v, hw));
+            y.par_chunks_mut(c * hw)
+                .zip(x.par_chunks(c * hw))
+                .with_min_len((PAR_MIN / (c * hw)).max(1))
+                .for_each(|(yi, xi)| {
+                    let consts = g.iter().zip(&b).zip(mu.iter().zip(&is));
+                    for ((y, &v), ((&g, &b), (&mu, &is))) in yi.iter_mut().zip(xi).zip(consts) {
+                        *y = f(g * xhat(v, mu, is) + b);
+                    }
+                });
+            return;
+        }
         y.par_chunks_mut(hw)
             .zip(x.par_chunks(hw))
             .enumerate()
@@ -310,6 +375,9 @@ impl Pass<'_> {
     ) -> Vec<(f32, f32)> {
         let (c, hw) = (self.c, self.hw);
         let m = (nb * hw) as f32;
+        if hw < SMALL_PLANE {
+            return self.backward_small(dpre, nb, cache, d);
+        }
         let sums: Vec<(f32, f32)> = (0..c)
             .into_par_iter()
             .map(|ch| {
@@ -361,6 +429,96 @@ impl Pass<'_> {
             });
         sums
     }
+
+    /// [`Pass::backward`] for planes of fewer than [`SMALL_PLANE`] values: the sums per
+    /// position of a block of channels, images in order, then per channel its positions in
+    /// order; dL/dx image by image over per-position copies of the channel constants.
+    fn backward_small<D: Fn(f32, f32, f32, f32) -> f32 + Sync>(
+        &self,
+        dpre: D,
+        nb: usize,
+        cache: &Cache,
+        d: &mut [f32],
+    ) -> Vec<(f32, f32)> {
+        let (c, hw) = (self.c, self.hw);
+        let m = (nb * hw) as f32;
+        let [ga, be, mu, is] = [
+            &self.gamma[..c],
+            &self.beta[..c],
+            &cache.mean[..],
+            &cache.inv_std[..],
+        ]
+        .map(|v| spread(v, hw));
+        let cb = self.channels_per_task(nb);
+        let dd: &[f32] = d;
+        let sums: Vec<(f32, f32)> = (0..c.div_ceil(cb))
+            .into_par_iter()
+            .flat_map_iter(|blk| {
+                let (c0, c1) = (blk * cb, ((blk + 1) * cb).min(c));
+                let len = (c1 - c0) * hw;
+                let at = c0 * hw..c1 * hw;
+                let (ga, be, mu, is) = (&ga[at.clone()], &be[at.clone()], &mu[at.clone()], &is[at]);
+                let (mut sg, mut sgx) = (vec![0.0f32; len], vec![0.0f32; len]);
+                for n in 0..nb {
+                    let off = (n * c + c0) * hw;
+                    let (gs, xs) = (&dd[off..off + len], &cache.x[off..off + len]);
+                    // Zipped, not indexed: bounds checks kept the indexed loop scalar.
+                    let consts = ga.iter().zip(be).zip(mu.iter().zip(is));
+                    let acc = sg.iter_mut().zip(sgx.iter_mut());
+                    for (((s, t), (&g, &v)), ((&ga, &be), (&mu, &is))) in
+                        acc.zip(gs.iter().zip(xs)).zip(consts)
+                    {
+                        let xh = xhat(v, mu, is);
+                        let g = dpre(g, xh, ga, be);
+                        *s += g;
+                        *t += g * xh;
+                    }
+                }
+                (0..c1 - c0)
+                    .map(|k| {
+                        let at = k * hw..(k + 1) * hw;
+                        (
+                            sg[at.clone()].iter().sum::<f32>(),
+                            sgx[at].iter().sum::<f32>(),
+                        )
+                    })
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        let sg = spread(&sums.iter().map(|s| s.0).collect::<Vec<_>>(), hw);
+        let sgx = spread(&sums.iter().map(|s| s.1).collect::<Vec<_>>(), hw);
+        let len = c * hw;
+        d.par_chunks_mut(len)
+            .zip(cache.x.par_chunks(len))
+            .with_min_len((PAR_MIN / len).max(1))
+            .for_each(|(di, xi)| {
+                let consts = ga.iter().zip(&be).zip(mu.iter().zip(&is));
+                let vals = di.iter_mut().zip(xi);
+                if cache.batch_stats {
+                    let sums = sg.iter().zip(&sgx);
+                    for (((d, &v), ((&ga, &be), (&mu, &is))), (&sg, &sgx)) in
+                        vals.zip(consts).zip(sums)
+                    {
+                        let xh = xhat(v, mu, is);
+                        *d = ga * is * (dpre(*d, xh, ga, be) - sg / m - xh * sgx / m);
+                    }
+                } else {
+                    for ((d, &v), ((&ga, &be), (&mu, &is))) in vals.zip(consts) {
+                        *d = ga * is * dpre(*d, xhat(v, mu, is), ga, be);
+                    }
+                }
+            });
+        sums
+    }
+}
+
+/// Each of `v`'s values repeated `hw` times: a per-channel constant at every position.
+fn spread(v: &[f32], hw: usize) -> Vec<f32> {
+    let mut out = vec![0.0; v.len() * hw];
+    for (o, &x) in out.chunks_exact_mut(hw).zip(v) {
+        o.fill(x);
+    }
+    out
 }
 
 #[cfg(test)]
@@ -409,6 +567,91 @@ mod tests {
                 assert_eq!(bits(&dx.data), bits(&dx2.data), "dL/dx, {what}");
                 assert_eq!(bits(&bn.gamma.grad), bits(&fused.gamma.grad), "dγ, {what}");
                 assert_eq!(bits(&bn.beta.grad), bits(&fused.beta.grad), "dβ, {what}");
+            }
+        }
+    }
+
+    /// Training-mode forward and backward against the definition in f64, on planes below and
+    /// above [`SMALL_PLANE`] (the two summation layouts), with h-swish's kinks straddled; and
+    /// the same bits from one thread as from three, over several channel blocks per pass.
+    #[test]
+    fn both_plane_layouts_match_the_definition_and_any_thread_count() {
+        let mut rng = StdRng::seed_from_u64(12);
+        for (n, c, h, w) in [(4, 300, 3, 3), (3, 7, 2, 2), (2, 5, 12, 12), (3, 4, 19, 9)] {
+            let len = n * c * h * w;
+            let hw = h * w;
+            let x: Vec<f32> = (0..len).map(|_| rng.random_range(-4.0..6.0)).collect();
+            let dy: Vec<f32> = (0..len).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let mut bn = BatchNorm::new(c);
+            for ch in 0..c {
+                bn.gamma.value[ch] = rng.random_range(0.5..2.0);
+                bn.beta.value[ch] = rng.random_range(-1.0..1.0);
+            }
+            let run = |threads: usize| {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .expect("pool");
+                let mut b = bn.clone();
+                pool.install(|| {
+                    let t = Tensor::from_vec(n, c, h, w, x.clone()).expect("shape");
+                    let y = b.forward_act(t, BnMode::Train, Act::HSwish).expect("fwd");
+                    let dx = b.backward_owned(y.like(dy.clone())).expect("bwd");
+                    (y.data, dx.data, b.gamma.grad, b.beta.grad)
+                })
+            };
+            let one = run(1);
+            let three = run(3);
+            let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&one.0), bits(&three.0), "y, {n}x{c}x{h}x{w}");
+            assert_eq!(bits(&one.1), bits(&three.1), "dx, {n}x{c}x{h}x{w}");
+            assert_eq!(bits(&one.2), bits(&three.2), "dγ, {n}x{c}x{h}x{w}");
+            assert_eq!(bits(&one.3), bits(&three.3), "dβ, {n}x{c}x{h}x{w}");
+            // The definition: x̂ over the batch and the plane, y = h-swish(γx̂ + β); dL/dpre
+            // = dy·h-swish'(pre); dL/dx = γσ⁻¹(dpre − mean(dpre) − x̂·mean(dpre·x̂)).
+            let m = (n * hw) as f64;
+            let at = |i: usize, ch: usize, p: usize| (i * c + ch) * hw + p;
+            for ch in 0..c {
+                let vals = || (0..n).flat_map(move |i| (0..hw).map(move |p| at(i, ch, p)));
+                let mu = vals().map(|k| x[k] as f64).sum::<f64>() / m;
+                let var = vals().map(|k| (x[k] as f64 - mu).powi(2)).sum::<f64>() / m;
+                let is = 1.0 / (var + bn.eps as f64).sqrt();
+                let (ga, be) = (bn.gamma.value[ch] as f64, bn.beta.value[ch] as f64);
+                let xh = |k: usize| (x[k] as f64 - mu) * is;
+                let dpre = |k: usize| {
+                    let pre = ga * xh(k) + be;
+                    let d = if pre <= -3.0 {
+                        0.0
+                    } else if pre >= 3.0 {
+                        1.0
+                    } else {
+                        (2.0 * pre + 3.0) / 6.0
+                    };
+                    dy[k] as f64 * d
+                };
+                let sg = vals().map(dpre).sum::<f64>();
+                let sgx = vals().map(|k| dpre(k) * xh(k)).sum::<f64>();
+                assert!(
+                    (one.3[ch] as f64 - sg).abs() < 1e-4 * (1.0 + sg.abs()),
+                    "dβ {ch}"
+                );
+                assert!(
+                    (one.2[ch] as f64 - sgx).abs() < 1e-4 * (1.0 + sgx.abs()),
+                    "dγ {ch}"
+                );
+                for k in vals() {
+                    let pre = ga * xh(k) + be;
+                    let y = pre * (pre + 3.0).clamp(0.0, 6.0) / 6.0;
+                    assert!(
+                        (one.0[k] as f64 - y).abs() < 1e-4 * (1.0 + y.abs()),
+                        "y {k}"
+                    );
+                    let dx = ga * is * (dpre(k) - sg / m - xh(k) * sgx / m);
+                    assert!(
+                        (one.1[k] as f64 - dx).abs() < 1e-4 * (1.0 + dx.abs()),
+                        "dx {k}"
+                    );
+                }
             }
         }
     }
