@@ -107,21 +107,14 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     std::fs::write(&sp, serde_json::to_vec(&st).unwrap()).unwrap();
     assert_eq!(points(&pareto(p, &["--plot", "plain.svg"]), "points"), pts);
     // Other inputs against that state: refused, naming what differs, the state kept.
+    let rerun = |subnets: &str| {
+        let chain = ["--aperture-step-um", "10", "--exposure-ms", "0.0004"];
+        let o = pareto_run(p, subnets, &[&chain[..], &["--plot", "plain.svg"]].concat());
+        assert!(!o.status.success());
+        String::from_utf8_lossy(&o.stderr).to_string()
+    };
     let before = std::fs::read(&sp).unwrap();
-    let o = pareto_run(
-        p,
-        "2",
-        &[
-            "--aperture-step-um",
-            "10",
-            "--exposure-ms",
-            "0.0004",
-            "--plot",
-            "plain.svg",
-        ],
-    );
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
+    let err = rerun("2");
     assert!(
         err.contains("--state") && err.contains("--subnets"),
         "{err}"
@@ -129,20 +122,7 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     assert_eq!(std::fs::read(&sp).unwrap(), before);
     // A state that is not one: refused naming --state.
     std::fs::write(&sp, &before[..before.len() / 2]).unwrap();
-    let o = pareto_run(
-        p,
-        "3",
-        &[
-            "--aperture-step-um",
-            "10",
-            "--exposure-ms",
-            "0.0004",
-            "--plot",
-            "plain.svg",
-        ],
-    );
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
+    let err = rerun("3");
     assert!(
         err.contains("--state") && err.contains("plain.state.json"),
         "{err}"
