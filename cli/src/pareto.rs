@@ -118,6 +118,12 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         .state
         .clone()
         .unwrap_or_else(|| a.plot.with_extension("state.json"));
+    if state_path == a.plot {
+        bail!(
+            "--state: {} is also --plot; give the state its own path",
+            state_path.display()
+        );
+    }
     util::check_output_target(&a.plot).context("--plot")?;
     util::check_output_target(&state_path).context("--state")?;
     let ds =

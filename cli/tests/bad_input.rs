@@ -663,6 +663,7 @@ fn sim_and_search_loss_name_their_bad_flags() {
         ("--base-pitch-um", "nan"),
         ("--plot", "."),
         ("--state", "."),
+        ("--state", "pareto.svg"),
     ] {
         let args = [
             "search",
