@@ -94,19 +94,19 @@ impl BatchNorm {
         let hw = x.plane();
         let m = (x.n * hw) as f64;
         let batch_stats = mode != BnMode::Eval;
+        let p = Pass {
+            c,
+            hw,
+            gamma: &self.gamma.value,
+            beta: &self.beta.value,
+        };
         let mut mean = vec![0.0f32; c];
         let mut var = vec![0.0f32; c];
         if batch_stats {
             if m == 0.0 {
                 return Err(NetsError::Shape("batch norm over an empty batch".into()));
             }
-            let (s1, s2) = Pass {
-                c,
-                hw,
-                gamma: &[],
-                beta: &[],
-            }
-            .stats(x.n, &x.data);
+            let (s1, s2) = p.stats(x.n, &x.data);
             for ch in 0..c {
                 let mu = s1[ch] / m;
                 mean[ch] = mu as f32;
@@ -139,12 +139,6 @@ impl BatchNorm {
         let inv_std: Vec<f32> = var.iter().map(|v| 1.0 / (v + self.eps).sqrt()).collect();
         let mut y = Tensor::zeros(x.n, c, x.h, x.w);
         if hw > 0 {
-            let p = Pass {
-                c,
-                hw,
-                gamma: &self.gamma.value,
-                beta: &self.beta.value,
-            };
             // One monomorphic pass per activation: a `match` inside the loop would keep it
             // from vectorizing.
             let (y, x) = (&mut y.data, &x.data);
