@@ -256,9 +256,14 @@ struct Pass<'a> {
 }
 
 impl Pass<'_> {
-    /// Channels per task of the small-plane passes: at least `PAR_MIN` values over `nb` images.
-    fn channels_per_task(&self, nb: usize) -> usize {
-        (PAR_MIN / (nb * self.hw).max(1)).clamp(1, self.c)
+    /// The channel ranges `c0..c1` of the small-plane sums' tasks, in order: at least
+    /// `PAR_MIN` values over `nb` images each (a channel's sums do not depend on its block).
+    fn channel_blocks(&self, nb: usize) -> impl IndexedParallelIterator<Item = (usize, usize)> {
+        let c = self.c;
+        let cb = (PAR_MIN / (nb * self.hw).max(1)).clamp(1, c);
+        (0..c.div_ceil(cb))
+            .into_par_iter()
+            .map(move |blk| (blk * cb, ((blk + 1) * cb).min(c)))
     }
 
     /// Per-channel Σx and Σx² over `nb` images (f64), the same sums for any thread count.
@@ -268,11 +273,9 @@ impl Pass<'_> {
             // Per position of a block of channels, images in order, then per channel its
             // positions in order: one vectorizable loop over each image's block, where the
             // per-plane loops below ran a few values per plane.
-            let cb = self.channels_per_task(nb);
-            return (0..c.div_ceil(cb))
-                .into_par_iter()
-                .flat_map_iter(|blk| {
-                    let (c0, c1) = (blk * cb, ((blk + 1) * cb).min(c));
+            return self
+                .channel_blocks(nb)
+                .flat_map_iter(|(c0, c1)| {
                     let len = (c1 - c0) * hw;
                     let (mut a, mut b) = (vec![0.0f64; len], vec![0.0f64; len]);
                     for n in 0..nb {
@@ -367,11 +370,11 @@ impl Pass<'_> {
         cache: &Cache,
         d: &mut [f32],
     ) -> Vec<(f32, f32)> {
-        let (c, hw) = (self.c, self.hw);
-        let m = (nb * hw) as f32;
-        if hw < SMALL_PLANE {
+        if self.hw < SMALL_PLANE {
             return self.backward_small(dpre, nb, cache, d);
         }
+        let (c, hw) = (self.c, self.hw);
+        let m = (nb * hw) as f32;
         let sums: Vec<(f32, f32)> = (0..c)
             .into_par_iter()
             .map(|ch| {
@@ -443,12 +446,10 @@ impl Pass<'_> {
             &cache.inv_std[..],
         ]
         .map(|v| spread(v, hw));
-        let cb = self.channels_per_task(nb);
         let dd: &[f32] = d;
-        let sums: Vec<(f32, f32)> = (0..c.div_ceil(cb))
-            .into_par_iter()
-            .flat_map_iter(|blk| {
-                let (c0, c1) = (blk * cb, ((blk + 1) * cb).min(c));
+        let sums: Vec<(f32, f32)> = self
+            .channel_blocks(nb)
+            .flat_map_iter(|(c0, c1)| {
                 let len = (c1 - c0) * hw;
                 let at = c0 * hw..c1 * hw;
                 let (ga, be, mu, is) = (&ga[at.clone()], &be[at.clone()], &mu[at.clone()], &is[at]);
