@@ -11,9 +11,14 @@
 //! [`strided_dx`]). On x86-64 with AVX2 and FMA (checked at run time) the same code is
 //! compiled a second time with fused multiply–adds. Scratch lives per rayon task, not per
 //! plane, and its zero padding is written once per geometry; planes are grouped so a task
-//! carries enough work to pay for the scheduling.
+//! carries enough work to pay for the scheduling. Output planes of at most 256 values (the
+//! low-resolution stages), where a plane's fixed costs outweigh its multiply–adds, go through
+//! blocks of eight channels instead ([`channels`]), which give the same y and dL/dx bits.
 
 use rayon::prelude::*;
+
+#[cfg(target_arch = "x86_64")]
+mod channels;
 
 /// Output lanes accumulated in registers per block of an output row.
 const LANES: usize = 16;
@@ -786,6 +791,11 @@ pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
         y.fill(0.0);
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if channels::takes(g, c) {
+        channels::forward(g, c, x, w, y);
+        return;
+    }
     let fma = has_fma();
     y.par_chunks_mut(howo)
         .enumerate()
@@ -820,6 +830,11 @@ pub(crate) fn backward(
     if hw == 0 || howo == 0 {
         dx.fill(0.0);
         dw_planes.fill(0.0);
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if channels::takes(g, c) {
+        channels::backward(g, c, x, w, dy, dx, dw_planes);
         return;
     }
     let fma = has_fma();

@@ -1,0 +1,77 @@
+//! Depthwise convolution forward and backward (dL/dx and dL/dw) at batch 16 on the shapes of
+//! the nets bench and the small maps of the min subnet, under the CLI's allocator settings:
+//! the fastest of N runs and its GMAC/s (the backward counts two MACs per forward MAC).
+//!
+//! Usage: `cargo run --release -p nanoeye-nets --example dw_prof -- [N] [CxHxW/sS/kK]`
+
+use nanoeye_nets::Tensor;
+use nanoeye_nets::conv::{depthwise_forward, depthwise_vjp, out_size};
+use std::hint::black_box;
+use std::time::Instant;
+
+/// Channels, input height and width, stride.
+const SHAPES: [(usize, usize, usize, usize); 10] = [
+    (240, 16, 16, 1),
+    (240, 16, 16, 2),
+    (480, 8, 8, 1),
+    (480, 8, 8, 2),
+    (672, 4, 4, 1),
+    (96, 44, 70, 2),
+    (192, 22, 35, 1),
+    (192, 22, 35, 2),
+    (96, 32, 32, 1),
+    (96, 32, 32, 2),
+];
+
+fn main() {
+    let mut args = std::env::args().skip(1);
+    let reps: usize = args.next().map_or(30, |s| s.parse().expect("N"));
+    let only = args.next();
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets allocator parameters.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+        libc::mallopt(libc::M_ARENA_MAX, 1);
+    }
+    // Inside the pool, as the supernet runs its passes.
+    rayon::scope(|_| run(reps, only.as_deref()));
+}
+
+fn run(reps: usize, only: Option<&str>) {
+    const N: usize = 16;
+    for (c, h, w, s) in SHAPES {
+        for k in [3usize, 5, 7] {
+            let name = format!("{c}x{h}x{w}/s{s}/k{k}");
+            if only.is_some_and(|o| o != name) {
+                continue;
+            }
+            let len = N * c * h * w;
+            let values = (0..len)
+                .map(|i| ((i * 7919) % 1000) as f32 * 1e-3)
+                .collect();
+            let x = Tensor::from_vec(N, c, h, w, values).expect("shape");
+            let wt = vec![0.01f32; c * k * k];
+            let (ho, wo) = (out_size(h, k, s), out_size(w, k, s));
+            let dy = Tensor::from_vec(N, c, ho, wo, vec![0.5; N * c * ho * wo]).expect("shape");
+            let mut dw = vec![0.0f32; c * k * k];
+            let macs = (N * c * ho * wo * k * k) as f64;
+            let (mut tf, mut tb) = (f64::MAX, f64::MAX);
+            for _ in 0..reps {
+                let t = Instant::now();
+                black_box(depthwise_forward(&x, &wt, k, s).expect("forward"));
+                tf = tf.min(t.elapsed().as_secs_f64());
+                let t = Instant::now();
+                black_box(depthwise_vjp(&x, &wt, k, s, &dy, &mut dw).expect("backward"));
+                tb = tb.min(t.elapsed().as_secs_f64());
+            }
+            println!(
+                "{name}: forward {:.1} µs ({:.1} GMAC/s), backward {:.1} µs ({:.1} GMAC/s)",
+                tf * 1e6,
+                macs / tf * 1e-9,
+                tb * 1e6,
+                2.0 * macs / tb * 1e-9
+            );
+        }
+    }
+}

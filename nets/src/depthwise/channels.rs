@@ -1,0 +1,692 @@
+//! Depthwise convolution on blocks of eight channels, for small planes.
+//!
+//! On a plane of a few dozen outputs the plane path's fixed costs — the padded copy, the
+//! stride-2 phase split and its inverse, output rows narrower than a register — outweigh its
+//! multiply–adds (an 8×8 stride-2 output plane ran at 7–9 GMAC/s). Here eight consecutive
+//! planes of one image are transposed into a zero-padded scratch with the channels innermost,
+//! one 256-bit register per pixel, so every tap of every output, at any stride and width, is
+//! one register at a fixed offset and one per-tap register holds the eight channels' weights.
+//! Each output and each dL/dx cell sums its taps in the plane path's order, from zero, by
+//! fused multiply–adds, so y and dL/dx are the plane path's bits (test
+//! `channel_blocks_give_the_plane_paths_bits`); dL/dw sums each tap over the outputs in
+//! row-major order, where the plane path sums register lanes, so its last bits differ.
+//!
+//! Only compiled for x86-64 and only taken where the CPU has AVX2 and FMA ([`takes`]).
+
+use super::{Geom, has_fma};
+use rayon::prelude::*;
+use std::arch::x86_64::*;
+
+/// Channels per block: one f32 register.
+const CB: usize = 8;
+/// Largest output plane (ho·wo) the block path takes; larger planes fill the plane path's
+/// 16-wide register blocks and gain nothing from the transposes.
+const SMALL: usize = 256;
+/// Smallest number of multiply–adds a rayon task should carry.
+const TASK_MACS: usize = 1 << 16;
+
+/// Whether a layer of `c` channels with this geometry goes through channel blocks.
+pub(super) fn takes(g: &Geom, c: usize) -> bool {
+    c % CB == 0 && g.ho * g.wo <= SMALL && g.ho * g.wo > 0 && has_fma()
+}
+
+/// Blocks of eight planes per rayon task.
+fn blocks_per_task(g: &Geom) -> usize {
+    (TASK_MACS / (CB * g.ho * g.wo * g.k * g.k).max(1)).max(1)
+}
+
+/// Per-task scratch: padded input and dL/dy with channels innermost, an output block, the
+/// weights per tap and the tap offsets (in pixels).
+#[derive(Default)]
+struct Scratch {
+    xin: Vec<f32>,
+    /// The geometry (h, w, k, s) `xin`'s zero padding is laid out for.
+    xshape: Option<[usize; 4]>,
+    dpad: Vec<f32>,
+    dshape: Option<[usize; 4]>,
+    out: Vec<f32>,
+    wv: Vec<f32>,
+    offs: Vec<usize>,
+}
+
+impl Scratch {
+    /// Lays `xin` out as the padded input of `g` ((h + 2p) × (w + 2p) pixels), zeroing it only
+    /// when the geometry changes: every block writes the same interior pixels.
+    fn input_layout(&mut self, g: &Geom) {
+        let key = [g.h, g.w, g.k, g.s];
+        if self.xshape != Some(key) {
+            let p = g.k / 2;
+            self.xin.clear();
+            self.xin.resize((g.h + 2 * p) * (g.w + 2 * p) * CB, 0.0);
+            self.xshape = Some(key);
+        }
+    }
+
+    /// Lays `dpad` out as dL/dy with p zero rows and columns before it and enough after for
+    /// every dL/dx cell's taps ([`dy_extent`]), zeroed only when the geometry changes.
+    fn dy_layout(&mut self, g: &Geom) {
+        let key = [g.h, g.w, g.k, g.s];
+        if self.dshape != Some(key) {
+            let (hp, wp) = dy_extent(g);
+            self.dpad.clear();
+            self.dpad.resize(hp * wp * CB, 0.0);
+            self.dshape = Some(key);
+        }
+    }
+}
+
+/// The weights of `c` channels (k² each) as blocks of eight channels, block-major, then
+/// tap-major with the eight channels innermost; `flip` turns each kernel by 180°.
+fn weight_table(w: &[f32], c: usize, kk: usize, flip: bool) -> Vec<f32> {
+    let mut table = Vec::with_capacity(c * kk);
+    for c0 in (0..c).step_by(CB) {
+        for t in 0..kk {
+            let t = if flip { kk - 1 - t } else { t };
+            table.extend((0..CB).map(|j| w[(c0 + j) * kk + t]));
+        }
+    }
+    table
+}
+
+/// Rows and columns of the padded dL/dy: p before, and at least as many after as the
+/// strided dL/dx's taps reach (the plane path's `strided_dx` extent; at stride 1 the
+/// forward's padded shape).
+fn dy_extent(g: &Geom) -> (usize, usize) {
+    let p = g.k / 2;
+    if g.s == 1 {
+        return (g.h + 2 * p, g.w + 2 * p);
+    }
+    (
+        g.ho.max((p + g.h - 1) / g.s + 1) + p,
+        g.wo.max((p + g.w - 1) / g.s + 1) + p,
+    )
+}
+
+/// Forward over all planes (as [`super::forward`]), `takes(g, c)` holding.
+pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
+    let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
+    let table = weight_table(w, c, kk, false);
+    let blocks = c / CB;
+    y.par_chunks_mut(CB * howo)
+        .enumerate()
+        .with_min_len(blocks_per_task(g))
+        .for_each_init(Scratch::default, |sc, (b, out)| {
+            let xb = &x[b * CB * hw..][..CB * hw];
+            let wv = &table[(b % blocks) * kk * CB..][..kk * CB];
+            // SAFETY: `takes` checked AVX2 and FMA on this CPU.
+            unsafe { forward_block(g, xb, wv, sc, out) };
+        });
+}
+
+/// Backward over all planes (as [`super::backward`]), `takes(g, c)` holding.
+pub(super) fn backward(
+    g: &Geom,
+    c: usize,
+    x: &[f32],
+    w: &[f32],
+    dy: &[f32],
+    dx: &mut [f32],
+    dw_planes: &mut [f32],
+) {
+    let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
+    let table = weight_table(w, c, kk, g.s == 1);
+    let blocks = c / CB;
+    dx.par_chunks_mut(CB * hw)
+        .zip(dw_planes.par_chunks_mut(CB * kk))
+        .enumerate()
+        .with_min_len(blocks_per_task(g))
+        .for_each_init(Scratch::default, |sc, (b, (dxb, dwb))| {
+            let xb = &x[b * CB * hw..][..CB * hw];
+            let dyb = &dy[b * CB * howo..][..CB * howo];
+            // SAFETY: `takes` checked AVX2 and FMA on this CPU.
+            let wv = &table[(b % blocks) * kk * CB..][..kk * CB];
+            unsafe { backward_block(g, xb, wv, dyb, sc, dxb, dwb) };
+        });
+}
+
+/// One block's forward: `xb` eight planes of h×w, `out` eight of ho×wo, `wv` the block's
+/// weights ([`weight_table`]).
+#[target_feature(enable = "avx2,fma")]
+fn forward_block(g: &Geom, xb: &[f32], wv: &[f32], sc: &mut Scratch, out: &mut [f32]) {
+    let (p, s, wp) = (g.k / 2, g.s, g.w + 2 * (g.k / 2));
+    sc.input_layout(g);
+    to_channels(xb, g.w, &mut sc.xin, wp, p);
+    sc.offs.clear();
+    sc.offs
+        .extend((0..g.k).flat_map(|ky| (0..g.k).map(move |kx| ky * wp + kx)));
+    sc.out.resize(g.ho * g.wo * CB, 0.0);
+    let sw = Sweep {
+        rows: g.ho,
+        cols: g.wo,
+        in_step: s * wp,
+        in_col: s,
+        out_step: g.wo,
+        out_col: 1,
+    };
+    sweep(&sw, (&sc.xin, 0), &sc.offs, wv, (&mut sc.out, 0));
+    from_channels(&sc.out, out);
+}
+
+/// One block's backward: dL/dx into `dxb` (eight planes of h×w), each plane's k² weight
+/// gradients into `dwb` (overwritten); `wv` the block's weights ([`weight_table`]), turned by
+/// 180° at stride 1.
+#[target_feature(enable = "avx2,fma")]
+fn backward_block(
+    g: &Geom,
+    xb: &[f32],
+    wv: &[f32],
+    dyb: &[f32],
+    sc: &mut Scratch,
+    dxb: &mut [f32],
+    dwb: &mut [f32],
+) {
+    let (p, s, k, wp) = (g.k / 2, g.s, g.k, g.w + 2 * (g.k / 2));
+    sc.input_layout(g);
+    to_channels(xb, g.w, &mut sc.xin, wp, p);
+    sc.dy_layout(g);
+    let (_, wd) = dy_extent(g);
+    to_channels(dyb, g.wo, &mut sc.dpad, wd, p);
+    sc.offs.clear();
+    sc.offs
+        .extend((0..k).flat_map(|ky| (0..k).map(move |kx| ky * wp + kx)));
+    weight_grad(g, &sc.xin, &sc.offs, (&sc.dpad, wd), dwb);
+    sc.out.resize(g.h * g.w * CB, 0.0);
+    if s == 1 {
+        // dL/dy correlated with the kernel turned by 180° on the forward's padded shape, as
+        // the plane path does.
+        let sw = Sweep {
+            rows: g.h,
+            cols: g.w,
+            in_step: wp,
+            in_col: 1,
+            out_step: g.w,
+            out_col: 1,
+        };
+        sweep(&sw, (&sc.dpad, 0), &sc.offs, wv, (&mut sc.out, 0));
+        from_channels(&sc.out, dxb);
+        return;
+    }
+    // At stride s ≥ 2 the cells of phase (ρ, γ) see the taps ky ≡ ρ, kx ≡ γ (mod s), each at a
+    // fixed offset in dL/dy: the plane path's `strided_dx`, with the same order of taps.
+    let span = |q: usize, n: usize| {
+        (
+            p.saturating_sub(q).div_ceil(s),
+            (p + n).saturating_sub(q).div_ceil(s),
+        )
+    };
+    for rho in 0..s {
+        let (m0, m1) = span(rho, g.h);
+        for gamma in 0..s {
+            let (j0, j1) = span(gamma, g.w);
+            if m1 <= m0 || j1 <= j0 {
+                continue;
+            }
+            sc.offs.clear();
+            sc.wv.clear();
+            for ky in (rho..k).step_by(s) {
+                for kx in (gamma..k).step_by(s) {
+                    sc.offs
+                        .push((p - (ky - rho) / s) * wd + p - (kx - gamma) / s);
+                    sc.wv.extend_from_slice(&wv[(ky * k + kx) * CB..][..CB]);
+                }
+            }
+            let sw = Sweep {
+                rows: m1 - m0,
+                cols: j1 - j0,
+                in_step: wd,
+                in_col: 1,
+                out_step: s * g.w,
+                out_col: s,
+            };
+            // Phase row m, column j is the interior cell (m·s + ρ − p, j·s + γ − p).
+            let at = (m0 * s + rho - p) * g.w + j0 * s + gamma - p;
+            sweep(
+                &sw,
+                (&sc.dpad, m0 * wd + j0),
+                &sc.offs,
+                &sc.wv,
+                (&mut sc.out, at),
+            );
+        }
+    }
+    from_channels(&sc.out, dxb);
+}
+
+/// A correlation over a grid of outputs, in pixels of eight channels: output (m, j) at
+/// `out[o + m·out_step + j·out_col]` is `Σₜ wv[t] ⊙ src[i + m·in_step + j·in_col + offs[t]]`,
+/// taps summed in `offs` order from zero.
+#[derive(Clone, Copy, Debug)]
+struct Sweep {
+    rows: usize,
+    cols: usize,
+    in_step: usize,
+    in_col: usize,
+    out_step: usize,
+    out_col: usize,
+}
+
+/// Every output of `sw`; `(src, i)` and `(out, o)` are buffers and first pixels.
+#[target_feature(enable = "avx2,fma")]
+fn sweep(
+    sw: &Sweep,
+    (src, i): (&[f32], usize),
+    offs: &[usize],
+    wv: &[f32],
+    (out, o): (&mut [f32], usize),
+) {
+    if sw.rows == 0 || sw.cols == 0 {
+        return;
+    }
+    let reach = offs.iter().max().map_or(0, |&m| m + 1);
+    assert!(
+        (i + (sw.rows - 1) * sw.in_step + (sw.cols - 1) * sw.in_col + reach) * CB <= src.len(),
+        "channel-block sweep reads past its input: {sw:?}"
+    );
+    assert!((o + (sw.rows - 1) * sw.out_step + (sw.cols - 1) * sw.out_col + 1) * CB <= out.len());
+    assert!(wv.len() >= offs.len() * CB);
+    for m in 0..sw.rows {
+        let mut j = 0;
+        // Eight outputs share each weight's load and keep eight chains of fused
+        // multiply–adds in flight.
+        // SAFETY (all three): columns j .. j + N ≤ cols of row m < rows, inside both buffers
+        // by the assertions above.
+        while j + 8 <= sw.cols {
+            unsafe { outputs::<8>(sw, src, i, offs, wv, out, o, (m, j)) };
+            j += 8;
+        }
+        while j + 4 <= sw.cols {
+            unsafe { outputs::<4>(sw, src, i, offs, wv, out, o, (m, j)) };
+            j += 4;
+        }
+        while j < sw.cols {
+            unsafe { outputs::<1>(sw, src, i, offs, wv, out, o, (m, j)) };
+            j += 1;
+        }
+    }
+}
+
+/// Outputs (m, j .. j + N) of `sw`.
+///
+/// # Safety
+/// The CPU has AVX2 and FMA; every read and write is inside `src` and `out` (checked by
+/// [`sweep`]).
+#[allow(clippy::too_many_arguments)]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn outputs<const N: usize>(
+    sw: &Sweep,
+    src: &[f32],
+    i: usize,
+    offs: &[usize],
+    wv: &[f32],
+    out: &mut [f32],
+    o: usize,
+    (m, j): (usize, usize),
+) {
+    let mut acc = [_mm256_setzero_ps(); N];
+    let base = src
+        .as_ptr()
+        .wrapping_add((i + m * sw.in_step + j * sw.in_col) * CB);
+    for (t, &off) in offs.iter().enumerate() {
+        // SAFETY: `wv` holds a register per tap; the reads are inside `src` (contract).
+        unsafe {
+            let w = _mm256_loadu_ps(wv.as_ptr().add(t * CB));
+            for (n, a) in acc.iter_mut().enumerate() {
+                let v = _mm256_loadu_ps(base.add((n * sw.in_col + off) * CB));
+                *a = _mm256_fmadd_ps(w, v, *a);
+            }
+        }
+    }
+    let dst = out
+        .as_mut_ptr()
+        .wrapping_add((o + m * sw.out_step + j * sw.out_col) * CB);
+    for (n, a) in acc.iter().enumerate() {
+        // SAFETY: inside `out` (contract).
+        unsafe { _mm256_storeu_ps(dst.add(n * sw.out_col * CB), *a) };
+    }
+}
+
+/// Most taps whose gradients one pass over dL/dy accumulates side by side.
+const TAPS: usize = 8;
+
+/// dL/dw of the block's k² taps into `dwb` (plane-major, k² per plane, overwritten) from the
+/// padded input and the padded dL/dy `(dpad, wd)`; each tap sums over the outputs in
+/// row-major order.
+#[target_feature(enable = "avx2,fma")]
+fn weight_grad(
+    g: &Geom,
+    xin: &[f32],
+    offs: &[usize],
+    (dpad, wd): (&[f32], usize),
+    dwb: &mut [f32],
+) {
+    let (p, s, kk) = (g.k / 2, g.s, g.k * g.k);
+    let wp = g.w + 2 * p;
+    let reach = offs.iter().max().map_or(0, |&m| m + 1);
+    assert!(((g.ho - 1) * s * wp + (g.wo - 1) * s + reach) * CB <= xin.len());
+    assert!(((g.ho - 1 + p) * wd + g.wo - 1 + p + 1) * CB <= dpad.len() && dwb.len() >= CB * kk);
+    let per = kk.div_ceil(kk.div_ceil(TAPS));
+    let at = (wp, wd, p, s);
+    for (n, group) in offs.chunks(per).enumerate() {
+        // SAFETY (all): the reads are inside `xin` and `dpad` by the assertions above.
+        let sums = unsafe {
+            match group.len() {
+                1 => tap_sums::<1>(g, xin, dpad, group, at),
+                2 => tap_sums::<2>(g, xin, dpad, group, at),
+                3 => tap_sums::<3>(g, xin, dpad, group, at),
+                4 => tap_sums::<4>(g, xin, dpad, group, at),
+                5 => tap_sums::<5>(g, xin, dpad, group, at),
+                6 => tap_sums::<6>(g, xin, dpad, group, at),
+                7 => tap_sums::<7>(g, xin, dpad, group, at),
+                _ => tap_sums::<8>(g, xin, dpad, group, at),
+            }
+        };
+        for (t, lanes) in sums.iter().enumerate().take(group.len()) {
+            for (j, &v) in lanes.iter().enumerate() {
+                dwb[j * kk + n * per + t] = v;
+            }
+        }
+    }
+}
+
+/// The sums over the outputs of dL/dy · x for the `T` taps `offs` (eight channels each; the
+/// first `T` of the result), accumulators in registers.
+///
+/// # Safety
+/// The CPU has AVX2 and FMA; the reads are inside `xin` and `dpad` (checked by
+/// [`weight_grad`]).
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn tap_sums<const T: usize>(
+    g: &Geom,
+    xin: &[f32],
+    dpad: &[f32],
+    offs: &[usize],
+    (wp, wd, p, s): (usize, usize, usize, usize),
+) -> [[f32; CB]; TAPS] {
+    let offs: [usize; T] = std::array::from_fn(|t| offs[t] * CB);
+    let mut acc = [_mm256_setzero_ps(); T];
+    for oy in 0..g.ho {
+        // SAFETY: inside `dpad` and `xin` (contract).
+        unsafe {
+            let drow = dpad.as_ptr().add(((oy + p) * wd + p) * CB);
+            let xrow = xin.as_ptr().add(oy * s * wp * CB);
+            for ox in 0..g.wo {
+                let d = _mm256_loadu_ps(drow.add(ox * CB));
+                let x = xrow.add(ox * s * CB);
+                for (a, &off) in acc.iter_mut().zip(&offs) {
+                    *a = _mm256_fmadd_ps(d, _mm256_loadu_ps(x.add(off)), *a);
+                }
+            }
+        }
+    }
+    let mut out = [[0.0f32; CB]; TAPS];
+    for (o, a) in out.iter_mut().zip(&acc) {
+        // SAFETY: a store of CB values into `o`.
+        unsafe { _mm256_storeu_ps(o.as_mut_ptr(), *a) };
+    }
+    out
+}
+
+/// Eight planes of `w`-wide rows (`src`, plane-major) into the padded channels-innermost
+/// layout `dst` of `wp` pixels per row, pixel (y, x) at (y + p, x + p).
+#[target_feature(enable = "avx2,fma")]
+fn to_channels(src: &[f32], w: usize, dst: &mut [f32], wp: usize, p: usize) {
+    let hw = src.len() / CB;
+    if hw == 0 {
+        return;
+    }
+    let h = hw / w;
+    assert!(
+        hw == h * w && ((h - 1 + p) * wp + w + p) * CB <= dst.len(),
+        "to_channels {hw} {w} {wp} {p} {}",
+        dst.len()
+    );
+    // Destination of pixel i, kept as a row and column (a division per pixel cost more than
+    // the transposes at 8×8).
+    let (mut y, mut x) = (0, 0);
+    let mut at = move || {
+        let d = ((y + p) * wp + x + p) * CB;
+        x += 1;
+        if x == w {
+            x = 0;
+            y += 1;
+        }
+        d
+    };
+    let mut i = 0;
+    while i + CB <= hw {
+        // SAFETY: rows i .. i + 8 of each of the eight planes are inside `src`.
+        let t = unsafe {
+            transpose(std::array::from_fn(|j| {
+                _mm256_loadu_ps(src.as_ptr().add(j * hw + i))
+            }))
+        };
+        for v in &t {
+            // SAFETY: every pixel's destination lies inside `dst` (assertion above).
+            unsafe { _mm256_storeu_ps(dst.as_mut_ptr().add(at()), *v) };
+        }
+        i += CB;
+    }
+    for i in i..hw {
+        let d = at();
+        for j in 0..CB {
+            dst[d + j] = src[j * hw + i];
+        }
+    }
+}
+
+/// The channels-innermost pixels of `src` (unpadded, `dst.len() / 8` of them) into eight
+/// planes `dst`.
+#[target_feature(enable = "avx2,fma")]
+fn from_channels(src: &[f32], dst: &mut [f32]) {
+    let hw = dst.len() / CB;
+    assert!(src.len() >= hw * CB);
+    let mut i = 0;
+    while i + CB <= hw {
+        // SAFETY: pixels i .. i + 8 are inside `src`, rows i .. i + 8 of each plane inside
+        // `dst` (assertion above).
+        unsafe {
+            let t = transpose(std::array::from_fn(|n| {
+                _mm256_loadu_ps(src.as_ptr().add((i + n) * CB))
+            }));
+            for (j, v) in t.iter().enumerate() {
+                _mm256_storeu_ps(dst.as_mut_ptr().add(j * hw + i), *v);
+            }
+        }
+        i += CB;
+    }
+    for i in i..hw {
+        for j in 0..CB {
+            dst[j * hw + i] = src[i * CB + j];
+        }
+    }
+}
+
+/// The 8×8 transpose of eight registers (row r, lane l → row l, lane r).
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn transpose(r: [__m256; 8]) -> [__m256; 8] {
+    let t0 = _mm256_unpacklo_ps(r[0], r[1]);
+    let t1 = _mm256_unpackhi_ps(r[0], r[1]);
+    let t2 = _mm256_unpacklo_ps(r[2], r[3]);
+    let t3 = _mm256_unpackhi_ps(r[2], r[3]);
+    let t4 = _mm256_unpacklo_ps(r[4], r[5]);
+    let t5 = _mm256_unpackhi_ps(r[4], r[5]);
+    let t6 = _mm256_unpacklo_ps(r[6], r[7]);
+    let t7 = _mm256_unpackhi_ps(r[6], r[7]);
+    let s0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+    let s1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
+    let s2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+    let s3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
+    let s4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+    let s5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
+    let s6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+    let s7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
+    [
+        _mm256_permute2f128_ps::<0x20>(s0, s4),
+        _mm256_permute2f128_ps::<0x20>(s1, s5),
+        _mm256_permute2f128_ps::<0x20>(s2, s6),
+        _mm256_permute2f128_ps::<0x20>(s3, s7),
+        _mm256_permute2f128_ps::<0x31>(s0, s4),
+        _mm256_permute2f128_ps::<0x31>(s1, s5),
+        _mm256_permute2f128_ps::<0x31>(s2, s6),
+        _mm256_permute2f128_ps::<0x31>(s3, s7),
+    ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::{Scratch as PlaneScratch, backward_plane_fma, forward_plane_fma};
+    use super::*;
+    use crate::conv::out_size;
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+
+    /// Every geometry the block path takes (strides 1–3, planes smaller than the kernel, rows
+    /// shorter and longer than a block of eight, pixel counts not a multiple of eight): y and
+    /// dL/dx bit for bit the plane path's, dL/dw within rounding of it; one scratch reused
+    /// across geometries as a rayon task reuses its own, so no stale padding leaks through.
+    #[test]
+    fn channel_blocks_give_the_plane_paths_bits() {
+        if !has_fma() {
+            return;
+        }
+        let mut rng = StdRng::seed_from_u64(11);
+        let mut sc = Scratch::default();
+        let mut psc = PlaneScratch::default();
+        let mut cases = 0;
+        while cases < 240 {
+            let k = [1, 3, 5, 7][cases % 4];
+            let s = 1 + (cases / 4) % 3;
+            let (h, w) = (rng.random_range(1..34), rng.random_range(1..34));
+            let g = Geom {
+                h,
+                w,
+                ho: out_size(h, k, s),
+                wo: out_size(w, k, s),
+                k,
+                s,
+            };
+            let c = CB * rng.random_range(1..3);
+            if !takes(&g, c) {
+                continue;
+            }
+            cases += 1;
+            let (hw, howo, kk) = (h * w, g.ho * g.wo, k * k);
+            let x: Vec<f32> = (0..c * hw).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let wk: Vec<f32> = (0..c * kk).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let dy: Vec<f32> = (0..c * howo).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let (mut y, mut dx, mut dw) = (
+                vec![f32::NAN; c * howo],
+                vec![f32::NAN; c * hw],
+                vec![f32::NAN; c * kk],
+            );
+            let (table, turned) = (
+                weight_table(&wk, c, kk, false),
+                weight_table(&wk, c, kk, s == 1),
+            );
+            for b in 0..c / CB {
+                let xb = &x[b * CB * hw..][..CB * hw];
+                let dyb = &dy[b * CB * howo..][..CB * howo];
+                let wv = &table[b * kk * CB..][..kk * CB];
+                let wt = &turned[b * kk * CB..][..kk * CB];
+                // SAFETY: has_fma() checked the CPU.
+                unsafe {
+                    forward_block(&g, xb, wv, &mut sc, &mut y[b * CB * howo..][..CB * howo]);
+                    backward_block(
+                        &g,
+                        xb,
+                        wt,
+                        dyb,
+                        &mut sc,
+                        &mut dx[b * CB * hw..][..CB * hw],
+                        &mut dw[b * CB * kk..][..CB * kk],
+                    );
+                }
+            }
+            for ch in 0..c {
+                let (xp, wp, dyp) = (
+                    &x[ch * hw..][..hw],
+                    &wk[ch * kk..][..kk],
+                    &dy[ch * howo..][..howo],
+                );
+                let (mut y0, mut dx0, mut dw0) = (vec![0.0; howo], vec![0.0; hw], vec![0.0; kk]);
+                // SAFETY: has_fma() checked the CPU.
+                unsafe {
+                    forward_plane_fma(&g, xp, wp, &mut psc, &mut y0);
+                    backward_plane_fma(&g, xp, wp, dyp, &mut psc, &mut dx0, &mut dw0);
+                }
+                for (i, (a, b)) in y[ch * howo..][..howo].iter().zip(&y0).enumerate() {
+                    assert_eq!(a.to_bits(), b.to_bits(), "y[{ch}][{i}] {a} vs {b} in {g:?}");
+                }
+                for (i, (a, b)) in dx[ch * hw..][..hw].iter().zip(&dx0).enumerate() {
+                    assert_eq!(
+                        a.to_bits(),
+                        b.to_bits(),
+                        "dx[{ch}][{i}] {a} vs {b} in {g:?}"
+                    );
+                }
+                // Both sum howo products per tap, in different orders.
+                let scale: f32 = dyp.iter().map(|v| v.abs()).sum();
+                for (t, (a, b)) in dw[ch * kk..][..kk].iter().zip(&dw0).enumerate() {
+                    assert!(
+                        (a - b).abs() <= 1e-6 * scale.max(1.0),
+                        "dw[{ch}][{t}] {a} vs {b} in {g:?}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// The parallel entry points over several images and blocks are the blocks one by one,
+    /// whatever the thread count.
+    #[test]
+    fn parallel_blocks_match_one_at_a_time() {
+        if !has_fma() {
+            return;
+        }
+        let g = Geom {
+            h: 16,
+            w: 16,
+            ho: 8,
+            wo: 8,
+            k: 5,
+            s: 2,
+        };
+        let (n, c) = (3, 24);
+        let mut rng = StdRng::seed_from_u64(5);
+        let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
+        let x: Vec<f32> = (0..n * c * hw)
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect();
+        let wk: Vec<f32> = (0..c * kk).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let dy: Vec<f32> = (0..n * c * howo)
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let mut y = vec![0.0; n * c * howo];
+                let mut dx = vec![0.0; n * c * hw];
+                let mut dw = vec![0.0; n * c * kk];
+                forward(&g, c, &x, &wk, &mut y);
+                backward(&g, c, &x, &wk, &dy, &mut dx, &mut dw);
+                (y, dx, dw)
+            })
+        };
+        let one = run(1);
+        assert_eq!(one, run(3));
+        let mut sc = Scratch::default();
+        let table = weight_table(&wk, c, kk, false);
+        for b in 0..n * c / CB {
+            let mut y = vec![0.0; CB * howo];
+            let wv = &table[(b % (c / CB)) * kk * CB..][..kk * CB];
+            // SAFETY: has_fma() checked the CPU.
+            unsafe { forward_block(&g, &x[b * CB * hw..][..CB * hw], wv, &mut sc, &mut y) };
+            assert_eq!(y, one.0[b * CB * howo..][..CB * howo]);
+        }
+    }
+}
