@@ -153,10 +153,14 @@ fn layers(c: &mut Criterion) {
     // Stage-2/3 maps (16², 240 channels), a stage-1 map at the default render (100×160,
     // 24 channels), and the stride-4 and stride-8 maps of the main job's 278×174 network input
     // (widths 70 and 35: rows that end in a partial register block) and the stride-2 layer that
-    // reads the 44×70 map; stride 2 halves the output, so its MACs are a quarter.
+    // reads the 44×70 map; stride 2 halves the output, so its MACs are a quarter. The 8×8
+    // maps are the min subnet's last stages at 128² (output planes of 64 and 16 values: the
+    // channel-block path).
     for (c, h, w, s) in [
         (240usize, 16usize, 16usize, 1usize),
         (240, 16, 16, 2),
+        (480, 8, 8, 1),
+        (480, 8, 8, 2),
         (24, 100, 160, 1),
         (96, 44, 70, 1),
         (96, 44, 70, 2),
