@@ -430,6 +430,9 @@ unsafe fn tap_sums<const T: usize>(
 
 /// Eight planes of `w`-wide rows (`src`, plane-major) into the padded channels-innermost
 /// layout `dst` of `wp` pixels per row, pixel (y, x) at (y + p, x + p).
+///
+/// Row by row, eight pixels at a time, a row's last `w mod 8` as masked loads: a running
+/// position per pixel (and before it a division) cost more than the transposes at 8×8.
 #[target_feature(enable = "avx2,fma")]
 fn to_channels(src: &[f32], w: usize, dst: &mut [f32], wp: usize, p: usize) {
     let hw = src.len() / CB;
@@ -437,41 +440,40 @@ fn to_channels(src: &[f32], w: usize, dst: &mut [f32], wp: usize, p: usize) {
         return;
     }
     let h = hw / w;
-    assert!(
-        hw == h * w && ((h - 1 + p) * wp + w + p) * CB <= dst.len(),
-        "to_channels {hw} {w} {wp} {p} {}",
-        dst.len()
+    assert!(hw == h * w && ((h - 1 + p) * wp + w + p) * CB <= dst.len());
+    let rem = w % CB;
+    // Lanes below `rem`; the others read nothing and load zeros.
+    let mask = _mm256_cmpgt_epi32(
+        _mm256_set1_epi32(rem as i32),
+        _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7),
     );
-    // Destination of pixel i, kept as a row and column (a division per pixel cost more than
-    // the transposes at 8×8).
-    let (mut y, mut x) = (0, 0);
-    let mut at = move || {
-        let d = ((y + p) * wp + x + p) * CB;
-        x += 1;
-        if x == w {
-            x = 0;
-            y += 1;
+    let (s, d) = (src.as_ptr(), dst.as_mut_ptr());
+    for y in 0..h {
+        let mut x = 0;
+        // SAFETY (both blocks): pixels y·w + x .. + 8 (+ rem) of each plane are inside `src`,
+        // their destinations inside `dst` (assertion above).
+        while x + CB <= w {
+            unsafe {
+                let t = transpose(std::array::from_fn(|j| {
+                    _mm256_loadu_ps(s.add(j * hw + y * w + x))
+                }));
+                let at = d.add(((y + p) * wp + x + p) * CB);
+                for (n, v) in t.iter().enumerate() {
+                    _mm256_storeu_ps(at.add(n * CB), *v);
+                }
+            }
+            x += CB;
         }
-        d
-    };
-    let mut i = 0;
-    while i + CB <= hw {
-        // SAFETY: rows i .. i + 8 of each of the eight planes are inside `src`.
-        let t = unsafe {
-            transpose(std::array::from_fn(|j| {
-                _mm256_loadu_ps(src.as_ptr().add(j * hw + i))
-            }))
-        };
-        for v in &t {
-            // SAFETY: every pixel's destination lies inside `dst` (assertion above).
-            unsafe { _mm256_storeu_ps(dst.as_mut_ptr().add(at()), *v) };
-        }
-        i += CB;
-    }
-    for i in i..hw {
-        let d = at();
-        for j in 0..CB {
-            dst[d + j] = src[j * hw + i];
+        if rem > 0 {
+            unsafe {
+                let t = transpose(std::array::from_fn(|j| {
+                    _mm256_maskload_ps(s.add(j * hw + y * w + x), mask)
+                }));
+                let at = d.add(((y + p) * wp + x + p) * CB);
+                for (n, v) in t.iter().take(rem).enumerate() {
+                    _mm256_storeu_ps(at.add(n * CB), *v);
+                }
+            }
         }
     }
 }
