@@ -159,7 +159,11 @@ impl Default for RunConfig {
             fisher_photons: 1e5,
             train_steps: 200,
             batch: 4,
-            random_subnets: 0,
+            // S22 with two random subnets besides N_max and N_min (the default): with
+            // none, the subnets between the extremes were untrained slices, 100 of them on
+            // the ambiguity pairs 26–28° median against 15–19° with two, for 14 % more job
+            // time (docs/run.md, twenty-fourth session).
+            random_subnets: 2,
             lr_net: 4e-3,
             lr_phase_rad: 2e-2,
             lr_pitch_um: 5e-2,
