@@ -60,6 +60,42 @@ impl Geom {
     fn planes_per_task(&self) -> usize {
         (TASK_MACS / (self.ho * self.wo * self.k * self.k).max(1)).max(1)
     }
+    /// Rows and columns of dL/dy zero-padded for the strided dL/dx: p before, and after it as
+    /// many as the taps of the last interior cell reach.
+    fn strided_dy_extent(&self) -> (usize, usize) {
+        let (p, s) = (self.pad(), self.s);
+        (
+            self.ho.max((p + self.h - 1) / s + 1) + p,
+            self.wo.max((p + self.w - 1) / s + 1) + p,
+        )
+    }
+    /// Phase rows (or columns) of phase q that hold interior cells, of n: the first at or after
+    /// the padding and one past the last.
+    fn phase_span(&self, q: usize, n: usize) -> (usize, usize) {
+        let (p, s) = (self.pad(), self.s);
+        (
+            p.saturating_sub(q).div_ceil(s),
+            (p + n).saturating_sub(q).div_ceil(s),
+        )
+    }
+    /// The taps that reach the cells of phase (ρ, γ) in (ky, kx) order: each tap's index
+    /// ky·k + kx and its offset from the cell's own position in the padded dL/dy of `wp`
+    /// columns (see [`strided_dx`]).
+    fn phase_taps(
+        &self,
+        (rho, gamma): (usize, usize),
+        wp: usize,
+    ) -> impl Iterator<Item = (usize, usize)> {
+        let (p, s, k) = (self.pad(), self.s, self.k);
+        (rho..k).step_by(s).flat_map(move |ky| {
+            (gamma..k).step_by(s).map(move |kx| {
+                (
+                    ky * k + kx,
+                    (p - (ky - rho) / s) * wp + p - (kx - gamma) / s,
+                )
+            })
+        })
+    }
 }
 
 /// a·b + c, fused where the target has FMA.
@@ -566,10 +602,8 @@ fn backward_plane<const FMA: bool>(
 /// the scatter, with zero padding adding exact zeros: the same bits.
 #[inline(always)]
 fn strided_dx<const FMA: bool>(g: &Geom, wk: &[f32], dy: &[f32], sc: &mut Scratch, dx: &mut [f32]) {
-    let (p, s, k, cw) = (g.pad(), g.s, g.k, g.cw());
-    // dL/dy with p zero rows and columns before it and enough after for every cell's taps.
-    let hp = g.ho.max((p + g.h - 1) / s + 1) + p;
-    let wp = g.wo.max((p + g.w - 1) / s + 1) + p;
+    let (p, s, cw) = (g.pad(), g.s, g.cw());
+    let (hp, wp) = g.strided_dy_extent();
     let key = [g.h, g.w, g.k, g.s];
     if sc.dshape != Some(key) {
         sc.dpad.clear();
@@ -584,26 +618,15 @@ fn strided_dx<const FMA: bool>(g: &Geom, wk: &[f32], dy: &[f32], sc: &mut Scratc
     if sc.dbuf.len() != g.scratch_len() {
         sc.dbuf.resize(g.scratch_len(), 0.0);
     }
-    // First phase row (column) at or after the padding, and one past the last inside the
-    // plane, for phase q of n interior cells.
-    let span = |q: usize, n: usize| {
-        (
-            p.saturating_sub(q).div_ceil(s),
-            (p + n).saturating_sub(q).div_ceil(s),
-        )
-    };
     for rho in 0..s {
-        let (m0, m1) = span(rho, g.h);
+        let (m0, m1) = g.phase_span(rho, g.h);
         for gamma in 0..s {
-            let (j0, j1) = span(gamma, g.w);
+            let (j0, j1) = g.phase_span(gamma, g.w);
             sc.offs.clear();
             sc.flip.clear();
-            for ky in (rho..k).step_by(s) {
-                for kx in (gamma..k).step_by(s) {
-                    sc.offs
-                        .push((p - (ky - rho) / s) * wp + p - (kx - gamma) / s);
-                    sc.flip.push(wk[ky * k + kx]);
-                }
+            for (t, off) in g.phase_taps((rho, gamma), wp) {
+                sc.offs.push(off);
+                sc.flip.push(wk[t]);
             }
             let sw = Sweep {
                 rows: m1.saturating_sub(m0),

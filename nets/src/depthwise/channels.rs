@@ -88,18 +88,14 @@ fn weight_table(w: &[f32], c: usize, kk: usize, flip: bool) -> Vec<f32> {
     table
 }
 
-/// Rows and columns of the padded dL/dy: p before, and at least as many after as the
-/// strided dL/dx's taps reach (the plane path's `strided_dx` extent; at stride 1 the
-/// forward's padded shape).
+/// Rows and columns of the padded dL/dy: at stride 1 the forward's padded shape, at stride
+/// s ≥ 2 the plane path's.
 fn dy_extent(g: &Geom) -> (usize, usize) {
-    let p = g.k / 2;
     if g.s == 1 {
+        let p = g.k / 2;
         return (g.h + 2 * p, g.w + 2 * p);
     }
-    (
-        g.ho.max((p + g.h - 1) / g.s + 1) + p,
-        g.wo.max((p + g.w - 1) / g.s + 1) + p,
-    )
+    g.strided_dy_extent()
 }
 
 /// Forward over all planes (as [`super::forward`]), `takes(g, c)` holding.
@@ -208,27 +204,18 @@ fn backward_block(
     }
     // At stride s ≥ 2 the cells of phase (ρ, γ) see the taps ky ≡ ρ, kx ≡ γ (mod s), each at a
     // fixed offset in dL/dy: the plane path's `strided_dx`, with the same order of taps.
-    let span = |q: usize, n: usize| {
-        (
-            p.saturating_sub(q).div_ceil(s),
-            (p + n).saturating_sub(q).div_ceil(s),
-        )
-    };
     for rho in 0..s {
-        let (m0, m1) = span(rho, g.h);
+        let (m0, m1) = g.phase_span(rho, g.h);
         for gamma in 0..s {
-            let (j0, j1) = span(gamma, g.w);
+            let (j0, j1) = g.phase_span(gamma, g.w);
             if m1 <= m0 || j1 <= j0 {
                 continue;
             }
             sc.offs.clear();
             sc.wv.clear();
-            for ky in (rho..k).step_by(s) {
-                for kx in (gamma..k).step_by(s) {
-                    sc.offs
-                        .push((p - (ky - rho) / s) * wd + p - (kx - gamma) / s);
-                    sc.wv.extend_from_slice(&wv[(ky * k + kx) * CB..][..CB]);
-                }
+            for (t, off) in g.phase_taps((rho, gamma), wd) {
+                sc.offs.push(off);
+                sc.wv.extend_from_slice(&wv[t * CB..][..CB]);
             }
             let sw = Sweep {
                 rows: m1 - m0,
