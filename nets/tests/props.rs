@@ -2,6 +2,7 @@
 
 use nanoeye_nets::Tensor;
 use nanoeye_nets::act::Act;
+use nanoeye_nets::conv::{depthwise_forward, depthwise_vjp, out_size};
 use nanoeye_nets::loss::{dice_loss, hard_dice, slip_mse};
 use nanoeye_nets::norm::{BatchNorm, BnMode};
 use nanoeye_nets::resize::bilinear_forward;
@@ -63,6 +64,79 @@ proptest! {
         seed in 0u64..1 << 20,
     ) {
         inference_matches_the_supernet(h, w, seed)?;
+    }
+
+    /// Depthwise forward and backward at any scale up to where k²·|x|·|w| nears f32's range,
+    /// on any plane size, stride and channel count (so both the plane path and the
+    /// eight-channel blocks): finite and within rounding of the f64 definition.
+    #[test]
+    fn depthwise_any_scale_matches_the_definition(
+        h in 1usize..20,
+        w in 1usize..20,
+        kc in 0usize..4,
+        s in 1usize..3,
+        blocks in 1usize..3,
+        odd in any::<bool>(),
+        scale in -30i32..17,
+        seed in 0u64..1 << 20,
+    ) {
+        let (k, c) = ([1, 3, 5, 7][kc], 8 * blocks + usize::from(odd));
+        let a = 10f32.powi(scale);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut draw = |n: usize| -> Vec<f32> { (0..n).map(|_| a * rng.random_range(-1.0f32..1.0)).collect() };
+        let (ho, wo) = (out_size(h, k, s), out_size(w, k, s));
+        let x = Tensor::from_vec(2, c, h, w, draw(2 * c * h * w)).unwrap();
+        let wt = draw(c * k * k);
+        let dy = Tensor::from_vec(2, c, ho, wo, draw(2 * c * ho * wo)).unwrap();
+        let y = depthwise_forward(&x, &wt, k, s).unwrap();
+        let mut dw = vec![0.0f32; c * k * k];
+        let dx = depthwise_vjp(&x, &wt, k, s, &dy, &mut dw).unwrap();
+        let p = (k / 2) as isize;
+        let (mut y0, mut dx0, mut dw0) = (vec![0.0f64; y.len()], vec![0.0f64; x.len()], vec![0.0f64; dw.len()]);
+        // The sums of magnitudes of each value's terms, which bound its rounding error.
+        let (mut ym, mut dxm, mut dwm) = (vec![0.0f64; y.len()], vec![0.0f64; x.len()], vec![0.0f64; dw.len()]);
+        for n in 0..2 {
+            for ch in 0..c {
+                for oy in 0..ho {
+                    for ox in 0..wo {
+                        for ky in 0..k {
+                            for kx in 0..k {
+                                let (iy, ix) = ((oy * s + ky) as isize - p, (ox * s + kx) as isize - p);
+                                if iy < 0 || ix < 0 || iy >= h as isize || ix >= w as isize {
+                                    continue;
+                                }
+                                let xi = ((n * c + ch) * h + iy as usize) * w + ix as usize;
+                                let yi = ((n * c + ch) * ho + oy) * wo + ox;
+                                let t = ch * k * k + ky * k + kx;
+                                let (xv, wv, gv) = (x.data[xi] as f64, wt[t] as f64, dy.data[yi] as f64);
+                                y0[yi] += wv * xv;
+                                ym[yi] += (wv * xv).abs();
+                                dx0[xi] += wv * gv;
+                                dxm[xi] += (wv * gv).abs();
+                                dw0[t] += xv * gv;
+                                dwm[t] += (xv * gv).abs();
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        // Terms per value: k² for y and dL/dx, all outputs of both images for dL/dw.
+        let checks = [
+            ("y", &y.data, &y0, &ym, k * k),
+            ("dx", &dx.data, &dx0, &dxm, k * k),
+            ("dw", &dw, &dw0, &dwm, 2 * ho * wo + 1),
+        ];
+        for (what, got, want, mag, terms) in checks {
+            for (i, ((&g, &v), &m)) in got.iter().zip(want.iter()).zip(mag.iter()).enumerate() {
+                prop_assert!(g.is_finite(), "{what}[{i}] = {g}");
+                // A recursive f32 sum of n terms (inputs exact in f64) errs by at most
+                // (n + 1)·2⁻²⁴ of the sum of magnitudes, plus what rounding products below
+                // f32's normal range can lose.
+                let tol = (terms + 1) as f64 * 2f64.powi(-24) * m + 1e-37;
+                prop_assert!((g as f64 - v).abs() <= tol, "{what}[{i}] {g} vs {v} (|terms| {m}) k {k} s {s} c {c} {h}x{w}");
+            }
+        }
     }
 
     /// Bilinear resampling is a convex combination: output within the input's range.
