@@ -161,7 +161,7 @@ impl Default for RunConfig {
             batch: 4,
             // S22 with two random subnets besides N_max and N_min (the default): with
             // none, the subnets between the extremes were untrained slices, 100 of them on
-            // the ambiguity pairs 26–28° median against 15–19° with two, for 14 % more job
+            // the ambiguity pairs 22–28° median against 15–19° with two, for 10–14 % more job
             // time (docs/run.md, twenty-fourth session).
             random_subnets: 2,
             lr_net: 4e-3,
