@@ -98,8 +98,10 @@ fn dy_extent(g: &Geom) -> (usize, usize) {
     g.strided_dy_extent()
 }
 
-/// Forward over all planes (as [`super::forward`]), `takes(g, c)` holding.
+/// Forward over all planes (as [`super::forward`]); panics unless `takes(g, c)`.
 pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
+    // The blocks below run AVX2 and FMA code on that check alone.
+    assert!(takes(g, c), "channel blocks for {c} channels of {g:?}");
     let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
     let table = weight_table(w, c, kk, false);
     let blocks = c / CB;
@@ -114,7 +116,7 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
         });
 }
 
-/// Backward over all planes (as [`super::backward`]), `takes(g, c)` holding.
+/// Backward over all planes (as [`super::backward`]); panics unless `takes(g, c)`.
 pub(super) fn backward(
     g: &Geom,
     c: usize,
@@ -124,6 +126,7 @@ pub(super) fn backward(
     dx: &mut [f32],
     dw_planes: &mut [f32],
 ) {
+    assert!(takes(g, c), "channel blocks for {c} channels of {g:?}");
     let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
     let table = weight_table(w, c, kk, g.s == 1);
     let blocks = c / CB;
@@ -134,8 +137,8 @@ pub(super) fn backward(
         .for_each_init(Scratch::default, |sc, (b, (dxb, dwb))| {
             let xb = &x[b * CB * hw..][..CB * hw];
             let dyb = &dy[b * CB * howo..][..CB * howo];
-            // SAFETY: `takes` checked AVX2 and FMA on this CPU.
             let wv = &table[(b % blocks) * kk * CB..][..kk * CB];
+            // SAFETY: `takes` checked AVX2 and FMA on this CPU.
             unsafe { backward_block(g, xb, wv, dyb, sc, dxb, dwb) };
         });
 }
