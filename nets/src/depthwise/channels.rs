@@ -50,16 +50,22 @@ struct Scratch {
 }
 
 impl Scratch {
-    /// Lays `xin` out as the padded input of `g` ((h + 2p) × (w + 2p) pixels), zeroing it only
-    /// when the geometry changes: every block writes the same interior pixels.
-    fn input_layout(&mut self, g: &Geom) {
+    /// Transposes the block `xb` into `xin`, the padded input of `g` ((h + 2p) × (w + 2p)
+    /// pixels), zeroed only when the geometry changes (every block writes the same interior
+    /// pixels), and sets `offs` to the k² taps' offsets in it, in (ky, kx) order.
+    #[target_feature(enable = "avx2,fma")]
+    fn load_input(&mut self, g: &Geom, xb: &[f32]) {
+        let (p, wp) = (g.pad(), padded_width(g));
         let key = [g.h, g.w, g.k, g.s];
         if self.xshape != Some(key) {
-            let p = g.k / 2;
             self.xin.clear();
-            self.xin.resize((g.h + 2 * p) * (g.w + 2 * p) * CB, 0.0);
+            self.xin.resize((g.h + 2 * p) * wp * CB, 0.0);
             self.xshape = Some(key);
         }
+        to_channels(xb, g.w, &mut self.xin, wp, p);
+        self.offs.clear();
+        self.offs
+            .extend((0..g.k).flat_map(|ky| (0..g.k).map(move |kx| ky * wp + kx)));
     }
 
     /// Lays `dpad` out as dL/dy with p zero rows and columns before it and enough after for
@@ -92,10 +98,14 @@ fn weight_table(w: &[f32], c: usize, kk: usize, flip: bool) -> Vec<f32> {
 /// s ≥ 2 the plane path's.
 fn dy_extent(g: &Geom) -> (usize, usize) {
     if g.s == 1 {
-        let p = g.k / 2;
-        return (g.h + 2 * p, g.w + 2 * p);
+        return (g.h + 2 * g.pad(), padded_width(g));
     }
     g.strided_dy_extent()
+}
+
+/// Pixels per row of the padded input, w + 2p.
+fn padded_width(g: &Geom) -> usize {
+    g.w + 2 * g.pad()
 }
 
 /// Forward over all planes (as [`super::forward`]); panics unless `takes(g, c)`.
@@ -147,12 +157,8 @@ pub(super) fn backward(
 /// weights ([`weight_table`]).
 #[target_feature(enable = "avx2,fma")]
 fn forward_block(g: &Geom, xb: &[f32], wv: &[f32], sc: &mut Scratch, out: &mut [f32]) {
-    let (p, s, wp) = (g.k / 2, g.s, g.w + 2 * (g.k / 2));
-    sc.input_layout(g);
-    to_channels(xb, g.w, &mut sc.xin, wp, p);
-    sc.offs.clear();
-    sc.offs
-        .extend((0..g.k).flat_map(|ky| (0..g.k).map(move |kx| ky * wp + kx)));
+    let (s, wp) = (g.s, padded_width(g));
+    sc.load_input(g, xb);
     sc.out.resize(g.ho * g.wo * CB, 0.0);
     let sw = Sweep {
         rows: g.ho,
@@ -179,15 +185,11 @@ fn backward_block(
     dxb: &mut [f32],
     dwb: &mut [f32],
 ) {
-    let (p, s, k, wp) = (g.k / 2, g.s, g.k, g.w + 2 * (g.k / 2));
-    sc.input_layout(g);
-    to_channels(xb, g.w, &mut sc.xin, wp, p);
+    let (p, s, wp) = (g.pad(), g.s, padded_width(g));
+    sc.load_input(g, xb);
     sc.dy_layout(g);
     let (_, wd) = dy_extent(g);
     to_channels(dyb, g.wo, &mut sc.dpad, wd, p);
-    sc.offs.clear();
-    sc.offs
-        .extend((0..k).flat_map(|ky| (0..k).map(move |kx| ky * wp + kx)));
     weight_grad(g, &sc.xin, &sc.offs, (&sc.dpad, wd), dwb);
     sc.out.resize(g.h * g.w * CB, 0.0);
     if s == 1 {
@@ -350,8 +352,7 @@ fn weight_grad(
     (dpad, wd): (&[f32], usize),
     dwb: &mut [f32],
 ) {
-    let (p, s, kk) = (g.k / 2, g.s, g.k * g.k);
-    let wp = g.w + 2 * p;
+    let (p, s, kk, wp) = (g.pad(), g.s, g.k * g.k, padded_width(g));
     let reach = offs.iter().max().map_or(0, |&m| m + 1);
     assert!(((g.ho - 1) * s * wp + (g.wo - 1) * s + reach) * CB <= xin.len());
     assert!(((g.ho - 1 + p) * wd + g.wo - 1 + p + 1) * CB <= dpad.len() && dwb.len() >= CB * kk);
