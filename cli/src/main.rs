@@ -92,25 +92,24 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
     }
 }
 
-/// Keeps freed heap memory in the process. glibc's defaults hand large freed blocks back to
-/// the kernel and fault them in again on the next allocation; the RCWA sweep allocates and
-/// frees ~1 MB matrices thousands of times a second, which cost 12 % of its wall time
-/// (docs/bench/metalib.md). One arena for every thread: a spawned thread's own arena lives in
-/// 64 MB heaps that are unmapped when they empty, so the training threads' tensors were
-/// faulted in afresh each step (the default main job: 12.7 M → 1.9 M page faults, 53 → 27 s of
-/// system time, docs/run.md).
-#[cfg(all(target_os = "linux", target_env = "gnu"))]
-fn keep_freed_memory() {
-    // SAFETY: mallopt only sets allocator parameters; it runs before any other thread exists.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
-        libc::mallopt(libc::M_ARENA_MAX, 1);
-    }
-}
+/// mimalloc: each thread allocates from its own heap. glibc's one arena (`M_ARENA_MAX` 1, the
+/// setting before) made 16 training threads queue on its lock: the main job's training took
+/// 28–31 s for 20 steps on 16 cores against 18–20 s here (docs/run.md, twenty-fifth
+/// session); on 2 cores the two are level.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
-fn keep_freed_memory() {}
+/// `mi_option_purge_delay` in mimalloc.h's option enum (the sys crate names no constant for it).
+const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
+
+/// Keeps freed heap memory in the process: never purged back to the kernel. The RCWA sweep
+/// frees ~1 MB matrices thousands of times a second and training frees its tensors every step;
+/// handed back, each would be faulted in and zeroed again (docs/bench/metalib.md). With
+/// mimalloc's default delay the training stage took twice the system time and 15 % longer.
+fn keep_freed_memory() {
+    // SAFETY: sets one allocator option; no other thread exists yet.
+    unsafe { libmimalloc_sys::mi_option_set(MI_OPTION_PURGE_DELAY, -1) }
+}
 
 /// Whether `command` splits its work across MPI ranks; the others refuse to run on more
 /// than one, since every rank would write the same outputs.

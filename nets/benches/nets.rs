@@ -20,19 +20,15 @@ use std::time::Duration;
 
 const BATCH: usize = 16;
 
-/// The `nanoeye` binary's allocator settings (cli/src/main.rs): freed blocks up to 32 MiB stay
-/// in the process, so these times are the CLI's, not glibc's defaults'.
+/// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
+/// back to the kernel, so these times are the CLI's.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`).
 fn alloc_like_cli() {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    {
-        static ONCE: std::sync::Once = std::sync::Once::new();
-        // SAFETY: mallopt only sets allocator parameters.
-        ONCE.call_once(|| unsafe {
-            libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
-            libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
-            libc::mallopt(libc::M_ARENA_MAX, 1);
-        });
-    }
+    // SAFETY: sets one allocator option.
+    unsafe { libmimalloc_sys::mi_option_set(15, -1) }
 }
 
 fn image(n: usize, c: usize, h: usize, w: usize) -> Tensor {

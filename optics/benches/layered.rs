@@ -11,16 +11,15 @@ use nanoeye_optics::{LayeredImager, SpectralLayer};
 use num_complex::Complex64;
 use rustfft::FftPlanner;
 
-/// The `nanoeye` binary's allocator settings (cli/src/main.rs): freed blocks up to 32 MiB stay
-/// in the process, so a call's 19 MB grid is not faulted in afresh each time, as in the CLI.
+/// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
+/// back to the kernel, so a call's 19 MB grid is not faulted in afresh each time, as in the CLI.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`).
 fn alloc_like_cli() {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: mallopt only sets allocator parameters; no other thread exists yet.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
-        libc::mallopt(libc::M_ARENA_MAX, 1);
-    }
+    // SAFETY: sets one allocator option.
+    unsafe { libmimalloc_sys::mi_option_set(15, -1) }
 }
 
 fn bench(c: &mut Criterion) {

@@ -9,16 +9,15 @@ use nanoeye_search::{CameraChain, ChainConfig, LensSpec};
 use nanoeye_sensor::NoiseMode;
 use std::time::Instant;
 
-/// The `nanoeye` binary's allocator settings (cli/src/main.rs): freed blocks up to 32 MiB stay
-/// in the process, so the per-frame grids are not faulted in afresh, as in the CLI.
+/// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
+/// back to the kernel, so the per-frame grids are not faulted in afresh, as in the CLI.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`).
 fn alloc_like_cli() {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: mallopt only sets allocator parameters; no other thread exists yet.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
-        libc::mallopt(libc::M_ARENA_MAX, 1);
-    }
+    // SAFETY: sets one allocator option.
+    unsafe { libmimalloc_sys::mi_option_set(15, -1) }
 }
 
 fn main() {

@@ -18,6 +18,17 @@ fn arg<T: std::str::FromStr>(args: &[String], i: usize, default: T) -> T {
     args.get(i).and_then(|s| s.parse().ok()).unwrap_or(default)
 }
 
+/// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
+/// back to the kernel, so the steps reuse freed grids as training does.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`).
+fn alloc_like_cli() {
+    // SAFETY: sets one allocator option.
+    unsafe { libmimalloc_sys::mi_option_set(15, -1) }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let Some(dir) = args.get(1) else {
@@ -28,14 +39,7 @@ fn main() {
     let batch: usize = arg(&args, 3, 4);
     let n_random: usize = arg(&args, 4, 2);
     let reps: usize = arg(&args, 5, 3);
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: mallopt only sets allocator parameters; no other thread exists yet. The CLI's
-    // settings (cli/src/main.rs), so the steps reuse freed grids as training does.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
-        libc::mallopt(libc::M_ARENA_MAX, 1);
-    }
+    alloc_like_cli();
     let learned = args.get(6).is_none_or(|s| s != "fixed");
     let ds = Dataset::open(std::path::Path::new(dir)).expect("dataset");
     let chain = CameraChain::for_dataset(&ds, ChainConfig::default()).expect("chain");
