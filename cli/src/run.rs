@@ -139,6 +139,9 @@ pub struct RunConfig {
     /// Score the REA's candidates as the protocol stage deploys the pick (BN statistics over
     /// every training frame, head refit); off by default (docs/run.md).
     pub rea_head_refit: bool,
+    /// Start each REA candidate's fine-tune, and the final one behind each lens, at the
+    /// smallest p̂ of `pitch_range_um` at which the subnet fits `budget_macs` (docs/run.md).
+    pub rea_fit_pitch: bool,
 }
 
 impl Default for RunConfig {
@@ -187,6 +190,10 @@ impl Default for RunConfig {
             slip_target: SlipTarget::Translation,
             slip_head_refit: true,
             rea_head_refit: false,
+            // Without it the hinge alone moves p̂ by about 0.0125 µm a step in the final 40
+            // (Adam, 0.25 × 0.05 µm), and the job's pick cost 83–160 M MACs against the 40 M
+            // budget on three of four seeds (docs/run.md, twenty-fifth session).
+            rea_fit_pitch: true,
         }
     }
 }
@@ -358,6 +365,7 @@ fn rea_config(cfg: &RunConfig) -> ReaConfig {
         budget_macs: cfg.budget_macs,
         seed: cfg.seed,
         head_refit: cfg.rea_head_refit,
+        fit_pitch: cfg.rea_fit_pitch,
         ..ReaConfig::default()
     }
 }
@@ -457,6 +465,19 @@ pub fn run(a: RunArgs) -> Result<()> {
     if let Ok(text) = std::fs::read_to_string(&cpath) {
         let old: RunConfig = serde_json::from_str(&text)
             .with_context(|| format!("--out: {} is not a run configuration", cpath.display()))?;
+        // A key the file lacks was added after that run began; the default it would take now
+        // may not be how its finished stages ran.
+        let written: serde_json::Value = serde_json::from_str(&text)?;
+        let now = serde_json::to_value(&cfg)?;
+        if let (Some(w), Some(n)) = (written.as_object(), now.as_object())
+            && let Some(k) = n.keys().find(|k| !w.contains_key(*k))
+        {
+            bail!(
+                "--out: {} was begun by an older nanoeye, without `{k}`; its stages may have \
+                 run otherwise: use a new --out",
+                out.display()
+            );
+        }
         if old != cfg {
             bail!(
                 "--out: {} holds a run with another configuration; use a new --out or the same --config",
@@ -650,7 +671,7 @@ pub fn run(a: RunArgs) -> Result<()> {
                 if failed.load(Ordering::Relaxed) {
                     return Ok(());
                 }
-                tr.finetune_step(&best.arch, rc.budget_macs, rc.lambda_budget, FINAL_LR_SCALE)?;
+                tr.finetune_step(&best.arch, &rc.budget(), FINAL_LR_SCALE)?;
             }
             tr.save(&sel)?;
             tr

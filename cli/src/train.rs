@@ -554,6 +554,10 @@ pub struct ReaArgs {
     /// frame and the calibration head's output layer solved on them (docs/run.md).
     #[arg(long)]
     head_refit: bool,
+    /// Start each candidate's fine-tune at the smallest p̂ of the run's pitch range at which it
+    /// fits --budget-macs, instead of the inherited p̂ (docs/run.md).
+    #[arg(long)]
+    fit_pitch: bool,
     /// Candidates evaluated at once, one thread and chain each (the result does not depend on
     /// it; under MPI each worker rank evaluates one instead).
     #[arg(long, default_value_t = 2)]
@@ -595,6 +599,7 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         budget_macs: a.budget_macs,
         seed: a.seed,
         head_refit: a.head_refit,
+        fit_pitch: a.fit_pitch,
         ..ReaConfig::default()
     };
     cfg.validate().map_err(|e| {

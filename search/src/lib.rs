@@ -27,6 +27,6 @@ pub use rea::{CycleRecord, EvalPool, Evaluator, Individual, Rea, ReaConfig, ReaS
 pub use split::{DepthSplit, OneProcess};
 pub use task::{TaskLoss, task_loss};
 pub use train::{
-    EvalSetup, FrameEval, Metrics, SolverInput, StepRecord, TrainConfig, Trainer, evaluate_frames,
-    evaluate_frames_multi, evaluate_net, load_model,
+    Budget, EvalSetup, FrameEval, Metrics, SolverInput, StepRecord, TrainConfig, Trainer,
+    evaluate_frames, evaluate_frames_multi, evaluate_net, load_model,
 };

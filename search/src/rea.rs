@@ -10,7 +10,7 @@
 
 use crate::chain::CameraChain;
 use crate::error::{Result, param};
-use crate::train::{Metrics, Trainer};
+use crate::train::{Budget, Metrics, Trainer};
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::Arch;
 use rand::SeedableRng;
@@ -51,6 +51,11 @@ pub struct ReaConfig {
     /// ([`crate::headfit::refit_slip_head`]). Off in Table S1's search.
     #[serde(default)]
     pub head_refit: bool,
+    /// Start each candidate's inner loop at the smallest p̂ of the run's range at which it fits
+    /// the budget ([`Trainer::fit_pitch_to_budget`]) instead of the inherited p_init (S18), which
+    /// the hinge alone moves by about the pitch's learning rate a step. Off in Table S1's search.
+    #[serde(default)]
+    pub fit_pitch: bool,
     /// Seed.
     pub seed: u64,
 }
@@ -70,12 +75,22 @@ impl Default for ReaConfig {
             lr_scale: 0.1,
             recal_batches: 2,
             head_refit: false,
+            fit_pitch: false,
             seed: 0,
         }
     }
 }
 
 impl ReaConfig {
+    /// The budget of each candidate's inner loop.
+    pub fn budget(&self) -> Budget {
+        Budget {
+            macs: self.budget_macs,
+            lambda: self.lambda_budget,
+            fit_pitch: self.fit_pitch,
+        }
+    }
+
     /// Checks every field, naming the bad one.
     pub fn validate(&self) -> Result<()> {
         if self.population == 0 || self.population > 100_000 {
@@ -270,12 +285,14 @@ impl Evaluator<'_> {
     pub fn evaluate(&self, id: usize, arch: &Arch) -> Result<Individual> {
         let c = &self.config;
         let mut t = Trainer::from_checkpoint(self.chain, self.train, &self.run)?;
+        let budget = c.budget();
+        if budget.fit_pitch {
+            t.fit_pitch_to_budget(arch, budget.macs)?;
+        }
         let steps = (c.epochs * t.batches_per_epoch() as f64).round() as usize;
         let mut macs = 0;
         for _ in 0..steps {
-            macs = t
-                .finetune_step(arch, c.budget_macs, c.lambda_budget, c.lr_scale)?
-                .1;
+            macs = t.finetune_step(arch, &budget, c.lr_scale)?.1;
         }
         let m = if c.head_refit {
             let all = t.all_frames()?;
@@ -285,8 +302,7 @@ impl Evaluator<'_> {
             t.evaluate(self.val, arch, c.recal_batches)?
         };
         if steps == 0 {
-            let (h, w) = self.chain.native().at(t.pitch_um * 1e-6)?.shape();
-            macs = nanoeye_nets::cost::subnet_cost(&t.config().supernet, arch, h, w)?.macs;
+            macs = t.macs_at(arch, t.pitch_um)?;
         }
         let over = c.budget_macs > 0 && macs > c.budget_macs;
         Ok(Individual {

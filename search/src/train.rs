@@ -242,6 +242,17 @@ struct Meta {
     phase_n: usize,
 }
 
+/// The MAC budget of S16's inner loop.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Budget {
+    /// C_budget (MACs; 0: none).
+    pub macs: u64,
+    /// Weight λ of the hinge λ·max(0, C/C_budget − 1).
+    pub lambda: f64,
+    /// Keep p̂ inside the budget by projection ([`Trainer::fit_pitch_to_budget`]).
+    pub fit_pitch: bool,
+}
+
 /// The sandwich trainer over one dataset and one camera chain.
 pub struct Trainer<'a> {
     chain: &'a CameraChain,
@@ -588,14 +599,18 @@ impl<'a> Trainer<'a> {
 
     /// One inner-loop step (S16, S18): subnet `arch` alone, with the budget hinge
     /// λ·max(0, C/C_budget − 1) on p̂ through the continuous relaxation C ∝ p̂⁻² (the MAC count
-    /// itself is piecewise constant in p̂). Returns (task loss, MACs at the current p̂).
+    /// itself is piecewise constant in p̂); with `budget.fit_pitch`, p̂ is put inside the budget
+    /// before the step and after it ([`Trainer::fit_pitch_to_budget`]: projected descent).
+    /// Returns (task loss, MACs at the p̂ of the step).
     pub fn finetune_step(
         &mut self,
         arch: &Arch,
-        budget_macs: u64,
-        lambda_budget: f64,
+        budget: &Budget,
         lr_scale: f64,
     ) -> Result<(f64, u64)> {
+        if budget.fit_pitch {
+            self.fit_pitch_to_budget(arch, budget.macs)?;
+        }
         let s = self.chain_step(self.step)?;
         self.net.zero_grad();
         let (l, dx) = task_loss(
@@ -614,17 +629,55 @@ impl<'a> Trainer<'a> {
             ));
         }
         self.opt.step(&mut self.net, self.cfg.lr_net * lr_scale)?;
-        let (h, w) = s.fwd.grid.shape();
-        let macs = nanoeye_nets::cost::subnet_cost(&self.cfg.supernet, arch, h, w)?.macs;
+        let macs = self.macs_at(arch, self.pitch_um)?;
         // d/dp̂ [λ (C/B − 1)] with C ∝ p̂⁻²: −2λC/(B p̂), only while over the budget.
-        let hinge = if budget_macs > 0 && macs > budget_macs {
-            -2.0 * lambda_budget * macs as f64 / (budget_macs as f64 * self.pitch_um)
+        let hinge = if budget.macs > 0 && macs > budget.macs {
+            -2.0 * budget.lambda * macs as f64 / (budget.macs as f64 * self.pitch_um)
         } else {
             0.0
         };
         self.update_optics(s, &dx, hinge, lr_scale)?;
+        if budget.fit_pitch {
+            self.fit_pitch_to_budget(arch, budget.macs)?;
+        }
         self.step += 1;
         Ok((l.total, macs))
+    }
+
+    /// C_total of `arch` (MACs, S23) on the sensor grid at pitch `pitch_um`.
+    pub fn macs_at(&self, arch: &Arch, pitch_um: f64) -> Result<u64> {
+        let (h, w) = self.chain.native().at(pitch_um * 1e-6)?.shape();
+        Ok(nanoeye_nets::cost::subnet_cost(&self.cfg.supernet, arch, h, w)?.macs)
+    }
+
+    /// Raises p̂ to the smallest pitch of its range at which `arch` costs at most `budget_macs`,
+    /// the nearest p̂ where S16's hinge vanishes, and returns whether `arch` fits at the p̂ it
+    /// leaves. The hinge's gradient points there, but Adam moves p̂ by about its rate a step
+    /// (0.05 µm at the defaults), so a few fine-tune steps could not take a 137 M MAC subnet
+    /// from 14 µm to the ≈ 26 µm a 40 M budget needs. C_total does not grow with p̂ (the grid
+    /// has ⌊n·p_base/p̂⌋ pixels a side), so the pitch is found by bisection to 1e-9 relative.
+    /// Leaves p̂ alone when `arch` already fits, when the budget is 0 (none) and when it does
+    /// not fit even at the range's top.
+    pub fn fit_pitch_to_budget(&mut self, arch: &Arch, budget_macs: u64) -> Result<bool> {
+        if budget_macs == 0 || self.macs_at(arch, self.pitch_um)? <= budget_macs {
+            return Ok(true);
+        }
+        let top = self.cfg.pitch_range_um[1];
+        if self.macs_at(arch, top)? > budget_macs {
+            return Ok(false);
+        }
+        // Invariant: over the budget at `lo`, within it at `hi`.
+        let (mut lo, mut hi) = (self.pitch_um, top);
+        while hi - lo > 1e-9 * hi {
+            let mid = 0.5 * (lo + hi);
+            if self.macs_at(arch, mid)? <= budget_macs {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        self.pitch_um = hi;
+        Ok(true)
     }
 
     /// Batches per epoch of the training set.

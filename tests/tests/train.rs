@@ -229,6 +229,85 @@ fn regularized_evolution_ages_out_the_oldest_and_resumes_exactly() {
     assert!(other.resume(&state_path).is_err());
 }
 
+#[test]
+fn a_fitted_pitch_is_the_budgets_edge_and_fine_tuning_keeps_it_inside() {
+    use nanoeye_search::{Budget, Rea, ReaConfig};
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 5);
+    let c = chain(&ds);
+    let mut t = Trainer::new(&c, &ds, cfg(2), phase0(&c)).unwrap();
+    let arch = Arch::max();
+    let p0 = t.pitch_um;
+    let m0 = t.macs_at(&arch, p0).unwrap();
+    let top = t.macs_at(&arch, 150.0).unwrap();
+    assert!(
+        top < m0 / 2,
+        "the range's top must halve the cost: {top} vs {m0}"
+    );
+    // Inside already, no budget, or over it even at the range's top: p̂ stays.
+    for (b, fits) in [(m0, true), (0, true), (top - 1, false)] {
+        assert_eq!(t.fit_pitch_to_budget(&arch, b).unwrap(), fits);
+        assert_eq!(t.pitch_um, p0);
+    }
+    let budget = m0 / 2;
+    assert!(t.fit_pitch_to_budget(&arch, budget).unwrap());
+    let p = t.pitch_um;
+    assert!(p > p0 && p <= 150.0, "{p}");
+    assert!(t.macs_at(&arch, p).unwrap() <= budget);
+    // The smallest such pitch: a hair below it the subnet is over the budget.
+    assert!(t.macs_at(&arch, p * (1.0 - 1e-6)).unwrap() > budget);
+    // Projected fine-tune steps stay inside while the task gradient moves p̂; the hinge alone
+    // (Adam, 0.5 µm a step here) leaves a fresh trainer over the budget after as many steps.
+    let fit = Budget {
+        macs: budget,
+        lambda: 1.0,
+        fit_pitch: true,
+    };
+    let hinge = Budget {
+        fit_pitch: false,
+        ..fit
+    };
+    let mut u = Trainer::new(&c, &ds, cfg(2), phase0(&c)).unwrap();
+    for _ in 0..3 {
+        let (_, macs) = t.finetune_step(&arch, &fit, 1.0).unwrap();
+        assert!(macs <= budget);
+        assert!(t.macs_at(&arch, t.pitch_um).unwrap() <= budget);
+        u.finetune_step(&arch, &hinge, 1.0).unwrap();
+    }
+    assert!(
+        u.macs_at(&arch, u.pitch_um).unwrap() > budget,
+        "{}",
+        u.pitch_um
+    );
+    // In the search, a candidate is over the budget only if it is over at the range's top.
+    let run = trained_run(d.path(), &c, &ds);
+    let rc = ReaConfig {
+        cycles: 1,
+        population: 2,
+        tournament: 1,
+        epochs: 1.0,
+        budget_macs: 200_000,
+        recal_batches: 1,
+        fit_pitch: true,
+        seed: 4,
+        ..ReaConfig::default()
+    };
+    let mut rea = Rea::new(&c, &ds, &ds, &run, rc).unwrap();
+    rea.run(&mut |_| Ok(())).unwrap();
+    assert_eq!(rea.state.evaluated.len(), 3);
+    for ind in &rea.state.evaluated {
+        let reachable = t.macs_at(&ind.arch, 150.0).unwrap() <= 200_000;
+        assert_eq!(
+            ind.macs <= 200_000,
+            reachable,
+            "{} MACs at {} µm",
+            ind.macs,
+            ind.pitch_um
+        );
+        assert_eq!(ind.fitness, -ind.v - if reachable { 0.0 } else { 10.0 });
+    }
+}
+
 /// Evaluates up to `slots` candidates "at once" and hands back the newest first, as a pool of
 /// remote workers may.
 struct NewestFirst<'a> {
