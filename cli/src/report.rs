@@ -453,27 +453,33 @@ network's predicted mask (p ≥ 0.5) in red, yellow where they coincide.</p>"
         "<h2>Regularized evolution</h2><p>Each cycle: a tournament of the population, its best \
 (fitness = −V − γ·[MACs &gt; budget]) is mutated, the child fine-tuned and validated, the \
 oldest member removed. V = mean gaze error on the validation set (degrees).</p><table>\
-<tr><th>cycle</th><th>parent</th><th>child</th><th>child V °</th><th>child MACs</th><th>removed</th></tr>"
+<tr><th>cycle</th><th>parent</th><th>child</th><th>child V °</th><th>child MACs</th><th>child p̂ µm</th><th>removed</th></tr>"
     )?;
     let rea = std::fs::read_to_string(out.join("runs/learned/rea.jsonl")).unwrap_or_default();
     for l in rea.lines() {
         if let Ok(c) = serde_json::from_str::<serde_json::Value>(l) {
             writeln!(
                 h,
-                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
                 c["cycle"],
                 c["parent"],
                 c["child"]["id"],
                 num(&c["child"]["v"]),
                 c["child"]["macs"],
+                num(&c["child"]["pitch_um"]),
                 c["removed"]
             )?;
         }
     }
     writeln!(
         h,
-        "</table><p>Selected subnet: {} MACs at p̂ = {} µm, V = {}°.</p><pre>{}</pre>",
+        "</table><p>Selected subnet: {} MACs ({}) at p̂ = {} µm, V = {}°.</p><pre>{}</pre>",
         r["macs"],
+        match (r["macs"].as_u64(), cfg["budget_macs"].as_u64()) {
+            (Some(m), Some(b)) if b > 0 && m <= b => format!("within the {b} MAC budget"),
+            (Some(_), Some(b)) if b > 0 => format!("over the {b} MAC budget"),
+            _ => "no budget".to_string(),
+        },
         num(&r["pitch_um"]),
         num(&r["v_deg"]),
         esc(&serde_json::to_string(&r["best_arch"])?)

@@ -811,6 +811,7 @@ mod tests {
                 macs: 0,
                 fitness: -v - if over { 10.0 } else { 0.0 },
                 v,
+                pitch_um: 14.0,
             },
             removed: 0,
         }

@@ -160,7 +160,7 @@ pub struct CycleRecord {
     pub tournament: Vec<usize>,
     /// Parent id (the tournament's argmax of fitness).
     pub parent: usize,
-    /// The child: {id, arch, macs, fitness, v}.
+    /// The child: {id, arch, macs, fitness, v, pitch_um}.
     pub child: ChildRecord,
     /// Id removed (the oldest).
     pub removed: usize,
@@ -179,6 +179,9 @@ pub struct ChildRecord {
     pub fitness: f64,
     /// V (degrees).
     pub v: f64,
+    /// p̂ after its inner loop (µm); 0 in records written before this field existed.
+    #[serde(default)]
+    pub pitch_um: f64,
 }
 
 /// The resumable state of a search.
@@ -301,7 +304,9 @@ impl Evaluator<'_> {
         } else {
             t.evaluate(self.val, arch, c.recal_batches)?
         };
-        if steps == 0 {
+        // With the fit, at the p̂ the candidate leaves with (the one its record names); without
+        // it, at the last step's p̂, as the search always counted.
+        if steps == 0 || budget.fit_pitch {
             macs = t.macs_at(arch, t.pitch_um)?;
         }
         let over = c.budget_macs > 0 && macs > c.budget_macs;
@@ -523,6 +528,7 @@ impl<'a> Rea<'a> {
                             macs: ind.macs,
                             fitness: ind.fitness,
                             v: ind.v,
+                            pitch_um: ind.pitch_um,
                         },
                     };
                     self.state.evaluated.push(ind);
