@@ -193,3 +193,24 @@ fn main() -> ExitCode {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    /// The option index set at start-up is mimalloc's purge delay: 1000 ms by default in the
+    /// mimalloc 3 the sys crate builds (a renumbered enum would show another default), −1 after.
+    #[test]
+    fn the_option_set_at_start_up_is_the_purge_delay() {
+        // SAFETY: reads and sets one allocator option.
+        unsafe {
+            assert_eq!(
+                libmimalloc_sys::mi_option_get(super::MI_OPTION_PURGE_DELAY),
+                1000
+            );
+            super::keep_freed_memory();
+            assert_eq!(
+                libmimalloc_sys::mi_option_get(super::MI_OPTION_PURGE_DELAY),
+                -1
+            );
+        }
+    }
+}
