@@ -577,6 +577,11 @@ pub fn rea(a: ReaArgs) -> Result<()> {
             a.parallel
         );
     }
+    if a.fit_pitch && a.budget_macs == 0 {
+        bail!(
+            "--fit-pitch fits p̂ to --budget-macs, which is 0 (none): give a budget or drop the flag"
+        );
+    }
     let (ds, chain) = a.chain.build()?;
     if a.head_refit && ds.len() < 3 {
         bail!(

@@ -654,6 +654,17 @@ fn sim_and_search_loss_name_their_bad_flags() {
         "--head-refit",
     ];
     refused(&rea, "--head-refit", p);
+    // --fit-pitch without a budget would do nothing: refused before the run is read.
+    let rea = [
+        "search",
+        "rea",
+        "--dataset",
+        "ds2",
+        "--run",
+        "nope",
+        "--fit-pitch",
+    ];
+    refused(&rea, "--fit-pitch", p);
     // pareto: the refit's set, the chain settings named like everywhere else, and outputs that
     // are directories, before any run is read.
     for (flag, value) in [
