@@ -637,34 +637,17 @@ fn sim_and_search_loss_name_their_bad_flags() {
         refused(&args, flag, p);
     }
     assert!(!p.join("o").exists(), "a refused sim must write nothing");
-    // --head-refit on a set too small for its leave-one-out error: refused before the run
-    // is read.
+    // Refused before the run is read: --head-refit on a set too small for its leave-one-out
+    // error, --fit-pitch without a budget (it would do nothing).
     let two = [
         "datagen", "render", "--set", "envelope", "--n", "2", "--width", "80", "--height", "50",
         "--spp", "1", "--out", "ds2",
     ];
     assert!(nanoeye(&two, p).status.success());
-    let rea = [
-        "search",
-        "rea",
-        "--dataset",
-        "ds2",
-        "--run",
-        "nope",
-        "--head-refit",
-    ];
-    refused(&rea, "--head-refit", p);
-    // --fit-pitch without a budget would do nothing: refused before the run is read.
-    let rea = [
-        "search",
-        "rea",
-        "--dataset",
-        "ds2",
-        "--run",
-        "nope",
-        "--fit-pitch",
-    ];
-    refused(&rea, "--fit-pitch", p);
+    for flag in ["--head-refit", "--fit-pitch"] {
+        let rea = ["search", "rea", "--dataset", "ds2", "--run", "nope", flag];
+        refused(&rea, flag, p);
+    }
     // pareto: the refit's set, the chain settings named like everywhere else, and outputs that
     // are directories, before any run is read.
     for (flag, value) in [
