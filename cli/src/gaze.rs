@@ -5,7 +5,7 @@ use anyhow::{Context, Result, bail};
 use clap::Subcommand;
 use faer::Mat;
 use nanoeye_gaze::bias::{GazeGrid, MAX_GRID_STEPS, pupil_sphere_bias};
-use nanoeye_gaze::{GazeSolver, RefractiveSolver, SolverKind, SphereSolver};
+use nanoeye_gaze::{GazeSolver, PupilCentre, RefractiveSolver, SolverKind, SphereSolver};
 use serde::Deserialize;
 use serde_json::json;
 use std::io::{BufRead, Write};
@@ -29,6 +29,10 @@ pub enum Cmd {
         /// through the rig's cornea, on its pupil sphere; docs/gaze.md).
         #[arg(long, default_value = "sphere")]
         solver: String,
+        /// Pupil centre of a mask query: centroid (S9) or ellipse_if_cut (S9 unless the pupil
+        /// reaches the mask's edge, then the centre of its boundary's fitted ellipse).
+        #[arg(long, default_value = "centroid")]
+        pupil_centre: String,
         /// Write results here (atomically) instead of stdout.
         #[arg(long)]
         out: Option<PathBuf>,
@@ -70,13 +74,18 @@ pub fn read_mask_png(path: &Path) -> Result<Mat<f32>> {
     }))
 }
 
-fn solve_line(solver: &dyn GazeSolver, line: &str, base: &Path) -> Result<serde_json::Value> {
+fn solve_line(
+    solver: &dyn GazeSolver,
+    centre: PupilCentre,
+    line: &str,
+    base: &Path,
+) -> Result<serde_json::Value> {
     let q: Query = serde_json::from_str(line).context("not a query object")?;
     let sol = match (q.pupil_px, q.mask_png) {
         (Some(px), None) => solver.solve_pixel(px, q.slip_m)?,
         (None, Some(png)) => {
             let mask = read_mask_png(&base.join(png))?;
-            solver.solve_mask(mask.as_ref(), q.slip_m)?
+            solver.solve_mask_with(mask.as_ref(), q.slip_m, centre)?
         }
         _ => bail!("exactly one of \"pupil_px\" and \"mask_png\" is required"),
     };
@@ -99,8 +108,10 @@ pub fn run(cmd: Cmd) -> Result<()> {
             rig,
             kappa,
             solver,
+            pupil_centre,
             out,
         } => {
+            let centre = PupilCentre::parse(&pupil_centre).context("--pupil-centre")?;
             let rig = rig::load(rig.as_deref())?;
             let solver: Box<dyn GazeSolver> =
                 match SolverKind::parse(&solver).context("--solver")? {
@@ -133,7 +144,7 @@ pub fn run(cmd: Cmd) -> Result<()> {
                 // A bad line answers with an error object and never stops the batch.
                 let v = match util::jsonl_line(&raw, n) {
                     Ok(line) if line.trim().is_empty() => continue,
-                    Ok(line) => solve_line(solver.as_ref(), line, &base),
+                    Ok(line) => solve_line(solver.as_ref(), centre, line, &base),
                     Err(e) => Err(e),
                 }
                 .unwrap_or_else(|e| json!({"error": format!("line {n}: {e:#}")}));

@@ -214,6 +214,7 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
                 arch,
                 batch: tcfg.batch,
                 seed: tcfg.seed,
+                centre: tcfg.pupil_centre,
             };
             let m = nanoeye_search::evaluate_net(&mut tr.net, &setup, tcfg.solver)?;
             let macs = nanoeye_nets::cost::subnet_cost(&tcfg.supernet, arch, h, w)?.macs;

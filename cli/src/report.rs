@@ -326,8 +326,11 @@ rig's eye radius, or the refraction-aware solver that looks through the cornea, 
 docs/gaze.md), so the refraction correction's effect is visible. \
 <i>solver_true_mask_eye_equivalent_slip</i>: the true mask with the slippage's translation and \
 the camera's rotation folded into one translation about the eye centre, so what S11's \
-translation-only model costs is visible (docs/gaze.md). Dice: mean overlap of the \
-predicted and true pupil masks; slip RMSE: root mean square of the predicted slippage's error \
+translation-only model costs is visible (docs/gaze.md). <i>…_ellipse_if_cut</i> / \
+<i>…_centroid</i>: the same chain with the pupil centre the configuration (<i>pupil_centre</i>) \
+does not use: S9's centroid of the whole mask, or, for a pupil the frame's edge cuts, the \
+centre of the ellipse fitted to its boundary inside the frame (docs/gaze.md). Dice: mean \
+overlap of the predicted and true pupil masks; slip RMSE: root mean square of the predicted slippage's error \
 (mm) — the network's two outputs against the truth.</p>\
 <table><tr><th>chain</th><th>mean °</th><th>median °</th><th>p95 °</th><th>failures</th><th>frames</th>\
 <th>Dice</th><th>slip RMSE (mm)</th></tr>"

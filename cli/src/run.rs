@@ -14,7 +14,7 @@ use faer::Mat;
 use nanoeye_datagen::render::{
     Dataset, DatasetOptions, LayerSpec, RenderSet, SceneSource, write_dataset,
 };
-use nanoeye_gaze::{Rig, SolverKind};
+use nanoeye_gaze::{PupilCentre, Rig, SolverKind};
 use nanoeye_nets::Arch;
 use nanoeye_search::{
     CameraChain, ChainConfig, LensSpec, Rea, ReaConfig, ReaState, SlipTarget, SolverInput,
@@ -142,6 +142,10 @@ pub struct RunConfig {
     /// Start each REA candidate's fine-tune, and the final one behind each lens, at the
     /// smallest p̂ of `pitch_range_um` at which the subnet fits `budget_macs` (docs/run.md).
     pub rea_fit_pitch: bool,
+    /// How the solver takes the pupil centre from a mask: "centroid" (S9) or "ellipse_if_cut"
+    /// (S9 unless the pupil reaches the frame's edge, then the centre of the ellipse fitted to
+    /// its boundary inside the frame; docs/gaze.md).
+    pub pupil_centre: PupilCentre,
 }
 
 impl Default for RunConfig {
@@ -194,6 +198,7 @@ impl Default for RunConfig {
             // (Adam, 0.25 × 0.05 µm), and the job's pick cost 83–160 M MACs against the 40 M
             // budget on three of four seeds (docs/run.md, twenty-fifth session).
             rea_fit_pitch: true,
+            pupil_centre: PupilCentre::Centroid,
         }
     }
 }
@@ -351,6 +356,7 @@ fn train_config(cfg: &RunConfig, fixed_lens: bool) -> TrainConfig {
             ..nanoeye_nets::SupernetConfig::default()
         },
         solver: cfg.solver,
+        pupil_centre: cfg.pupil_centre,
     }
 }
 
@@ -738,18 +744,40 @@ pub fn run(a: RunArgs) -> Result<()> {
             SolverKind::Refractive => SolverKind::Sphere,
             SolverKind::Sphere => SolverKind::Refractive,
         };
-        let mut solves = vec![(name.to_string(), SolverInput::Predicted, cfg.solver)];
+        let c = cfg.pupil_centre;
+        // The pupil centre the configuration does not use, for the chain and the solver alone:
+        // what a pupil cut by the frame's edge costs either way (docs/gaze.md).
+        let c_other = match c {
+            PupilCentre::Centroid => PupilCentre::EllipseIfCut,
+            PupilCentre::EllipseIfCut => PupilCentre::Centroid,
+        };
+        let mut solves = vec![
+            (name.to_string(), SolverInput::Predicted, cfg.solver, c),
+            (
+                format!("{name}_{}", c_other.name()),
+                SolverInput::Predicted,
+                cfg.solver,
+                c_other,
+            ),
+        ];
         if name == "learned" {
-            solves.push(("geometric_no_slip".into(), SolverInput::NoSlip, cfg.solver));
+            solves.push((
+                "geometric_no_slip".into(),
+                SolverInput::NoSlip,
+                cfg.solver,
+                c,
+            ));
             solves.push((
                 "solver_true_mask_true_slip".into(),
                 SolverInput::Truth,
                 cfg.solver,
+                c,
             ));
             solves.push((
                 format!("{}_solver_true_mask_true_slip", other.name()),
                 SolverInput::Truth,
                 other,
+                c,
             ));
             // What S11's neglect of the camera's rotation costs the solver, whatever the head
             // learns: the true mask with the eye-equivalent translation.
@@ -757,17 +785,26 @@ pub fn run(a: RunArgs) -> Result<()> {
                 "solver_true_mask_eye_equivalent_slip".into(),
                 SolverInput::TruthEyeEquivalent,
                 cfg.solver,
+                c,
             ));
             // The chain's error split between its two heads: each fed the truth in turn.
             solves.push((
                 "network_mask_true_slip".into(),
                 SolverInput::PredictedMaskTrueSlip,
                 cfg.solver,
+                c,
             ));
             solves.push((
                 "true_mask_network_slip".into(),
                 SolverInput::TrueMaskPredictedSlip,
                 cfg.solver,
+                c,
+            ));
+            solves.push((
+                format!("solver_true_mask_true_slip_{}", c_other.name()),
+                SolverInput::Truth,
+                cfg.solver,
+                c_other,
             ));
         }
         let setup = nanoeye_search::EvalSetup {
@@ -778,11 +815,15 @@ pub fn run(a: RunArgs) -> Result<()> {
             arch: &best.arch,
             batch: cfg.batch,
             seed: cfg.seed,
+            centre: cfg.pupil_centre,
         };
         let evals = nanoeye_search::evaluate_frames_multi(
             &mut tr.net,
             &setup,
-            &solves.iter().map(|(_, i, k)| (*i, *k)).collect::<Vec<_>>(),
+            &solves
+                .iter()
+                .map(|(_, i, k, c)| (*i, *k, *c))
+                .collect::<Vec<_>>(),
         )?;
         // Frame by frame, what the chain estimated, so its errors can be traced to a head.
         let e = &evals[0];
@@ -806,7 +847,7 @@ pub fn run(a: RunArgs) -> Result<()> {
             &out.join(format!("runs/{name}/protocol.jsonl")),
             lines.as_bytes(),
         )?;
-        for ((key, _, _), e) in solves.iter().zip(&evals) {
+        for ((key, ..), e) in solves.iter().zip(&evals) {
             let mut v = protocol_summary(&e.errors_deg);
             v["fallbacks"] = fallbacks(e).into();
             if key == name {

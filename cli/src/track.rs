@@ -9,7 +9,7 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use faer::Mat;
-use nanoeye_gaze::{GazeSolver, Rig, solver_for};
+use nanoeye_gaze::{GazeSolver, PupilCentre, Rig, solver_for};
 use nanoeye_nets::{Arch, Inference};
 use nanoeye_sensor::SensorConfig;
 use std::io::{BufWriter, Read, Write};
@@ -44,6 +44,8 @@ struct Model {
     x: Vec<f32>,
     probs: Mat<f32>,
     solver: Box<dyn GazeSolver + Send + Sync>,
+    /// How the solver takes the pupil centre from the mask (the run's `pupil_centre`).
+    centre: PupilCentre,
     shape: (usize, usize),
     black: f32,
     span: f32,
@@ -133,6 +135,7 @@ fn load(a: &TrackArgs) -> Result<Model> {
         probs: Mat::zeros(shape.0, shape.1),
         // The solver the run was validated with (refraction-aware unless it said otherwise).
         solver: solver_for(&rig, tcfg.solver)?,
+        centre: tcfg.pupil_centre,
         shape,
         black: s.black_level_dn as f32,
         span: (s.max_dn() - s.black_level_dn) as f32,
@@ -272,7 +275,7 @@ fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, FrameEr
         .inf
         .run(&m.x)
         .map_err(|e| FrameError::Solve(e.to_string()))?;
-    // S9 takes the soft mask, as in training and evaluation. Confidence: the largest pupil
+    // The pupil centre is taken from the soft mask, as in training and evaluation. Confidence: the largest pupil
     // probability in the frame (a frame without any confident pupil pixel says so).
     let mut conf = 0.0f32;
     for i in 0..h {
@@ -285,7 +288,7 @@ fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, FrameEr
     let slip = o.slip.map(|v| v as f64 * 1e-3);
     let sol = m
         .solver
-        .solve_mask(m.probs.as_ref(), slip)
+        .solve_mask_with(m.probs.as_ref(), slip, m.centre)
         .map_err(|e| FrameError::Solve(e.to_string()))?;
     let conf = conf as f64;
     Ok(serde_json::json!({

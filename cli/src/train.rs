@@ -70,6 +70,10 @@ pub struct TrainArgs {
     /// Gaze solver of the validation: refractive (through the rig's cornea) or sphere (S12).
     #[arg(long, default_value = "refractive")]
     solver: String,
+    /// Pupil centre of the validation: centroid (S9) or ellipse_if_cut (S9 unless the pupil
+    /// reaches the frame's edge, then its boundary's fitted ellipse; docs/gaze.md).
+    #[arg(long, default_value = "centroid")]
+    pupil_centre: String,
     /// Steps between checkpoints.
     #[arg(long, default_value_t = 10)]
     checkpoint_every: usize,
@@ -282,6 +286,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
         seed: a.seed,
         weights_seed: a.weights_seed,
         solver: nanoeye_gaze::SolverKind::parse(&a.solver).context("--solver")?,
+        pupil_centre: nanoeye_gaze::PupilCentre::parse(&a.pupil_centre)
+            .context("--pupil-centre")?,
         ..TrainConfig::default()
     };
     cfg.validate().map_err(|e| {

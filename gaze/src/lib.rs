@@ -10,6 +10,7 @@ pub mod centroid;
 pub mod error;
 pub mod eye;
 pub mod geom;
+pub mod pupil;
 pub mod refract;
 pub mod rig;
 pub mod solver;
@@ -17,6 +18,7 @@ pub mod stats;
 
 pub use error::GazeError;
 pub use geom::{Mat3, Vec3};
+pub use pupil::PupilCentre;
 pub use refract::{Cornea, RefractiveSolver, SolverKind, solver_for};
 pub use rig::{Camera, Pose, Rig, SlipModel, effective_pixels};
 pub use solver::{GazeSolution, GazeSolver, GazeVjp, SphereSolver, back_project, project};

@@ -11,6 +11,7 @@
 use crate::error::GazeError;
 use crate::eye;
 use crate::geom::{self, Mat3, Vec3};
+use crate::pupil::PupilCentre;
 use crate::rig::Rig;
 use crate::solver::{GazeSolution, GazeSolver, SphereSolver, ray_sphere};
 use faer::MatRef;
@@ -319,6 +320,16 @@ impl GazeSolver for RefractiveSolver {
 
     fn solve_mask(&self, mask: MatRef<'_, f32>, slip_m: Vec3) -> Result<GazeSolution, GazeError> {
         let c = self.sphere.mask_centroid(mask)?;
+        self.solve_pixel(c.px, slip_m)
+    }
+
+    fn solve_mask_with(
+        &self,
+        mask: MatRef<'_, f32>,
+        slip_m: Vec3,
+        how: PupilCentre,
+    ) -> Result<GazeSolution, GazeError> {
+        let c = self.sphere.mask_centre(mask, how)?;
         self.solve_pixel(c.px, slip_m)
     }
 }

@@ -4,6 +4,7 @@ use crate::centroid::{self, Centroid};
 use crate::error::GazeError;
 use crate::eye;
 use crate::geom::{self, Mat3, Vec3};
+use crate::pupil::{self, PupilCentre};
 use crate::rig::{Camera, Pose, Rig};
 use faer::{Mat, MatRef};
 
@@ -42,6 +43,15 @@ pub trait GazeSolver {
 
     /// Solves S9–S14 for a soft pupil mask (rows = v, cols = u) and slippage `slip_m` (m).
     fn solve_mask(&self, mask: MatRef<'_, f32>, slip_m: Vec3) -> Result<GazeSolution, GazeError>;
+
+    /// Solves S10–S14 for the pupil centre `how` takes from `mask` ([`PupilCentre::Centroid`]
+    /// is [`GazeSolver::solve_mask`]).
+    fn solve_mask_with(
+        &self,
+        mask: MatRef<'_, f32>,
+        slip_m: Vec3,
+        how: PupilCentre,
+    ) -> Result<GazeSolution, GazeError>;
 }
 
 /// The seed's solver: back-project through K⁻¹, translate the nominal camera by Δt (rotation
@@ -175,6 +185,16 @@ impl SphereSolver {
         centroid::centroid(mask, k)
     }
 
+    /// The pupil centre `how` takes from `mask`, in camera pixels (checks the mask's shape).
+    pub fn mask_centre(
+        &self,
+        mask: MatRef<'_, f32>,
+        how: PupilCentre,
+    ) -> Result<Centroid, GazeError> {
+        let k = centroid::mask_scale(mask.ncols(), mask.nrows(), self.width_px, self.height_px)?;
+        pupil::centre(mask, k, how)
+    }
+
     /// VJP of [`GazeSolver::solve_mask`]: ∂L/∂g in, ∂L/∂M and ∂L/∂Δt out.
     pub fn vjp_mask(
         &self,
@@ -216,6 +236,16 @@ impl GazeSolver for SphereSolver {
 
     fn solve_mask(&self, mask: MatRef<'_, f32>, slip_m: Vec3) -> Result<GazeSolution, GazeError> {
         let c = self.mask_centroid(mask)?;
+        self.solve_pixel(c.px, slip_m)
+    }
+
+    fn solve_mask_with(
+        &self,
+        mask: MatRef<'_, f32>,
+        slip_m: Vec3,
+        how: PupilCentre,
+    ) -> Result<GazeSolution, GazeError> {
+        let c = self.mask_centre(mask, how)?;
         self.solve_pixel(c.px, slip_m)
     }
 }

@@ -11,7 +11,7 @@ use crate::error::{Result, param};
 use crate::task::task_loss;
 use faer::Mat;
 use nanoeye_datagen::render::{Batcher, Dataset};
-use nanoeye_gaze::{Rig, SolverKind, angular_error, solver_for};
+use nanoeye_gaze::{PupilCentre, Rig, SolverKind, angular_error, solver_for};
 use nanoeye_nets::loss::{hard_dice, slip_mse};
 use nanoeye_nets::optim::{Adam, AdamState, cosine_lr};
 use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig, Tensor};
@@ -63,6 +63,10 @@ pub struct TrainConfig {
     /// Gaze solver of every evaluation (absent in older checkpoints: refraction-aware).
     #[serde(default)]
     pub solver: SolverKind,
+    /// How every evaluation takes the pupil centre from a mask (absent in older checkpoints:
+    /// S9's centroid).
+    #[serde(default)]
+    pub pupil_centre: PupilCentre,
 }
 
 impl Default for TrainConfig {
@@ -83,6 +87,7 @@ impl Default for TrainConfig {
             weights_seed: 0,
             supernet: SupernetConfig::default(),
             solver: SolverKind::default(),
+            pupil_centre: PupilCentre::default(),
         }
     }
 }
@@ -557,6 +562,7 @@ impl<'a> Trainer<'a> {
             arch,
             batch: self.cfg.batch,
             seed: self.cfg.seed,
+            centre: self.cfg.pupil_centre,
         };
         evaluate_net(&mut self.net, &s, self.cfg.solver)
     }
@@ -580,6 +586,7 @@ impl<'a> Trainer<'a> {
             arch,
             batch: self.cfg.batch,
             seed: self.cfg.seed,
+            centre: self.cfg.pupil_centre,
         };
         evaluate_frames(&mut self.net, &s, input, self.cfg.solver)
     }
@@ -945,6 +952,8 @@ pub struct EvalSetup<'a> {
     pub batch: usize,
     /// Noise seed.
     pub seed: u64,
+    /// How the solver takes the pupil centre from a mask.
+    pub centre: PupilCentre,
 }
 
 /// Per-frame gaze errors of `s`: predicted mask → S9 → S10–S14 with the predicted slippage
@@ -955,16 +964,16 @@ pub fn evaluate_frames(
     input: SolverInput,
     kind: SolverKind,
 ) -> Result<FrameEval> {
-    let mut v = evaluate_frames_multi(net, s, &[(input, kind)])?;
+    let mut v = evaluate_frames_multi(net, s, &[(input, kind, s.centre)])?;
     Ok(v.remove(0))
 }
 
-/// [`evaluate_frames`] for several (solver input, solver) pairs from one pass of the chain and
-/// the network: one [`FrameEval`] per pair, in order.
+/// [`evaluate_frames`] for several (solver input, solver, pupil centre) triples from one pass
+/// of the chain and the network (`s.centre` unused): one [`FrameEval`] per triple, in order.
 pub fn evaluate_frames_multi(
     net: &mut Supernet,
     s: &EvalSetup,
-    solves: &[(SolverInput, SolverKind)],
+    solves: &[(SolverInput, SolverKind, PupilCentre)],
 ) -> Result<Vec<FrameEval>> {
     let &EvalSetup {
         chain,
@@ -974,6 +983,7 @@ pub fn evaluate_frames_multi(
         arch,
         batch,
         seed,
+        centre: _,
     } = s;
     if solves.is_empty() {
         return Err(param("solves", "need at least one solver input"));
@@ -992,7 +1002,7 @@ pub fn evaluate_frames_multi(
         };
         let solvers = solves
             .iter()
-            .map(|&(_, k)| solver_for(&rig, k))
+            .map(|&(_, k, _)| solver_for(&rig, k))
             .collect::<std::result::Result<Vec<_>, _>>()?;
         let (h, w) = fwd.grid.shape();
         for (b, f) in frames.iter().enumerate() {
@@ -1025,7 +1035,9 @@ pub fn evaluate_frames_multi(
             // In f64 from the state (the tensor holds it in f32 for the loss).
             let target_m = chain.config().slip_target.of(&rig.camera, &f.record.state);
             let true_slip_mm = target_m.map(|v| v * 1e3);
-            for ((&(input, _), solver), e) in solves.iter().zip(&solvers).zip(out.iter_mut()) {
+            for ((&(input, _, centre), solver), e) in
+                solves.iter().zip(&solvers).zip(out.iter_mut())
+            {
                 e.dice.push(dice);
                 e.slip_sq_mm2.push(slip_sq);
                 e.slip_mm.push(net_slip_mm);
@@ -1047,7 +1059,7 @@ pub fn evaluate_frames_multi(
                         net_slip_mm.map(|v| v * 1e-3)
                     }
                 };
-                let sol = solver.solve_mask(probs.as_ref(), slip).ok();
+                let sol = solver.solve_mask_with(probs.as_ref(), slip, centre).ok();
                 e.errors_deg.push(
                     sol.as_ref()
                         .map(|s| angular_error(s.gaze, f.record.gaze).to_degrees()),
