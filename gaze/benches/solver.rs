@@ -2,7 +2,7 @@
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use faer::Mat;
-use nanoeye_gaze::{GazeSolver, RefractiveSolver, Rig, SphereSolver};
+use nanoeye_gaze::{GazeSolver, PupilCentre, RefractiveSolver, Rig, SphereSolver};
 use std::hint::black_box;
 
 fn bench(c: &mut Criterion) {
@@ -63,6 +63,31 @@ fn bench(c: &mut Criterion) {
     g.bench_function("solve_mask_64x64", |b| {
         b.iter(|| solver_sq.solve_mask(black_box(mask.as_ref()), slip))
     });
+    // A whole pupil under the cut-aware centre: S9 and a look at the mask's edges.
+    g.bench_function("solve_mask_64x64_ellipse_if_cut", |b| {
+        b.iter(|| {
+            solver_sq.solve_mask_with(black_box(mask.as_ref()), slip, PupilCentre::EllipseIfCut)
+        })
+    });
+    // The same disc with its centre 2 px below the top edge: a third of it out of view.
+    let (ci, cj) = (2.0f32, 34.0f32);
+    let cut = Mat::<f32>::from_fn(64, 64, |i, j| {
+        let r = ((i as f32 + 0.5 - ci).powi(2) + (j as f32 + 0.5 - cj).powi(2)).sqrt();
+        1.0 / (1.0 + (r - 6.0).exp())
+    });
+    for how in [PupilCentre::Centroid, PupilCentre::EllipseIfCut] {
+        let c = solver_sq.mask_centre(cut.as_ref(), how).unwrap();
+        // Camera pixels are 5 per mask pixel.
+        let off =
+            ((c.px[0] / 5.0 - cj as f64).powi(2) + (c.px[1] / 5.0 - ci as f64).powi(2)).sqrt();
+        eprintln!(
+            "cut disc, {}: centre {off:.3} mask px from the truth",
+            how.name()
+        );
+        g.bench_function(format!("solve_mask_cut_64x64_{}", how.name()), |b| {
+            b.iter(|| solver_sq.solve_mask_with(black_box(cut.as_ref()), slip, how))
+        });
+    }
     g.finish();
 }
 

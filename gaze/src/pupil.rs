@@ -73,6 +73,11 @@ pub fn centre(mask: MatRef<'_, f32>, scale: f64, how: PupilCentre) -> Result<Cen
     if how == PupilCentre::Centroid {
         return Ok(c);
     }
+    // The blob lies inside the mask's pixels at the level: a mask clear of the edge is whole,
+    // with no labelling and no allocation.
+    if !touches_edge(mask, BOUNDARY_LEVEL) {
+        return Ok(c);
+    }
     let blob = centroid::dominant_blob(mask, BOUNDARY_LEVEL);
     if !touches_edge(blob.as_ref(), BOUNDARY_LEVEL) {
         return Ok(c);

@@ -78,15 +78,14 @@ fn rendered_errors(kind: &dyn GazeSolver, ds: &Dataset) -> Vec<f64> {
     rendered_errors_with(kind, ds, false)
 }
 
-/// On rendered protocol frames (per-subject corneas, mounting rotation the solver does not
-/// model), the refraction-aware solver beats the seed's 12 mm sphere and the pupil sphere.
-#[test]
-fn on_rendered_frames_refraction_removes_most_of_the_bias() {
+/// `n` items of `set` rendered at 160×100, one sample per pixel, default rig; the directory
+/// lives as long as the first value.
+fn rendered(set: RenderSet, n: usize, seed: u64) -> (tempfile::TempDir, Dataset) {
     let d = tempfile::tempdir().unwrap();
     nanoeye_datagen::render::write_dataset(&DatasetOptions {
-        set: RenderSet::Sequence,
-        n: 12,
-        seed: 5,
+        set,
+        n,
+        seed,
         width_px: 160,
         height_px: 100,
         spp: 1,
@@ -99,6 +98,14 @@ fn on_rendered_frames_refraction_removes_most_of_the_bias() {
     })
     .unwrap();
     let ds = Dataset::open(d.path()).unwrap();
+    (d, ds)
+}
+
+/// On rendered protocol frames (per-subject corneas, mounting rotation the solver does not
+/// model), the refraction-aware solver beats the seed's 12 mm sphere and the pupil sphere.
+#[test]
+fn on_rendered_frames_refraction_removes_most_of_the_bias() {
+    let (_d, ds) = rendered(RenderSet::Sequence, 12, 5);
     let rig = ds.manifest.rig.clone();
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     let seed = rendered_errors(&SphereSolver::new(&rig).unwrap(), &ds);
@@ -152,23 +159,7 @@ fn on_rendered_frames_refraction_removes_most_of_the_bias() {
 /// 1.85 against 3.43 px); a whole pupil keeps its centroid bit for bit.
 #[test]
 fn a_pupil_cut_by_the_frame_is_located_by_its_ellipse() {
-    let d = tempfile::tempdir().unwrap();
-    nanoeye_datagen::render::write_dataset(&DatasetOptions {
-        set: RenderSet::Protocol,
-        n: 1,
-        seed: 0,
-        width_px: 160,
-        height_px: 100,
-        spp: 1,
-        out_dir: d.path().to_path_buf(),
-        rig: Rig::default(),
-        source: SceneSource::Procedural,
-        progress: false,
-        layers: LayerSpec::default(),
-        blink_fraction: 0.0,
-    })
-    .unwrap();
-    let ds = Dataset::open(d.path()).unwrap();
+    let (_d, ds) = rendered(RenderSet::Protocol, 1, 0);
     let solver = SphereSolver::new(&ds.manifest.rig).unwrap();
     let (mut cut, mut whole) = (Vec::new(), 0);
     for i in 0..ds.len() {
