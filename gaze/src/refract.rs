@@ -8,6 +8,7 @@
 //! regression fitted to synthetic eyes; with an explicit cornea model the correction is exact
 //! for the model eye and degrades only with the subject's deviation from it.
 
+use crate::centroid::Centroid;
 use crate::error::GazeError;
 use crate::eye;
 use crate::geom::{self, Mat3, Vec3};
@@ -318,19 +319,8 @@ impl GazeSolver for RefractiveSolver {
         })
     }
 
-    fn solve_mask(&self, mask: MatRef<'_, f32>, slip_m: Vec3) -> Result<GazeSolution, GazeError> {
-        let c = self.sphere.mask_centroid(mask)?;
-        self.solve_pixel(c.px, slip_m)
-    }
-
-    fn solve_mask_with(
-        &self,
-        mask: MatRef<'_, f32>,
-        slip_m: Vec3,
-        how: PupilCentre,
-    ) -> Result<GazeSolution, GazeError> {
-        let c = self.sphere.mask_centre(mask, how)?;
-        self.solve_pixel(c.px, slip_m)
+    fn mask_centre(&self, mask: MatRef<'_, f32>, how: PupilCentre) -> Result<Centroid, GazeError> {
+        self.sphere.mask_centre(mask, how)
     }
 }
 

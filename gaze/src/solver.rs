@@ -42,7 +42,9 @@ pub trait GazeSolver {
     fn solve_pixel(&self, pupil_px: [f64; 2], slip_m: Vec3) -> Result<GazeSolution, GazeError>;
 
     /// Solves S9–S14 for a soft pupil mask (rows = v, cols = u) and slippage `slip_m` (m).
-    fn solve_mask(&self, mask: MatRef<'_, f32>, slip_m: Vec3) -> Result<GazeSolution, GazeError>;
+    fn solve_mask(&self, mask: MatRef<'_, f32>, slip_m: Vec3) -> Result<GazeSolution, GazeError> {
+        self.solve_mask_with(mask, slip_m, PupilCentre::Centroid)
+    }
 
     /// Solves S10–S14 for the pupil centre `how` takes from `mask` ([`PupilCentre::Centroid`]
     /// is [`GazeSolver::solve_mask`]).
@@ -51,7 +53,14 @@ pub trait GazeSolver {
         mask: MatRef<'_, f32>,
         slip_m: Vec3,
         how: PupilCentre,
-    ) -> Result<GazeSolution, GazeError>;
+    ) -> Result<GazeSolution, GazeError> {
+        let c = self.mask_centre(mask, how)?;
+        self.solve_pixel(c.px, slip_m)
+    }
+
+    /// The pupil centre `how` takes from `mask`, in camera pixels (checks the mask's shape
+    /// against the camera).
+    fn mask_centre(&self, mask: MatRef<'_, f32>, how: PupilCentre) -> Result<Centroid, GazeError>;
 }
 
 /// The seed's solver: back-project through K⁻¹, translate the nominal camera by Δt (rotation
@@ -185,16 +194,6 @@ impl SphereSolver {
         centroid::centroid(mask, k)
     }
 
-    /// The pupil centre `how` takes from `mask`, in camera pixels (checks the mask's shape).
-    pub fn mask_centre(
-        &self,
-        mask: MatRef<'_, f32>,
-        how: PupilCentre,
-    ) -> Result<Centroid, GazeError> {
-        let k = centroid::mask_scale(mask.ncols(), mask.nrows(), self.width_px, self.height_px)?;
-        pupil::centre(mask, k, how)
-    }
-
     /// VJP of [`GazeSolver::solve_mask`]: ∂L/∂g in, ∂L/∂M and ∂L/∂Δt out.
     pub fn vjp_mask(
         &self,
@@ -234,19 +233,9 @@ impl GazeSolver for SphereSolver {
         })
     }
 
-    fn solve_mask(&self, mask: MatRef<'_, f32>, slip_m: Vec3) -> Result<GazeSolution, GazeError> {
-        let c = self.mask_centroid(mask)?;
-        self.solve_pixel(c.px, slip_m)
-    }
-
-    fn solve_mask_with(
-        &self,
-        mask: MatRef<'_, f32>,
-        slip_m: Vec3,
-        how: PupilCentre,
-    ) -> Result<GazeSolution, GazeError> {
-        let c = self.mask_centre(mask, how)?;
-        self.solve_pixel(c.px, slip_m)
+    fn mask_centre(&self, mask: MatRef<'_, f32>, how: PupilCentre) -> Result<Centroid, GazeError> {
+        let k = centroid::mask_scale(mask.ncols(), mask.nrows(), self.width_px, self.height_px)?;
+        pupil::centre(mask, k, how)
     }
 }
 
