@@ -214,9 +214,9 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
                 arch,
                 batch: tcfg.batch,
                 seed: tcfg.seed,
-                centre: tcfg.pupil_centre,
             };
-            let m = nanoeye_search::evaluate_net(&mut tr.net, &setup, tcfg.solver)?;
+            let m =
+                nanoeye_search::evaluate_net(&mut tr.net, &setup, tcfg.solver, tcfg.pupil_centre)?;
             let macs = nanoeye_nets::cost::subnet_cost(&tcfg.supernet, arch, h, w)?.macs;
             state.lenses[r].push(Point {
                 macs,

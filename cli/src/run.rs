@@ -815,7 +815,6 @@ pub fn run(a: RunArgs) -> Result<()> {
             arch: &best.arch,
             batch: cfg.batch,
             seed: cfg.seed,
-            centre: cfg.pupil_centre,
         };
         let evals = nanoeye_search::evaluate_frames_multi(
             &mut tr.net,
@@ -883,6 +882,7 @@ pub fn run(a: RunArgs) -> Result<()> {
                 &seq_setup,
                 SolverInput::Predicted,
                 cfg.solver,
+                cfg.pupil_centre,
             )?;
             let mut lines = String::new();
             for (k, rec) in seq.records.iter().enumerate() {

@@ -133,13 +133,9 @@ pub fn touches_edge(mask: MatRef<'_, f32>, level: f32) -> bool {
 }
 
 /// Points of the `level` contour of `mask` (mask pixels, (u, v)), one per pair of 4-neighbours
-/// inside the frame with one value at or above `level` and the other below, placed by linear
-/// interpolation between the two pixel centres. The frame's edge itself is no boundary.
-pub fn boundary_points(mask: MatRef<'_, f32>, level: f32) -> Vec<[f64; 2]> {
-    contour(mask, level, |_, _| true)
-}
-
-/// [`boundary_points`] of the pairs whose member at or above the level satisfies `inside`.
+/// inside the frame with one value at or above `level` and the other below, where the member
+/// at or above the level satisfies `inside`, placed by linear interpolation between the two
+/// pixel centres. The frame's edge itself is no boundary.
 fn contour(
     mask: MatRef<'_, f32>,
     level: f32,

@@ -562,9 +562,8 @@ impl<'a> Trainer<'a> {
             arch,
             batch: self.cfg.batch,
             seed: self.cfg.seed,
-            centre: self.cfg.pupil_centre,
         };
-        evaluate_net(&mut self.net, &s, self.cfg.solver)
+        evaluate_net(&mut self.net, &s, self.cfg.solver, self.cfg.pupil_centre)
     }
 
     /// Per-frame gaze errors of `arch` on `val` after BN recalibration, the solver fed as
@@ -586,9 +585,14 @@ impl<'a> Trainer<'a> {
             arch,
             batch: self.cfg.batch,
             seed: self.cfg.seed,
-            centre: self.cfg.pupil_centre,
         };
-        evaluate_frames(&mut self.net, &s, input, self.cfg.solver)
+        evaluate_frames(
+            &mut self.net,
+            &s,
+            input,
+            self.cfg.solver,
+            self.cfg.pupil_centre,
+        )
     }
 
     /// A trainer restored from a run's checkpoint, with the run's own configuration.
@@ -952,24 +956,24 @@ pub struct EvalSetup<'a> {
     pub batch: usize,
     /// Noise seed.
     pub seed: u64,
-    /// How the solver takes the pupil centre from a mask.
-    pub centre: PupilCentre,
 }
 
 /// Per-frame gaze errors of `s`: predicted mask → S9 → S10–S14 with the predicted slippage
-/// (`input` selects what the solver gets, `kind` which solver), against the recorded gaze.
+/// (`input` selects what the solver gets, `kind` which solver, `centre` how it takes the pupil
+/// centre from the mask), against the recorded gaze.
 pub fn evaluate_frames(
     net: &mut Supernet,
     s: &EvalSetup,
     input: SolverInput,
     kind: SolverKind,
+    centre: PupilCentre,
 ) -> Result<FrameEval> {
-    let mut v = evaluate_frames_multi(net, s, &[(input, kind, s.centre)])?;
+    let mut v = evaluate_frames_multi(net, s, &[(input, kind, centre)])?;
     Ok(v.remove(0))
 }
 
 /// [`evaluate_frames`] for several (solver input, solver, pupil centre) triples from one pass
-/// of the chain and the network (`s.centre` unused): one [`FrameEval`] per triple, in order.
+/// of the chain and the network: one [`FrameEval`] per triple, in order.
 pub fn evaluate_frames_multi(
     net: &mut Supernet,
     s: &EvalSetup,
@@ -983,7 +987,6 @@ pub fn evaluate_frames_multi(
         arch,
         batch,
         seed,
-        centre: _,
     } = s;
     if solves.is_empty() {
         return Err(param("solves", "need at least one solver input"));
@@ -1072,9 +1075,15 @@ pub fn evaluate_frames_multi(
     Ok(out)
 }
 
-/// Validation of `s` solved by `kind`: V, median, failures, Dice, slip MSE.
-pub fn evaluate_net(net: &mut Supernet, s: &EvalSetup, kind: SolverKind) -> Result<Metrics> {
-    let e = evaluate_frames(net, s, SolverInput::Predicted, kind)?;
+/// Validation of `s` solved by `kind` with the pupil centre `centre`: V, median, failures,
+/// Dice, slip MSE.
+pub fn evaluate_net(
+    net: &mut Supernet,
+    s: &EvalSetup,
+    kind: SolverKind,
+    centre: PupilCentre,
+) -> Result<Metrics> {
+    let e = evaluate_frames(net, s, SolverInput::Predicted, kind, centre)?;
     let nb = e.errors_deg.len();
     if nb == 0 {
         return Err(param("val", "no validation frames"));
