@@ -40,10 +40,12 @@ fn spectral_path_matches_the_reference_forward_and_psf_gradient() {
         .collect();
     let spectral: Vec<SpectralLayer> = order
         .iter()
-        .map(|&(l, k)| SpectralLayer {
-            radiance: if l == 9 { &empty } else { &rad[l] },
-            alpha: if l == 9 { &empty } else { &al[l] },
-            kernel: k,
+        .map(|&(l, k)| {
+            SpectralLayer::new(
+                if l == 9 { &empty } else { &rad[l] },
+                if l == 9 { &empty } else { &al[l] },
+                k,
+            )
         })
         .collect();
     let ks = im
@@ -192,11 +194,7 @@ fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
     let kernel = [0usize, 1, 0];
     let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
     let spectral: Vec<SpectralLayer> = (0..3)
-        .map(|l| SpectralLayer {
-            radiance: &rad[l],
-            alpha: &al[l],
-            kernel: kernel[l],
-        })
+        .map(|l| SpectralLayer::new(&rad[l], &al[l], kernel[l]))
         .collect();
     let reference: Vec<Layer> = (0..3)
         .map(|l| Layer {
@@ -208,11 +206,7 @@ fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
     // Dense layers first, so that the sparse run below gets work spaces full of their data.
     let dense_al: Vec<Mat<f32>> = (0..3).map(|s| alpha(h, w, s)).collect();
     let dense: Vec<SpectralLayer> = (0..3)
-        .map(|l| SpectralLayer {
-            radiance: &rad[l],
-            alpha: &dense_al[l],
-            kernel: kernel[l],
-        })
+        .map(|l| SpectralLayer::new(&rad[l], &dense_al[l], kernel[l]))
         .collect();
     spectral_run(&im, &dense, &psfs, &g);
     let (got, kg, scale) = spectral_run(&im, &spectral, &psfs, &g);
@@ -255,4 +249,76 @@ fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
     let (got3, kg3, _) = spectral_run(&fresh, &spectral, &psfs, &g);
     assert_eq!(got, got3);
     assert_eq!(kg, kg3);
+}
+
+/// A layer's gain and weight are the caller's pre-scaled radiance, bit for bit (image, tape
+/// and PSF gradient), and what they make non-finite is refused like a non-finite radiance.
+#[test]
+fn gain_and_weight_are_the_prescaled_radiance_and_overflow_is_refused() {
+    let (h, w, wp) = (19, 26, 5);
+    let im = LayeredImager::new(h, w, wp).unwrap();
+    let psf = Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i * j) as f32));
+    let ks = im.kernel_spectra(&[Some(&psf)]).unwrap();
+    let rad: Vec<Mat<f32>> = (0..2).map(|s| img(h, w, s)).collect();
+    let al: Vec<Mat<f32>> = (0..2).map(|s| alpha(h, w, s + 3)).collect();
+    let weight = Mat::from_fn(h, w, |i, j| 0.5 + ((i * 3 + j) % 7) as f32 / 3.0);
+    let gain = [3.7f32, 0.011];
+    let scaled: Vec<Mat<f32>> = (0..2)
+        .map(|l| Mat::from_fn(h, w, |i, j| gain[l] * weight[(i, j)] * rad[l][(i, j)]))
+        .collect();
+    let pre: Vec<SpectralLayer> = (0..2)
+        .map(|l| SpectralLayer::new(&scaled[l], &al[l], 0))
+        .collect();
+    let on_the_fly: Vec<SpectralLayer> = (0..2)
+        .map(|l| SpectralLayer {
+            gain: gain[l],
+            weight: Some(&weight),
+            ..SpectralLayer::new(&rad[l], &al[l], 0)
+        })
+        .collect();
+    let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
+    let run = |layers: &[SpectralLayer]| {
+        let (image, tape) = im.forward_spectral(layers, &ks).unwrap();
+        let mut acc = im.kernel_grad_accumulator(1);
+        im.vjp_kernels(layers, &tape, &g, &mut acc).unwrap();
+        let scale = acc.radiance_scale.clone();
+        (image, scale, im.kernel_grads(acc))
+    };
+    let (a, b) = (run(&pre), run(&on_the_fly));
+    assert!(a.0 == b.0, "images differ");
+    assert_eq!(a.1, b.1);
+    assert!(a.2[0] == b.2[0], "PSF gradients differ");
+
+    // f32::MAX · 4 overflows to ∞ on the fly: refused, naming the layers.
+    let big = Mat::from_fn(h, w, |_, _| f32::MAX);
+    let overflow = SpectralLayer {
+        gain: 4.0,
+        ..SpectralLayer::new(&big, &al[0], 0)
+    };
+    let err = im
+        .forward_spectral(&[overflow], &ks)
+        .err()
+        .expect("refused");
+    assert!(err.to_string().contains("non-finite"), "{err}");
+    // A layer without coverage is skipped, but a NaN in it is still refused.
+    let empty = Mat::<f32>::zeros(h, w);
+    let nan = Mat::from_fn(h, w, |i, j| if i == 3 && j == 4 { f32::NAN } else { 1.0 });
+    let uncovered = SpectralLayer::new(&nan, &empty, 0);
+    assert!(im.forward_spectral(&[pre[0], uncovered], &ks).is_err());
+    // A non-finite gain or a weight of the wrong shape: refused before any work.
+    let inf_gain = SpectralLayer {
+        gain: f32::INFINITY,
+        ..pre[0]
+    };
+    assert!(im.forward_spectral(&[inf_gain], &ks).is_err());
+    let small = Mat::<f32>::zeros(h - 1, w);
+    let bad_weight = SpectralLayer {
+        weight: Some(&small),
+        ..pre[0]
+    };
+    let err = im
+        .forward_spectral(&[bad_weight], &ks)
+        .err()
+        .expect("refused");
+    assert!(err.to_string().contains("weight"), "{err}");
 }

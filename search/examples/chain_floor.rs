@@ -1,6 +1,6 @@
 //! Time of the camera chain's optics part per frame against its FFT floor, and the PSF stack
 //! and its VJP per step. Usage: `RAYON_NUM_THREADS=1 cargo run --release -p nanoeye-search
-//! --example chain_floor -- DATASET [PITCH_UM] [FRAMES]` (docs/bench/chain.md). Allocator as in
+//! --example chain_floor -- DATASET [PITCH_UM] [FRAMES] [REPS]` (docs/bench/chain.md). Allocator as in
 //! the CLI.
 
 use nanoeye_datagen::render::Dataset;
@@ -38,14 +38,20 @@ fn main() {
     let frames = chain.load(&ds, &ids).expect("load");
     let active = chain.active(&frames);
     let layers: usize = frames.iter().map(|f| f.data.layers.len()).sum();
-    let reps = 3;
-    let time = |f: &mut dyn FnMut()| {
+    let reps: usize = args.get(4).and_then(|s| s.parse().ok()).unwrap_or(5).max(1);
+    // Each call timed on its own after one untimed call; the minimum and the median over
+    // `reps` calls, since this VM's speed moves by ±20 % between seconds.
+    let time = |reps: usize, f: &mut dyn FnMut()| {
         f();
-        let t = Instant::now();
-        for _ in 0..reps {
-            f();
-        }
-        t.elapsed().as_secs_f64() / reps as f64
+        let mut t: Vec<f64> = (0..reps)
+            .map(|_| {
+                let t = Instant::now();
+                f();
+                t.elapsed().as_secs_f64()
+            })
+            .collect();
+        t.sort_by(f64::total_cmp);
+        (t[0], t[reps / 2])
     };
     // Floor: one bare 2-D FFT of S1's padded grid (batched rows, then batched columns of the
     // transpose; no copies, no allocation).
@@ -62,16 +68,21 @@ fn main() {
         fx.get_inplace_scratch_len()
             .max(fy.get_inplace_scratch_len())
     ];
-    let t_fft = time(&mut || {
+    let t_fft = time(10 * reps, &mut || {
         fx.process_with_scratch(&mut buf, &mut scratch);
         fy.process_with_scratch(&mut buf, &mut scratch);
     });
     let mut psfs = None;
-    let t_psf = time(&mut || psfs = Some(chain.psfs(&map, &active).expect("psfs")));
+    let t_psf = time(reps, &mut || {
+        psfs = Some(chain.psfs(&map, &active).expect("psfs"))
+    });
     let psfs = psfs.expect("set");
     let p_hat = pitch_um * 1e-6;
     let mut fwd = None;
-    let t_fwd = time(&mut || {
+    let t_fwd = time(reps, &mut || {
+        // The previous frame's result is dropped first, as a training step drops it, so
+        // the timed calls reuse its memory instead of faulting in a second set.
+        fwd = None;
         fwd = Some(
             chain
                 .forward(&frames, &psfs, p_hat, NoiseMode::Gaussian, 0)
@@ -79,6 +90,16 @@ fn main() {
         )
     });
     let fwd = fwd.expect("set");
+    let t_opt = time(reps, &mut || {
+        for f in &frames {
+            std::hint::black_box(chain.optical_image(f, &psfs).expect("s1"));
+        }
+    });
+    eprintln!(
+        "optical_image only per frame: {:.1}, {:.1} ms",
+        t_opt.0 / frames.len() as f64 * 1e3,
+        t_opt.1 / frames.len() as f64 * 1e3
+    );
     let g = {
         let mut g = Tensor::zeros(fwd.input.n, 1, fwd.input.h, fwd.input.w);
         g.data
@@ -87,49 +108,50 @@ fn main() {
             .for_each(|(i, v)| *v = (i % 7) as f32 - 3.0);
         g
     };
-    let t_bwd = time(&mut || {
+    let t_bwd = time(reps, &mut || {
         let mut acc = chain.accumulator();
         chain
             .backward(&frames, &psfs, &fwd, &g, &mut acc)
             .expect("backward");
     });
-    let t_vjp = time(&mut || {
+    let t_vjp = time(reps, &mut || {
         let mut acc = chain.accumulator();
         chain
             .backward(&frames, &psfs, &fwd, &g, &mut acc)
             .expect("backward");
         chain.finish(&map, &psfs, acc).expect("vjp");
-    }) - t_bwd;
+    });
     let n = frames.len() as f64;
+    let per = layers as f64 / n;
     // Forward: layer spectrum + inverse per layer; backward: gradient spectrum + layer
     // spectrum per layer (the PSF spectra and the inverse FFTs of ∂L/∂P are per step).
-    let floor_f = 2.0 * layers as f64 / n * t_fft;
+    let floor = |t: f64| 2.0 * per * t;
     println!(
-        "native {h}x{w}, PSF window {} px, {} frames, {:.1} layers/frame, p_hat {pitch_um} um",
+        "native {h}x{w}, PSF window {} px, {} frames, {per:.1} layers/frame, p_hat {pitch_um} um, \
+         {reps} timed calls (minimum, median)",
         chain.psf_px(),
         frames.len(),
-        layers as f64 / n
     );
     println!(
-        "one bare 2-D FFT of S1's {ny}x{nx} grid: {:.2} ms",
-        t_fft * 1e3
+        "one bare 2-D FFT of S1's {ny}x{nx} grid: {:.2}, {:.2} ms",
+        t_fft.0 * 1e3,
+        t_fft.1 * 1e3
     );
+    for (what, t) in [("forward", t_fwd), ("backward", t_bwd)] {
+        println!(
+            "chain {what} per frame: {:.1}, {:.1} ms; FFT floor {:.1}, {:.1} ms; ratio {:.2}, {:.2}",
+            t.0 / n * 1e3,
+            t.1 / n * 1e3,
+            floor(t_fft.0) * 1e3,
+            floor(t_fft.1) * 1e3,
+            t.0 / n / floor(t_fft.0),
+            t.1 / n / floor(t_fft.1)
+        );
+    }
     println!(
-        "chain forward per frame: {:.1} ms; FFT floor {:.1} ms; ratio {:.2}",
-        t_fwd / n * 1e3,
-        floor_f * 1e3,
-        t_fwd / n / floor_f
-    );
-    println!(
-        "chain backward per frame: {:.1} ms; FFT floor {:.1} ms; ratio {:.2}",
-        t_bwd / n * 1e3,
-        floor_f * 1e3,
-        t_bwd / n / floor_f
-    );
-    println!(
-        "per step: PSF stack ({} depths) {:.1} ms, PSF VJP + kernel inverse FFTs {:.1} ms",
+        "per step: PSF stack ({} depths) {:.1} ms, PSF VJP + kernel inverse FFTs {:.1} ms (medians)",
         active.iter().filter(|&&a| a).count(),
-        t_psf * 1e3,
-        t_vjp * 1e3
+        t_psf.1 * 1e3,
+        (t_vjp.1 - t_bwd.1) * 1e3
     );
 }

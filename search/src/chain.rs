@@ -466,27 +466,10 @@ impl CameraChain {
     }
 
     /// S1 inputs of a frame, back to front: radiance η_k·scale·L_k and the layer's α.
-    fn layer_inputs(&self, f: &ChainFrame, psfs: &StepPsfs) -> Vec<(usize, Mat<f32>)> {
-        f.data
-            .layers
-            .iter()
-            .rev()
-            .map(|l| {
-                let k = l.info.index;
-                let e = psfs.eta[k] as f32;
-                let rad = Mat::from_fn(l.radiance.nrows(), l.radiance.ncols(), |i, j| {
-                    e * self.scale[(i, j)] * l.radiance[(i, j)]
-                });
-                (k, rad)
-            })
-            .collect()
-    }
-
     /// Sensor-plane image of one frame (photons per base-pixel area, native grid): S1, and
     /// the tape its PSF VJP needs.
     pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<(Mat<f32>, S1Tape)> {
-        let inputs = self.layer_inputs(f, psfs);
-        let layers = Self::spectral_layers(f, &inputs);
+        let layers = self.spectral_layers(f, psfs);
         let (mut img, tape) = self.imager.forward_spectral(&layers, &psfs.spectra)?;
         // FFT round-off leaves values of order 1e-16 of the peak below zero where there is no
         // light; intensity is non-negative, so they are cut (the VJP treats the cut as identity:
@@ -499,17 +482,22 @@ impl CameraChain {
         Ok((img, tape))
     }
 
-    fn spectral_layers<'a>(
-        f: &'a ChainFrame,
-        inputs: &'a [(usize, Mat<f32>)],
-    ) -> Vec<SpectralLayer<'a>> {
-        inputs
+    /// The frame's layers back to front for S1, each radiance scaled on the fly to photons
+    /// by its slab's PSF energy η and the per-pixel radiometric factor.
+    fn spectral_layers<'a>(&'a self, f: &'a ChainFrame, psfs: &StepPsfs) -> Vec<SpectralLayer<'a>> {
+        f.data
+            .layers
             .iter()
-            .zip(f.data.layers.iter().rev())
-            .map(|((k, rad), l)| SpectralLayer {
-                radiance: rad,
-                alpha: &l.alpha,
-                kernel: *k,
+            .rev()
+            .map(|l| {
+                let k = l.info.index;
+                SpectralLayer {
+                    radiance: &l.radiance,
+                    alpha: &l.alpha,
+                    kernel: k,
+                    gain: psfs.eta[k] as f32,
+                    weight: Some(&self.scale),
+                }
             })
             .collect()
     }
@@ -536,21 +524,12 @@ impl CameraChain {
         }
         let sensor = CmosSensor::new(scfg)?;
         let base = self.native.pitch_m();
-        let qe = self.cfg.sensor.quantum_efficiency as f32;
         let per: Vec<Result<_>> = frames
             .par_iter()
             .map(|f| {
                 let (img, s1) = self.optical_image(f, psfs)?;
                 let (dn, tape) = sensor.forward(&img, base, p_hat_m, seed, f.id)?;
-                let integ = nanoeye_sensor::BoxIntegrator::new(
-                    img.nrows(),
-                    img.ncols(),
-                    base,
-                    p_hat_m,
-                    self.cfg.sensor.base_pitch,
-                )?;
-                let ph = integ.forward(&img)?;
-                let el = Mat::from_fn(ph.nrows(), ph.ncols(), |i, j| qe * ph[(i, j)]);
+                let el = tape.mean_electrons().clone();
                 let mask = grid.downsample_mask(&f.data.mask_visible_pupil)?;
                 let state: State = f.record.state;
                 let pose = grid.camera.slipped_pose(state.slip_m, state.cam_rot_rad);
@@ -649,8 +628,7 @@ impl CameraChain {
                     let gi = d_input.image(b);
                     let g_dn = Mat::from_fn(h, w, |i, j| gi[i * w + j] * inv_span);
                     let sg = sensor.vjp(&fwd.tapes[b], &g_dn)?;
-                    let inputs = self.layer_inputs(f, psfs);
-                    let layers = Self::spectral_layers(f, &inputs);
+                    let layers = self.spectral_layers(f, psfs);
                     let gimg = Mat::from_fn(sg.d_image.nrows(), sg.d_image.ncols(), |i, j| {
                         sg.d_image[(i, j)] as f64
                     });

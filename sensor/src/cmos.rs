@@ -122,6 +122,16 @@ pub struct SensorTape {
     image: Mat<f32>,
     /// ∂DN/∂photons per effective pixel (gain · QE · ∂e/∂μ · masks).
     ddn_dphot: Mat<f32>,
+    /// Mean photo-electrons per effective pixel, before noise.
+    mean_e: Mat<f32>,
+}
+
+impl SensorTape {
+    /// Mean photo-electrons per effective pixel of the forward pass (QE · box-integrated
+    /// photons, before noise), so a caller that reports them need not integrate again.
+    pub fn mean_electrons(&self) -> &Mat<f32> {
+        &self.mean_e
+    }
 }
 
 /// Gradients w.r.t. the sensor inputs.
@@ -251,6 +261,7 @@ impl Sensor for CmosSensor {
                 integrator: integ,
                 image: image.clone(),
                 ddn_dphot: dd,
+                mean_e: mu_e,
             },
         ))
     }
