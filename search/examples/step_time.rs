@@ -5,7 +5,8 @@
 //! [N_RANDOM] [REPS] [learned|fixed]` (docs/run.md, "Time per step and per candidate"). With
 //! `learned` (the default) the phase map moves by a small step each pass, as the learned
 //! lens's does in training, so the chain's kept PSF stack is never reused; with `fixed` it is
-//! (a fixed lens's training).
+//! (a fixed lens's training), and the chain's backward is the sensor's alone (no PSF adjoint,
+//! no PSF VJP), as in a fixed lens's training.
 
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig};
@@ -92,13 +93,20 @@ fn main() {
             dx.add_assign(&g);
         }
         tick(3, &mut clock);
-        let mut acc = chain.accumulator();
+        // As in training: a fixed lens needs ∂L/∂p̂ only, and no PSF VJP.
+        let mut acc = if learned {
+            chain.accumulator()
+        } else {
+            chain.pitch_accumulator()
+        };
         chain
             .backward(&frames, &psfs, &fwd, &dx, &mut acc)
             .expect("backward");
         tick(4, &mut clock);
-        let g = chain.finish(&map, &psfs, acc).expect("finish");
-        std::hint::black_box(g);
+        if learned {
+            let g = chain.finish(&map, &psfs, acc).expect("finish");
+            std::hint::black_box(g);
+        }
         tick(5, &mut clock);
         // The first pass warms caches and plans.
         if rep > 0 {

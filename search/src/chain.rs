@@ -198,7 +198,8 @@ pub struct ChainGrad {
 /// ∂L/∂PSF accumulated over frames (and subnets) before the one PSF VJP of a step: ∂L/∂P̂_k
 /// in the frequency domain, ⟨∂L/∂I⁽ᵏ⁾, conv_k⟩ for ∂L/∂η_k, and ∂L/∂p̂.
 pub struct PsfGradAccumulator {
-    kernels: KernelGradAccumulator,
+    /// ∂L/∂P̂ per kernel; `None` for an accumulator of ∂L/∂p̂ alone (a fixed lens).
+    kernels: Option<KernelGradAccumulator>,
     /// ∂L/∂p̂ (per metre).
     p_hat: f64,
 }
@@ -588,13 +589,24 @@ impl CameraChain {
     /// A zeroed accumulator for this chain's slabs.
     pub fn accumulator(&self) -> PsfGradAccumulator {
         PsfGradAccumulator {
-            kernels: self.imager.kernel_grad_accumulator(self.spec.count),
+            kernels: Some(self.imager.kernel_grad_accumulator(self.spec.count)),
+            p_hat: 0.0,
+        }
+    }
+
+    /// An accumulator of ∂L/∂p̂ alone, for a lens that does not train: [`Self::backward`]
+    /// then runs the sensor's VJP only and skips S1's PSF adjoint (two FFTs per layer and
+    /// frame) whose result nothing would read; [`Self::finish`] refuses it.
+    pub fn pitch_accumulator(&self) -> PsfGradAccumulator {
+        PsfGradAccumulator {
+            kernels: None,
             p_hat: 0.0,
         }
     }
 
     /// Backward of [`Self::forward`] for ∂L/∂input `d_input` (N, 1, H, W): adds ∂L/∂p̂ and
-    /// ∂L/∂PSF of the batch into `acc` (call once per subnet's gradient, or once with their sum).
+    /// ∂L/∂PSF of the batch into `acc` (call once per subnet's gradient, or once with their sum;
+    /// ∂L/∂p̂ only into a [`Self::pitch_accumulator`]).
     pub fn backward(
         &self,
         frames: &[ChainFrame],
@@ -619,6 +631,7 @@ impl CameraChain {
         let mut scfg = c.clone();
         scfg.noise = NoiseMode::None;
         let sensor = CmosSensor::new(scfg)?;
+        let psf_grad = acc.kernels.is_some();
         for c0 in (0..frames.len()).step_by(BACKWARD_CHUNK) {
             let c1 = (c0 + BACKWARD_CHUNK).min(frames.len());
             let per: Vec<Result<_>> = (c0..c1)
@@ -628,6 +641,9 @@ impl CameraChain {
                     let gi = d_input.image(b);
                     let g_dn = Mat::from_fn(h, w, |i, j| gi[i * w + j] * inv_span);
                     let sg = sensor.vjp(&fwd.tapes[b], &g_dn)?;
+                    if !psf_grad {
+                        return Ok((sg.d_p_hat, None));
+                    }
                     let layers = self.spectral_layers(f, psfs);
                     let gimg = Mat::from_fn(sg.d_image.nrows(), sg.d_image.ncols(), |i, j| {
                         sg.d_image[(i, j)] as f64
@@ -635,14 +651,16 @@ impl CameraChain {
                     let mut local = self.imager.kernel_grad_accumulator(self.spec.count);
                     self.imager
                         .vjp_kernels(&layers, &fwd.s1[b], &gimg, &mut local)?;
-                    Ok((sg.d_p_hat, local))
+                    Ok((sg.d_p_hat, Some(local)))
                 })
                 .collect();
             // Merged in frame order: the sum does not depend on the thread count.
             for r in per {
                 let (dp, local) = r?;
                 acc.p_hat += dp;
-                self.imager.merge_kernel_grads(&mut acc.kernels, local);
+                if let (Some(k), Some(local)) = (acc.kernels.as_mut(), local) {
+                    self.imager.merge_kernel_grads(k, local);
+                }
             }
         }
         Ok(())
@@ -658,8 +676,15 @@ impl CameraChain {
     ) -> Result<ChainGrad> {
         let wp = self.psf_px();
         let p_hat = acc.p_hat;
-        let scale = acc.kernels.radiance_scale.clone();
-        let unit = self.imager.kernel_grads(acc.kernels);
+        let Some(kernels) = acc.kernels else {
+            return Err(param(
+                "acc",
+                "an accumulator from pitch_accumulator() holds no PSF gradient; \
+                 use accumulator() to train the lens",
+            ));
+        };
+        let scale = kernels.radiance_scale.clone();
+        let unit = self.imager.kernel_grads(kernels);
         let grads: Vec<Mat<f64>> = (0..self.spec.count)
             .map(|k| {
                 let e = psfs.eta[k];

@@ -420,7 +420,12 @@ impl<'a> Trainer<'a> {
         extra_dp_um: f64,
         lr_scale: f64,
     ) -> Result<f64> {
-        let mut acc = self.chain.accumulator();
+        // A fixed lens needs ∂L/∂p̂ only: the chain skips S1's PSF adjoint for it.
+        let mut acc = if self.cfg.fixed_lens {
+            self.chain.pitch_accumulator()
+        } else {
+            self.chain.accumulator()
+        };
         self.chain
             .backward(&s.frames, &s.psfs, &s.fwd, dx, &mut acc)?;
         let dp_um = acc.p_hat() * 1e-6 + extra_dp_um;

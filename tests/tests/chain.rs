@@ -530,6 +530,33 @@ fn chain_gradient_matches_central_differences() {
     );
 }
 
+/// A fixed lens's backward (`pitch_accumulator`) skips S1's PSF adjoint but gives ∂L/∂p̂ bit for
+/// bit as the full backward does; the PSF VJP refuses such an accumulator.
+#[test]
+fn a_fixed_lens_gets_the_same_pitch_gradient_without_the_psf_adjoint() {
+    let r = rig1();
+    let map = hyperbolic(&r.chain);
+    let frames = r.chain.load(&r.ds, &[0, 1, 2]).unwrap();
+    let psfs = r.chain.psfs(&map, &r.chain.active(&frames)).unwrap();
+    let fwd = r
+        .chain
+        .forward(&frames, &psfs, 103e-6, NoiseMode::Gaussian, 5)
+        .unwrap();
+    let mut dx = fwd.input.clone();
+    for (i, v) in dx.data.iter_mut().enumerate() {
+        *v = ((i * 7919) % 13) as f32 / 13.0 - 0.4;
+    }
+    let (mut full, mut pitch) = (r.chain.accumulator(), r.chain.pitch_accumulator());
+    for acc in [&mut full, &mut pitch] {
+        r.chain.backward(&frames, &psfs, &fwd, &dx, acc).unwrap();
+    }
+    assert!(full.p_hat() != 0.0);
+    assert_eq!(full.p_hat().to_bits(), pitch.p_hat().to_bits());
+    let err = r.chain.finish(&map, &psfs, pitch).expect_err("refused");
+    assert!(err.to_string().contains("pitch_accumulator"), "{err}");
+    assert!(r.chain.finish(&map, &psfs, full).is_ok());
+}
+
 /// Threads standing in for the processes of a distributed run: `all_gather` swaps the shares
 /// through shared slots between two barriers.
 struct Exchange {
