@@ -106,7 +106,51 @@ pub struct CameraChain {
     split: Arc<dyn DepthSplit>,
     /// The last stack [`CameraChain::psfs`] computed and what it was computed for.
     memo: Mutex<Option<PsfMemo>>,
+    /// S1 images of frames imaged without a tape under one PSF stack (see [`S1Cache`]).
+    s1_cache: Mutex<S1Cache>,
 }
+
+/// Most bytes of S1 images kept by [`S1Cache`] (128 frames at 1280×800, 2,048 at 320×200).
+const S1_CACHE_BYTES: usize = 512 << 20;
+
+/// S1 images (after the clamp at zero) of frames imaged under the stack with id `psfs`. An
+/// image depends on the frame and the PSF stack only — not on p̂, the noise or the network —
+/// so while a stack stays (a fixed lens's training, BN recalibration, head refit and
+/// evaluation) a frame seen again skips S1. Filled until [`S1_CACHE_BYTES`], emptied when
+/// another stack comes. Only forwards that keep no S1 tape read or fill it.
+#[derive(Default)]
+struct S1Cache {
+    psfs: u64,
+    images: std::collections::HashMap<(u64, u64), Arc<Mat<f32>>>,
+    bytes: usize,
+}
+
+impl S1Cache {
+    /// The image of frame `key` under stack `psfs`, if kept; empties the cache when `psfs`
+    /// is not the stack it holds images of.
+    fn get(&mut self, psfs: u64, key: (u64, u64)) -> Option<Arc<Mat<f32>>> {
+        if self.psfs != psfs {
+            *self = S1Cache {
+                psfs,
+                ..S1Cache::default()
+            };
+        }
+        self.images.get(&key).cloned()
+    }
+
+    fn put(&mut self, psfs: u64, key: (u64, u64), img: &Arc<Mat<f32>>) {
+        let size = img.nrows() * img.ncols() * std::mem::size_of::<f32>();
+        if self.psfs == psfs
+            && self.bytes + size <= S1_CACHE_BYTES
+            && self.images.insert(key, img.clone()).is_none()
+        {
+            self.bytes += size;
+        }
+    }
+}
+
+/// Ids of computed PSF stacks: a kept stack handed out again keeps its id.
+static NEXT_PSFS_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
 
 /// A PSF stack with the exact phase map (bit patterns) and slabs it belongs to. A fixed lens
 /// (the baselines' training, BN recalibration, every evaluation) asks for the same stack once
@@ -153,6 +197,8 @@ pub struct StepPsfs {
     pub eta: Vec<f64>,
     /// FFTs of P̂_k for S1 (computed once, shared by every frame of the step).
     spectra: KernelSpectra,
+    /// Unique per computed stack (the S1 image cache's key).
+    id: u64,
 }
 
 /// A loaded frame and its targets on the p̂ grid.
@@ -160,6 +206,9 @@ pub struct StepPsfs {
 pub struct ChainFrame {
     /// Global frame id: seeds its noise stream.
     pub id: u64,
+    /// The dataset the frame was loaded from (a hash of its directory), with `id` its key in
+    /// the S1 image cache; `None` (a frame built in memory) is never cached.
+    pub source: Option<u64>,
     /// Stored layers and masks (native grid).
     pub data: StoredFrame,
     /// Its record (state, gaze, landmarks).
@@ -183,7 +232,8 @@ pub struct ChainForward {
     /// The p̂ grid.
     pub grid: PitchGrid,
     tapes: Vec<SensorTape>,
-    s1: Vec<S1Tape>,
+    /// S1's tapes, `None` for a forward that keeps none (see [`CameraChain::forward_with`]).
+    s1: Vec<Option<S1Tape>>,
 }
 
 /// Gradients of a scalar loss w.r.t. the optical and sensor parameters.
@@ -283,6 +333,7 @@ impl CameraChain {
             scale,
             split: Arc::new(OneProcess),
             memo: Mutex::new(None),
+            s1_cache: Mutex::new(S1Cache::default()),
         })
     }
 
@@ -358,10 +409,18 @@ impl CameraChain {
                 ),
             ));
         }
+        let source = {
+            use std::hash::{Hash, Hasher};
+            let dir = std::fs::canonicalize(&ds.dir).unwrap_or_else(|_| ds.dir.clone());
+            let mut h = std::collections::hash_map::DefaultHasher::new();
+            (dir, ds.len()).hash(&mut h);
+            h.finish()
+        };
         ids.par_iter()
             .map(|&i| {
                 Ok(ChainFrame {
                     id: i as u64,
+                    source: Some(source),
                     data: ds.load(i)?,
                     record: ds.records[i].clone(),
                 })
@@ -463,10 +522,10 @@ impl CameraChain {
             unit,
             eta,
             spectra,
+            id: NEXT_PSFS_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
         })
     }
 
-    /// S1 inputs of a frame, back to front: radiance η_k·scale·L_k and the layer's α.
     /// Sensor-plane image of one frame (photons per base-pixel area, native grid): S1, and
     /// the tape its PSF VJP needs.
     pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<(Mat<f32>, S1Tape)> {
@@ -485,6 +544,33 @@ impl CameraChain {
 
     /// The frame's layers back to front for S1, each radiance scaled on the fly to photons
     /// by its slab's PSF energy η and the per-pixel radiometric factor.
+    /// S1 images kept for frames seen again under the same PSF stack (at most
+    /// 512 MiB of them).
+    pub fn cached_s1_images(&self) -> usize {
+        self.s1_cache.lock().map(|c| c.images.len()).unwrap_or(0)
+    }
+
+    /// S1's image of `f` without a tape: the cached one when `f` came from a dataset and was
+    /// imaged under `psfs` before, else computed (and kept while the cache has room).
+    fn cached_optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<Arc<Mat<f32>>> {
+        let key = f.source.map(|s| (s, f.id));
+        if let Some(key) = key {
+            let hit = self
+                .s1_cache
+                .lock()
+                .ok()
+                .and_then(|mut c| c.get(psfs.id, key));
+            if let Some(img) = hit {
+                return Ok(img);
+            }
+        }
+        let img = Arc::new(self.optical_image(f, psfs)?.0);
+        if let (Some(key), Ok(mut c)) = (key, self.s1_cache.lock()) {
+            c.put(psfs.id, key, &img);
+        }
+        Ok(img)
+    }
+
     fn spectral_layers<'a>(&'a self, f: &'a ChainFrame, psfs: &StepPsfs) -> Vec<SpectralLayer<'a>> {
         f.data
             .layers
@@ -504,7 +590,8 @@ impl CameraChain {
     }
 
     /// Runs the batch forward at effective pitch `p_hat_m` with noise mode `noise` drawn from
-    /// `seed` (frame `id` selects the stream, so a frame's noise does not depend on its batch).
+    /// `seed` (frame `id` selects the stream, so a frame's noise does not depend on its batch),
+    /// keeping what a backward with ∂L/∂PSF needs.
     pub fn forward(
         &self,
         frames: &[ChainFrame],
@@ -512,6 +599,22 @@ impl CameraChain {
         p_hat_m: f64,
         noise: NoiseMode,
         seed: u64,
+    ) -> Result<ChainForward> {
+        self.forward_with(frames, psfs, p_hat_m, noise, seed, true)
+    }
+
+    /// [`Self::forward`], keeping S1's tape only with `psf_grad`. Without it (a fixed lens's
+    /// training, evaluation) the forward allows a backward into a
+    /// [`Self::pitch_accumulator`] only, and a frame's S1 image comes from the chain's cache
+    /// when the same frame was imaged under the same PSF stack before (the same bits).
+    pub fn forward_with(
+        &self,
+        frames: &[ChainFrame],
+        psfs: &StepPsfs,
+        p_hat_m: f64,
+        noise: NoiseMode,
+        seed: u64,
+        psf_grad: bool,
     ) -> Result<ChainForward> {
         if frames.is_empty() {
             return Err(param("frames", "empty batch"));
@@ -528,7 +631,12 @@ impl CameraChain {
         let per: Vec<Result<_>> = frames
             .par_iter()
             .map(|f| {
-                let (img, s1) = self.optical_image(f, psfs)?;
+                let (img, s1) = if psf_grad {
+                    let (img, s1) = self.optical_image(f, psfs)?;
+                    (Arc::new(img), Some(s1))
+                } else {
+                    (self.cached_optical_image(f, psfs)?, None)
+                };
                 let (dn, tape) = sensor.forward(&img, base, p_hat_m, seed, f.id)?;
                 let el = tape.mean_electrons().clone();
                 let mask = grid.downsample_mask(&f.data.mask_visible_pupil)?;
@@ -644,13 +752,19 @@ impl CameraChain {
                     if !psf_grad {
                         return Ok((sg.d_p_hat, None));
                     }
+                    let Some(s1) = &fwd.s1[b] else {
+                        return Err(param(
+                            "acc",
+                            "the forward kept no S1 tape (forward_with without psf_grad): \
+                             backward into a pitch_accumulator(), or run forward()",
+                        ));
+                    };
                     let layers = self.spectral_layers(f, psfs);
                     let gimg = Mat::from_fn(sg.d_image.nrows(), sg.d_image.ncols(), |i, j| {
                         sg.d_image[(i, j)] as f64
                     });
                     let mut local = self.imager.kernel_grad_accumulator(self.spec.count);
-                    self.imager
-                        .vjp_kernels(&layers, &fwd.s1[b], &gimg, &mut local)?;
+                    self.imager.vjp_kernels(&layers, s1, &gimg, &mut local)?;
                     Ok((sg.d_p_hat, Some(local)))
                 })
                 .collect();

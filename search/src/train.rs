@@ -380,6 +380,7 @@ impl<'a> Trainer<'a> {
             &frames,
             &map,
             self.cfg.seed ^ (t as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+            !self.cfg.fixed_lens,
         )?;
         Ok(StepData {
             frames,
@@ -389,23 +390,27 @@ impl<'a> Trainer<'a> {
         })
     }
 
-    /// `frames` through the chain at φ = `map` and the current p̂, sensor noise from `seed`.
+    /// `frames` through the chain at φ = `map` and the current p̂, sensor noise from `seed`;
+    /// with `psf_grad` keeping what the backward to φ needs (else S1's images may come from
+    /// the chain's cache).
     fn through_chain(
         &self,
         frames: &[ChainFrame],
         map: &PhaseMap,
         seed: u64,
+        psf_grad: bool,
     ) -> Result<(
         std::sync::Arc<crate::chain::StepPsfs>,
         crate::chain::ChainForward,
     )> {
         let psfs = self.chain.psfs(map, &self.chain.active(frames))?;
-        let fwd = self.chain.forward(
+        let fwd = self.chain.forward_with(
             frames,
             &psfs,
             self.pitch_um * 1e-6,
             NoiseMode::Gaussian,
             seed,
+            psf_grad,
         )?;
         Ok((psfs, fwd))
     }
@@ -509,7 +514,7 @@ impl<'a> Trainer<'a> {
         let mut recal = Vec::new();
         for b in 0..batches.max(1) {
             let frames = self.frames(b)?;
-            let (_, fwd) = self.through_chain(&frames, &map, self.cfg.seed ^ 0xEEEE)?;
+            let (_, fwd) = self.through_chain(&frames, &map, self.cfg.seed ^ 0xEEEE, false)?;
             recal.push(fwd.input);
         }
         Ok(recal)
@@ -535,7 +540,7 @@ impl<'a> Trainer<'a> {
                 break;
             }
             let frames = self.chain.load(self.ds, chunk)?;
-            let (_, fwd) = self.through_chain(&frames, &map, self.cfg.seed ^ 0x4EAD)?;
+            let (_, fwd) = self.through_chain(&frames, &map, self.cfg.seed ^ 0x4EAD, false)?;
             bytes += fwd.input.data.len() * std::mem::size_of::<f32>();
             out.inputs.push(fwd.input);
             out.targets_mm.push(fwd.slip_mm);
@@ -1002,7 +1007,14 @@ pub fn evaluate_frames_multi(
     for chunk in ids.chunks(batch.max(1)) {
         let frames = chain.load(val, chunk)?;
         let psfs = chain.psfs(map, &chain.active(&frames))?;
-        let fwd = chain.forward(&frames, &psfs, p_hat, NoiseMode::Gaussian, seed ^ 0xBEEF)?;
+        let fwd = chain.forward_with(
+            &frames,
+            &psfs,
+            p_hat,
+            NoiseMode::Gaussian,
+            seed ^ 0xBEEF,
+            false,
+        )?;
         let o = net.forward(arch, &fwd.input, BnMode::Eval)?;
         let rig = Rig {
             camera: fwd.grid.camera.clone(),

@@ -72,6 +72,7 @@ fn hyperbolic(chain: &CameraChain) -> PhaseMap {
 fn frame_with(ds: &Dataset, layers: Vec<StoredLayer>) -> ChainFrame {
     ChainFrame {
         id: 0,
+        source: None,
         data: StoredFrame {
             layers,
             mask_visible_pupil: Mat::zeros(H, W),
@@ -555,6 +556,74 @@ fn a_fixed_lens_gets_the_same_pitch_gradient_without_the_psf_adjoint() {
     let err = r.chain.finish(&map, &psfs, pitch).expect_err("refused");
     assert!(err.to_string().contains("pitch_accumulator"), "{err}");
     assert!(r.chain.finish(&map, &psfs, full).is_ok());
+}
+
+/// A forward that keeps no S1 tape takes a frame's S1 image from the chain's cache when the
+/// frame (by dataset and index) was imaged under the same PSF stack: the same bits as a fresh
+/// forward, another dataset's frame of the same index not confused with it, the cache emptied
+/// for another stack, and a backward to the PSFs refused.
+#[test]
+fn a_frame_seen_again_under_the_same_stack_skips_s1_with_the_same_bits() {
+    let r = rig1();
+    let (_d2, other) = {
+        let dir = tempfile::tempdir().unwrap();
+        write_dataset(&opts(dir.path(), 17)).unwrap();
+        let ds = Dataset::open(dir.path()).unwrap();
+        (dir, ds)
+    };
+    let map = hyperbolic(&r.chain);
+    let frames = r.chain.load(&r.ds, &[0, 1]).unwrap();
+    let others = r.chain.load(&other, &[0, 1]).unwrap();
+    let psfs = r.chain.psfs(&map, &r.chain.active(&frames)).unwrap();
+    let run = |fr: &[nanoeye_search::ChainFrame], grad: bool| {
+        r.chain
+            .forward_with(fr, &psfs, 103e-6, NoiseMode::Gaussian, 3, grad)
+            .unwrap()
+    };
+    let fresh = run(&frames, true);
+    let fresh_other = run(&others, true);
+    assert_eq!(
+        r.chain.cached_s1_images(),
+        0,
+        "a forward with a tape fills no cache"
+    );
+    let first = run(&frames, false);
+    assert_eq!(r.chain.cached_s1_images(), 2);
+    let again = run(&frames, false);
+    let other_again = run(&others, false);
+    assert_eq!(r.chain.cached_s1_images(), 4, "other dataset, other keys");
+    for (a, b) in [
+        (&fresh, &first),
+        (&fresh, &again),
+        (&fresh_other, &other_again),
+    ] {
+        assert!(a.input.data == b.input.data, "network input differs");
+        assert!(a.electrons == b.electrons);
+    }
+    assert!(fresh.input.data != fresh_other.input.data);
+    // Only ∂L/∂p̂ can flow back through a forward without a tape.
+    let dx = again.input.clone();
+    let mut acc = r.chain.accumulator();
+    let err = r
+        .chain
+        .backward(&frames, &psfs, &again, &dx, &mut acc)
+        .expect_err("no S1 tape");
+    assert!(err.to_string().contains("pitch_accumulator"), "{err}");
+    let mut pitch = r.chain.pitch_accumulator();
+    r.chain
+        .backward(&frames, &psfs, &again, &dx, &mut pitch)
+        .unwrap();
+    // Another lens: another stack, the cache emptied and refilled with its images.
+    let flat = LensSpec::Flat
+        .phase_map(r.chain.aperture_grid(), 940e-9, 2e-3)
+        .unwrap();
+    let psfs2 = r.chain.psfs(&flat, &r.chain.active(&frames)).unwrap();
+    let b = r
+        .chain
+        .forward_with(&frames, &psfs2, 103e-6, NoiseMode::Gaussian, 3, false)
+        .unwrap();
+    assert_eq!(r.chain.cached_s1_images(), 2);
+    assert!(b.input.data != fresh.input.data);
 }
 
 /// Threads standing in for the processes of a distributed run: `all_gather` swaps the shares
