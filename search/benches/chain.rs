@@ -39,14 +39,42 @@ fn bench(c: &mut Criterion) {
     let p_hat = 14.5e-6;
     let mut g = c.benchmark_group("chain_320x200");
     g.sample_size(10);
+    // Two maps in turn: the chain keeps the last stack it computed and would hand it back
+    // for the same map, which is a lookup, not a stack.
+    let nudged = {
+        let mut ph = map.phase_rad.clone();
+        ph[(0, 0)] += 1e-3;
+        nanoeye_optics::PhaseMap::new(map.grid, ph, map.amplitude.clone()).expect("map")
+    };
+    let mut turn = false;
     g.bench_function("psf_stack", |b| {
-        b.iter(|| chain.psfs(black_box(&map), &active).expect("psfs"))
+        b.iter(|| {
+            turn = !turn;
+            let m = if turn { &nudged } else { &map };
+            chain.psfs(black_box(m), &active).expect("psfs")
+        })
     });
     let psfs = chain.psfs(&map, &active).expect("psfs");
     g.bench_function("forward_3_frames", |b| {
         b.iter(|| {
             chain
                 .forward(black_box(&frames), &psfs, p_hat, NoiseMode::Gaussian, 0)
+                .expect("forward")
+        })
+    });
+    // Without S1's tape (a fixed lens, evaluation): after the first call every frame's S1
+    // image comes from the chain's cache, so this is the sensor and the targets alone.
+    g.bench_function("forward_3_frames_s1_cached", |b| {
+        b.iter(|| {
+            chain
+                .forward_with(
+                    black_box(&frames),
+                    &psfs,
+                    p_hat,
+                    NoiseMode::Gaussian,
+                    0,
+                    false,
+                )
                 .expect("forward")
         })
     });
@@ -61,6 +89,15 @@ fn bench(c: &mut Criterion) {
     g.bench_function("backward_3_frames", |b| {
         b.iter(|| {
             let mut acc = chain.accumulator();
+            chain
+                .backward(&frames, &psfs, &fwd, black_box(&dx), &mut acc)
+                .expect("backward");
+            acc
+        })
+    });
+    g.bench_function("backward_3_frames_pitch_only", |b| {
+        b.iter(|| {
+            let mut acc = chain.pitch_accumulator();
             chain
                 .backward(&frames, &psfs, &fwd, black_box(&dx), &mut acc)
                 .expect("backward");
