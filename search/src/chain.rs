@@ -530,7 +530,12 @@ impl CameraChain {
     /// the tape its PSF VJP needs.
     pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<(Mat<f32>, S1Tape)> {
         let layers = self.spectral_layers(f, psfs);
-        let (mut img, tape) = self.imager.forward_spectral(&layers, &psfs.spectra)?;
+        // Named by frame: in a dataset of hundreds, "layer 7 is not finite" alone does not
+        // say which file to look at.
+        let (mut img, tape) = self
+            .imager
+            .forward_spectral(&layers, &psfs.spectra)
+            .map_err(|e| param("frames", format!("frame {}: optics: {e}", f.id)))?;
         // FFT round-off leaves values of order 1e-16 of the peak below zero where there is no
         // light; intensity is non-negative, so they are cut (the VJP treats the cut as identity:
         // it moves nothing larger than round-off).

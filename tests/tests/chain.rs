@@ -626,6 +626,38 @@ fn a_frame_seen_again_under_the_same_stack_skips_s1_with_the_same_bits() {
     assert!(b.input.data != fresh.input.data);
 }
 
+/// A layer that is not finite is refused with the frame it belongs to named, with and
+/// without S1's tape.
+#[test]
+fn a_non_finite_layer_is_refused_naming_the_frame() {
+    let (_d, ds) = tiny_dataset();
+    let chain = chain_for(&ds);
+    let map = hyperbolic(&chain);
+    let psfs = all_slabs_psfs(&chain, &map);
+    let mut l = disc(24.0, 39.0, 6.0, 1.0);
+    l[(24, 39)] = f32::NAN;
+    let mut f = frame_with(&ds, vec![layer(3, l, disc(24.0, 39.0, 6.0, 1.0))]);
+    f.id = 7;
+    for grad in [true, false] {
+        let err = chain
+            .forward_with(
+                std::slice::from_ref(&f),
+                &psfs,
+                48e-6,
+                NoiseMode::None,
+                0,
+                grad,
+            )
+            .err()
+            .expect("refused");
+        let msg = err.to_string();
+        assert!(
+            msg.contains("frame 7") && msg.contains("non-finite"),
+            "{msg}"
+        );
+    }
+}
+
 /// Threads standing in for the processes of a distributed run: `all_gather` swaps the shares
 /// through shared slots between two barriers.
 struct Exchange {
