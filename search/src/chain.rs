@@ -547,8 +547,6 @@ impl CameraChain {
         Ok((img, tape))
     }
 
-    /// The frame's layers back to front for S1, each radiance scaled on the fly to photons
-    /// by its slab's PSF energy η and the per-pixel radiometric factor.
     /// S1 images kept for frames seen again under the same PSF stack (at most
     /// 512 MiB of them).
     pub fn cached_s1_images(&self) -> usize {
@@ -576,6 +574,8 @@ impl CameraChain {
         Ok(img)
     }
 
+    /// The frame's layers back to front for S1, each radiance scaled on the fly to photons
+    /// by its slab's PSF energy η and the per-pixel radiometric factor.
     fn spectral_layers<'a>(&'a self, f: &'a ChainFrame, psfs: &StepPsfs) -> Vec<SpectralLayer<'a>> {
         f.data
             .layers
