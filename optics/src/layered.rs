@@ -729,6 +729,23 @@ impl LayeredImager {
         layers: &[SpectralLayer],
         ks: &KernelSpectra,
     ) -> Result<(Mat<f32>, S1Tape)> {
+        let (m, tape) = self.spectral(layers, ks, true)?;
+        Ok((m, tape.expect("kept")))
+    }
+
+    /// [`Self::forward_spectral`]'s image alone, the same bits, without the tape's per-layer
+    /// copies (for a forward nothing will differentiate).
+    pub fn image_spectral(&self, layers: &[SpectralLayer], ks: &KernelSpectra) -> Result<Mat<f32>> {
+        Ok(self.spectral(layers, ks, false)?.0)
+    }
+
+    /// S1 on the spectral path, with the tape when `keep`.
+    fn spectral(
+        &self,
+        layers: &[SpectralLayer],
+        ks: &KernelSpectra,
+        keep: bool,
+    ) -> Result<(Mat<f32>, Option<S1Tape>)> {
         self.check_spectral(layers, ks)?;
         let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);
         let (cy, cx) = (self.wp / 2, self.wp / 2);
@@ -763,29 +780,41 @@ impl LayeredImager {
                 self.iy.process_with_scratch(blk, &mut sb.scratch);
                 self.scatter(blk, c0, cy..cy + h, &mut sb.a);
             }
-            // Each kept row is inverse-transformed and composed while it is in cache; the
-            // f32 copy of the new image (the next layer's I⁽ᵏ⁻¹⁾) is written on the way.
-            let mut o = Vec::with_capacity(h * w);
-            let mut cur = Vec::with_capacity(h * w);
+            // Each kept row is inverse-transformed and composed while it is in cache; with
+            // the tape, the f32 copy of the new image (the next layer's I⁽ᵏ⁻¹⁾) is written on
+            // the way.
+            let cap = if keep { h * w } else { 0 };
+            let (mut o, mut cur) = (Vec::with_capacity(cap), Vec::with_capacity(cap));
             let out = &mut sb.a[cy * nx..(cy + h) * nx];
             for (irow, grow) in img.chunks_exact_mut(w).zip(out.chunks_exact_mut(nx)) {
                 self.ix.process_with_scratch(grow, &mut sb.scratch);
                 // Three passes over a row in cache, each of which vectorises (one loop
                 // with two pushes does not).
                 let src = &grow[cx..cx + w];
-                o.extend(src.iter().map(|v| v.im as f32));
+                if keep {
+                    o.extend(src.iter().map(|v| v.im as f32));
+                }
                 for (i, v) in irow.iter_mut().zip(src) {
                     *i = v.re + (1.0 - v.im) * *i;
                 }
-                cur.extend(irow.iter().map(|&i| i as f32));
+                if keep {
+                    cur.extend(irow.iter().map(|&i| i as f32));
+                }
             }
-            saved.push(Some((std::mem::replace(&mut prev, cur), o)));
+            if keep {
+                saved.push(Some((std::mem::replace(&mut prev, cur), o)));
+            }
         }
         self.pool.give(sb);
-        let image = prev;
         let mut m = Mat::<f32>::zeros(h, w);
+        if !keep {
+            // The last layer's f32 copy, which the tape would have held.
+            tiles(h, w, |r, c| m[(r, c)] = img[r * w + c] as f32);
+            return Ok((m, None));
+        }
+        let image = prev;
         tiles(h, w, |r, c| m[(r, c)] = image[r * w + c]);
-        Ok((m, S1Tape { saved, image }))
+        Ok((m, Some(S1Tape { saved, image })))
     }
 
     /// Adds ∂loss/∂P (in the frequency domain) and ∂loss/∂(radiance scale) of one frame into

@@ -286,6 +286,8 @@ fn gain_and_weight_are_the_prescaled_radiance_and_overflow_is_refused() {
     };
     let (a, b) = (run(&pre), run(&on_the_fly));
     assert!(a.0 == b.0, "images differ");
+    // Without the tape: the same image.
+    assert!(im.image_spectral(&on_the_fly, &ks).unwrap() == a.0);
     assert_eq!(a.1, b.1);
     assert!(a.2[0] == b.2[0], "PSF gradients differ");
 

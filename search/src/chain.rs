@@ -15,7 +15,7 @@
 //! - Units: the S1 image is photons per base-pixel area (sensor convention); the network input
 //!   is x = (DN − black level)/(max DN − black level), ≈ [0, 1].
 
-use crate::error::{Result, param, positive};
+use crate::error::{Result, SearchError, param, positive};
 use crate::geometry::{NativeGrid, PitchGrid};
 use crate::radiometry::Radiometry;
 use crate::split::{DepthSplit, OneProcess, map_gather};
@@ -530,21 +530,39 @@ impl CameraChain {
     /// the tape its PSF VJP needs.
     pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<(Mat<f32>, S1Tape)> {
         let layers = self.spectral_layers(f, psfs);
-        // Named by frame: in a dataset of hundreds, "layer 7 is not finite" alone does not
-        // say which file to look at.
-        let (mut img, tape) = self
+        let (img, tape) = self
             .imager
             .forward_spectral(&layers, &psfs.spectra)
-            .map_err(|e| param("frames", format!("frame {}: optics: {e}", f.id)))?;
-        // FFT round-off leaves values of order 1e-16 of the peak below zero where there is no
-        // light; intensity is non-negative, so they are cut (the VJP treats the cut as identity:
-        // it moves nothing larger than round-off).
+            .map_err(|e| Self::frame_error(f, e))?;
+        Ok((Self::clamped(img), tape))
+    }
+
+    /// [`Self::optical_image`] without the tape.
+    fn optical_image_alone(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<Mat<f32>> {
+        let layers = self.spectral_layers(f, psfs);
+        let img = self
+            .imager
+            .image_spectral(&layers, &psfs.spectra)
+            .map_err(|e| Self::frame_error(f, e))?;
+        Ok(Self::clamped(img))
+    }
+
+    /// An S1 error named by its frame: in a dataset of hundreds, "layer 7 is not finite"
+    /// alone does not say which file to look at.
+    fn frame_error(f: &ChainFrame, e: nanoeye_optics::OpticsError) -> SearchError {
+        param("frames", format!("frame {}: optics: {e}", f.id))
+    }
+
+    /// FFT round-off leaves values of order 1e-16 of the peak below zero where there is no
+    /// light; intensity is non-negative, so they are cut (the VJP treats the cut as identity:
+    /// it moves nothing larger than round-off).
+    fn clamped(mut img: Mat<f32>) -> Mat<f32> {
         for j in 0..img.ncols() {
             for v in img.col_mut(j).iter_mut() {
                 *v = v.max(0.0);
             }
         }
-        Ok((img, tape))
+        img
     }
 
     /// S1 images kept for frames seen again under the same PSF stack (at most
@@ -567,7 +585,7 @@ impl CameraChain {
                 return Ok(img);
             }
         }
-        let img = Arc::new(self.optical_image(f, psfs)?.0);
+        let img = Arc::new(self.optical_image_alone(f, psfs)?);
         if let (Some(key), Ok(mut c)) = (key, self.s1_cache.lock()) {
             c.put(psfs.id, key, &img);
         }
