@@ -42,13 +42,13 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("layered");
     g.sample_size(10);
     g.bench_function("forward_1layer_800x1280_65px", |b| {
-        b.iter(|| im.forward_spectral(&layers, &ks).expect("forward"))
+        b.iter(|| im.forward_spectral(&layers, &ks, None).expect("forward"))
     });
-    let (_, tape) = im.forward_spectral(&layers, &ks).expect("forward");
+    let (_, tape) = im.forward_spectral(&layers, &ks, None).expect("forward");
     g.bench_function("vjp_kernels_1layer_800x1280_65px", |b| {
         b.iter(|| {
             let mut acc = im.kernel_grad_accumulator(1);
-            im.vjp_kernels(&layers, &tape, &grad, &mut acc)
+            im.vjp_kernels(&layers, &tape, &grad, &mut acc, None)
                 .expect("vjp");
             acc
         })

@@ -10,7 +10,7 @@
 
 use crate::error::{OpticsError, Result};
 use crate::psf::fast_fft_size;
-use faer::{Mat, c64};
+use faer::{Mat, c32, c64};
 use rustfft::{Fft, FftPlanner};
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
@@ -444,7 +444,7 @@ pub struct KernelSpectra {
 }
 
 /// One layer for the spectral path: radiance, alpha, the index of its kernel, and the factors
-/// S1 applies to the radiance as it reads it.
+/// S1 applies to the radiance.
 #[derive(Clone, Copy, Debug)]
 pub struct SpectralLayer<'a> {
     /// Radiance L_k, before `gain` and `weight`.
@@ -453,11 +453,13 @@ pub struct SpectralLayer<'a> {
     pub alpha: &'a Mat<f32>,
     /// Index into the [`KernelSpectra`].
     pub kernel: usize,
-    /// Factor on the whole radiance (1: none).
+    /// Factor on the whole radiance (1: none), applied to its convolution (in f64) rather
+    /// than to the radiance: the layer's spectrum ([`LayerSpectra`]) then does not depend on
+    /// it, and a caller whose gain changes every step (η_k of a lens in training) can keep
+    /// the spectrum.
     pub gain: f32,
-    /// Factor per pixel on the radiance, H×W (`None`: none). S1 uses
-    /// `gain · weight(i, j) · L(i, j)`, rounded to f32 in that order, so a caller need not
-    /// store the scaled radiance of every layer.
+    /// Factor per pixel on the radiance, H×W (`None`: none). S1 packs `weight(i, j) · L(i, j)`,
+    /// rounded to f32, so a caller need not store the scaled radiance of every layer.
     pub weight: Option<&'a Mat<f32>>,
 }
 
@@ -473,20 +475,24 @@ impl<'a> SpectralLayer<'a> {
         }
     }
 
-    /// Whether the radiance S1 uses (after `gain` and `weight`) is finite everywhere.
+    /// Whether the radiance S1 packs (after `weight`) is finite everywhere.
     fn radiance_finite(&self) -> bool {
         let rad = columns(self.radiance);
         match self.weight.map(columns) {
             Some(wt) => rad.iter().zip(&wt).all(|(r, s)| {
                 r.iter()
                     .zip(s.iter())
-                    .fold(true, |ok, (&y, &s)| ok & (self.gain * s * y).is_finite())
+                    .fold(true, |ok, (&y, &s)| ok & (s * y).is_finite())
             }),
-            None => rad.iter().all(|r| {
-                r.iter()
-                    .fold(true, |ok, &y| ok & (self.gain * y).is_finite())
-            }),
+            None => rad
+                .iter()
+                .all(|r| r.iter().fold(true, |ok, &y| ok & y.is_finite())),
         }
+    }
+
+    /// Whether the layer has no coverage (α ≡ 0): it is skipped, and has no spectrum.
+    fn uncovered(&self) -> bool {
+        self.alpha.col_iter().all(|c| c.iter().all(|&v| v == 0.0))
     }
 }
 
@@ -496,6 +502,55 @@ impl<'a> SpectralLayer<'a> {
 pub struct S1Tape {
     saved: Vec<Option<(Vec<f32>, Vec<f32>)>>,
     image: Vec<f32>,
+}
+
+/// The spectra F{α·w·L + iα} of a frame's layers on S1's padded grid, column by column
+/// (`None` for a layer without coverage), from [`LayeredImager::layer_spectra`]. They hold
+/// no PSF and no gain, so they stay valid while the lens trains: S1 given them skips each
+/// layer's packing, forward row and column transforms (in the forward pass and in the PSF
+/// adjoint), about half of its work. Stored in f32 (nx·ny·8 bytes per covered layer): S1
+/// rounds every layer spectrum to f32, kept or not, so both give the same bits; the rounding
+/// (6e-8 of each coefficient) is below the f32 image S1 returns.
+pub struct LayerSpectra {
+    layers: Vec<Option<Vec<c32>>>,
+    nx: usize,
+    ny: usize,
+}
+
+impl LayerSpectra {
+    /// Bytes held.
+    pub fn bytes(&self) -> usize {
+        let per = self.nx * self.ny * std::mem::size_of::<c32>();
+        per * self.layers.iter().flatten().count()
+    }
+
+    /// Padded-grid bytes of one covered layer's spectrum for an imager (what
+    /// [`Self::bytes`] counts per layer).
+    pub fn layer_bytes(im: &LayeredImager) -> usize {
+        im.nx * im.ny * std::mem::size_of::<c32>()
+    }
+}
+
+/// A layer-spectrum value as S1 uses it: rounded to f32 (what [`LayerSpectra`] keeps).
+#[inline(always)]
+fn rounded(v: c64) -> c64 {
+    c64::new(v.re as f32 as f64, v.im as f32 as f64)
+}
+
+/// Writes (a kernel's first term: `fresh`) or adds `term` into `slot[at]`.
+#[inline(always)]
+fn accumulate(slot: &mut Vec<c64>, fresh: bool, at: Range<usize>, term: impl Iterator<Item = c64>) {
+    if fresh {
+        slot.extend(term);
+    } else {
+        slot[at].iter_mut().zip(term).for_each(|(s, t)| *s += t);
+    }
+}
+
+/// A kept layer-spectrum value back in f64.
+#[inline(always)]
+fn widened(v: c32) -> c64 {
+    c64::new(v.re as f64, v.im as f64)
 }
 
 /// ∂loss/∂P accumulated in the frequency domain over frames: one inverse FFT per kernel at
@@ -567,6 +622,38 @@ impl LayeredImager {
 
     /// Shapes and kernels; finiteness is checked where the layers are packed.
     fn check_spectral(&self, layers: &[SpectralLayer], ks: &KernelSpectra) -> Result<()> {
+        self.check_layers(layers)?;
+        for (k, l) in layers.iter().enumerate() {
+            if ks.spec.get(l.kernel).is_none_or(Option::is_none) {
+                return Err(OpticsError::param(
+                    "kernel",
+                    format!("layer {k} uses kernel {} which was not computed", l.kernel),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Spectra given with `layers` belong to this imager's grid and to as many layers.
+    fn check_spectra(&self, layers: &[SpectralLayer], s: Option<&LayerSpectra>) -> Result<()> {
+        match s {
+            Some(s) if (s.nx, s.ny, s.layers.len()) != (self.nx, self.ny, layers.len()) => {
+                Err(OpticsError::Shape(format!(
+                    "layer spectra of {} layers on a {}×{} grid, for {} layers on {}×{}",
+                    s.layers.len(),
+                    s.ny,
+                    s.nx,
+                    layers.len(),
+                    self.ny,
+                    self.nx
+                )))
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// Shapes of the layers' matrices and finite gains.
+    fn check_layers(&self, layers: &[SpectralLayer]) -> Result<()> {
         for (k, l) in layers.iter().enumerate() {
             let mats = [("radiance", Some(l.radiance)), ("alpha", Some(l.alpha))];
             for (name, m) in mats.into_iter().chain([("weight", l.weight)]) {
@@ -585,12 +672,6 @@ impl LayeredImager {
                 return Err(OpticsError::param(
                     "gain",
                     format!("layer {k} has gain {}", l.gain),
-                ));
-            }
-            if ks.spec.get(l.kernel).is_none_or(Option::is_none) {
-                return Err(OpticsError::param(
-                    "kernel",
-                    format!("layer {k} uses kernel {} which was not computed", l.kernel),
                 ));
             }
         }
@@ -660,11 +741,11 @@ impl LayeredImager {
     }
 
     /// Packs αL + iα of a layer into rows 0..H of `a` (zero beyond column W), L scaled by the
-    /// layer's gain and weight on the way, and transforms each row that holds data while it
+    /// layer's weight on the way, and transforms each row that holds data while it
     /// is still in cache; the column transform happens block by block in the caller. Returns
     /// the rows from the first to the last with data: a row with α ≡ 0 is zero (αL = 0 too)
     /// and so is its transform, which is skipped, and the caller's column pass need not read
-    /// the rows outside. `None` when a packed value is not finite (a non-finite α or scaled
+    /// the rows outside. `None` when a packed value is not finite (a non-finite α or weighted
     /// L, or 0 · ∞): the inputs are checked here, in the pass that reads them anyway.
     fn layer_rows(
         &self,
@@ -675,7 +756,6 @@ impl LayeredImager {
         let (h, w, nx) = (self.h, self.w, self.nx);
         let (al, rad) = (columns(l.alpha), columns(l.radiance));
         let wt = l.weight.map(columns);
-        let g = l.gain;
         let (mut first, mut end) = (h, 0);
         for r0 in (0..h).step_by(PACK_ROWS) {
             let r1 = (r0 + PACK_ROWS).min(h);
@@ -691,12 +771,12 @@ impl LayeredImager {
                         for (i, ((&x, &y), &s)) in
                             al.iter().zip(rad).zip(&wt[c][r0..r1]).enumerate()
                         {
-                            put(i, x, g * s * y);
+                            put(i, x, s * y);
                         }
                     }
                     None => {
                         for (i, (&x, &y)) in al.iter().zip(rad).enumerate() {
-                            put(i, x, g * y);
+                            put(i, x, y);
                         }
                     }
                 }
@@ -720,23 +800,67 @@ impl LayeredImager {
         Some(first.min(end)..end)
     }
 
-    /// S1 with precomputed kernel spectra (two FFTs per non-empty layer); keeps the tape the
-    /// PSF VJP needs. Per block of columns the forward column transform, the product with P̂
-    /// and the inverse column transform run back to back while the block is in cache, and
-    /// only the H rows the output keeps go through the inverse row transform.
+    /// The spectra of `layers` (their gains are not used), to be given to
+    /// [`Self::forward_spectral`], [`Self::image_spectral`] and [`Self::vjp_kernels`] for the
+    /// same layers in place of computing them each call. One FFT per covered layer; the same
+    /// finiteness errors as a forward pass.
+    pub fn layer_spectra(&self, layers: &[SpectralLayer]) -> Result<LayerSpectra> {
+        self.check_layers(layers)?;
+        let (nx, ny) = (self.nx, self.ny);
+        let mut sb = self.spectral_buffers();
+        let mut out = Vec::with_capacity(layers.len());
+        for (k, l) in layers.iter().enumerate() {
+            if l.uncovered() {
+                if !l.radiance_finite() {
+                    return Err(Self::non_finite(k));
+                }
+                out.push(None);
+                continue;
+            }
+            let Some(live) = self.layer_rows(l, &mut sb.a, &mut sb.scratch) else {
+                return Err(Self::non_finite(k));
+            };
+            let mut spec = Vec::with_capacity(nx * ny);
+            for c0 in (0..nx).step_by(COLS) {
+                let blk = &mut sb.blk[..COLS.min(nx - c0) * ny];
+                self.gather(&sb.a, c0, live.clone(), blk);
+                self.fy.process_with_scratch(blk, &mut sb.scratch);
+                spec.extend(blk.iter().map(|v| c32::new(v.re as f32, v.im as f32)));
+            }
+            out.push(Some(spec));
+        }
+        self.pool.give(sb);
+        Ok(LayerSpectra {
+            layers: out,
+            nx,
+            ny,
+        })
+    }
+
+    /// S1 with precomputed kernel spectra (two FFTs per non-empty layer, one with the layers'
+    /// `spectra`); keeps the tape the PSF VJP needs. Per block of columns the forward column
+    /// transform, the product with P̂ and the inverse column transform run back to back while
+    /// the block is in cache, and only the H rows the output keeps go through the inverse row
+    /// transform.
     pub fn forward_spectral(
         &self,
         layers: &[SpectralLayer],
         ks: &KernelSpectra,
+        spectra: Option<&LayerSpectra>,
     ) -> Result<(Mat<f32>, S1Tape)> {
-        let (m, tape) = self.spectral(layers, ks, true)?;
+        let (m, tape) = self.spectral(layers, ks, spectra, true)?;
         Ok((m, tape.expect("kept")))
     }
 
     /// [`Self::forward_spectral`]'s image alone, the same bits, without the tape's per-layer
     /// copies (for a forward nothing will differentiate).
-    pub fn image_spectral(&self, layers: &[SpectralLayer], ks: &KernelSpectra) -> Result<Mat<f32>> {
-        Ok(self.spectral(layers, ks, false)?.0)
+    pub fn image_spectral(
+        &self,
+        layers: &[SpectralLayer],
+        ks: &KernelSpectra,
+        spectra: Option<&LayerSpectra>,
+    ) -> Result<Mat<f32>> {
+        Ok(self.spectral(layers, ks, spectra, false)?.0)
     }
 
     /// S1 on the spectral path, with the tape when `keep`.
@@ -744,9 +868,11 @@ impl LayeredImager {
         &self,
         layers: &[SpectralLayer],
         ks: &KernelSpectra,
+        spectra: Option<&LayerSpectra>,
         keep: bool,
     ) -> Result<(Mat<f32>, Option<S1Tape>)> {
         self.check_spectral(layers, ks)?;
+        self.check_spectra(layers, spectra)?;
         let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);
         let (cy, cx) = (self.wp / 2, self.wp / 2);
         // The image so far, row-major like the grid rows it is composed with.
@@ -756,33 +882,54 @@ impl LayeredImager {
         let mut saved = Vec::with_capacity(layers.len());
         let mut sb = self.spectral_buffers();
         for (k, l) in layers.iter().enumerate() {
-            if l.alpha.col_iter().all(|c| c.iter().all(|&v| v == 0.0)) {
-                // Not packed, so checked here: a layer without coverage still may not hold
-                // what a covered one would be refused for.
-                if !l.radiance_finite() {
-                    return Err(Self::non_finite(k));
-                }
-                saved.push(None);
-                continue;
-            }
-            let Some(live) = self.layer_rows(l, &mut sb.a, &mut sb.scratch) else {
-                return Err(Self::non_finite(k));
-            };
             let p = ks.spec[l.kernel].as_ref().expect("checked");
-            for c0 in (0..nx).step_by(COLS) {
-                let bw = COLS.min(nx - c0);
-                let blk = &mut sb.blk[..bw * ny];
-                self.gather(&sb.a, c0, live.clone(), blk);
-                self.fy.process_with_scratch(blk, &mut sb.scratch);
-                blk.iter_mut()
-                    .zip(&p[c0 * ny..(c0 + bw) * ny])
-                    .for_each(|(a, p)| *a *= p);
-                self.iy.process_with_scratch(blk, &mut sb.scratch);
-                self.scatter(blk, c0, cy..cy + h, &mut sb.a);
+            match spectra.map(|s| s.layers[k].as_deref()) {
+                Some(None) => {
+                    saved.push(None);
+                    continue;
+                }
+                Some(Some(spec)) => {
+                    for c0 in (0..nx).step_by(COLS) {
+                        let span = c0 * ny..(c0 + COLS.min(nx - c0)) * ny;
+                        let blk = &mut sb.blk[..span.len()];
+                        blk.iter_mut()
+                            .zip(&spec[span.clone()])
+                            .zip(&p[span])
+                            .for_each(|((b, &s), p)| *b = widened(s) * p);
+                        self.iy.process_with_scratch(blk, &mut sb.scratch);
+                        self.scatter(blk, c0, cy..cy + h, &mut sb.a);
+                    }
+                }
+                None => {
+                    if l.uncovered() {
+                        // Not packed, so checked here: a layer without coverage still may
+                        // not hold what a covered one would be refused for.
+                        if !l.radiance_finite() {
+                            return Err(Self::non_finite(k));
+                        }
+                        saved.push(None);
+                        continue;
+                    }
+                    let Some(live) = self.layer_rows(l, &mut sb.a, &mut sb.scratch) else {
+                        return Err(Self::non_finite(k));
+                    };
+                    for c0 in (0..nx).step_by(COLS) {
+                        let bw = COLS.min(nx - c0);
+                        let blk = &mut sb.blk[..bw * ny];
+                        self.gather(&sb.a, c0, live.clone(), blk);
+                        self.fy.process_with_scratch(blk, &mut sb.scratch);
+                        blk.iter_mut()
+                            .zip(&p[c0 * ny..(c0 + bw) * ny])
+                            .for_each(|(a, p)| *a = rounded(*a) * p);
+                        self.iy.process_with_scratch(blk, &mut sb.scratch);
+                        self.scatter(blk, c0, cy..cy + h, &mut sb.a);
+                    }
+                }
             }
             // Each kept row is inverse-transformed and composed while it is in cache; with
             // the tape, the f32 copy of the new image (the next layer's I⁽ᵏ⁻¹⁾) is written on
             // the way.
+            let gain = l.gain as f64;
             let cap = if keep { h * w } else { 0 };
             let (mut o, mut cur) = (Vec::with_capacity(cap), Vec::with_capacity(cap));
             let out = &mut sb.a[cy * nx..(cy + h) * nx];
@@ -795,7 +942,7 @@ impl LayeredImager {
                     o.extend(src.iter().map(|v| v.im as f32));
                 }
                 for (i, v) in irow.iter_mut().zip(src) {
-                    *i = v.re + (1.0 - v.im) * *i;
+                    *i = gain * v.re + (1.0 - v.im) * *i;
                 }
                 if keep {
                     cur.extend(irow.iter().map(|&i| i as f32));
@@ -807,26 +954,33 @@ impl LayeredImager {
         }
         self.pool.give(sb);
         let mut m = Mat::<f32>::zeros(h, w);
-        if !keep {
+        if keep {
+            tiles(h, w, |r, c| m[(r, c)] = prev[r * w + c]);
+        } else {
             // The last layer's f32 copy, which the tape would have held.
             tiles(h, w, |r, c| m[(r, c)] = img[r * w + c] as f32);
-            return Ok((m, None));
         }
-        let image = prev;
-        tiles(h, w, |r, c| m[(r, c)] = image[r * w + c]);
-        Ok((m, Some(S1Tape { saved, image })))
+        // The gain is applied after the convolution, in f64: what overflows is the image.
+        if !m.col_iter().all(|c| c.iter().all(|v| v.is_finite())) {
+            return Err(OpticsError::param(
+                "layers",
+                "the image exceeds f32's range (gain × weighted radiance too large)",
+            ));
+        }
+        Ok((m, keep.then_some(S1Tape { saved, image: prev })))
     }
 
     /// Adds ∂loss/∂P (in the frequency domain) and ∂loss/∂(radiance scale) of one frame into
-    /// `acc`, for ∂loss/∂I = `grad`. Two FFTs per non-empty layer; no input gradients. The
-    /// column transforms of the gradient and of the layer and their product run block by
-    /// block, so neither full spectrum is ever stored.
+    /// `acc`, for ∂loss/∂I = `grad`. Two FFTs per non-empty layer (one with the layers'
+    /// `spectra`); no input gradients. The column transforms of the gradient and of the layer
+    /// and their product run block by block, so neither full spectrum is ever stored.
     pub fn vjp_kernels(
         &self,
         layers: &[SpectralLayer],
         tape: &S1Tape,
         grad: &Mat<f64>,
         acc: &mut KernelGradAccumulator,
+        spectra: Option<&LayerSpectra>,
     ) -> Result<()> {
         if grad.nrows() != self.h || grad.ncols() != self.w || tape.saved.len() != layers.len() {
             return Err(OpticsError::Shape(format!(
@@ -839,6 +993,7 @@ impl LayeredImager {
                 tape.saved.len()
             )));
         }
+        self.check_spectra(layers, spectra)?;
         let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);
         let (cy, cx) = (self.wp / 2, self.wp / 2);
         let mut gi = vec![0.0f64; h * w];
@@ -857,8 +1012,19 @@ impl LayeredImager {
                 continue;
             };
             let l = &layers[k];
-            // ⟨gI, conv⟩ with conv = I⁽ᵏ⁾ − (1 − o)·I⁽ᵏ⁻¹⁾; g = gI − i gI·I⁽ᵏ⁻¹⁾ at the
-            // output's offset (cy, cx), zero elsewhere in its rows.
+            let spec = match spectra.map(|s| s.layers[k].as_deref()) {
+                Some(None) => {
+                    return Err(OpticsError::Shape(format!(
+                        "layer {k} has no spectrum but was imaged: spectra of other layers"
+                    )));
+                }
+                Some(Some(s)) => Some(s),
+                None => None,
+            };
+            let gain = l.gain as f64;
+            // ⟨gI, conv⟩ with conv = I⁽ᵏ⁾ − (1 − o)·I⁽ᵏ⁻¹⁾; g = gain·gI − i gI·I⁽ᵏ⁻¹⁾ at the
+            // output's offset (cy, cx), zero elsewhere in its rows (the gain multiplies the
+            // convolved radiance, the real part).
             let mut dot = 0.0;
             for r in 0..h {
                 let row = &mut g[(r + cy) * nx..(r + cy + 1) * nx];
@@ -875,14 +1041,18 @@ impl LayeredImager {
                     let (p, oo) = (p as f64, oo as f64);
                     let conv = ab as f64 - (1.0 - oo) * p;
                     dot += *gv * conv;
-                    *gs = c64::new(*gv, -*gv * p);
+                    *gs = c64::new(gain * *gv, -*gv * p);
                     *gv *= 1.0 - oo;
                 }
                 self.fx.process_with_scratch(row, &mut sb.scratch);
             }
             let live = cy..cy + h;
-            let Some(rows) = self.layer_rows(l, &mut sb.a, &mut sb.scratch) else {
-                return Err(Self::non_finite(k));
+            let rows = match spec {
+                Some(_) => 0..0,
+                None => match self.layer_rows(l, &mut sb.a, &mut sb.scratch) {
+                    Some(rows) => rows,
+                    None => return Err(Self::non_finite(k)),
+                },
             };
             // A kernel's first term is written, not added to zeros: the accumulator of a
             // frame (nx·ny per kernel) is then filled once instead of cleared and summed into.
@@ -893,16 +1063,28 @@ impl LayeredImager {
                 let (gb, ab) = (&mut sb.blk[..bw * ny], &mut sb.blk2[..bw * ny]);
                 self.gather(&g, c0, live.clone(), gb);
                 self.fy.process_with_scratch(gb, &mut sb.scratch);
-                self.gather(&sb.a, c0, rows.clone(), ab);
-                self.fy.process_with_scratch(ab, &mut sb.scratch);
-                let term = gb.iter().zip(ab.iter()).map(|(gg, a)| gg * a.conj() * norm);
-                if fresh {
-                    slot.extend(term);
-                } else {
-                    slot[c0 * ny..(c0 + bw) * ny]
-                        .iter_mut()
-                        .zip(term)
-                        .for_each(|(s, t)| *s += t);
+                let at = c0 * ny..(c0 + bw) * ny;
+                match spec {
+                    Some(s) => accumulate(
+                        slot,
+                        fresh,
+                        at.clone(),
+                        gb.iter()
+                            .zip(&s[at])
+                            .map(|(gg, &a)| gg * widened(a).conj() * norm),
+                    ),
+                    None => {
+                        self.gather(&sb.a, c0, rows.clone(), ab);
+                        self.fy.process_with_scratch(ab, &mut sb.scratch);
+                        accumulate(
+                            slot,
+                            fresh,
+                            at,
+                            gb.iter()
+                                .zip(ab.iter())
+                                .map(|(gg, &a)| gg * rounded(a).conj() * norm),
+                        )
+                    }
                 }
             }
             acc.radiance_scale[l.kernel] += dot;

@@ -5,7 +5,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use faer::Mat;
-use nanoeye_optics::{Layer, LayeredImager, SpectralLayer};
+use nanoeye_optics::{Layer, LayerSpectra, LayeredImager, SpectralLayer};
 
 fn img(h: usize, w: usize, s: usize) -> Mat<f32> {
     Mat::from_fn(h, w, |i, j| (((i * 7 + j * 13 + s * 5) % 17) as f32) / 17.0)
@@ -52,7 +52,7 @@ fn spectral_path_matches_the_reference_forward_and_psf_gradient() {
         .kernel_spectra(&[Some(&psfs[0]), Some(&psfs[1]), None])
         .unwrap();
     let want = im.forward_f64_image(&reference).unwrap();
-    let (got, tape) = im.forward_spectral(&spectral, &ks).unwrap();
+    let (got, tape) = im.forward_spectral(&spectral, &ks, None).unwrap();
     for i in 0..h {
         for j in 0..w {
             assert!((got[(i, j)] as f64 - want[(i, j)]).abs() < 1e-5 * (1.0 + want[(i, j)].abs()));
@@ -61,7 +61,8 @@ fn spectral_path_matches_the_reference_forward_and_psf_gradient() {
     let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
     let lg = im.vjp(&reference, &g).unwrap();
     let mut acc = im.kernel_grad_accumulator(3);
-    im.vjp_kernels(&spectral, &tape, &g, &mut acc).unwrap();
+    im.vjp_kernels(&spectral, &tape, &g, &mut acc, None)
+        .unwrap();
     let scale = acc.radiance_scale.clone();
     let kg = im.kernel_grads(acc);
     for k in 0..2 {
@@ -155,7 +156,8 @@ fn banded_alpha(h: usize, w: usize, rows: std::ops::Range<usize>, gap: usize) ->
     })
 }
 
-/// Forward image and ∂loss/∂P of the spectral path.
+/// Forward image and ∂loss/∂P of the spectral path; the same bits (asserted) when the
+/// layers' spectra are computed beforehand and given.
 fn spectral_run(
     im: &LayeredImager,
     layers: &[SpectralLayer],
@@ -165,15 +167,42 @@ fn spectral_run(
     let ks = im
         .kernel_spectra(&psfs.iter().map(Some).collect::<Vec<_>>())
         .unwrap();
-    let (img, tape) = im.forward_spectral(layers, &ks).unwrap();
-    let mut acc = im.kernel_grad_accumulator(psfs.len());
-    im.vjp_kernels(layers, &tape, g, &mut acc).unwrap();
-    // A second frame merged in, as a batch does: the merged spectra are reused.
-    let mut other = im.kernel_grad_accumulator(psfs.len());
-    im.vjp_kernels(layers, &tape, g, &mut other).unwrap();
-    im.merge_kernel_grads(&mut acc, other);
-    let scale = acc.radiance_scale.clone();
-    (img, im.kernel_grads(acc), scale)
+    let run = |spectra: Option<&LayerSpectra>| {
+        let (img, tape) = im.forward_spectral(layers, &ks, spectra).unwrap();
+        assert!(im.image_spectral(layers, &ks, spectra).unwrap() == img);
+        let mut acc = im.kernel_grad_accumulator(psfs.len());
+        im.vjp_kernels(layers, &tape, g, &mut acc, spectra).unwrap();
+        // A second frame merged in, as a batch does: the merged spectra are reused.
+        let mut other = im.kernel_grad_accumulator(psfs.len());
+        im.vjp_kernels(layers, &tape, g, &mut other, spectra)
+            .unwrap();
+        im.merge_kernel_grads(&mut acc, other);
+        let scale = acc.radiance_scale.clone();
+        (img, im.kernel_grads(acc), scale)
+    };
+    let computed = run(None);
+    let spectra = im.layer_spectra(layers).unwrap();
+    let covered = layers
+        .iter()
+        .filter(|l| l.alpha.col_iter().any(|c| c.iter().any(|&a| a != 0.0)))
+        .count();
+    assert_eq!(spectra.bytes(), covered * LayerSpectra::layer_bytes(im));
+    let given = run(Some(&spectra));
+    assert!(
+        given.0 == computed.0,
+        "images differ with the spectra given"
+    );
+    assert!(
+        given.1 == computed.1,
+        "PSF gradients differ with the spectra given"
+    );
+    assert_eq!(given.2, computed.2);
+    // Spectra of other layers (a count that differs) are refused, not used.
+    assert!(
+        im.forward_spectral(&layers[..layers.len() - 1], &ks, Some(&spectra))
+            .is_err()
+    );
+    computed
 }
 
 #[test]
@@ -254,7 +283,7 @@ fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
 /// A layer's gain and weight are the caller's pre-scaled radiance, bit for bit (image, tape
 /// and PSF gradient), and what they make non-finite is refused like a non-finite radiance.
 #[test]
-fn gain_and_weight_are_the_prescaled_radiance_and_overflow_is_refused() {
+fn gain_scales_the_convolution_weight_is_the_prescaled_radiance_and_overflow_is_refused() {
     let (h, w, wp) = (19, 26, 5);
     let im = LayeredImager::new(h, w, wp).unwrap();
     let psf = Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i * j) as f32));
@@ -263,11 +292,14 @@ fn gain_and_weight_are_the_prescaled_radiance_and_overflow_is_refused() {
     let al: Vec<Mat<f32>> = (0..2).map(|s| alpha(h, w, s + 3)).collect();
     let weight = Mat::from_fn(h, w, |i, j| 0.5 + ((i * 3 + j) % 7) as f32 / 3.0);
     let gain = [3.7f32, 0.011];
-    let scaled: Vec<Mat<f32>> = (0..2)
-        .map(|l| Mat::from_fn(h, w, |i, j| gain[l] * weight[(i, j)] * rad[l][(i, j)]))
+    let weighted: Vec<Mat<f32>> = (0..2)
+        .map(|l| Mat::from_fn(h, w, |i, j| weight[(i, j)] * rad[l][(i, j)]))
         .collect();
     let pre: Vec<SpectralLayer> = (0..2)
-        .map(|l| SpectralLayer::new(&scaled[l], &al[l], 0))
+        .map(|l| SpectralLayer {
+            gain: gain[l],
+            ..SpectralLayer::new(&weighted[l], &al[l], 0)
+        })
         .collect();
     let on_the_fly: Vec<SpectralLayer> = (0..2)
         .map(|l| SpectralLayer {
@@ -278,48 +310,82 @@ fn gain_and_weight_are_the_prescaled_radiance_and_overflow_is_refused() {
         .collect();
     let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
     let run = |layers: &[SpectralLayer]| {
-        let (image, tape) = im.forward_spectral(layers, &ks).unwrap();
+        let (image, tape) = im.forward_spectral(layers, &ks, None).unwrap();
         let mut acc = im.kernel_grad_accumulator(1);
-        im.vjp_kernels(layers, &tape, &g, &mut acc).unwrap();
+        im.vjp_kernels(layers, &tape, &g, &mut acc, None).unwrap();
         let scale = acc.radiance_scale.clone();
         (image, scale, im.kernel_grads(acc))
     };
     let (a, b) = (run(&pre), run(&on_the_fly));
     assert!(a.0 == b.0, "images differ");
     // Without the tape: the same image.
-    assert!(im.image_spectral(&on_the_fly, &ks).unwrap() == a.0);
+    assert!(im.image_spectral(&on_the_fly, &ks, None).unwrap() == a.0);
     assert_eq!(a.1, b.1);
     assert!(a.2[0] == b.2[0], "PSF gradients differ");
+    // The gain on the convolution is the gain on the radiance, up to round-off: the image
+    // of radiance gain · w · L with gain 1 (S1 is linear in the radiance channel).
+    let scaled: Vec<Mat<f32>> = (0..2)
+        .map(|l| Mat::from_fn(h, w, |i, j| gain[l] * weighted[l][(i, j)]))
+        .collect();
+    let plain: Vec<SpectralLayer> = (0..2)
+        .map(|l| SpectralLayer::new(&scaled[l], &al[l], 0))
+        .collect();
+    let c = run(&plain);
+    for j in 0..w {
+        for i in 0..h {
+            let (x, y) = (c.0[(i, j)], a.0[(i, j)]);
+            assert!((x - y).abs() <= 1e-5 * x.abs().max(1e-3), "{x} vs {y}");
+        }
+    }
+    // (The prescaled radiance is rounded to f32: 6e-8 of each value.)
+    for (x, y) in c.1.iter().zip(&a.1) {
+        assert!((x - y).abs() <= 1e-6 * x.abs().max(1.0), "{x} vs {y}");
+    }
 
-    // f32::MAX · 4 overflows to ∞ on the fly: refused, naming the layers.
+    // A weight of 4 on f32::MAX overflows to ∞ as it is packed: refused, naming the layers.
     let big = Mat::from_fn(h, w, |_, _| f32::MAX);
+    let four = Mat::from_fn(h, w, |_, _| 4.0f32);
     let overflow = SpectralLayer {
+        weight: Some(&four),
+        ..SpectralLayer::new(&big, &al[0], 0)
+    };
+    let err = im
+        .forward_spectral(&[overflow], &ks, None)
+        .err()
+        .expect("refused");
+    assert!(err.to_string().contains("non-finite"), "{err}");
+    // A gain of 4 on it overflows the image, which is refused too.
+    let loud = SpectralLayer {
         gain: 4.0,
         ..SpectralLayer::new(&big, &al[0], 0)
     };
     let err = im
-        .forward_spectral(&[overflow], &ks)
+        .forward_spectral(&[loud], &ks, None)
         .err()
         .expect("refused");
-    assert!(err.to_string().contains("non-finite"), "{err}");
+    assert!(err.to_string().contains("exceeds"), "{err}");
+    assert!(im.image_spectral(&[loud], &ks, None).is_err());
     // A layer without coverage is skipped, but a NaN in it is still refused.
     let empty = Mat::<f32>::zeros(h, w);
     let nan = Mat::from_fn(h, w, |i, j| if i == 3 && j == 4 { f32::NAN } else { 1.0 });
     let uncovered = SpectralLayer::new(&nan, &empty, 0);
-    assert!(im.forward_spectral(&[pre[0], uncovered], &ks).is_err());
+    assert!(
+        im.forward_spectral(&[pre[0], uncovered], &ks, None)
+            .is_err()
+    );
     // A non-finite gain or a weight of the wrong shape: refused before any work.
     let inf_gain = SpectralLayer {
         gain: f32::INFINITY,
         ..pre[0]
     };
-    assert!(im.forward_spectral(&[inf_gain], &ks).is_err());
+    assert!(im.forward_spectral(&[inf_gain], &ks, None).is_err());
     let small = Mat::<f32>::zeros(h - 1, w);
     let bad_weight = SpectralLayer {
         weight: Some(&small),
         ..pre[0]
     };
     let err = im
-        .forward_spectral(&[bad_weight], &ks)
+        .forward_spectral(&[bad_weight], &ks, None)
         .err()
         .expect("refused");
     assert!(err.to_string().contains("weight"), "{err}");

@@ -1,6 +1,7 @@
 //! Criterion benches of the camera chain on a 320×200 (12 µm) render of one ambiguity pair:
-//! the PSF stack of a step, forward (S1 + sensor) and backward per batch of 3 frames, and the
-//! backward with the step's PSF VJP. Full-sensor numbers: docs/bench/chain.md.
+//! the PSF stack of a step, forward (S1 + sensor) and backward per batch of 3 frames — with
+//! the frames' layer spectra kept (a dataset's frames seen again) and computed in each call —
+//! and the backward with the step's PSF VJP. Full-sensor numbers: docs/bench/chain.md.
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use nanoeye_datagen::render::{
@@ -8,7 +9,7 @@ use nanoeye_datagen::render::{
 };
 use nanoeye_gaze::Rig;
 use nanoeye_nets::Tensor;
-use nanoeye_search::{CameraChain, ChainConfig, LensSpec};
+use nanoeye_search::{CameraChain, ChainConfig, ChainFrame, LensSpec};
 use nanoeye_sensor::NoiseMode;
 use std::hint::black_box;
 
@@ -55,10 +56,21 @@ fn bench(c: &mut Criterion) {
         })
     });
     let psfs = chain.psfs(&map, &active).expect("psfs");
+    // After the first call the frames' layer spectra are kept (crate::spectra).
     g.bench_function("forward_3_frames", |b| {
         b.iter(|| {
             chain
                 .forward(black_box(&frames), &psfs, p_hat, NoiseMode::Gaussian, 0)
+                .expect("forward")
+        })
+    });
+    // The same frames as if built in memory: never given kept spectra (as frames beyond
+    // the spectra's budget).
+    let bare: Vec<ChainFrame> = frames.iter().map(ChainFrame::unkeyed).collect();
+    g.bench_function("forward_3_frames_spectra_computed", |b| {
+        b.iter(|| {
+            chain
+                .forward(black_box(&bare), &psfs, p_hat, NoiseMode::Gaussian, 0)
                 .expect("forward")
         })
     });
@@ -91,6 +103,15 @@ fn bench(c: &mut Criterion) {
             let mut acc = chain.accumulator();
             chain
                 .backward(&frames, &psfs, &fwd, black_box(&dx), &mut acc)
+                .expect("backward");
+            acc
+        })
+    });
+    g.bench_function("backward_3_frames_spectra_computed", |b| {
+        b.iter(|| {
+            let mut acc = chain.accumulator();
+            chain
+                .backward(&bare, &psfs, &fwd, black_box(&dx), &mut acc)
                 .expect("backward");
             acc
         })

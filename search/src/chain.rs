@@ -11,13 +11,15 @@
 //!   summing to η_k < 1 where light leaves the window. The radiance term uses P_k (light
 //!   outside the window is lost), the occlusion term uses P̂_k = P_k/η_k, so an opaque layer
 //!   (α ≡ 1 over more than the PSF's support) hides everything behind it exactly.
-//!   Implemented as S1 with kernel P̂_k and radiance η_k·L_k.
+//!   Implemented as S1 with kernel P̂_k and radiance L_k, η_k multiplying its convolution
+//!   (so a frame's layer spectra do not depend on the lens, crate::spectra).
 //! - Units: the S1 image is photons per base-pixel area (sensor convention); the network input
 //!   is x = (DN − black level)/(max DN − black level), ≈ [0, 1].
 
 use crate::error::{Result, SearchError, param, positive};
 use crate::geometry::{NativeGrid, PitchGrid};
 use crate::radiometry::Radiometry;
+use crate::spectra::SpectraStore;
 use crate::split::{DepthSplit, OneProcess, map_gather};
 use faer::Mat;
 use nanoeye_datagen::render::{Dataset, FrameRecord, LayerSpec, Light, StoredFrame, Subject};
@@ -26,8 +28,8 @@ use nanoeye_gaze::Camera;
 use nanoeye_nets::Tensor;
 use nanoeye_optics::psf::{add_cells, depths_with_gradient};
 use nanoeye_optics::{
-    ApertureGrid, AsmPsf, KernelGradAccumulator, KernelSpectra, LayeredImager, PhaseMap, PsfConfig,
-    PsfStack, S1Tape, SpectralLayer,
+    ApertureGrid, AsmPsf, KernelGradAccumulator, KernelSpectra, LayerSpectra, LayeredImager,
+    PhaseMap, PsfConfig, PsfStack, S1Tape, SpectralLayer,
 };
 use nanoeye_sensor::{CmosSensor, NoiseMode, Sensor, SensorConfig, SensorTape};
 use rayon::prelude::*;
@@ -108,6 +110,8 @@ pub struct CameraChain {
     memo: Mutex<Option<PsfMemo>>,
     /// S1 images of frames imaged without a tape under one PSF stack (see [`S1Cache`]).
     s1_cache: Mutex<S1Cache>,
+    /// Frames' layer spectra, shared with the process's chains of the same grid and weight.
+    spectra: Arc<SpectraStore>,
 }
 
 /// Most bytes of S1 images kept by [`S1Cache`] (128 frames at 1280×800, 2,048 at 320×200).
@@ -213,6 +217,17 @@ pub struct ChainFrame {
     pub data: StoredFrame,
     /// Its record (state, gaze, landmarks).
     pub record: FrameRecord,
+}
+
+impl ChainFrame {
+    /// The frame as if built in memory (`source: None`): the chain keeps nothing for it, so
+    /// S1 computes its layer spectra in every call (for comparing the two paths).
+    pub fn unkeyed(&self) -> ChainFrame {
+        ChainFrame {
+            source: None,
+            ..self.clone()
+        }
+    }
 }
 
 /// Forward results of a batch.
@@ -323,6 +338,16 @@ impl CameraChain {
         let scale = cfg
             .radiometry
             .scale_map(&cam, render_w_per_sr, render_distance_m)?;
+        // What a frame's layer spectra depend on besides the frame: S1's grid and the weight.
+        let fp = {
+            use std::hash::{Hash, Hasher};
+            let mut hs = std::collections::hash_map::DefaultHasher::new();
+            (h, w, wp).hash(&mut hs);
+            for c in scale.col_iter() {
+                c.iter().for_each(|v| v.to_bits().hash(&mut hs));
+            }
+            hs.finish()
+        };
         Ok(CameraChain {
             cfg,
             native,
@@ -334,6 +359,7 @@ impl CameraChain {
             split: Arc::new(OneProcess),
             memo: Mutex::new(None),
             s1_cache: Mutex::new(S1Cache::default()),
+            spectra: SpectraStore::shared(fp),
         })
     }
 
@@ -409,11 +435,17 @@ impl CameraChain {
                 ),
             ));
         }
+        // The directory, its frame count and when its records were written: a directory
+        // rendered again in the same process (same path, new frames) is another source for
+        // the S1 and layer-spectra caches.
         let source = {
             use std::hash::{Hash, Hasher};
             let dir = std::fs::canonicalize(&ds.dir).unwrap_or_else(|_| ds.dir.clone());
+            let written = std::fs::metadata(dir.join("frames.jsonl"))
+                .and_then(|m| m.modified())
+                .ok();
             let mut h = std::collections::hash_map::DefaultHasher::new();
-            (dir, ds.len()).hash(&mut h);
+            (dir, ds.len(), written).hash(&mut h);
             h.finish()
         };
         ids.par_iter()
@@ -530,9 +562,10 @@ impl CameraChain {
     /// the tape its PSF VJP needs.
     pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<(Mat<f32>, S1Tape)> {
         let layers = self.spectral_layers(f, psfs);
+        let spectra = self.frame_spectra(f, &layers)?;
         let (img, tape) = self
             .imager
-            .forward_spectral(&layers, &psfs.spectra)
+            .forward_spectral(&layers, &psfs.spectra, spectra.as_deref())
             .map_err(|e| Self::frame_error(f, e))?;
         Ok((Self::clamped(img), tape))
     }
@@ -540,11 +573,50 @@ impl CameraChain {
     /// [`Self::optical_image`] without the tape.
     fn optical_image_alone(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<Mat<f32>> {
         let layers = self.spectral_layers(f, psfs);
+        let spectra = self.frame_spectra(f, &layers)?;
         let img = self
             .imager
-            .image_spectral(&layers, &psfs.spectra)
+            .image_spectral(&layers, &psfs.spectra, spectra.as_deref())
             .map_err(|e| Self::frame_error(f, e))?;
         Ok(Self::clamped(img))
+    }
+
+    /// The layer spectra of a frame from a dataset: kept ones, or computed and kept while
+    /// the process's budget has room; `None` (S1 computes them as it goes) for a frame built
+    /// in memory or when the budget is spent. Computing them apart costs one more pass over
+    /// each spectrum, paid once per frame.
+    fn frame_spectra(
+        &self,
+        f: &ChainFrame,
+        layers: &[SpectralLayer],
+    ) -> Result<Option<Arc<LayerSpectra>>> {
+        let Some(key) = f.source.map(|s| (s, f.id)) else {
+            return Ok(None);
+        };
+        if let Some(s) = self.spectra.get(key) {
+            return Ok(Some(s));
+        }
+        // Reserved for every layer, the unused rest given back when the covered are known.
+        let most = layers.len() * LayerSpectra::layer_bytes(&self.imager);
+        if !self.spectra.reserve(most) {
+            return Ok(None);
+        }
+        match self.imager.layer_spectra(layers) {
+            Ok(s) => {
+                let s = Arc::new(s);
+                self.spectra.put(key, &s, most);
+                Ok(Some(s))
+            }
+            Err(e) => {
+                self.spectra.release(most);
+                Err(Self::frame_error(f, e))
+            }
+        }
+    }
+
+    /// Frames whose layer spectra this chain's store keeps (see crate::spectra).
+    pub fn cached_layer_spectra(&self) -> usize {
+        self.spectra.len()
     }
 
     /// An S1 error named by its frame: in a dataset of hundreds, "layer 7 is not finite"
@@ -783,11 +855,13 @@ impl CameraChain {
                         ));
                     };
                     let layers = self.spectral_layers(f, psfs);
+                    let spectra = f.source.and_then(|s| self.spectra.get((s, f.id)));
                     let gimg = Mat::from_fn(sg.d_image.nrows(), sg.d_image.ncols(), |i, j| {
                         sg.d_image[(i, j)] as f64
                     });
                     let mut local = self.imager.kernel_grad_accumulator(self.spec.count);
-                    self.imager.vjp_kernels(&layers, s1, &gimg, &mut local)?;
+                    self.imager
+                        .vjp_kernels(&layers, s1, &gimg, &mut local, spectra.as_deref())?;
                     Ok((sg.d_p_hat, Some(local)))
                 })
                 .collect();

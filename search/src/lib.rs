@@ -11,6 +11,7 @@ pub mod lens;
 pub mod pareto;
 pub mod radiometry;
 pub mod rea;
+pub mod spectra;
 pub mod split;
 pub mod task;
 pub mod train;

@@ -626,6 +626,49 @@ fn a_frame_seen_again_under_the_same_stack_skips_s1_with_the_same_bits() {
     assert!(b.input.data != fresh.input.data);
 }
 
+/// A frame's layer spectra do not depend on the lens: computed once, kept from one PSF
+/// stack to the next and shared with another chain over the same data, and the forward and
+/// the backward through them give the bits of frames imaged without them.
+#[test]
+fn layer_spectra_are_kept_across_lenses_with_the_same_bits() {
+    let r = rig1();
+    let frames = r.chain.load(&r.ds, &[0, 1]).unwrap();
+    // Built in memory as far as the chain knows: never given kept spectra.
+    let bare: Vec<ChainFrame> = frames.iter().map(ChainFrame::unkeyed).collect();
+    let flat = LensSpec::Flat
+        .phase_map(r.chain.aperture_grid(), 940e-9, 2e-3)
+        .unwrap();
+    let run = |fr: &[ChainFrame], map: &PhaseMap| {
+        let psfs = r.chain.psfs(map, &r.chain.active(fr)).unwrap();
+        let fwd = r
+            .chain
+            .forward(fr, &psfs, 103e-6, NoiseMode::Gaussian, 3)
+            .unwrap();
+        let dx = fwd.input.clone();
+        let mut acc = r.chain.accumulator();
+        r.chain.backward(fr, &psfs, &fwd, &dx, &mut acc).unwrap();
+        (fwd.input.data, r.chain.finish(map, &psfs, acc).unwrap())
+    };
+    let before = r.chain.cached_layer_spectra();
+    let mut inputs = vec![];
+    for map in [hyperbolic(&r.chain), flat] {
+        let want = run(&bare, &map);
+        let got = run(&frames, &map);
+        assert!(got.0 == want.0, "network input differs");
+        assert!(got.1.phase_rad == want.1.phase_rad, "∂L/∂φ differs");
+        assert_eq!(got.1.p_hat.to_bits(), want.1.p_hat.to_bits());
+        inputs.push(got.0);
+    }
+    assert!(inputs[0] != inputs[1], "two lenses, two images");
+    assert!(r.chain.cached_layer_spectra() >= before + 2);
+    assert!(nanoeye_search::spectra::layer_spectra_bytes() > 0);
+    let again = CameraChain::for_dataset(&r.ds, test_cfg()).unwrap();
+    assert!(
+        again.cached_layer_spectra() >= 2,
+        "a chain over the same data shares the kept spectra"
+    );
+}
+
 /// A layer that is not finite is refused with the frame it belongs to named, with and
 /// without S1's tape.
 #[test]

@@ -1,0 +1,107 @@
+//! Layer spectra kept across training steps. A frame's S1 spectra F{α·w·L + iα} depend on
+//! its stored layers, the chain's radiometric weight w and S1's grid, not on the lens (η_k
+//! multiplies the convolution, after them): a frame seen again — in the next epoch, in
+//! validation, in another chain of the same process over the same data — skips each layer's
+//! packing and forward transforms, in the forward pass and in the PSF adjoint.
+//!
+//! Chains with the same grid and weight share one [`SpectraStore`] while any of them lives;
+//! all stores of a process together hold at most [`LAYER_SPECTRA_BYTES`]. A store keeps the
+//! frames it got first and evicts nothing: over an epoch that cycles through more frames
+//! than fit, least-recently-used eviction would evict each frame before its next use.
+
+use nanoeye_optics::LayerSpectra;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+
+/// Most bytes of layer spectra kept in one process, all stores together: 29 frames of 8
+/// covered layers at the paper's 1280×800 (9.3 MB per layer), about 460 at the default
+/// job's 320×200 (0.58 MB per layer).
+pub const LAYER_SPECTRA_BYTES: usize = 2 << 30;
+
+/// Bytes reserved by every live store.
+static IN_USE: AtomicUsize = AtomicUsize::new(0);
+
+/// The live stores by fingerprint (grid and weight), so that chains over the same data share.
+static STORES: Mutex<Vec<(u64, Weak<SpectraStore>)>> = Mutex::new(Vec::new());
+
+/// Layer spectra of frames keyed by (dataset, frame id), for chains of one fingerprint.
+#[derive(Default)]
+pub(crate) struct SpectraStore {
+    frames: Mutex<HashMap<(u64, u64), Arc<LayerSpectra>>>,
+    /// Bytes this store holds or has reserved (released when it is dropped).
+    bytes: AtomicUsize,
+}
+
+impl SpectraStore {
+    /// The live store of chains with fingerprint `fp`, or a new one.
+    pub(crate) fn shared(fp: u64) -> Arc<SpectraStore> {
+        let mut stores = STORES.lock().unwrap_or_else(|e| e.into_inner());
+        stores.retain(|(_, s)| s.strong_count() > 0);
+        if let Some(s) = stores
+            .iter()
+            .filter(|(f, _)| *f == fp)
+            .find_map(|(_, s)| s.upgrade())
+        {
+            return s;
+        }
+        let s = Arc::new(SpectraStore::default());
+        stores.push((fp, Arc::downgrade(&s)));
+        s
+    }
+
+    /// The kept spectra of frame `key`.
+    pub(crate) fn get(&self, key: (u64, u64)) -> Option<Arc<LayerSpectra>> {
+        self.frames.lock().ok().and_then(|m| m.get(&key).cloned())
+    }
+
+    /// Reserves `bytes` of the process's budget; false (nothing reserved) when they do not
+    /// fit.
+    pub(crate) fn reserve(&self, bytes: usize) -> bool {
+        let ok = IN_USE
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |u| {
+                u.checked_add(bytes).filter(|&t| t <= LAYER_SPECTRA_BYTES)
+            })
+            .is_ok();
+        if ok {
+            self.bytes.fetch_add(bytes, Ordering::AcqRel);
+        }
+        ok
+    }
+
+    /// Gives back `bytes` of a reservation.
+    pub(crate) fn release(&self, bytes: usize) {
+        self.bytes.fetch_sub(bytes, Ordering::AcqRel);
+        IN_USE.fetch_sub(bytes, Ordering::AcqRel);
+    }
+
+    /// Keeps `s` for frame `key` within a reservation of `reserved` bytes (the rest given
+    /// back); a frame another thread kept meanwhile keeps its spectra, the same bits.
+    pub(crate) fn put(&self, key: (u64, u64), s: &Arc<LayerSpectra>, reserved: usize) {
+        let mut frames = self.frames.lock().unwrap_or_else(|e| e.into_inner());
+        if frames.contains_key(&key) {
+            drop(frames);
+            self.release(reserved);
+            return;
+        }
+        frames.insert(key, Arc::clone(s));
+        drop(frames);
+        self.release(reserved - s.bytes().min(reserved));
+    }
+
+    /// Frames kept.
+    pub(crate) fn len(&self) -> usize {
+        self.frames.lock().map(|m| m.len()).unwrap_or(0)
+    }
+}
+
+impl Drop for SpectraStore {
+    fn drop(&mut self) {
+        IN_USE.fetch_sub(*self.bytes.get_mut(), Ordering::AcqRel);
+    }
+}
+
+/// Bytes held by every live store of the process.
+pub fn layer_spectra_bytes() -> usize {
+    IN_USE.load(Ordering::Acquire)
+}
