@@ -562,7 +562,7 @@ impl CameraChain {
     /// the tape its PSF VJP needs.
     pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<(Mat<f32>, S1Tape)> {
         let layers = self.spectral_layers(f, psfs);
-        let spectra = self.frame_spectra(f, &layers)?;
+        let spectra = self.frame_spectra(f, &layers, true)?;
         let (img, tape) = self
             .imager
             .forward_spectral(&layers, &psfs.spectra, spectra.as_deref())
@@ -573,7 +573,7 @@ impl CameraChain {
     /// [`Self::optical_image`] without the tape.
     fn optical_image_alone(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<Mat<f32>> {
         let layers = self.spectral_layers(f, psfs);
-        let spectra = self.frame_spectra(f, &layers)?;
+        let spectra = self.frame_spectra(f, &layers, false)?;
         let img = self
             .imager
             .image_spectral(&layers, &psfs.spectra, spectra.as_deref())
@@ -581,20 +581,27 @@ impl CameraChain {
         Ok(Self::clamped(img))
     }
 
-    /// The layer spectra of a frame from a dataset: kept ones, or computed and kept while
-    /// the process's budget has room; `None` (S1 computes them as it goes) for a frame built
-    /// in memory or when the budget is spent. Computing them apart costs one more pass over
-    /// each spectrum, paid once per frame.
+    /// The layer spectra of a frame from a dataset: kept ones, or — with `fill`, a forward
+    /// for a lens in training — computed and kept while the process's budget has room;
+    /// `None` (S1 computes them as it goes) otherwise. Only a lens in training images a frame
+    /// under a new PSF stack every step; a fixed lens and evaluation see a frame again under
+    /// the same stack, which the S1 image cache serves, so they read kept spectra but do not
+    /// spend the budget. Computing them apart costs one more pass over each spectrum, paid
+    /// once per frame.
     fn frame_spectra(
         &self,
         f: &ChainFrame,
         layers: &[SpectralLayer],
+        fill: bool,
     ) -> Result<Option<Arc<LayerSpectra>>> {
         let Some(key) = f.source.map(|s| (s, f.id)) else {
             return Ok(None);
         };
         if let Some(s) = self.spectra.get(key) {
             return Ok(Some(s));
+        }
+        if !fill {
+            return Ok(None);
         }
         // Reserved for every layer, the unused rest given back when the covered are known.
         let most = layers.len() * LayerSpectra::layer_bytes(&self.imager);

@@ -1,8 +1,9 @@
 //! Layer spectra kept across training steps. A frame's S1 spectra F{α·w·L + iα} depend on
 //! its stored layers, the chain's radiometric weight w and S1's grid, not on the lens (η_k
-//! multiplies the convolution, after them): a frame seen again — in the next epoch, in
-//! validation, in another chain of the same process over the same data — skips each layer's
-//! packing and forward transforms, in the forward pass and in the PSF adjoint.
+//! multiplies the convolution, after them): a frame a lens in training sees again — in the
+//! next step, in another chain of the same process over the same data — skips each layer's
+//! packing and forward transforms, in the forward pass and in the PSF adjoint. Only such
+//! forwards (with S1's tape) fill the store; every forward reads it.
 //!
 //! Chains with the same grid and weight share one [`SpectraStore`] while any of them lives;
 //! all stores of a process together hold at most [`LAYER_SPECTRA_BYTES`]. A store keeps the
@@ -14,10 +15,11 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 
-/// Most bytes of layer spectra kept in one process, all stores together: 29 frames of 8
-/// covered layers at the paper's 1280×800 (9.3 MB per layer), about 460 at the default
-/// job's 320×200 (0.58 MB per layer).
-pub const LAYER_SPECTRA_BYTES: usize = 2 << 30;
+/// Most bytes of layer spectra kept in one process, all stores together: 14 frames of 8
+/// covered layers at the paper's 1280×800 (9.3 MB per layer), about 230 at the default
+/// job's 320×200 (0.58 MB per layer). 2 GiB filled by every forward took the default job's
+/// peak RSS from 4.2 to 7.4 GB for no gain in its time.
+pub const LAYER_SPECTRA_BYTES: usize = 1 << 30;
 
 /// Bytes reserved by every live store.
 static IN_USE: AtomicUsize = AtomicUsize::new(0);
