@@ -810,15 +810,9 @@ impl LayeredImager {
         let mut sb = self.spectral_buffers();
         let mut out = Vec::with_capacity(layers.len());
         for (k, l) in layers.iter().enumerate() {
-            if l.uncovered() {
-                if !l.radiance_finite() {
-                    return Err(Self::non_finite(k));
-                }
+            let Some(live) = self.packed(l, k, &mut sb)? else {
                 out.push(None);
                 continue;
-            }
-            let Some(live) = self.layer_rows(l, &mut sb.a, &mut sb.scratch) else {
-                return Err(Self::non_finite(k));
             };
             let mut spec = Vec::with_capacity(nx * ny);
             for c0 in (0..nx).step_by(COLS) {
@@ -835,6 +829,28 @@ impl LayeredImager {
             nx,
             ny,
         })
+    }
+
+    /// Layer `k` packed and row-transformed into `sb.a` ([`Self::layer_rows`]), its rows
+    /// with data returned; `None` for a layer without coverage, which is skipped. Either way
+    /// a non-finite value is refused: an uncovered layer, not packed, is checked apart, since
+    /// it still may not hold what a covered one would be refused for.
+    fn packed(
+        &self,
+        l: &SpectralLayer,
+        k: usize,
+        sb: &mut SpectralBuffers,
+    ) -> Result<Option<Range<usize>>> {
+        if l.uncovered() {
+            return match l.radiance_finite() {
+                true => Ok(None),
+                false => Err(Self::non_finite(k)),
+            };
+        }
+        match self.layer_rows(l, &mut sb.a, &mut sb.scratch) {
+            Some(live) => Ok(Some(live)),
+            None => Err(Self::non_finite(k)),
+        }
     }
 
     /// S1 with precomputed kernel spectra (two FFTs per non-empty layer, one with the layers'
@@ -901,17 +917,9 @@ impl LayeredImager {
                     }
                 }
                 None => {
-                    if l.uncovered() {
-                        // Not packed, so checked here: a layer without coverage still may
-                        // not hold what a covered one would be refused for.
-                        if !l.radiance_finite() {
-                            return Err(Self::non_finite(k));
-                        }
+                    let Some(live) = self.packed(l, k, &mut sb)? else {
                         saved.push(None);
                         continue;
-                    }
-                    let Some(live) = self.layer_rows(l, &mut sb.a, &mut sb.scratch) else {
-                        return Err(Self::non_finite(k));
                     };
                     for c0 in (0..nx).step_by(COLS) {
                         let bw = COLS.min(nx - c0);
