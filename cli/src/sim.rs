@@ -248,7 +248,10 @@ pub fn sim(a: SimArgs) -> Result<()> {
     let p_hat = a.chain.pitch_um * 1e-6;
     // Validate the pitch before any work.
     chain.native().at(p_hat).context("--pitch-um")?;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+    // Created only when the results are written: a run that fails leaves no empty directory.
+    if a.out.exists() && !a.out.is_dir() {
+        bail!("--out {}: exists and is not a directory", a.out.display());
+    }
     let (mut sensor, mut masks, mut lines) = (Vec::new(), Vec::new(), String::new());
     let mut shape = (0, 0);
     // Chunks bound memory. The stack covers every slab used so far, so a chunk with fewer

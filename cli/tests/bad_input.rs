@@ -637,6 +637,36 @@ fn sim_and_search_loss_name_their_bad_flags() {
         refused(&args, flag, p);
     }
     assert!(!p.join("o").exists(), "a refused sim must write nothing");
+    std::fs::write(p.join("file"), b"").unwrap();
+    refused(
+        &[
+            "sim",
+            "--dataset",
+            "ds",
+            "--pitch-um",
+            "48",
+            "--out",
+            "file",
+        ],
+        "--out",
+        p,
+    );
+    // A failure met while imaging (a layer not finite, found by S1 in the pass that reads
+    // it) names the frame and leaves no empty output directory behind.
+    let bad = tiny_dataset("bad");
+    assert!(nanoeye(&bad, p).status.success());
+    let layers = p.join("bad/frames/000000_layers.npy");
+    let mut bytes = std::fs::read(&layers).unwrap();
+    let n = bytes.len();
+    bytes[n - 4..].copy_from_slice(&f32::NAN.to_le_bytes());
+    std::fs::write(&layers, bytes).unwrap();
+    let sim = ["sim", "--dataset", "bad", "--pitch-um", "48", "--out", "o"];
+    let err = refused(&sim, "frame 0", p);
+    assert!(err.contains("non-finite"), "{err}");
+    assert!(
+        !p.join("o").exists(),
+        "a failed sim must leave no directory"
+    );
     // Refused before the run is read: --head-refit on a set too small for its leave-one-out
     // error, --fit-pitch without a budget (it would do nothing).
     let two = [

@@ -678,8 +678,13 @@ impl LayeredImager {
         Ok(())
     }
 
-    fn non_finite(k: usize) -> OpticsError {
-        OpticsError::param("layers", format!("layer {k} holds non-finite values"))
+    /// Layer `k` of the call, which uses kernel `kernel` (a caller that reorders its layers
+    /// names them by kernel, e.g. a depth slab).
+    fn non_finite(k: usize, kernel: usize) -> OpticsError {
+        OpticsError::param(
+            "layers",
+            format!("layer {k} (kernel {kernel}) holds non-finite values"),
+        )
     }
 
     /// Work space of the spectral path: one padded grid (every row is written before it is
@@ -844,12 +849,12 @@ impl LayeredImager {
         if l.uncovered() {
             return match l.radiance_finite() {
                 true => Ok(None),
-                false => Err(Self::non_finite(k)),
+                false => Err(Self::non_finite(k, l.kernel)),
             };
         }
         match self.layer_rows(l, &mut sb.a, &mut sb.scratch) {
             Some(live) => Ok(Some(live)),
-            None => Err(Self::non_finite(k)),
+            None => Err(Self::non_finite(k, l.kernel)),
         }
     }
 
@@ -1059,7 +1064,7 @@ impl LayeredImager {
                 Some(_) => 0..0,
                 None => match self.layer_rows(l, &mut sb.a, &mut sb.scratch) {
                     Some(rows) => rows,
-                    None => return Err(Self::non_finite(k)),
+                    None => return Err(Self::non_finite(k, l.kernel)),
                 },
             };
             // A kernel's first term is written, not added to zeros: the accumulator of a

@@ -627,9 +627,13 @@ impl CameraChain {
     }
 
     /// An S1 error named by its frame: in a dataset of hundreds, "layer 7 is not finite"
-    /// alone does not say which file to look at.
+    /// alone does not say which file to look at. S1 numbers the layers it was given, back
+    /// to front; its kernel is the frame's depth slab (`index` in the record's "layers").
     fn frame_error(f: &ChainFrame, e: nanoeye_optics::OpticsError) -> SearchError {
-        param("frames", format!("frame {}: optics: {e}", f.id))
+        param(
+            "frames",
+            format!("frame {}: optics (kernel = depth slab): {e}", f.id),
+        )
     }
 
     /// FFT round-off leaves values of order 1e-16 of the peak below zero where there is no
@@ -868,7 +872,8 @@ impl CameraChain {
                     });
                     let mut local = self.imager.kernel_grad_accumulator(self.spec.count);
                     self.imager
-                        .vjp_kernels(&layers, s1, &gimg, &mut local, spectra.as_deref())?;
+                        .vjp_kernels(&layers, s1, &gimg, &mut local, spectra.as_deref())
+                        .map_err(|e| Self::frame_error(f, e))?;
                     Ok((sg.d_p_hat, Some(local)))
                 })
                 .collect();

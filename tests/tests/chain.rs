@@ -669,8 +669,9 @@ fn layer_spectra_are_kept_across_lenses_with_the_same_bits() {
     );
 }
 
-/// A layer that is not finite is refused with the frame it belongs to named, with and
-/// without S1's tape.
+/// A layer that is not finite is refused with the frame and the depth slab it belongs to
+/// named (S1 numbers its layers back to front, the slab is its kernel), with and without
+/// S1's tape.
 #[test]
 fn a_non_finite_layer_is_refused_naming_the_frame() {
     let (_d, ds) = tiny_dataset();
@@ -679,7 +680,8 @@ fn a_non_finite_layer_is_refused_naming_the_frame() {
     let psfs = all_slabs_psfs(&chain, &map);
     let mut l = disc(24.0, 39.0, 6.0, 1.0);
     l[(24, 39)] = f32::NAN;
-    let mut f = frame_with(&ds, vec![layer(3, l, disc(24.0, 39.0, 6.0, 1.0))]);
+    let near = layer(1, disc(20.0, 30.0, 4.0, 1.0), disc(20.0, 30.0, 4.0, 1.0));
+    let mut f = frame_with(&ds, vec![near, layer(3, l, disc(24.0, 39.0, 6.0, 1.0))]);
     f.id = 7;
     for grad in [true, false] {
         let err = chain
@@ -695,7 +697,7 @@ fn a_non_finite_layer_is_refused_naming_the_frame() {
             .expect("refused");
         let msg = err.to_string();
         assert!(
-            msg.contains("frame 7") && msg.contains("non-finite"),
+            msg.contains("frame 7") && msg.contains("(kernel 3)") && msg.contains("non-finite"),
             "{msg}"
         );
     }
