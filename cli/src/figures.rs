@@ -80,12 +80,14 @@ fn outline(m: &[f32], h: usize, w: usize) -> Vec<bool> {
 pub fn example_strip(net: &mut Supernet, s: &EvalSetup, ids: &[usize]) -> Result<Vec<u8>> {
     let frames = s.chain.load(s.data, ids)?;
     let psfs = s.chain.psfs(s.map, &s.chain.active(&frames))?;
-    let fwd = s.chain.forward(
+    // Nothing differentiates the strip: no S1 tape.
+    let fwd = s.chain.forward_with(
         &frames,
         &psfs,
         s.p_hat_m,
         NoiseMode::Gaussian,
         s.seed ^ 0xBEEF,
+        false,
     )?;
     let o = net.forward(s.arch, &fwd.input, BnMode::Eval)?;
     let (h, w) = fwd.grid.shape();

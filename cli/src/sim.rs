@@ -263,7 +263,8 @@ pub fn sim(a: SimArgs) -> Result<()> {
             .zip(chain.active(&frames))
             .for_each(|(n, a)| *n |= a);
         let psfs = chain.psfs(&map, &need).context("--lens")?;
-        let fwd = chain.forward(&frames, &psfs, p_hat, noise, a.seed)?;
+        // Nothing differentiates a simulation: no S1 tape.
+        let fwd = chain.forward_with(&frames, &psfs, p_hat, noise, a.seed, false)?;
         shape = fwd.grid.shape();
         for (b, f) in frames.iter().enumerate() {
             sensor.push(match noise {

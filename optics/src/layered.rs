@@ -498,10 +498,25 @@ impl<'a> SpectralLayer<'a> {
 
 /// What a spectral forward pass keeps for the PSF VJP: per layer the image below it and its
 /// occlusion α∗P, in f32 (the adjoint needs them to round-off precision only), row-major H×W
-/// like the padded grid they meet.
+/// like the padded grid they meet; and the layer spectra the pass computed (none when they
+/// were given), which the VJP uses in place of computing them again.
 pub struct S1Tape {
     saved: Vec<Option<(Vec<f32>, Vec<f32>)>>,
     image: Vec<f32>,
+    spectra: Option<LayerSpectra>,
+}
+
+impl S1Tape {
+    /// The layer spectra the forward pass computed, taken off the tape (to keep them for
+    /// later calls); the VJP then needs them given, or computes them again.
+    pub fn take_spectra(&mut self) -> Option<LayerSpectra> {
+        self.spectra.take()
+    }
+
+    /// Bytes of layer spectra the tape holds (nx·ny·8 per covered layer, 0 once taken).
+    pub fn spectra_bytes(&self) -> usize {
+        self.spectra.as_ref().map_or(0, LayerSpectra::bytes)
+    }
 }
 
 /// The spectra F{α·w·L + iα} of a frame's layers on S1's padded grid, column by column
@@ -511,6 +526,7 @@ pub struct S1Tape {
 /// adjoint), about half of its work. Stored in f32 (nx·ny·8 bytes per covered layer): S1
 /// rounds every layer spectrum to f32, kept or not, so both give the same bits; the rounding
 /// (6e-8 of each coefficient) is below the f32 image S1 returns.
+#[derive(Debug, PartialEq)]
 pub struct LayerSpectra {
     layers: Vec<Option<Vec<c32>>>,
     nx: usize,
@@ -859,7 +875,8 @@ impl LayeredImager {
     }
 
     /// S1 with precomputed kernel spectra (two FFTs per non-empty layer, one with the layers'
-    /// `spectra`); keeps the tape the PSF VJP needs. Per block of columns the forward column
+    /// `spectra`); keeps the tape the PSF VJP needs, with the layer spectra it computed when
+    /// none were given (nx·ny·8 bytes per covered layer: [`S1Tape::take_spectra`]). Per block of columns the forward column
     /// transform, the product with P̂ and the inverse column transform run back to back while
     /// the block is in cache, and only the H rows the output keeps go through the inverse row
     /// transform.
@@ -901,6 +918,9 @@ impl LayeredImager {
         // I⁽ᵏ⁻¹⁾ in f32 for the tape (I⁽⁻¹⁾ = 0).
         let mut prev = vec![0.0f32; h * w];
         let mut saved = Vec::with_capacity(layers.len());
+        // The layer spectra computed on the way, for the tape: S1 rounds them to f32 anyway,
+        // so recording them costs a copy, not a pass.
+        let mut record = (keep && spectra.is_none()).then(|| Vec::with_capacity(layers.len()));
         let mut sb = self.spectral_buffers();
         for (k, l) in layers.iter().enumerate() {
             let p = ks.spec[l.kernel].as_ref().expect("checked");
@@ -924,18 +944,38 @@ impl LayeredImager {
                 None => {
                     let Some(live) = self.packed(l, k, &mut sb)? else {
                         saved.push(None);
+                        if let Some(r) = record.as_mut() {
+                            r.push(None);
+                        }
                         continue;
                     };
+                    let mut rec = record.as_ref().map(|_| Vec::with_capacity(nx * ny));
                     for c0 in (0..nx).step_by(COLS) {
                         let bw = COLS.min(nx - c0);
                         let blk = &mut sb.blk[..bw * ny];
                         self.gather(&sb.a, c0, live.clone(), blk);
                         self.fy.process_with_scratch(blk, &mut sb.scratch);
-                        blk.iter_mut()
-                            .zip(&p[c0 * ny..(c0 + bw) * ny])
-                            .for_each(|(a, p)| *a = rounded(*a) * p);
+                        let p = &p[c0 * ny..(c0 + bw) * ny];
+                        match rec.as_mut() {
+                            // Two passes over the block in cache, each of which vectorises.
+                            Some(rec) => {
+                                let at = rec.len();
+                                rec.extend(blk.iter().map(|a| c32::new(a.re as f32, a.im as f32)));
+                                blk.iter_mut()
+                                    .zip(&rec[at..])
+                                    .zip(p)
+                                    .for_each(|((a, &s), p)| *a = widened(s) * p);
+                            }
+                            None => blk
+                                .iter_mut()
+                                .zip(p)
+                                .for_each(|(a, p)| *a = rounded(*a) * p),
+                        }
                         self.iy.process_with_scratch(blk, &mut sb.scratch);
                         self.scatter(blk, c0, cy..cy + h, &mut sb.a);
+                    }
+                    if let Some(r) = record.as_mut() {
+                        r.push(rec);
                     }
                 }
             }
@@ -980,13 +1020,20 @@ impl LayeredImager {
                 "the image exceeds f32's range (gain × weighted radiance too large)",
             ));
         }
-        Ok((m, keep.then_some(S1Tape { saved, image: prev })))
+        let spectra = record.map(|layers| LayerSpectra { layers, nx, ny });
+        let tape = keep.then_some(S1Tape {
+            saved,
+            image: prev,
+            spectra,
+        });
+        Ok((m, tape))
     }
 
     /// Adds ∂loss/∂P (in the frequency domain) and ∂loss/∂(radiance scale) of one frame into
     /// `acc`, for ∂loss/∂I = `grad`. Two FFTs per non-empty layer (one with the layers'
-    /// `spectra`); no input gradients. The column transforms of the gradient and of the layer
-    /// and their product run block by block, so neither full spectrum is ever stored.
+    /// `spectra`, given or on the tape); no input gradients. The column transforms of the
+    /// gradient and of the layer and their product run block by block, so neither full
+    /// spectrum is ever stored.
     pub fn vjp_kernels(
         &self,
         layers: &[SpectralLayer],
@@ -1006,6 +1053,7 @@ impl LayeredImager {
                 tape.saved.len()
             )));
         }
+        let spectra = spectra.or(tape.spectra.as_ref());
         self.check_spectra(layers, spectra)?;
         let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);
         let (cy, cx) = (self.wp / 2, self.wp / 2);

@@ -157,7 +157,8 @@ fn banded_alpha(h: usize, w: usize, rows: std::ops::Range<usize>, gap: usize) ->
 }
 
 /// Forward image and ∂loss/∂P of the spectral path; the same bits (asserted) when the
-/// layers' spectra are computed beforehand and given.
+/// layers' spectra are computed beforehand and given, when the VJP uses those the forward
+/// recorded on its tape, and when it computes them again (taken off the tape).
 fn spectral_run(
     im: &LayeredImager,
     layers: &[SpectralLayer],
@@ -167,36 +168,39 @@ fn spectral_run(
     let ks = im
         .kernel_spectra(&psfs.iter().map(Some).collect::<Vec<_>>())
         .unwrap();
-    let run = |spectra: Option<&LayerSpectra>| {
-        let (img, tape) = im.forward_spectral(layers, &ks, spectra).unwrap();
-        assert!(im.image_spectral(layers, &ks, spectra).unwrap() == img);
-        let mut acc = im.kernel_grad_accumulator(psfs.len());
-        im.vjp_kernels(layers, &tape, g, &mut acc, spectra).unwrap();
-        // A second frame merged in, as a batch does: the merged spectra are reused.
-        let mut other = im.kernel_grad_accumulator(psfs.len());
-        im.vjp_kernels(layers, &tape, g, &mut other, spectra)
-            .unwrap();
-        im.merge_kernel_grads(&mut acc, other);
-        let scale = acc.radiance_scale.clone();
-        (img, im.kernel_grads(acc), scale)
-    };
-    let computed = run(None);
     let spectra = im.layer_spectra(layers).unwrap();
     let covered = layers
         .iter()
         .filter(|l| l.alpha.col_iter().any(|c| c.iter().any(|&a| a != 0.0)))
         .count();
     assert_eq!(spectra.bytes(), covered * LayerSpectra::layer_bytes(im));
-    let given = run(Some(&spectra));
-    assert!(
-        given.0 == computed.0,
-        "images differ with the spectra given"
-    );
-    assert!(
-        given.1 == computed.1,
-        "PSF gradients differ with the spectra given"
-    );
-    assert_eq!(given.2, computed.2);
+    // `given`: spectra passed in; else the tape's, taken off it when `!on_tape`.
+    let run = |given: Option<&LayerSpectra>, on_tape: bool| {
+        let (img, mut tape) = im.forward_spectral(layers, &ks, given).unwrap();
+        assert!(im.image_spectral(layers, &ks, given).unwrap() == img);
+        match given {
+            Some(_) => assert_eq!(tape.spectra_bytes(), 0, "nothing recorded when given"),
+            None => assert_eq!(tape.spectra_bytes(), spectra.bytes()),
+        }
+        if !on_tape {
+            let recorded = tape.take_spectra();
+            assert!(given.is_some() || recorded.as_ref() == Some(&spectra));
+        }
+        let mut acc = im.kernel_grad_accumulator(psfs.len());
+        im.vjp_kernels(layers, &tape, g, &mut acc, given).unwrap();
+        // A second frame merged in, as a batch does: the merged spectra are reused.
+        let mut other = im.kernel_grad_accumulator(psfs.len());
+        im.vjp_kernels(layers, &tape, g, &mut other, given).unwrap();
+        im.merge_kernel_grads(&mut acc, other);
+        let scale = acc.radiance_scale.clone();
+        (img, im.kernel_grads(acc), scale)
+    };
+    let computed = run(None, false);
+    for other in [run(None, true), run(Some(&spectra), true)] {
+        assert!(other.0 == computed.0, "images differ");
+        assert!(other.1 == computed.1, "PSF gradients differ");
+        assert_eq!(other.2, computed.2);
+    }
     // Spectra of other layers (a count that differs) are refused, not used.
     assert!(
         im.forward_spectral(&layers[..layers.len() - 1], &ks, Some(&spectra))

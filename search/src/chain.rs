@@ -247,7 +247,8 @@ pub struct ChainForward {
     /// The p̂ grid.
     pub grid: PitchGrid,
     tapes: Vec<SensorTape>,
-    /// S1's tapes, `None` for a forward that keeps none (see [`CameraChain::forward_with`]).
+    /// S1's tapes, `None` for a forward that keeps none (see [`CameraChain::forward_with`]);
+    /// a frame whose layer spectra the store does not keep has them on its tape.
     s1: Vec<Option<S1Tape>>,
 }
 
@@ -559,66 +560,42 @@ impl CameraChain {
     }
 
     /// Sensor-plane image of one frame (photons per base-pixel area, native grid): S1, and
-    /// the tape its PSF VJP needs.
+    /// the tape its PSF VJP needs. A frame whose layer spectra are not kept has them
+    /// computed by S1 and recorded on its tape; they move to the store while the process's
+    /// budget has room (a lens in training images the frame under a new stack every step),
+    /// else stay on the tape for this step's backward alone.
     pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<(Mat<f32>, S1Tape)> {
         let layers = self.spectral_layers(f, psfs);
-        let spectra = self.frame_spectra(f, &layers, true)?;
-        let (img, tape) = self
+        let kept = self.kept_spectra(f);
+        let (img, mut tape) = self
             .imager
-            .forward_spectral(&layers, &psfs.spectra, spectra.as_deref())
+            .forward_spectral(&layers, &psfs.spectra, kept.as_deref())
             .map_err(|e| Self::frame_error(f, e))?;
+        if let (None, Some(key)) = (&kept, f.source.map(|s| (s, f.id))) {
+            let bytes = tape.spectra_bytes();
+            if bytes > 0 {
+                self.spectra.keep(key, bytes, || tape.take_spectra());
+            }
+        }
         Ok((Self::clamped(img), tape))
     }
 
-    /// [`Self::optical_image`] without the tape.
+    /// [`Self::optical_image`] without the tape; reads kept layer spectra but keeps none: a
+    /// fixed lens and evaluation see a frame again under the same stack, which the S1 image
+    /// cache serves.
     fn optical_image_alone(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<Mat<f32>> {
         let layers = self.spectral_layers(f, psfs);
-        let spectra = self.frame_spectra(f, &layers, false)?;
+        let kept = self.kept_spectra(f);
         let img = self
             .imager
-            .image_spectral(&layers, &psfs.spectra, spectra.as_deref())
+            .image_spectral(&layers, &psfs.spectra, kept.as_deref())
             .map_err(|e| Self::frame_error(f, e))?;
         Ok(Self::clamped(img))
     }
 
-    /// The layer spectra of a frame from a dataset: kept ones, or — with `fill`, a forward
-    /// for a lens in training — computed and kept while the process's budget has room;
-    /// `None` (S1 computes them as it goes) otherwise. Only a lens in training images a frame
-    /// under a new PSF stack every step; a fixed lens and evaluation see a frame again under
-    /// the same stack, which the S1 image cache serves, so they read kept spectra but do not
-    /// spend the budget. Computing them apart costs one more pass over each spectrum, paid
-    /// once per frame.
-    fn frame_spectra(
-        &self,
-        f: &ChainFrame,
-        layers: &[SpectralLayer],
-        fill: bool,
-    ) -> Result<Option<Arc<LayerSpectra>>> {
-        let Some(key) = f.source.map(|s| (s, f.id)) else {
-            return Ok(None);
-        };
-        if let Some(s) = self.spectra.get(key) {
-            return Ok(Some(s));
-        }
-        if !fill {
-            return Ok(None);
-        }
-        // Reserved for every layer, the unused rest given back when the covered are known.
-        let most = layers.len() * LayerSpectra::layer_bytes(&self.imager);
-        if !self.spectra.reserve(most) {
-            return Ok(None);
-        }
-        match self.imager.layer_spectra(layers) {
-            Ok(s) => {
-                let s = Arc::new(s);
-                self.spectra.put(key, &s, most);
-                Ok(Some(s))
-            }
-            Err(e) => {
-                self.spectra.release(most);
-                Err(Self::frame_error(f, e))
-            }
-        }
+    /// The kept layer spectra of a frame from a dataset.
+    fn kept_spectra(&self, f: &ChainFrame) -> Option<Arc<LayerSpectra>> {
+        f.source.and_then(|s| self.spectra.get((s, f.id)))
     }
 
     /// Frames whose layer spectra this chain's store keeps (see crate::spectra).
@@ -866,7 +843,8 @@ impl CameraChain {
                         ));
                     };
                     let layers = self.spectral_layers(f, psfs);
-                    let spectra = f.source.and_then(|s| self.spectra.get((s, f.id)));
+                    // Kept ones, or (None) those on the tape when the forward recorded them.
+                    let spectra = self.kept_spectra(f);
                     let gimg = Mat::from_fn(sg.d_image.nrows(), sg.d_image.ncols(), |i, j| {
                         sg.d_image[(i, j)] as f64
                     });

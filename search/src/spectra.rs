@@ -3,12 +3,15 @@
 //! multiplies the convolution, after them): a frame a lens in training sees again — in the
 //! next step, in another chain of the same process over the same data — skips each layer's
 //! packing and forward transforms, in the forward pass and in the PSF adjoint. Only such
-//! forwards (with S1's tape) fill the store; every forward reads it.
+//! forwards (with S1's tape) fill the store, with the spectra S1 computed and recorded on
+//! the way; every forward reads it.
 //!
 //! Chains with the same grid and weight share one [`SpectraStore`] while any of them lives;
 //! all stores of a process together hold at most [`LAYER_SPECTRA_BYTES`]. A store keeps the
 //! frames it got first and evicts nothing: over an epoch that cycles through more frames
 //! than fit, least-recently-used eviction would evict each frame before its next use.
+//! A frame beyond the budget keeps the spectra S1 recorded on its tape, for the backward of
+//! its own step.
 
 use nanoeye_optics::LayerSpectra;
 use std::collections::HashMap;
@@ -57,9 +60,34 @@ impl SpectraStore {
         self.frames.lock().ok().and_then(|m| m.get(&key).cloned())
     }
 
+    /// Keeps the spectra `take` gives (`bytes` of them) for frame `key` while the process's
+    /// budget has room. False, `take` not called, when it has none or the frame is kept
+    /// already (by another thread meanwhile: the same bits).
+    pub(crate) fn keep(
+        &self,
+        key: (u64, u64),
+        bytes: usize,
+        take: impl FnOnce() -> Option<LayerSpectra>,
+    ) -> bool {
+        let mut frames = self.frames.lock().unwrap_or_else(|e| e.into_inner());
+        if frames.contains_key(&key) || !self.reserve(bytes) {
+            return false;
+        }
+        match take() {
+            Some(s) if s.bytes() == bytes => {
+                frames.insert(key, Arc::new(s));
+                true
+            }
+            _ => {
+                self.release(bytes);
+                false
+            }
+        }
+    }
+
     /// Reserves `bytes` of the process's budget; false (nothing reserved) when they do not
     /// fit.
-    pub(crate) fn reserve(&self, bytes: usize) -> bool {
+    fn reserve(&self, bytes: usize) -> bool {
         let ok = IN_USE
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |u| {
                 u.checked_add(bytes).filter(|&t| t <= LAYER_SPECTRA_BYTES)
@@ -72,23 +100,9 @@ impl SpectraStore {
     }
 
     /// Gives back `bytes` of a reservation.
-    pub(crate) fn release(&self, bytes: usize) {
+    fn release(&self, bytes: usize) {
         self.bytes.fetch_sub(bytes, Ordering::AcqRel);
         IN_USE.fetch_sub(bytes, Ordering::AcqRel);
-    }
-
-    /// Keeps `s` for frame `key` within a reservation of `reserved` bytes (the rest given
-    /// back); a frame another thread kept meanwhile keeps its spectra, the same bits.
-    pub(crate) fn put(&self, key: (u64, u64), s: &Arc<LayerSpectra>, reserved: usize) {
-        let mut frames = self.frames.lock().unwrap_or_else(|e| e.into_inner());
-        if frames.contains_key(&key) {
-            drop(frames);
-            self.release(reserved);
-            return;
-        }
-        frames.insert(key, Arc::clone(s));
-        drop(frames);
-        self.release(reserved - s.bytes().min(reserved));
     }
 
     /// Frames kept.
