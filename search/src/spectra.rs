@@ -12,9 +12,16 @@
 //! than fit, least-recently-used eviction would evict each frame before its next use.
 //! A frame beyond the budget keeps the spectra S1 recorded on its tape, for the backward of
 //! its own step.
+//!
+//! A dataset whose frames' spectra would not all fit the budget keeps none: keeping the first
+//! frames seen would spend the whole budget on a fraction budget/need of the visits — the
+//! default job's 240 training frames at 320×200 hold 1,903 covered layers, more than 1 GiB
+//! at 0.58 MB each, and the first 1 GiB of them took its peak RSS from 4.2 to 5.8 GB for no
+//! time it could measure — while every frame's backward already reads the spectra its
+//! forward recorded.
 
 use nanoeye_optics::LayerSpectra;
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 
@@ -34,6 +41,8 @@ static STORES: Mutex<Vec<(u64, Weak<SpectraStore>)>> = Mutex::new(Vec::new());
 #[derive(Default)]
 pub(crate) struct SpectraStore {
     frames: Mutex<HashMap<(u64, u64), Arc<LayerSpectra>>>,
+    /// Datasets whose frames' spectra all fit the budget, by source hash.
+    admitted: Mutex<HashSet<u64>>,
     /// Bytes this store holds or has reserved (released when it is dropped).
     bytes: AtomicUsize,
 }
@@ -60,17 +69,28 @@ impl SpectraStore {
         self.frames.lock().ok().and_then(|m| m.get(&key).cloned())
     }
 
-    /// Keeps the spectra `take` gives (`bytes` of them) for frame `key` while the process's
-    /// budget has room. False, `take` not called, when it has none or the frame is kept
-    /// already (by another thread meanwhile: the same bits).
+    /// Admits the dataset `source` when the spectra of all its frames, `need` bytes, fit
+    /// the process's budget; its frames are then kept as they come (see the module's doc).
+    pub(crate) fn admit(&self, source: u64, need: usize) {
+        if need <= LAYER_SPECTRA_BYTES {
+            let mut a = self.admitted.lock().unwrap_or_else(|e| e.into_inner());
+            a.insert(source);
+        }
+    }
+
+    /// Keeps the spectra `take` gives (`bytes` of them) for frame `key` (dataset, frame)
+    /// when its dataset was admitted and while the process's budget has room. False, `take`
+    /// not called, otherwise or when the frame is kept already (by another thread meanwhile:
+    /// the same bits).
     pub(crate) fn keep(
         &self,
         key: (u64, u64),
         bytes: usize,
         take: impl FnOnce() -> Option<LayerSpectra>,
     ) -> bool {
+        let admitted = self.admitted.lock().is_ok_and(|a| a.contains(&key.0));
         let mut frames = self.frames.lock().unwrap_or_else(|e| e.into_inner());
-        if frames.contains_key(&key) || !self.reserve(bytes) {
+        if !admitted || frames.contains_key(&key) || !self.reserve(bytes) {
             return false;
         }
         match take() {
@@ -120,4 +140,43 @@ impl Drop for SpectraStore {
 /// Bytes held by every live store of the process.
 pub fn layer_spectra_bytes() -> usize {
     IN_USE.load(Ordering::Acquire)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use faer::Mat;
+    use nanoeye_optics::{LayeredImager, SpectralLayer};
+
+    /// One covered layer's spectra on a small grid, and their bytes.
+    fn spectra() -> (LayerSpectra, usize) {
+        let im = LayeredImager::new(6, 5, 3).unwrap();
+        let (l, a) = (
+            Mat::from_fn(6, 5, |i, j| (i + j) as f32),
+            Mat::full(6, 5, 1.0f32),
+        );
+        let s = im.layer_spectra(&[SpectralLayer::new(&l, &a, 0)]).unwrap();
+        let b = s.bytes();
+        (s, b)
+    }
+
+    #[test]
+    fn a_dataset_whose_spectra_do_not_all_fit_keeps_none_one_that_fits_keeps_them() {
+        let store = SpectraStore::default();
+        let (s, bytes) = spectra();
+        assert!(bytes > 0);
+        // Not admitted: nothing reserved, `take` never called.
+        store.admit(1, LAYER_SPECTRA_BYTES + 1);
+        assert!(!store.keep((1, 0), bytes, || panic!("taken")));
+        assert!(!store.keep((3, 0), bytes, || panic!("never admitted")));
+        assert_eq!(store.len(), 0);
+        assert_eq!(store.bytes.load(Ordering::Acquire), 0);
+        store.admit(2, LAYER_SPECTRA_BYTES);
+        assert!(store.keep((2, 0), bytes, || Some(s)));
+        assert!(store.get((2, 0)).is_some() && store.get((1, 0)).is_none());
+        assert_eq!(store.bytes.load(Ordering::Acquire), bytes);
+        // Kept once: a second copy is not taken and reserves nothing.
+        assert!(!store.keep((2, 0), bytes, || panic!("kept already")));
+        assert_eq!(store.bytes.load(Ordering::Acquire), bytes);
+    }
 }
