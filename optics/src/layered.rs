@@ -876,10 +876,10 @@ impl LayeredImager {
 
     /// S1 with precomputed kernel spectra (two FFTs per non-empty layer, one with the layers'
     /// `spectra`); keeps the tape the PSF VJP needs, with the layer spectra it computed when
-    /// none were given (nx·ny·8 bytes per covered layer: [`S1Tape::take_spectra`]). Per block of columns the forward column
-    /// transform, the product with P̂ and the inverse column transform run back to back while
-    /// the block is in cache, and only the H rows the output keeps go through the inverse row
-    /// transform.
+    /// none were given (nx·ny·8 bytes per covered layer: [`S1Tape::take_spectra`]). Per block
+    /// of columns the forward column transform, the product with P̂ and the inverse column
+    /// transform run back to back while the block is in cache, and only the H rows the output
+    /// keeps go through the inverse row transform.
     pub fn forward_spectral(
         &self,
         layers: &[SpectralLayer],

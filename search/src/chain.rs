@@ -567,9 +567,9 @@ impl CameraChain {
 
     /// Sensor-plane image of one frame (photons per base-pixel area, native grid): S1, and
     /// the tape its PSF VJP needs. A frame whose layer spectra are not kept has them
-    /// computed by S1 and recorded on its tape; they move to the store while the process's
-    /// budget has room (a lens in training images the frame under a new stack every step),
-    /// else stay on the tape for this step's backward alone.
+    /// computed by S1 and recorded on its tape; they move to the store when its dataset's
+    /// spectra all fit the budget and while it has room (a lens in training images the frame
+    /// under a new stack every step), else stay on the tape for this step's backward alone.
     pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<(Mat<f32>, S1Tape)> {
         let layers = self.spectral_layers(f, psfs);
         let kept = self.kept_spectra(f);

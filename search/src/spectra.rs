@@ -78,10 +78,10 @@ impl SpectraStore {
         }
     }
 
-    /// Keeps the spectra `take` gives (`bytes` of them) for frame `key` (dataset, frame)
-    /// when its dataset was admitted and while the process's budget has room. False, `take`
-    /// not called, otherwise or when the frame is kept already (by another thread meanwhile:
-    /// the same bits).
+    /// Keeps the spectra `take` gives (`bytes` of them: `S1Tape::spectra_bytes`) for frame
+    /// `key` (dataset, frame) when its dataset was admitted and while the process's budget
+    /// has room. False, `take` not called, otherwise or when the frame is kept already (by
+    /// another thread meanwhile: the same bits).
     pub(crate) fn keep(
         &self,
         key: (u64, u64),
@@ -93,16 +93,13 @@ impl SpectraStore {
         if !admitted || frames.contains_key(&key) || !self.reserve(bytes) {
             return false;
         }
-        match take() {
-            Some(s) if s.bytes() == bytes => {
-                frames.insert(key, Arc::new(s));
-                true
-            }
-            _ => {
-                self.release(bytes);
-                false
-            }
-        }
+        let Some(s) = take() else {
+            self.release(bytes);
+            return false;
+        };
+        debug_assert_eq!(s.bytes(), bytes, "the budget counts what is kept");
+        frames.insert(key, Arc::new(s));
+        true
     }
 
     /// Reserves `bytes` of the process's budget; false (nothing reserved) when they do not
