@@ -450,11 +450,10 @@ impl CameraChain {
             h.finish()
         };
         // Every stored layer is covered (the renderer writes non-empty slabs only).
-        let layers: usize = ds.records.iter().map(|r| r.layers.len()).sum();
-        self.spectra.admit(
-            source,
-            layers.saturating_mul(LayerSpectra::layer_bytes(&self.imager)),
-        );
+        self.spectra.admit(source, || {
+            let layers: usize = ds.records.iter().map(|r| r.layers.len()).sum();
+            layers.saturating_mul(LayerSpectra::layer_bytes(&self.imager))
+        });
         ids.par_iter()
             .map(|&i| {
                 Ok(ChainFrame {

@@ -21,7 +21,7 @@
 //! forward recorded.
 
 use nanoeye_optics::LayerSpectra;
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 
@@ -41,8 +41,8 @@ static STORES: Mutex<Vec<(u64, Weak<SpectraStore>)>> = Mutex::new(Vec::new());
 #[derive(Default)]
 pub(crate) struct SpectraStore {
     frames: Mutex<HashMap<(u64, u64), Arc<LayerSpectra>>>,
-    /// Datasets whose frames' spectra all fit the budget, by source hash.
-    admitted: Mutex<HashSet<u64>>,
+    /// Whether a dataset's frames' spectra all fit the budget, by source hash (decided once).
+    admitted: Mutex<HashMap<u64, bool>>,
     /// Bytes this store holds or has reserved (released when it is dropped).
     bytes: AtomicUsize,
 }
@@ -69,13 +69,13 @@ impl SpectraStore {
         self.frames.lock().ok().and_then(|m| m.get(&key).cloned())
     }
 
-    /// Admits the dataset `source` when the spectra of all its frames, `need` bytes, fit
+    /// Admits the dataset `source` when the spectra of all its frames, `need()` bytes, fit
     /// the process's budget; its frames are then kept as they come (see the module's doc).
-    pub(crate) fn admit(&self, source: u64, need: usize) {
-        if need <= LAYER_SPECTRA_BYTES {
-            let mut a = self.admitted.lock().unwrap_or_else(|e| e.into_inner());
-            a.insert(source);
-        }
+    /// Decided the first time a source is seen: `need` is not evaluated again.
+    pub(crate) fn admit(&self, source: u64, need: impl FnOnce() -> usize) {
+        let mut a = self.admitted.lock().unwrap_or_else(|e| e.into_inner());
+        a.entry(source)
+            .or_insert_with(|| need() <= LAYER_SPECTRA_BYTES);
     }
 
     /// Keeps the spectra `take` gives (`bytes` of them: `S1Tape::spectra_bytes`) for frame
@@ -88,7 +88,10 @@ impl SpectraStore {
         bytes: usize,
         take: impl FnOnce() -> Option<LayerSpectra>,
     ) -> bool {
-        let admitted = self.admitted.lock().is_ok_and(|a| a.contains(&key.0));
+        let admitted = self
+            .admitted
+            .lock()
+            .is_ok_and(|a| a.get(&key.0) == Some(&true));
         let mut frames = self.frames.lock().unwrap_or_else(|e| e.into_inner());
         if !admitted || frames.contains_key(&key) || !self.reserve(bytes) {
             return false;
@@ -163,12 +166,14 @@ mod tests {
         let (s, bytes) = spectra();
         assert!(bytes > 0);
         // Not admitted: nothing reserved, `take` never called.
-        store.admit(1, LAYER_SPECTRA_BYTES + 1);
+        store.admit(1, || LAYER_SPECTRA_BYTES + 1);
         assert!(!store.keep((1, 0), bytes, || panic!("taken")));
         assert!(!store.keep((3, 0), bytes, || panic!("never admitted")));
         assert_eq!(store.len(), 0);
         assert_eq!(store.bytes.load(Ordering::Acquire), 0);
-        store.admit(2, LAYER_SPECTRA_BYTES);
+        store.admit(2, || LAYER_SPECTRA_BYTES);
+        // Decided once per dataset: later loads do not sum its records again.
+        store.admit(2, || panic!("decided already"));
         assert!(store.keep((2, 0), bytes, || Some(s)));
         assert!(store.get((2, 0)).is_some() && store.get((1, 0)).is_none());
         assert_eq!(store.bytes.load(Ordering::Acquire), bytes);
