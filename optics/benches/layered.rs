@@ -1,15 +1,15 @@
 //! Criterion benches: the spectral S1 path on the 3 µm default sensor (800×1280, 65-px PSF
 //! window), one thread, per layer: forward (`forward_spectral`) and the PSF adjoint
 //! (`vjp_kernels`), against the floor of two bare 2-D FFTs of the padded grid per layer
-//! (rows, then the second axis as contiguous rows: no transpose, no copies). Allocator as in
-//! the CLI.
+//! (rows, then the second axis as contiguous rows: no transpose, no copies) in f32, the
+//! path's precision, and in f64, its precision until 2026-12-01. Allocator as in the CLI.
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use faer::Mat;
 use nanoeye_optics::psf::fast_fft_size;
 use nanoeye_optics::{LayeredImager, SpectralLayer};
-use num_complex::Complex64;
-use rustfft::FftPlanner;
+use num_complex::Complex;
+use rustfft::{FftNum, FftPlanner};
 
 /// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
 /// back to the kernel, so a call's 19 MB grid is not faulted in afresh each time, as in the CLI.
@@ -54,10 +54,23 @@ fn bench(c: &mut Criterion) {
         })
     });
     let (ny, nx) = (fast_fft_size(h + wp - 1), fast_fft_size(w + wp - 1));
-    let mut planner = FftPlanner::<f64>::new();
+    floor::<f32>(&mut g, "floor_two_f32_ffts_800x1280_65px", ny, nx);
+    floor::<f64>(&mut g, "floor_two_f64_ffts_800x1280_65px", ny, nx);
+    g.finish();
+}
+
+/// Two bare 2-D FFTs of an ny × nx grid in precision `T`.
+fn floor<T: FftNum>(
+    g: &mut criterion::BenchmarkGroup<criterion::measurement::WallTime>,
+    name: &str,
+    ny: usize,
+    nx: usize,
+) {
+    let mut planner = FftPlanner::<T>::new();
     let (fx, fy) = (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny));
-    let mut buf = vec![Complex64::new(0.5, 0.25); ny * nx];
-    g.bench_function("floor_two_ffts_800x1280_65px", |b| {
+    // Unit values; the transforms' growth reaches ∞ after a few calls, which costs no time.
+    let mut buf = vec![Complex::new(T::one(), T::one()); ny * nx];
+    g.bench_function(name, |b| {
         b.iter(|| {
             for _ in 0..2 {
                 fx.process(&mut buf);
@@ -65,7 +78,6 @@ fn bench(c: &mut Criterion) {
             }
         })
     });
-    g.finish();
 }
 
 criterion_group!(benches, bench);

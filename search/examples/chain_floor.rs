@@ -39,39 +39,16 @@ fn main() {
     let active = chain.active(&frames);
     let layers: usize = frames.iter().map(|f| f.data.layers.len()).sum();
     let reps: usize = args.get(4).and_then(|s| s.parse().ok()).unwrap_or(5).max(1);
-    // Each call timed on its own after one untimed call; the minimum and the median over
-    // `reps` calls, since this VM's speed moves by ±20 % between seconds.
-    let time = |reps: usize, f: &mut dyn FnMut()| {
-        f();
-        let mut t: Vec<f64> = (0..reps)
-            .map(|_| {
-                let t = Instant::now();
-                f();
-                t.elapsed().as_secs_f64()
-            })
-            .collect();
-        t.sort_by(f64::total_cmp);
-        (t[0], t[reps / 2])
-    };
     // Floor: one bare 2-D FFT of S1's padded grid (batched rows, then batched columns of the
-    // transpose; no copies, no allocation).
+    // transpose; no copies, no allocation), in S1's spectral precision (f32) and, for
+    // comparison with the figures of the f64 path before 2026-12-01, in f64.
     let (h, w) = chain.native().shape();
     let (ny, nx) = (
         nanoeye_optics::psf::fast_fft_size(h + chain.psf_px() - 1),
         nanoeye_optics::psf::fast_fft_size(w + chain.psf_px() - 1),
     );
-    let mut planner = rustfft::FftPlanner::<f64>::new();
-    let (fx, fy) = (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny));
-    let mut buf = vec![rustfft::num_complex::Complex::new(0.5f64, 0.25); ny * nx];
-    let mut scratch = vec![
-        rustfft::num_complex::Complex::new(0.0f64, 0.0);
-        fx.get_inplace_scratch_len()
-            .max(fy.get_inplace_scratch_len())
-    ];
-    let t_fft = time(10 * reps, &mut || {
-        fx.process_with_scratch(&mut buf, &mut scratch);
-        fy.process_with_scratch(&mut buf, &mut scratch);
-    });
+    let t_fft = bare_fft2::<f32>(ny, nx, 10 * reps);
+    let t_fft64 = bare_fft2::<f64>(ny, nx, 10 * reps);
     let mut psfs = None;
     let t_psf = time(reps, &mut || {
         psfs = Some(chain.psfs(&map, &active).expect("psfs"))
@@ -106,9 +83,12 @@ fn main() {
         frames.len(),
     );
     println!(
-        "one bare 2-D FFT of S1's {ny}x{nx} grid: {:.2}, {:.2} ms",
+        "one bare 2-D FFT of S1's {ny}x{nx} grid: {:.2}, {:.2} ms in f32 (the floor below); \
+         {:.2}, {:.2} ms in f64",
         t_fft.0 * 1e3,
-        t_fft.1 * 1e3
+        t_fft.1 * 1e3,
+        t_fft64.0 * 1e3,
+        t_fft64.1 * 1e3
     );
     println!(
         "first forward of the frames (computes and keeps their layer spectra): {:.1} ms per frame",
@@ -189,4 +169,36 @@ fn main() {
         t_psf.1 * 1e3,
         (t_vjp.1 - t_bwd_kept.expect("timed").1) * 1e3
     );
+}
+
+/// (minimum, median) seconds of `reps` calls of `f`, each timed on its own after one untimed
+/// call: this VM's speed moves by ±20 % between seconds.
+fn time(reps: usize, f: &mut dyn FnMut()) -> (f64, f64) {
+    f();
+    let mut t: Vec<f64> = (0..reps)
+        .map(|_| {
+            let t = Instant::now();
+            f();
+            t.elapsed().as_secs_f64()
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    (t[0], t[reps / 2])
+}
+
+/// (minimum, median) seconds of one 2-D FFT of an ny × nx grid in precision `T`.
+fn bare_fft2<T: rustfft::FftNum>(ny: usize, nx: usize, reps: usize) -> (f64, f64) {
+    let mut planner = rustfft::FftPlanner::<T>::new();
+    let (fx, fy) = (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny));
+    let z = rustfft::num_complex::Complex::new(T::zero(), T::zero());
+    let mut buf = vec![rustfft::num_complex::Complex::new(T::one(), T::one()); ny * nx];
+    let mut scratch = vec![
+        z;
+        fx.get_inplace_scratch_len()
+            .max(fy.get_inplace_scratch_len())
+    ];
+    time(reps, &mut || {
+        fx.process_with_scratch(&mut buf, &mut scratch);
+        fy.process_with_scratch(&mut buf, &mut scratch);
+    })
 }
