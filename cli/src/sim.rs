@@ -231,7 +231,9 @@ pub fn npy_mat64(m: &Mat<f64>) -> Result<Vec<u8>> {
 /// Runs `nanoeye sim`.
 pub fn sim(a: SimArgs) -> Result<()> {
     let t0 = Instant::now();
-    let (ds, chain) = a.chain.build()?;
+    let (ds, mut chain) = a.chain.build()?;
+    // Each frame is imaged once: S1 images kept for a next forward would only take memory.
+    chain.set_s1_cache(false);
     let ids = match &a.frames {
         Some(t) => parse_frames("--frames", t, ds.len())?,
         None => (0..ds.len().min(MAX_FRAMES)).collect(),
@@ -263,7 +265,7 @@ pub fn sim(a: SimArgs) -> Result<()> {
             .zip(chain.active(&frames))
             .for_each(|(n, a)| *n |= a);
         let psfs = chain.psfs(&map, &need).context("--lens")?;
-        // Nothing differentiates a simulation: no S1 tape.
+        // Nothing differentiates a simulation: no S1 tape (and no S1 image cache, below).
         let fwd = chain.forward_with(&frames, &psfs, p_hat, noise, a.seed, false)?;
         shape = fwd.grid.shape();
         for (b, f) in frames.iter().enumerate() {

@@ -110,6 +110,8 @@ pub struct CameraChain {
     memo: Mutex<Option<PsfMemo>>,
     /// S1 images of frames imaged without a tape under one PSF stack (see [`S1Cache`]).
     s1_cache: Mutex<S1Cache>,
+    /// Whether tape-less forwards read and fill `s1_cache` ([`CameraChain::set_s1_cache`]).
+    s1_cache_on: bool,
     /// Frames' layer spectra, shared with the process's chains of the same grid and weight.
     spectra: Arc<SpectraStore>,
 }
@@ -360,6 +362,7 @@ impl CameraChain {
             split: Arc::new(OneProcess),
             memo: Mutex::new(None),
             s1_cache: Mutex::new(S1Cache::default()),
+            s1_cache_on: true,
             spectra: SpectraStore::shared(fp),
         })
     }
@@ -369,6 +372,16 @@ impl CameraChain {
     /// chain in the same order; the results are the bits a single process gets.
     pub fn set_split(&mut self, split: Arc<dyn DepthSplit>) {
         self.split = split;
+    }
+
+    /// Whether forwards without S1's tape keep the S1 images they compute for the next
+    /// forward of the same frames under the same stack (default on; up to 512 MiB). Off for
+    /// a caller that images each frame once, e.g. a simulation, which would only fill it.
+    pub fn set_s1_cache(&mut self, on: bool) {
+        self.s1_cache_on = on;
+        if !on && let Ok(mut c) = self.s1_cache.lock() {
+            *c = S1Cache::default();
+        }
     }
 
     /// The processes sharing this chain's PSF work.
@@ -637,9 +650,10 @@ impl CameraChain {
     }
 
     /// S1's image of `f` without a tape: the cached one when `f` came from a dataset and was
-    /// imaged under `psfs` before, else computed (and kept while the cache has room).
+    /// imaged under `psfs` before, else computed (and kept while the cache has room); with the
+    /// cache off, computed.
     fn cached_optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<Arc<Mat<f32>>> {
-        let key = f.source.map(|s| (s, f.id));
+        let key = f.source.filter(|_| self.s1_cache_on).map(|s| (s, f.id));
         if let Some(key) = key {
             let hit = self
                 .s1_cache

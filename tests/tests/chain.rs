@@ -628,6 +628,29 @@ fn a_frame_seen_again_under_the_same_stack_skips_s1_with_the_same_bits() {
     assert!(b.input.data != fresh.input.data);
 }
 
+/// With the S1 image cache off (`sim`: each frame imaged once) a tape-less forward keeps no
+/// image and gives the bits of one with the cache on.
+#[test]
+fn a_chain_without_the_s1_image_cache_keeps_no_images_and_the_same_bits() {
+    let mut r = rig1();
+    let map = hyperbolic(&r.chain);
+    let frames = r.chain.load(&r.ds, &[0, 1]).unwrap();
+    let psfs = r.chain.psfs(&map, &r.chain.active(&frames)).unwrap();
+    let on = r
+        .chain
+        .forward_with(&frames, &psfs, 103e-6, NoiseMode::Gaussian, 3, false)
+        .unwrap();
+    assert_eq!(r.chain.cached_s1_images(), 2);
+    r.chain.set_s1_cache(false);
+    assert_eq!(r.chain.cached_s1_images(), 0, "turning it off empties it");
+    let off = r
+        .chain
+        .forward_with(&frames, &psfs, 103e-6, NoiseMode::Gaussian, 3, false)
+        .unwrap();
+    assert_eq!(r.chain.cached_s1_images(), 0);
+    assert!(on.input.data == off.input.data && on.electrons == off.electrons);
+}
+
 /// A frame's layer spectra do not depend on the lens: computed once, kept from one PSF
 /// stack to the next and shared with another chain over the same data, and the forward and
 /// the backward through them give the bits of frames imaged without them.
