@@ -786,7 +786,19 @@ impl LayeredImager {
             col[..live.start].fill(c32::new(0.0, 0.0));
             col[live.end..].fill(c32::new(0.0, 0.0));
         }
-        for r in live {
+        // Four rows at a time: each column then takes 32 contiguous bytes per visit instead
+        // of one value.
+        let mut r = live.start;
+        while r + 4 <= live.end {
+            let row = |i: usize| &data[(r + i) * nx + c0..(r + i) * nx + c0 + bw];
+            let (d0, d1, d2, d3) = (row(0), row(1), row(2), row(3));
+            for (j, col) in blk.chunks_exact_mut(ny).enumerate() {
+                let q: &mut [c32; 4] = (&mut col[r..r + 4]).try_into().expect("four");
+                *q = [d0[j], d1[j], d2[j], d3[j]];
+            }
+            r += 4;
+        }
+        for r in r..live.end {
             for (j, &v) in data[r * nx + c0..r * nx + c0 + bw].iter().enumerate() {
                 blk[j * ny + r] = v;
             }
