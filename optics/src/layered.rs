@@ -31,6 +31,9 @@ const TILE: usize = 32;
 /// waited on memory: packing took 18 % of `chain_floor`'s samples, 12 % with 128.
 const PACK_ROWS: usize = 128;
 
+/// Partial sums of the PSF adjoint's dot product with the convolved radiance.
+const DOT_LANES: usize = 8;
+
 /// Work spaces kept for reuse per imager: more than the threads that image frames at once
 /// is never needed.
 const POOL_MAX: usize = 16;
@@ -78,6 +81,22 @@ fn columns(m: &Mat<f32>) -> Vec<&[f32]> {
                 .as_slice()
         })
         .collect()
+}
+
+/// One pixel of the PSF adjoint's pass over a layer, for ∂L/∂I⁽ᵏ⁾ = `gv`, I⁽ᵏ⁻¹⁾ = `p`,
+/// α∗P = `o` and I⁽ᵏ⁾ = `above`: gv times the convolved radiance (the radiance scale's
+/// gradient term), the gradient's complex value (real: radiance channel, imaginary: occlusion
+/// channel) and ∂L/∂I⁽ᵏ⁻¹⁾ = gv·(1 − o).
+#[inline(always)]
+fn adjoint_pixel(gain: f64, gv: f64, p: f32, o: f32, above: f32) -> (f64, f32, f32, f64) {
+    let (p, o) = (p as f64, o as f64);
+    let conv = above as f64 - (1.0 - o) * p;
+    (
+        gv * conv,
+        (gain * gv) as f32,
+        (-gv * p) as f32,
+        gv * (1.0 - o),
+    )
 }
 
 /// Visits every (r, c) of an h × w matrix tile by tile, so that a column-major and a
@@ -1151,27 +1170,47 @@ impl LayeredImager {
             // ⟨gI, conv⟩ with conv = I⁽ᵏ⁾ − (1 − o)·I⁽ᵏ⁻¹⁾; g = gain·s·gI − i gI·I⁽ᵏ⁻¹⁾ at the
             // output's offset (cy, cx), zero elsewhere in its rows (the gain and the radiance
             // scale s multiply the convolved radiance, the real part).
-            let mut dot = 0.0;
+            // The dot product in DOT_LANES partial sums, so that the pass vectorises (one
+            // running sum is a chain of dependent scalar adds); summed in a fixed order.
+            let mut dots = [0.0f64; DOT_LANES];
             for r in 0..h {
                 let row = &mut g[(r + cy) * nx..(r + cy + 1) * nx];
                 row[..cx].fill(c32::new(0.0, 0.0));
                 row[cx + w..].fill(c32::new(0.0, 0.0));
                 let span = r * w..(r + 1) * w;
-                for ((((gv, &p), &oo), &ab), gs) in gi[span.clone()]
-                    .iter_mut()
-                    .zip(&prev[span.clone()])
-                    .zip(&o[span.clone()])
-                    .zip(&above[span])
-                    .zip(&mut row[cx..cx + w])
+                let (gi, prev, o, above) = (
+                    &mut gi[span.clone()],
+                    &prev[span.clone()],
+                    &o[span.clone()],
+                    &above[span],
+                );
+                let gs = &mut row[cx..cx + w];
+                let body = w - w % DOT_LANES;
+                for ((((gv, p), oo), ab), gs) in gi[..body]
+                    .chunks_exact_mut(DOT_LANES)
+                    .zip(prev[..body].chunks_exact(DOT_LANES))
+                    .zip(o[..body].chunks_exact(DOT_LANES))
+                    .zip(above[..body].chunks_exact(DOT_LANES))
+                    .zip(gs[..body].chunks_exact_mut(DOT_LANES))
                 {
-                    let (p, oo) = (p as f64, oo as f64);
-                    let conv = ab as f64 - (1.0 - oo) * p;
-                    dot += *gv * conv;
-                    *gs = c32::new((gain * *gv) as f32, (-*gv * p) as f32);
-                    *gv *= 1.0 - oo;
+                    // Element-wise into arrays first, interleaved into the complex row
+                    // after: with the store inside, the loop stays scalar.
+                    let (mut re, mut im) = ([0.0f32; DOT_LANES], [0.0f32; DOT_LANES]);
+                    for j in 0..DOT_LANES {
+                        let (d, r, i, g) = adjoint_pixel(gain, gv[j], p[j], oo[j], ab[j]);
+                        (dots[j], re[j], im[j], gv[j]) = (dots[j] + d, r, i, g);
+                    }
+                    for j in 0..DOT_LANES {
+                        gs[j] = c32::new(re[j], im[j]);
+                    }
+                }
+                for i in body..w {
+                    let (d, r, im, g) = adjoint_pixel(gain, gi[i], prev[i], o[i], above[i]);
+                    (dots[0], gs[i], gi[i]) = (dots[0] + d, c32::new(r, im), g);
                 }
                 self.p32.fx.process_with_scratch(row, &mut sb.scratch);
             }
+            let dot: f64 = dots.iter().sum();
             let live = cy..cy + h;
             let rows = match spec {
                 Some(_) => 0..0,
