@@ -14,10 +14,14 @@ use std::time::Instant;
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`).
+/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`) and its
+/// transparent huge pages off (cli/src/main.rs).
 fn alloc_like_cli() {
-    // SAFETY: sets one allocator option.
-    unsafe { libmimalloc_sys::mi_option_set(15, -1) }
+    // SAFETY: sets one allocator option and one flag of this process.
+    unsafe {
+        libmimalloc_sys::mi_option_set(15, -1);
+        libc::prctl(libc::PR_SET_THP_DISABLE, 1, 0, 0, 0);
+    }
 }
 
 fn main() {
