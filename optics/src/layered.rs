@@ -993,9 +993,8 @@ impl LayeredImager {
         self.check_spectra(layers, spectra)?;
         let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);
         let (cy, cx) = (self.wp / 2, self.wp / 2);
-        // The image so far, row-major like the grid rows it is composed with.
-        let mut img = vec![0.0f64; h * w];
-        // I⁽ᵏ⁻¹⁾ in f32 for the tape (I⁽⁻¹⁾ = 0).
+        // The image so far, I⁽ᵏ⁻¹⁾ (I⁽⁻¹⁾ = 0), row-major like the grid rows it is composed
+        // with; with the tape, each layer's I⁽ᵏ⁾ is a new vector and this one is kept.
         let mut prev = vec![0.0f32; h * w];
         let mut saved = Vec::with_capacity(layers.len());
         // The layer spectra computed on the way, for the tape: a copy of each column block
@@ -1059,39 +1058,37 @@ impl LayeredImager {
             // the tape, the f32 copy of the new image (the next layer's I⁽ᵏ⁻¹⁾) is written on
             // the way. The gain and the radiance scale multiply the convolved radiance.
             let gain = l.gain as f64 * scale as f64;
-            let cap = if keep { h * w } else { 0 };
-            let (mut o, mut cur) = (Vec::with_capacity(cap), Vec::with_capacity(cap));
+            // I⁽ᵏ⁾ = gain·s·Re(conv) + (1 − α∗P)·I⁽ᵏ⁻¹⁾ in f32, the precision the image, the
+            // tape and the transforms have: 1 − α∗P of a near opaque layer is exact
+            // (Sterbenz), and each layer adds a rounding of 6e-8 of the pixel. The product
+            // with the gain is taken in f64, so that only the image can overflow.
+            let compose = |v: c32, p: f32| (gain * v.re as f64) as f32 + (1.0 - v.im) * p;
             let out = &mut sb.a[cy * nx..(cy + h) * nx];
-            for (irow, grow) in img.chunks_exact_mut(w).zip(out.chunks_exact_mut(nx)) {
-                self.p32.ix.process_with_scratch(grow, &mut sb.scratch);
-                // Three passes over a row in cache, each of which vectorises (one loop
-                // with two pushes does not).
-                let src = &grow[cx..cx + w];
-                if keep {
-                    o.extend(src.iter().map(|v| v.im));
-                }
-                // Composed in f64: the image sums up to all the layers, and a near layer's
-                // 1 − α∗P may cancel to a few ulps.
-                for (i, v) in irow.iter_mut().zip(src) {
-                    *i = gain * v.re as f64 + (1.0 - v.im as f64) * *i;
-                }
-                if keep {
-                    cur.extend(irow.iter().map(|&i| i as f32));
-                }
-            }
             if keep {
+                let (mut o, mut cur) = (Vec::with_capacity(h * w), Vec::with_capacity(h * w));
+                for (prow, grow) in prev.chunks_exact(w).zip(out.chunks_exact_mut(nx)) {
+                    self.p32.ix.process_with_scratch(grow, &mut sb.scratch);
+                    // Two passes over a row in cache, each of which vectorises (one loop with
+                    // two pushes does not).
+                    let src = &grow[cx..cx + w];
+                    o.extend(src.iter().map(|v| v.im));
+                    cur.extend(src.iter().zip(prow).map(|(&v, &p)| compose(v, p)));
+                }
                 saved.push(Some((std::mem::replace(&mut prev, cur), o)));
+            } else {
+                for (prow, grow) in prev.chunks_exact_mut(w).zip(out.chunks_exact_mut(nx)) {
+                    self.p32.ix.process_with_scratch(grow, &mut sb.scratch);
+                    for (p, &v) in prow.iter_mut().zip(&grow[cx..cx + w]) {
+                        *p = compose(v, *p);
+                    }
+                }
             }
         }
         self.pool.give(sb);
         let mut m = Mat::<f32>::zeros(h, w);
-        if keep {
-            tiles(h, w, |r, c| m[(r, c)] = prev[r * w + c]);
-        } else {
-            // The last layer's f32 copy, which the tape would have held.
-            tiles(h, w, |r, c| m[(r, c)] = img[r * w + c] as f32);
-        }
-        // The gain is applied after the convolution, in f64: what overflows is the image.
+        tiles(h, w, |r, c| m[(r, c)] = prev[r * w + c]);
+        // A layer's image beyond f32's range stays infinite, or turns NaN where a layer in
+        // front covers it: either way the image is not finite.
         if !m.col_iter().all(|c| c.iter().all(|v| v.is_finite())) {
             return Err(OpticsError::param(
                 "layers",
