@@ -1055,8 +1055,8 @@ impl LayeredImager {
             };
             scales.push(scale);
             // Each kept row is inverse-transformed and composed while it is in cache; with
-            // the tape, the f32 copy of the new image (the next layer's I⁽ᵏ⁻¹⁾) is written on
-            // the way. The gain and the radiance scale multiply the convolved radiance.
+            // the tape, into a new vector (the next layer's I⁽ᵏ⁻¹⁾), else in place. The gain
+            // and the radiance scale multiply the convolved radiance.
             let gain = l.gain as f64 * scale as f64;
             // I⁽ᵏ⁾ = gain·s·Re(conv) + (1 − α∗P)·I⁽ᵏ⁻¹⁾ in f32, the precision the image, the
             // tape and the transforms have: 1 − α∗P of a near opaque layer is exact
