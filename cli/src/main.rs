@@ -92,41 +92,6 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
     }
 }
 
-/// mimalloc: each thread allocates from its own heap. glibc's one arena (`M_ARENA_MAX` 1, the
-/// setting before) made 16 training threads queue on its lock: the main job's training took
-/// 28–31 s for 20 steps on 16 cores against 18–20 s here (docs/run.md, twenty-fifth
-/// session); on 2 cores the two are level.
-#[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-/// `mi_option_purge_delay` in mimalloc.h's option enum (the sys crate names no constant for it).
-const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
-
-/// Keeps freed heap memory in the process: never purged back to the kernel. The RCWA sweep
-/// frees ~1 MB matrices thousands of times a second and training frees its tensors every step;
-/// handed back, each would be faulted in and zeroed again (docs/bench/metalib.md). With
-/// mimalloc's default delay the training stage took twice the system time and 15 % longer.
-fn keep_freed_memory() {
-    // SAFETY: sets one allocator option; no other thread exists yet.
-    unsafe { libmimalloc_sys::mi_option_set(MI_OPTION_PURGE_DELAY, -1) }
-}
-
-/// Turns transparent huge pages off for this process (`prctl(PR_SET_THP_DISABLE)`; the kernel
-/// then backs even mimalloc's `MADV_HUGEPAGE` arenas with 4 KB pages). A huge page is zeroed
-/// whole at its first touch, 2 MB however little of it is used, and on a VM whose memory the
-/// host has not backed yet each costs the process milliseconds of system time: `search train`
-/// on the default job's data, 30 steps, spent 12–14 s in the kernel with huge pages against
-/// 5–6 s without (same user time) in this VM's first runs of the session; once its memory had
-/// been touched the two were level (docs/run.md, thirty-first session). Nothing computed
-/// depends on page sizes; user time did not change. A no-op where the call is refused.
-fn no_transparent_huge_pages() {
-    #[cfg(target_os = "linux")]
-    // SAFETY: prctl with integer arguments only; it changes a flag of this process.
-    unsafe {
-        libc::prctl(libc::PR_SET_THP_DISABLE, 1, 0, 0, 0);
-    }
-}
-
 /// Whether `command` splits its work across MPI ranks; the others refuse to run on more
 /// than one, since every rank would write the same outputs.
 fn distributes(command: &Command) -> bool {
@@ -172,8 +137,7 @@ fn main() -> ExitCode {
         );
         return ExitCode::FAILURE;
     }
-    keep_freed_memory();
-    no_transparent_huge_pages();
+    nanoeye_alloc::like_cli();
     let _session = dist::init();
     let w = dist::world();
     let cli = Cli::parse();
@@ -207,39 +171,6 @@ fn main() -> ExitCode {
         Err(e) => {
             eprintln!("error: {e:#}");
             ExitCode::FAILURE
-        }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    /// After start-up the process has transparent huge pages off (PR_GET_THP_DISABLE is 1).
-    #[cfg(target_os = "linux")]
-    #[test]
-    fn start_up_turns_transparent_huge_pages_off() {
-        super::no_transparent_huge_pages();
-        // SAFETY: reads a flag of this process.
-        assert_eq!(
-            unsafe { libc::prctl(libc::PR_GET_THP_DISABLE, 0, 0, 0, 0) },
-            1
-        );
-    }
-
-    /// The option index set at start-up is mimalloc's purge delay: 1000 ms by default in the
-    /// mimalloc 3 the sys crate builds (a renumbered enum would show another default), −1 after.
-    #[test]
-    fn the_option_set_at_start_up_is_the_purge_delay() {
-        // SAFETY: reads and sets one allocator option.
-        unsafe {
-            assert_eq!(
-                libmimalloc_sys::mi_option_get(super::MI_OPTION_PURGE_DELAY),
-                1000
-            );
-            super::keep_freed_memory();
-            assert_eq!(
-                libmimalloc_sys::mi_option_get(super::MI_OPTION_PURGE_DELAY),
-                -1
-            );
         }
     }
 }

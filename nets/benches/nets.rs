@@ -20,17 +20,6 @@ use std::time::Duration;
 
 const BATCH: usize = 16;
 
-/// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
-/// back to the kernel, so these times are the CLI's.
-#[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`).
-fn alloc_like_cli() {
-    // SAFETY: sets one allocator option.
-    unsafe { libmimalloc_sys::mi_option_set(15, -1) }
-}
-
 fn image(n: usize, c: usize, h: usize, w: usize) -> Tensor {
     let data = (0..n * c * h * w)
         .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
@@ -39,7 +28,8 @@ fn image(n: usize, c: usize, h: usize, w: usize) -> Tensor {
 }
 
 fn supernet(c: &mut Criterion) {
-    alloc_like_cli();
+    // The binary's allocator and its settings, so these times are the CLI's.
+    nanoeye_alloc::like_cli();
     let cfg = SupernetConfig::default();
     let mut g = c.benchmark_group("supernet");
     g.sample_size(10)
@@ -83,7 +73,7 @@ fn supernet(c: &mut Criterion) {
 /// sensor grid (278×174 at p̂ ≈ 13.8 µm) and at 320×200, against the supernet's own forward
 /// pass in eval mode on one image.
 fn inference(c: &mut Criterion) {
-    alloc_like_cli();
+    nanoeye_alloc::like_cli();
     let cfg = SupernetConfig::default();
     let mut g = c.benchmark_group("inference");
     g.sample_size(20)
@@ -111,7 +101,7 @@ fn inference(c: &mut Criterion) {
 }
 
 fn layers(c: &mut Criterion) {
-    alloc_like_cli();
+    nanoeye_alloc::like_cli();
     let mut g = c.benchmark_group("layers");
     g.sample_size(10)
         .measurement_time(Duration::from_secs(2))
@@ -253,7 +243,7 @@ fn layers(c: &mut Criterion) {
 /// channels at resolution scale 0.3, 60×96) and the bilinear resizes of the input and of the
 /// mask logits, each way.
 fn ends(c: &mut Criterion) {
-    alloc_like_cli();
+    nanoeye_alloc::like_cli();
     let mut g = c.benchmark_group("ends");
     g.sample_size(20);
     let xr = image(BATCH, 1, 60, 96);

@@ -8,22 +8,12 @@ use nanoeye_nets::act::Act;
 use nanoeye_nets::norm::BatchNorm;
 use nanoeye_nets::{BnMode, Tensor};
 
-/// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
-/// back to the kernel, so these times are the CLI's.
-#[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`).
-fn alloc_like_cli() {
-    // SAFETY: sets one allocator option.
-    unsafe { libmimalloc_sys::mi_option_set(15, -1) }
-}
-
 fn main() {
     let n: usize = std::env::args()
         .nth(1)
         .map_or(200, |s| s.parse().expect("N"));
-    alloc_like_cli();
+    // The binary's allocator and its settings, so these times are the CLI's.
+    nanoeye_alloc::like_cli();
     // Inside the pool, as the supernet runs its passes (a pass from outside waits on a lock).
     rayon::scope(|_| run(n));
 }

@@ -23,22 +23,12 @@ const SHAPES: [(usize, usize, usize, usize); 10] = [
     (96, 32, 32, 2),
 ];
 
-/// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
-/// back to the kernel, so these times are the CLI's.
-#[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`).
-fn alloc_like_cli() {
-    // SAFETY: sets one allocator option.
-    unsafe { libmimalloc_sys::mi_option_set(15, -1) }
-}
-
 fn main() {
     let mut args = std::env::args().skip(1);
     let reps: usize = args.next().map_or(30, |s| s.parse().expect("N"));
     let only = args.next();
-    alloc_like_cli();
+    // The binary's allocator and its settings, so these times are the CLI's.
+    nanoeye_alloc::like_cli();
     // Inside the pool, as the supernet runs its passes.
     rayon::scope(|_| run(reps, only.as_deref()));
 }

@@ -8,24 +8,14 @@
 use nanoeye_nets::arch::{Arch, SupernetConfig};
 use nanoeye_nets::{BnMode, Supernet, Tensor};
 
-/// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
-/// back to the kernel, so these times are the CLI's.
-#[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`).
-fn alloc_like_cli() {
-    // SAFETY: sets one allocator option.
-    unsafe { libmimalloc_sys::mi_option_set(15, -1) }
-}
-
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let which = args.get(1).map_or("min", |s| s.as_str());
     let h: usize = args.get(2).map_or(64, |s| s.parse().expect("H"));
     let w: usize = args.get(3).map_or(64, |s| s.parse().expect("W"));
     let n: usize = args.get(4).map_or(50, |s| s.parse().expect("N"));
-    alloc_like_cli();
+    // The binary's allocator and its settings, so these times are the CLI's.
+    nanoeye_alloc::like_cli();
     let arch = if which == "max" {
         Arch::max()
     } else {

@@ -11,19 +11,9 @@ use nanoeye_optics::{LayeredImager, SpectralLayer};
 use num_complex::Complex;
 use rustfft::{FftNum, FftPlanner};
 
-/// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
-/// back to the kernel, so a call's 19 MB grid is not faulted in afresh each time, as in the CLI.
-#[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`).
-fn alloc_like_cli() {
-    // SAFETY: sets one allocator option.
-    unsafe { libmimalloc_sys::mi_option_set(15, -1) }
-}
-
 fn bench(c: &mut Criterion) {
-    alloc_like_cli();
+    // The binary's allocator and its settings, so these times are the CLI's.
+    nanoeye_alloc::like_cli();
     let (h, w, wp) = (800, 1280, 65);
     let im = LayeredImager::new(h, w, wp).expect("imager");
     let psf = Mat::from_fn(wp, wp, |r, c| {

@@ -9,23 +9,9 @@ use nanoeye_search::{CameraChain, ChainConfig, ChainForward, ChainFrame, LensSpe
 use nanoeye_sensor::NoiseMode;
 use std::time::Instant;
 
-/// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
-/// back to the kernel, so the per-frame grids are not faulted in afresh, as in the CLI.
-#[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`) and its
-/// transparent huge pages off (cli/src/main.rs).
-fn alloc_like_cli() {
-    // SAFETY: sets one allocator option and one flag of this process.
-    unsafe {
-        libmimalloc_sys::mi_option_set(15, -1);
-        libc::prctl(libc::PR_SET_THP_DISABLE, 1, 0, 0, 0);
-    }
-}
-
 fn main() {
-    alloc_like_cli();
+    // The binary's allocator and its settings, so these times are the CLI's.
+    nanoeye_alloc::like_cli();
     let args: Vec<String> = std::env::args().collect();
     let Some(dir) = args.get(1) else {
         eprintln!("usage: chain_floor DATASET [PITCH_UM] [FRAMES]");

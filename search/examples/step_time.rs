@@ -19,21 +19,6 @@ fn arg<T: std::str::FromStr>(args: &[String], i: usize, default: T) -> T {
     args.get(i).and_then(|s| s.parse().ok()).unwrap_or(default)
 }
 
-/// The `nanoeye` binary's allocator (cli/src/main.rs): mimalloc, freed memory never purged
-/// back to the kernel, so the steps reuse freed grids as training does.
-#[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-/// The CLI's allocator option (15 is mimalloc.h's `mi_option_purge_delay`) and its
-/// transparent huge pages off (cli/src/main.rs).
-fn alloc_like_cli() {
-    // SAFETY: sets one allocator option and one flag of this process.
-    unsafe {
-        libmimalloc_sys::mi_option_set(15, -1);
-        libc::prctl(libc::PR_SET_THP_DISABLE, 1, 0, 0, 0);
-    }
-}
-
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let Some(dir) = args.get(1) else {
@@ -44,7 +29,8 @@ fn main() {
     let batch: usize = arg(&args, 3, 4);
     let n_random: usize = arg(&args, 4, 2);
     let reps: usize = arg(&args, 5, 3);
-    alloc_like_cli();
+    // The binary's allocator and its settings, so these times are the CLI's.
+    nanoeye_alloc::like_cli();
     let learned = args.get(6).is_none_or(|s| s != "fixed");
     let ds = Dataset::open(std::path::Path::new(dir)).expect("dataset");
     let chain = CameraChain::for_dataset(&ds, ChainConfig::default()).expect("chain");
