@@ -7,7 +7,7 @@ use clap::Args;
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::Arch;
 use nanoeye_search::Trainer;
-use nanoeye_search::pareto::{Point, dominates, front};
+use nanoeye_search::pareto::{LensFrames, Point, bootstrap, dominates, front};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -47,6 +47,11 @@ pub struct ParetoArgs {
     /// refused (default: the plot's path with the extension `state.json`).
     #[arg(long)]
     state: Option<PathBuf>,
+    /// Resamples of the paired bootstrap over the evaluation set (each lens's median V and the
+    /// fronts' dominance recomputed on its items drawn with replacement, an item's frames
+    /// together, seed 0); 0: none.
+    #[arg(long, default_value_t = 1000)]
+    bootstrap: usize,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -113,6 +118,12 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     if a.subnets == 0 || a.subnets > 100_000 {
         bail!("--subnets: must be 1..=100000, got {}", a.subnets);
     }
+    if a.bootstrap > 1_000_000 {
+        bail!(
+            "--bootstrap: at most 1000000 resamples, got {} (0 turns it off)",
+            a.bootstrap
+        );
+    }
     // Both outputs checked before minutes of scoring, not after.
     let state_path = a
         .state
@@ -167,6 +178,7 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => State {
             key,
             lenses: Vec::new(),
+            frame_errors: Vec::new(),
         },
         Err(e) => return Err(e).with_context(|| format!("--state {}", state_path.display())),
     };
@@ -176,6 +188,7 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         }
         if state.lenses.len() == r {
             state.lenses.push(Vec::with_capacity(archs.len()));
+            state.frame_errors.push(Vec::with_capacity(archs.len()));
         }
         let ck = run.join("checkpoint.bin");
         let tcfg = nanoeye_search::train::read_config(&ck)
@@ -215,13 +228,23 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
                 batch: tcfg.batch,
                 seed: tcfg.seed,
             };
-            let m =
-                nanoeye_search::evaluate_net(&mut tr.net, &setup, tcfg.solver, tcfg.pupil_centre)?;
+            let e = nanoeye_search::train::evaluate_frames(
+                &mut tr.net,
+                &setup,
+                nanoeye_search::SolverInput::Predicted,
+                tcfg.solver,
+                tcfg.pupil_centre,
+            )?;
+            let errs = e.scored_errors_deg();
+            if errs.is_empty() {
+                bail!("--dataset {}: no frames to score", a.dataset.display());
+            }
+            // V as `evaluate_net` sums it, so the points are those scored before the
+            // per-frame errors were kept.
+            let v_deg = errs.iter().sum::<f64>() / errs.len() as f64;
             let macs = nanoeye_nets::cost::subnet_cost(&tcfg.supernet, arch, h, w)?.macs;
-            state.lenses[r].push(Point {
-                macs,
-                v_deg: m.v_deg,
-            });
+            state.lenses[r].push(Point { macs, v_deg });
+            state.frame_errors[r].push(errs);
             util::write_atomic(&state_path, &serde_json::to_vec(&state)?)
                 .with_context(|| format!("--state {}", state_path.display()))?;
             if (k + 1) % (archs.len() / 5).max(1) == 0 {
@@ -229,6 +252,25 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
             }
         }
     }
+    let boot = if a.bootstrap > 0 {
+        let frames: Vec<LensFrames> = state
+            .lenses
+            .iter()
+            .zip(&state.frame_errors)
+            .map(|(p, e)| LensFrames {
+                macs: p.iter().map(|q| q.macs).collect(),
+                errors_deg: e.clone(),
+            })
+            .collect();
+        // An item's frames (an ambiguity pair's anchor, slip and gaze) are drawn together.
+        let items: Vec<usize> = ds.records.iter().map(|r| r.item).collect();
+        Some(
+            bootstrap(&frames, &items, a.bootstrap, 0)
+                .map_err(|e| anyhow::anyhow!("--bootstrap: {e}"))?,
+        )
+    } else {
+        None
+    };
     let lenses: Vec<(String, Vec<Point>)> = runs
         .iter()
         .map(|r| r.display().to_string())
@@ -247,7 +289,7 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
             }
         }
     }
-    let out = serde_json::json!({
+    let mut out = serde_json::json!({
         "lenses": lenses.iter().map(|(n, p)| serde_json::json!({
             "run": n, "points": p, "front": front(p),
         })).collect::<Vec<_>>(),
@@ -256,6 +298,9 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         "plot": a.plot.display().to_string(),
         "seconds": t0.elapsed().as_secs_f64(),
     });
+    if let Some(b) = &boot {
+        out["bootstrap"] = bootstrap_json(b, &lenses);
+    }
     if a.json {
         println!("{out}");
     } else {
@@ -266,9 +311,67 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         for (k, v) in &dom {
             println!("{k}: {v}");
         }
+        if let Some(b) = &boot {
+            println!(
+                "paired bootstrap over the {} items ({} frames; {} resamples; 90 % intervals):",
+                b.clusters, b.frames, b.draws
+            );
+            for ((n, _), m) in lenses.iter().zip(&b.median_v) {
+                println!("  {n}: median V {:.2}° [{:.2}, {:.2}]", m.value, m.lo, m.hi);
+            }
+            for (i, (na, _)) in lenses.iter().enumerate() {
+                for (j, (nb, _)) in lenses.iter().enumerate() {
+                    if i == j {
+                        continue;
+                    }
+                    let d = b.mean_diff[i][j]
+                        .map(|d| {
+                            format!(
+                                "; mean V difference {:+.2}° [{:+.2}, {:+.2}]",
+                                d.value, d.lo, d.hi
+                            )
+                        })
+                        .unwrap_or_default();
+                    println!(
+                        "  {na} > {nb}: front dominates in {:.1} % of resamples{d}",
+                        100.0 * b.dominates[i][j]
+                    );
+                }
+            }
+        }
         println!("plot: {}", a.plot.display());
     }
     Ok(())
+}
+
+/// The bootstrap's results as JSON (docs/run.md, "`nanoeye search pareto`"), keyed by run.
+fn bootstrap_json(
+    b: &nanoeye_search::pareto::Bootstrap,
+    lenses: &[(String, Vec<Point>)],
+) -> serde_json::Value {
+    let mut dom = serde_json::Map::new();
+    let mut diff = serde_json::Map::new();
+    for (i, (na, _)) in lenses.iter().enumerate() {
+        for (j, (nb, _)) in lenses.iter().enumerate() {
+            if i != j {
+                dom.insert(format!("{na} > {nb}"), b.dominates[i][j].into());
+                if let Some(d) = b.mean_diff[i][j] {
+                    diff.insert(format!("{na} - {nb}"), serde_json::json!(d));
+                }
+            }
+        }
+    }
+    serde_json::json!({
+        "draws": b.draws,
+        "frames": b.frames,
+        "items": b.clusters,
+        "seed": 0,
+        "median_v": lenses.iter().zip(&b.median_v).map(|((n, _), m)| serde_json::json!({
+            "run": n, "value": m.value, "lo": m.lo, "hi": m.hi,
+        })).collect::<Vec<_>>(),
+        "dominates_fraction": dom,
+        "mean_v_difference": diff,
+    })
 }
 
 /// What a state's points were scored from; a rerun with another key is refused.
@@ -331,6 +434,10 @@ impl Key {
 struct State {
     key: Key,
     lenses: Vec<Vec<Point>>,
+    /// Per run, per subnet scored, the error on every evaluation frame (degrees; a failed
+    /// frame 90°), for the bootstrap (absent in states written before it: refused on resume).
+    #[serde(default)]
+    frame_errors: Vec<Vec<Vec<f64>>>,
 }
 
 impl State {
@@ -376,6 +483,19 @@ impl State {
                  give another --state)",
                 path.display(),
                 key.runs.len()
+            );
+        }
+        if st.frame_errors.len() != st.lenses.len()
+            || st
+                .frame_errors
+                .iter()
+                .zip(&st.lenses)
+                .any(|(e, p)| e.len() != p.len())
+        {
+            bail!(
+                "--state {}: written without the per-frame errors the bootstrap needs (an older \
+                 nanoeye); delete it to score again",
+                path.display()
             );
         }
         Ok(st)

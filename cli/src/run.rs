@@ -383,7 +383,10 @@ struct Stages(std::collections::BTreeMap<String, f64>);
 /// Statistics over frames; a frame the solver could not solve (no pupil found, ray misses the
 /// sphere) counts as 90°, as in V, and is also counted in `failures`.
 fn summarize(errs: &[Option<f64>]) -> serde_json::Value {
-    let mut v: Vec<f64> = errs.iter().map(|e| e.unwrap_or(90.0)).collect();
+    let mut v: Vec<f64> = errs
+        .iter()
+        .map(|e| e.unwrap_or(nanoeye_search::train::FAILED_FRAME_DEG))
+        .collect();
     v.sort_by(f64::total_cmp);
     let failures = errs.iter().filter(|e| e.is_none()).count();
     if v.is_empty() {

@@ -688,6 +688,7 @@ fn sim_and_search_loss_name_their_bad_flags() {
         ("--plot", "."),
         ("--state", "."),
         ("--state", "pareto.svg"),
+        ("--bootstrap", "2000000"),
     ] {
         let args = [
             "search",

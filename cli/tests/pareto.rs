@@ -54,7 +54,7 @@ fn points(v: &Value, key: &str) -> Vec<(u64, f64)> {
 fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     let root = tempfile::tempdir().unwrap();
     let p = root.path();
-    // Two items, four frames: the refit's leave-one-out error needs three.
+    // Two ambiguity items, six frames: the refit's leave-one-out error needs three.
     assert!(nanoeye(&tiny_dataset_of("ds", "2"), p).status.success());
     let train: Vec<&str> = [&["search", "train"][..], &TINY_CHAIN]
         .concat()
@@ -98,14 +98,75 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     let svg = std::fs::read_to_string(p.join("plain.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("polyline"));
 
-    // The state beside the plot holds the points; cut back to the first one (a run killed
-    // after one subnet), the rerun scores the other two to the same numbers.
+    // The state keeps every subnet's error (an angle, 0–180°) on each of the 6 frames; V is
+    // their mean (a failed frame counted 90°), and the bootstrap's median of V brackets the
+    // median of the three points, over resamples of its 2 items.
     let sp = p.join("plain.state.json");
+    let st: Value = serde_json::from_slice(&std::fs::read(&sp).unwrap()).unwrap();
+    let errs: Vec<Vec<f64>> = serde_json::from_value(st["frame_errors"][0].clone()).unwrap();
+    assert_eq!(errs.len(), 3);
+    for (e, &(_, v)) in errs.iter().zip(&pts) {
+        assert_eq!(e.len(), 6);
+        assert!(e.iter().all(|x| (0.0..=180.0).contains(x)), "{e:?}");
+        assert!(
+            (e.iter().sum::<f64>() / 6.0 - v).abs() <= 1e-12 * v.max(1.0),
+            "{e:?} {v}"
+        );
+    }
+    let b = &plain["bootstrap"];
+    assert_eq!(
+        (
+            b["frames"].as_u64(),
+            b["items"].as_u64(),
+            b["draws"].as_u64()
+        ),
+        (Some(6), Some(2), Some(1000))
+    );
+    let m = &b["median_v"][0];
+    let mut vs: Vec<f64> = pts.iter().map(|q| q.1).collect();
+    vs.sort_by(f64::total_cmp);
+    assert_eq!(m["value"].as_f64(), Some(vs[1]));
+    let (lo, hi) = (m["lo"].as_f64().unwrap(), m["hi"].as_f64().unwrap());
+    assert!(lo <= vs[1] && vs[1] <= hi, "{m}");
+    // Without resamples, no bootstrap in the output.
+    let none = pareto(p, &["--plot", "plain.svg", "--bootstrap", "0"]);
+    assert!(none.get("bootstrap").is_none());
+    assert_eq!(points(&none, "points"), pts);
+
+    // The state beside the plot holds the points; cut back to the first one (a run killed
+    // after one subnet), the rerun scores the other two to the same numbers and errors.
     let mut st: Value = serde_json::from_slice(&std::fs::read(&sp).unwrap()).unwrap();
     assert_eq!(st["lenses"][0].as_array().unwrap().len(), 3);
+    let whole = st.clone();
     st["lenses"][0].as_array_mut().unwrap().truncate(1);
+    st["frame_errors"][0].as_array_mut().unwrap().truncate(1);
     std::fs::write(&sp, serde_json::to_vec(&st).unwrap()).unwrap();
     assert_eq!(points(&pareto(p, &["--plot", "plain.svg"]), "points"), pts);
+    let again: Value = serde_json::from_slice(&std::fs::read(&sp).unwrap()).unwrap();
+    assert_eq!(again, whole);
+    // A state without the per-frame errors (an older nanoeye's): refused, not mixed.
+    let mut old = whole.clone();
+    old.as_object_mut().unwrap().remove("frame_errors");
+    std::fs::write(&sp, serde_json::to_vec(&old).unwrap()).unwrap();
+    let o = pareto_run(
+        p,
+        "3",
+        &[
+            "--aperture-step-um",
+            "10",
+            "--exposure-ms",
+            "0.0004",
+            "--plot",
+            "plain.svg",
+        ],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("per-frame errors") && err.contains("plain.state.json"),
+        "{err}"
+    );
+    std::fs::write(&sp, serde_json::to_vec(&whole).unwrap()).unwrap();
     // Other inputs against that state: refused, naming what differs, the state kept.
     let rerun = |subnets: &str| {
         let chain = ["--aperture-step-um", "10", "--exposure-ms", "0.0004"];

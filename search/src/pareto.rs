@@ -1,6 +1,9 @@
 //! Accuracy–compute Pareto fronts (B.6, Fig. 8): points (MACs, V) per lens, the front of
-//! points no other point beats in both, and whether one lens's front dominates another's.
+//! points no other point beats in both, whether one lens's front dominates another's, and how
+//! far those verdicts survive resampling the evaluation frames (a paired bootstrap).
 
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 /// One evaluated subnet.
@@ -56,6 +59,210 @@ pub fn dominates(a: &[Point], b: &[Point]) -> bool {
     strict
 }
 
+/// One lens's subnets scored frame by frame: per subnet its MACs and its gaze error on every
+/// evaluation frame (degrees; a failed frame counted as V counts it, 90°).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LensFrames {
+    /// C_total per subnet (MACs).
+    pub macs: Vec<u64>,
+    /// Per subnet, the error on each frame (degrees), the frames in the same order for every
+    /// subnet and every lens.
+    pub errors_deg: Vec<Vec<f64>>,
+}
+
+/// An estimate with its central 90 % bootstrap interval (degrees).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Interval {
+    /// The estimate on the frames as given.
+    pub value: f64,
+    /// 5th percentile over the bootstrap draws.
+    pub lo: f64,
+    /// 95th percentile over the bootstrap draws.
+    pub hi: f64,
+}
+
+/// What a paired bootstrap over the evaluation frames says about the lenses (indices in the
+/// order given to [`bootstrap`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Bootstrap {
+    /// Resamples drawn.
+    pub draws: usize,
+    /// Frames in the evaluation set.
+    pub frames: usize,
+    /// Clusters (items) drawn per resample.
+    pub clusters: usize,
+    /// Per lens, the median of V over its subnets.
+    pub median_v: Vec<Interval>,
+    /// `[a][b]`: the fraction of draws in which lens a's front dominates lens b's.
+    pub dominates: Vec<Vec<f64>>,
+    /// `[a][b]`: the mean over subnets of V_a − V_b, paired subnet by subnet (None where the
+    /// two lenses do not hold the same number of subnets).
+    pub mean_diff: Vec<Vec<Option<Interval>>>,
+}
+
+/// The `q` quantile of `v` (sorted in place), linearly interpolated between order statistics.
+fn quantile(v: &mut [f64], q: f64) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let x = q * (v.len() - 1) as f64;
+    let (i, t) = (x.floor() as usize, x - x.floor());
+    let j = (i + 1).min(v.len() - 1);
+    v[i] + (v[j] - v[i]) * t
+}
+
+fn median(v: &[f64]) -> f64 {
+    quantile(&mut v.to_vec(), 0.5)
+}
+
+/// A paired cluster bootstrap of the Pareto comparison over the evaluation set: frame f belongs
+/// to cluster `clusters[f]` (an ambiguity item: its anchor, slip and gaze frames share an eye
+/// and a subject, so they are not independent draws); each of `draws` resamples draws the
+/// clusters with replacement (seeded by `seed`), the same clusters for every subnet of every
+/// lens, and recomputes every V (the mean over the resampled frames), each lens's median V and
+/// front, the fronts' dominance and the paired mean differences. It measures how much the
+/// verdicts depend on which items the evaluation set happens to hold, not on the training's own
+/// randomness.
+pub fn bootstrap(
+    lenses: &[LensFrames],
+    clusters: &[usize],
+    draws: usize,
+    seed: u64,
+) -> Result<Bootstrap, String> {
+    if draws == 0 {
+        return Err("draws: at least one resample".into());
+    }
+    let frames = lenses
+        .first()
+        .and_then(|l| l.errors_deg.first())
+        .map_or(0, Vec::len);
+    if frames == 0 {
+        return Err("no frames to resample".into());
+    }
+    if clusters.len() != frames {
+        return Err(format!(
+            "{} cluster labels for {frames} frames",
+            clusters.len()
+        ));
+    }
+    // Clusters renumbered 0..n in order of first appearance; each one's frames.
+    let mut ids: Vec<usize> = Vec::new();
+    let mut members: Vec<Vec<usize>> = Vec::new();
+    for (f, c) in clusters.iter().enumerate() {
+        match ids.iter().position(|x| x == c) {
+            Some(k) => members[k].push(f),
+            None => {
+                ids.push(*c);
+                members.push(vec![f]);
+            }
+        }
+    }
+    for (k, l) in lenses.iter().enumerate() {
+        if l.macs.len() != l.errors_deg.len() || l.macs.is_empty() {
+            return Err(format!(
+                "lens {k}: {} MAC counts for {} subnets' errors",
+                l.macs.len(),
+                l.errors_deg.len()
+            ));
+        }
+        if let Some(e) = l.errors_deg.iter().find(|e| e.len() != frames) {
+            return Err(format!("lens {k}: {} frames, lens 0 has {frames}", e.len()));
+        }
+        if l.errors_deg.iter().flatten().any(|e| !e.is_finite()) {
+            return Err(format!("lens {k}: a frame's error is not finite"));
+        }
+    }
+    let nl = lenses.len();
+    let mean = |e: &[f64], w: &[u32]| -> f64 {
+        let n: u32 = w.iter().sum();
+        e.iter().zip(w).map(|(&x, &c)| x * c as f64).sum::<f64>() / n as f64
+    };
+    // The statistics of one weighting of the frames (multiplicities `w`).
+    let stats = |w: &[u32]| {
+        let pts: Vec<Vec<Point>> = lenses
+            .iter()
+            .map(|l| {
+                l.macs
+                    .iter()
+                    .zip(&l.errors_deg)
+                    .map(|(&macs, e)| Point {
+                        macs,
+                        v_deg: mean(e, w),
+                    })
+                    .collect()
+            })
+            .collect();
+        let med: Vec<f64> = pts
+            .iter()
+            .map(|p| median(&p.iter().map(|q| q.v_deg).collect::<Vec<_>>()))
+            .collect();
+        let fronts: Vec<Vec<Point>> = pts.iter().map(|p| front(p)).collect();
+        let mut dom = vec![vec![false; nl]; nl];
+        let mut diff = vec![vec![None; nl]; nl];
+        for a in 0..nl {
+            for b in 0..nl {
+                if a == b {
+                    continue;
+                }
+                dom[a][b] = dominates(&fronts[a], &fronts[b]);
+                if pts[a].len() == pts[b].len() {
+                    let d: f64 = pts[a]
+                        .iter()
+                        .zip(&pts[b])
+                        .map(|(p, q)| p.v_deg - q.v_deg)
+                        .sum();
+                    diff[a][b] = Some(d / pts[a].len() as f64);
+                }
+            }
+        }
+        (med, dom, diff)
+    };
+    let (med0, _, diff0) = stats(&vec![1; frames]);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut w = vec![0u32; frames];
+    let mut meds = vec![Vec::with_capacity(draws); nl];
+    let mut diffs = vec![vec![Vec::with_capacity(draws); nl]; nl];
+    let mut wins = vec![vec![0usize; nl]; nl];
+    for _ in 0..draws {
+        w.fill(0);
+        for _ in 0..members.len() {
+            for &f in &members[rng.random_range(0..members.len())] {
+                w[f] += 1;
+            }
+        }
+        let (med, dom, diff) = stats(&w);
+        for a in 0..nl {
+            meds[a].push(med[a]);
+            for b in 0..nl {
+                wins[a][b] += dom[a][b] as usize;
+                if let Some(d) = diff[a][b] {
+                    diffs[a][b].push(d);
+                }
+            }
+        }
+    }
+    let interval = |value: f64, v: &mut Vec<f64>| Interval {
+        value,
+        lo: quantile(v, 0.05),
+        hi: quantile(v, 0.95),
+    };
+    Ok(Bootstrap {
+        draws,
+        frames,
+        clusters: members.len(),
+        median_v: (0..nl).map(|a| interval(med0[a], &mut meds[a])).collect(),
+        dominates: wins
+            .iter()
+            .map(|r| r.iter().map(|&n| n as f64 / draws as f64).collect())
+            .collect(),
+        mean_diff: (0..nl)
+            .map(|a| {
+                (0..nl)
+                    .map(|b| diff0[a][b].map(|d| interval(d, &mut diffs[a][b])))
+                    .collect()
+            })
+            .collect(),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -86,5 +293,104 @@ mod tests {
         assert!(!dominates(&b, &a));
         assert!(!dominates(&a, &a));
         assert!(!dominates(&[p(5, 1.0)], &[p(4, 9.0)]), "nothing as cheap");
+    }
+
+    fn lens(macs: &[u64], errors: Vec<Vec<f64>>) -> LensFrames {
+        LensFrames {
+            macs: macs.to_vec(),
+            errors_deg: errors,
+        }
+    }
+
+    /// Errors of three subnets on `f` frames, a pattern that differs between frames.
+    fn pattern(f: usize, shift: f64) -> Vec<Vec<f64>> {
+        (0..3)
+            .map(|s| {
+                (0..f)
+                    .map(|i| 5.0 + shift + ((i * 7 + s * 3) % 11) as f64)
+                    .collect()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn bootstrap_of_a_lens_against_itself_and_a_shifted_copy() {
+        let macs = [10, 20, 30];
+        let a = lens(&macs, pattern(12, 0.0));
+        let b = lens(&macs, pattern(12, 3.0));
+        let items: Vec<usize> = (0..12).map(|f| f / 3).collect();
+        let bs = bootstrap(&[a.clone(), a.clone(), b], &items, 300, 1).unwrap();
+        // The same errors never dominate each other; paired differences are exactly 0.
+        assert_eq!(bs.dominates[0][1], 0.0);
+        assert_eq!(bs.dominates[1][0], 0.0);
+        let d = bs.mean_diff[0][1].unwrap();
+        assert_eq!((d.value, d.lo, d.hi), (0.0, 0.0, 0.0));
+        // 3° lower on every frame: dominates in every draw, by exactly 3° whatever the draw.
+        assert_eq!(bs.dominates[0][2], 1.0);
+        assert_eq!(bs.dominates[2][0], 0.0);
+        let d = bs.mean_diff[0][2].unwrap();
+        for v in [d.value, d.lo, d.hi] {
+            assert!((v + 3.0).abs() < 1e-12, "{d:?}");
+        }
+        let (m0, m2) = (bs.median_v[0], bs.median_v[2]);
+        assert!((m2.value - m0.value - 3.0).abs() < 1e-12);
+        assert!(m0.lo <= m0.value && m0.value <= m0.hi && m0.lo < m0.hi);
+        assert_eq!(bs.clusters, 4);
+        let again = bootstrap(
+            &[a.clone(), a, lens(&macs, pattern(12, 3.0))],
+            &items,
+            300,
+            1,
+        );
+        assert_eq!(bs, again.unwrap());
+    }
+
+    #[test]
+    fn bootstrap_interval_of_a_mean_matches_the_central_limit() {
+        // One subnet, F frames of errors with standard deviation σ: V's 90 % interval is
+        // V ± 1.645 σ/√F for large F (σ computed from the sample, population form).
+        let f = 400;
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let e: Vec<f64> = (0..f).map(|_| rng.random_range(0.0..20.0)).collect();
+        let m = e.iter().sum::<f64>() / f as f64;
+        let sd = (e.iter().map(|x| (x - m).powi(2)).sum::<f64>() / f as f64).sqrt();
+        let singles: Vec<usize> = (0..f).collect();
+        let bs = bootstrap(&[lens(&[1], vec![e.clone()])], &singles, 4000, 2).unwrap();
+        let iv = bs.median_v[0];
+        assert!((iv.value - m).abs() < 1e-12);
+        let half = 1.645 * sd / (f as f64).sqrt();
+        for (got, want) in [(iv.hi - iv.value, half), (iv.value - iv.lo, half)] {
+            assert!((got / want - 1.0).abs() < 0.1, "{got} vs {want}");
+        }
+        // The same errors in clusters of four identical frames (an item's frames perfectly
+        // correlated): F/4 independent draws, so an interval twice as wide, √4.
+        let copies: Vec<f64> = e[..f / 4].iter().flat_map(|&x| [x; 4]).collect();
+        let m4 = copies.iter().sum::<f64>() / f as f64;
+        let sd4 = (copies.iter().map(|x| (x - m4).powi(2)).sum::<f64>() / f as f64).sqrt();
+        let by_item: Vec<usize> = (0..f).map(|i| i / 4).collect();
+        let iv = bootstrap(&[lens(&[1], vec![copies])], &by_item, 4000, 2)
+            .unwrap()
+            .median_v[0];
+        let half = 1.645 * sd4 / ((f / 4) as f64).sqrt();
+        for (got, want) in [(iv.hi - iv.value, half), (iv.value - iv.lo, half)] {
+            assert!((got / want - 1.0).abs() < 0.15, "{got} vs {want}");
+        }
+    }
+
+    #[test]
+    fn bootstrap_refuses_what_it_cannot_resample() {
+        let a = lens(&[1, 2], pattern(4, 0.0)[..2].to_vec());
+        let c = [0, 0, 1, 1];
+        assert!(bootstrap(std::slice::from_ref(&a), &c, 10, 0).is_ok());
+        assert!(bootstrap(std::slice::from_ref(&a), &c, 0, 0).is_err());
+        assert!(bootstrap(std::slice::from_ref(&a), &c[..3], 10, 0).is_err());
+        assert!(bootstrap(&[], &[], 10, 0).is_err());
+        let five = lens(&[1, 2], pattern(5, 0.0)[..2].to_vec());
+        assert!(bootstrap(&[a.clone(), five], &c, 10, 0).is_err());
+        let short = lens(&[1], pattern(4, 0.0)[..2].to_vec());
+        assert!(bootstrap(&[short], &c, 10, 0).is_err());
+        let mut bad = a.clone();
+        bad.errors_deg[1][2] = f64::NAN;
+        assert!(bootstrap(&[a, bad], &c, 10, 0).is_err());
     }
 }

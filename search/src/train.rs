@@ -947,6 +947,19 @@ pub struct FrameEval {
     pub fallback: Vec<bool>,
 }
 
+/// The gaze error V counts per frame (degrees): a failed frame counts 90°.
+pub const FAILED_FRAME_DEG: f64 = 90.0;
+
+impl FrameEval {
+    /// Per frame, the error V averages (degrees; [`FAILED_FRAME_DEG`] where the solver failed).
+    pub fn scored_errors_deg(&self) -> Vec<f64> {
+        self.errors_deg
+            .iter()
+            .map(|x| x.unwrap_or(FAILED_FRAME_DEG))
+            .collect()
+    }
+}
+
 /// What an evaluation runs: every frame of `data` through `chain` at φ = `map`, p̂ =
 /// `p_hat_m` (m), subnet `arch` (BN as it stands: recalibrate first), in batches of `batch`,
 /// sensor noise drawn from `seed`.
@@ -1105,7 +1118,7 @@ pub fn evaluate_net(
     if nb == 0 {
         return Err(param("val", "no validation frames"));
     }
-    let errs: Vec<f64> = e.errors_deg.iter().map(|x| x.unwrap_or(90.0)).collect();
+    let errs = e.scored_errors_deg();
     let mut sorted = errs.clone();
     sorted.sort_by(f64::total_cmp);
     Ok(Metrics {
