@@ -7,7 +7,7 @@ use clap::Args;
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::Arch;
 use nanoeye_search::Trainer;
-use nanoeye_search::pareto::{LensFrames, Point, bootstrap, dominates, front};
+use nanoeye_search::pareto::{Interval, LensFrames, Point, bootstrap, dominates, front};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -57,7 +57,9 @@ pub struct ParetoArgs {
     json: bool,
 }
 
-fn pareto_svg(lenses: &[(String, Vec<Point>)]) -> String {
+/// The scatter with each lens's front; each legend line names the lens and, with a bootstrap,
+/// its median V and 90 % interval.
+fn pareto_svg(lenses: &[(String, Vec<Point>)], medians: Option<&[Interval]>) -> String {
     let (w, ht, m) = (720.0, 420.0, 50.0);
     let all: Vec<_> = lenses.iter().flat_map(|(_, p)| p.iter()).collect();
     let xmax = all.iter().map(|p| p.macs as f64).fold(1.0, f64::max) * 1.05;
@@ -84,6 +86,13 @@ fn pareto_svg(lenses: &[(String, Vec<Point>)]) -> String {
     );
     for (k, (name, pts)) in lenses.iter().enumerate() {
         let c = colors[k % colors.len()];
+        let label = match medians.and_then(|m| m.get(k)) {
+            Some(m) => format!(
+                "{name}: median V {:.1}° [{:.1}, {:.1}]",
+                m.value, m.lo, m.hi
+            ),
+            None => name.clone(),
+        };
         for p in pts {
             let (x, y) = xy(p);
             s += &format!(
@@ -98,10 +107,11 @@ fn pareto_svg(lenses: &[(String, Vec<Point>)]) -> String {
             })
             .collect();
         s += &format!(
-            "<polyline fill=\"none\" stroke=\"{c}\" stroke-width=\"2\" points=\"{}\"/>\n<text x=\"{}\" y=\"{}\" fill=\"{c}\">{name}</text>\n",
+            "<polyline fill=\"none\" stroke=\"{c}\" stroke-width=\"2\" points=\"{}\"/>\n<text x=\"{}\" y=\"{}\" fill=\"{c}\">{}</text>\n",
             f.join(" "),
-            w - m - 150.0,
-            m + 16.0 * k as f64
+            w - m - 330.0,
+            m + 16.0 * k as f64,
+            crate::report::esc(&label)
         );
     }
     s + "</svg>\n"
@@ -276,7 +286,8 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         .map(|r| r.display().to_string())
         .zip(state.lenses)
         .collect();
-    util::write_atomic(&a.plot, pareto_svg(&lenses).as_bytes())
+    let medians = boot.as_ref().map(|b| b.median_v.as_slice());
+    util::write_atomic(&a.plot, pareto_svg(&lenses, medians).as_bytes())
         .with_context(|| format!("--plot {}", a.plot.display()))?;
     let mut dom = serde_json::Map::new();
     for (na, pa) in &lenses {

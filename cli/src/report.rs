@@ -255,7 +255,8 @@ fn slip_svg(rows: &[serde_json::Value]) -> String {
     s + "</svg>\n"
 }
 
-fn esc(s: &str) -> String {
+/// `s` with the characters XML text may not hold escaped.
+pub(crate) fn esc(s: &str) -> String {
     s.replace('&', "&amp;")
         .replace('<', "&lt;")
         .replace('>', "&gt;")

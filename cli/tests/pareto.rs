@@ -97,6 +97,10 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     }
     let svg = std::fs::read_to_string(p.join("plain.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("polyline"));
+    assert!(
+        svg.contains("median V"),
+        "the legend names the bootstrap's median"
+    );
 
     // The state keeps every subnet's error (an angle, 0–180°) on each of the 6 frames; V is
     // their mean (a failed frame counted 90°), and the bootstrap's median of V brackets the
@@ -131,6 +135,8 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     // Without resamples, no bootstrap in the output.
     let none = pareto(p, &["--plot", "plain.svg", "--bootstrap", "0"]);
     assert!(none.get("bootstrap").is_none());
+    let svg = std::fs::read_to_string(p.join("plain.svg")).unwrap();
+    assert!(!svg.contains("median V"));
     assert_eq!(points(&none, "points"), pts);
 
     // The state beside the plot holds the points; cut back to the first one (a run killed
