@@ -338,7 +338,7 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
                     let d = b.mean_diff[i][j]
                         .map(|d| {
                             format!(
-                                "; mean V difference {:+.2}° [{:+.2}, {:+.2}]",
+                                "; mean of V({na}) − V({nb}) {:+.2}° [{:+.2}, {:+.2}]",
                                 d.value, d.lo, d.hi
                             )
                         })
