@@ -81,8 +81,8 @@ pub struct Interval {
     pub hi: f64,
 }
 
-/// What a paired bootstrap over the evaluation frames says about the lenses (indices in the
-/// order given to [`bootstrap`]).
+/// What a paired bootstrap over the evaluation set's items says about the lenses (indices in
+/// the order given to [`bootstrap`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Bootstrap {
     /// Resamples drawn.
@@ -144,16 +144,14 @@ pub fn bootstrap(
         ));
     }
     // Clusters renumbered 0..n in order of first appearance; each one's frames.
-    let mut ids: Vec<usize> = Vec::new();
+    let mut index = std::collections::HashMap::new();
     let mut members: Vec<Vec<usize>> = Vec::new();
-    for (f, c) in clusters.iter().enumerate() {
-        match ids.iter().position(|x| x == c) {
-            Some(k) => members[k].push(f),
-            None => {
-                ids.push(*c);
-                members.push(vec![f]);
-            }
-        }
+    for (f, &c) in clusters.iter().enumerate() {
+        let k = *index.entry(c).or_insert_with(|| {
+            members.push(Vec::new());
+            members.len() - 1
+        });
+        members[k].push(f);
     }
     for (k, l) in lenses.iter().enumerate() {
         if l.macs.len() != l.errors_deg.len() || l.macs.is_empty() {
