@@ -2,7 +2,9 @@
 //! the network forward + backward of N_max, N_min and n random subnets, the chain backward and
 //! the one PSF VJP — the parts of `Trainer::train_step`, timed apart. Usage:
 //! `cargo run --release -p nanoeye-search --example step_time -- DATASET [PITCH_UM] [BATCH]
-//! [N_RANDOM] [REPS] [learned|fixed]` (docs/run.md, "Time per step and per candidate"). With
+//! [N_RANDOM] [REPS] [learned|fixed] [sandwich|min]` (docs/run.md, "Time per step and per
+//! candidate"; `min`: the smallest subnet alone, issue 13's batch through optics + sensor +
+//! N_min, docs/bench/chain.md). With
 //! `learned` (the default) the phase map moves by a small step each pass, as the learned
 //! lens's does in training, so the chain's kept PSF stack is never reused; with `fixed` it is
 //! (a fixed lens's training), and the chain's backward is the sensor's alone (no PSF adjoint,
@@ -22,7 +24,9 @@ fn arg<T: std::str::FromStr>(args: &[String], i: usize, default: T) -> T {
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let Some(dir) = args.get(1) else {
-        eprintln!("usage: step_time DATASET [PITCH_UM] [BATCH] [N_RANDOM] [REPS]");
+        eprintln!(
+            "usage: step_time DATASET [PITCH_UM] [BATCH] [N_RANDOM] [REPS] [learned|fixed] [sandwich|min]"
+        );
         std::process::exit(2);
     };
     let pitch_um: f64 = arg(&args, 2, 14.0);
@@ -40,8 +44,15 @@ fn main() {
     let ids: Vec<usize> = (0..batch).map(|i| i % ds.len()).collect();
     let mut net = Supernet::new(SupernetConfig::default(), 0).expect("supernet");
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-    let mut archs = vec![Arch::max(), Arch::min()];
-    archs.extend((0..n_random).map(|_| Arch::sample(&mut rng)));
+    let min_only = args.get(7).is_some_and(|s| s == "min");
+    let mut archs = if min_only {
+        vec![Arch::min()]
+    } else {
+        vec![Arch::max(), Arch::min()]
+    };
+    if !min_only {
+        archs.extend((0..n_random).map(|_| Arch::sample(&mut rng)));
+    }
     // [load, psf stack, chain forward, network, chain backward, psf vjp]
     let mut t = [0.0f64; 6];
     let mut shape = (0, 0);
