@@ -7,7 +7,9 @@ use clap::Args;
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::Arch;
 use nanoeye_search::Trainer;
-use nanoeye_search::pareto::{Interval, LensFrames, Point, bootstrap, dominates, front};
+use nanoeye_search::pareto::{
+    Interval, LensFrames, Point, average_runs, bootstrap, dominates, front, seed_differences,
+};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -15,7 +17,9 @@ use std::time::Instant;
 /// `nanoeye search pareto` options.
 #[derive(Debug, Args)]
 pub struct ParetoArgs {
-    /// Trained run directories, comma separated (one per lens).
+    /// Trained run directories, comma separated, one lens each; `+` joins runs of one lens
+    /// trained with other seeds (`A0+A1,B0+B1`), whose per-frame errors are averaged subnet
+    /// by subnet (list each lens's seeds in the same order: they are paired by position).
     #[arg(long)]
     runs: String,
     /// Evaluation dataset (the ambiguity set, C.3).
@@ -121,10 +125,21 @@ fn pareto_svg(lenses: &[(String, Vec<Point>)], medians: Option<&[Interval]>) -> 
 pub fn pareto(a: ParetoArgs) -> Result<()> {
     use rand::SeedableRng;
     let t0 = Instant::now();
-    let runs: Vec<PathBuf> = a.runs.split(',').map(|s| PathBuf::from(s.trim())).collect();
-    if runs.is_empty() || runs.iter().any(|r| r.as_os_str().is_empty()) {
-        bail!("--runs: give run directories separated by commas");
+    let groups: Vec<Vec<PathBuf>> = a
+        .runs
+        .split(',')
+        .map(|g| g.split('+').map(|s| PathBuf::from(s.trim())).collect())
+        .collect();
+    if groups.iter().flatten().any(|r| r.as_os_str().is_empty()) {
+        bail!(
+            "--runs: give run directories separated by commas, one lens each (`+` joins runs of \
+             one lens trained with other seeds), got {:?}",
+            a.runs
+        );
     }
+    // Every run is scored on its own (the state holds them in this order); a lens's runs are
+    // averaged afterwards.
+    let runs: Vec<PathBuf> = groups.iter().flatten().cloned().collect();
     if a.subnets == 0 || a.subnets > 100_000 {
         bail!("--subnets: must be 1..=100000, got {}", a.subnets);
     }
@@ -262,16 +277,36 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
             }
         }
     }
+    let per_run: Vec<LensFrames> = state
+        .lenses
+        .iter()
+        .zip(&state.frame_errors)
+        .map(|(p, e)| LensFrames {
+            macs: p.iter().map(|q| q.macs).collect(),
+            errors_deg: e.clone(),
+        })
+        .collect();
+    // Per lens its runs' frames, and their average (a lens of one run: its own).
+    let mut by_lens: Vec<&[LensFrames]> = Vec::with_capacity(groups.len());
+    let mut at = 0;
+    for g in &groups {
+        by_lens.push(&per_run[at..at + g.len()]);
+        at += g.len();
+    }
+    let frames: Vec<LensFrames> = by_lens
+        .iter()
+        .map(|r| average_runs(r).map_err(|e| anyhow::anyhow!("--runs: {e}")))
+        .collect::<Result<_>>()?;
+    let names: Vec<String> = groups
+        .iter()
+        .map(|g| {
+            g.iter()
+                .map(|r| r.display().to_string())
+                .collect::<Vec<_>>()
+                .join("+")
+        })
+        .collect();
     let boot = if a.bootstrap > 0 {
-        let frames: Vec<LensFrames> = state
-            .lenses
-            .iter()
-            .zip(&state.frame_errors)
-            .map(|(p, e)| LensFrames {
-                macs: p.iter().map(|q| q.macs).collect(),
-                errors_deg: e.clone(),
-            })
-            .collect();
         // An item's frames (an ambiguity pair's anchor, slip and gaze) are drawn together.
         let items: Vec<usize> = ds.records.iter().map(|r| r.item).collect();
         Some(
@@ -281,13 +316,40 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     } else {
         None
     };
-    let lenses: Vec<(String, Vec<Point>)> = runs
+    // With several seeds per lens, the lenses' paired differences seed by seed: how far the
+    // training's randomness moves what the average says.
+    let mut seed_diff = serde_json::Map::new();
+    if groups.iter().all(|g| g.len() > 1) {
+        for (i, na) in names.iter().enumerate() {
+            for (j, nb) in names.iter().enumerate() {
+                if let Some(d) = (i != j)
+                    .then(|| seed_differences(by_lens[i], by_lens[j]))
+                    .flatten()
+                {
+                    seed_diff.insert(format!("{na} - {nb}"), d.into());
+                }
+            }
+        }
+    }
+    let lenses: Vec<(String, Vec<Point>)> = names
         .iter()
-        .map(|r| r.display().to_string())
-        .zip(state.lenses)
+        .cloned()
+        .zip(frames.iter().map(LensFrames::points))
         .collect();
     let medians = boot.as_ref().map(|b| b.median_v.as_slice());
-    util::write_atomic(&a.plot, pareto_svg(&lenses, medians).as_bytes())
+    // A lens of several runs is named in the legend by its first, so the line fits the plot.
+    let legend: Vec<(String, Vec<Point>)> = lenses
+        .iter()
+        .zip(&groups)
+        .map(|((n, p), g)| match g.len() {
+            1 => (n.clone(), p.clone()),
+            k => (
+                format!("{} +{} seeds (mean)", g[0].display(), k - 1),
+                p.clone(),
+            ),
+        })
+        .collect();
+    util::write_atomic(&a.plot, pareto_svg(&legend, medians).as_bytes())
         .with_context(|| format!("--plot {}", a.plot.display()))?;
     let mut dom = serde_json::Map::new();
     for (na, pa) in &lenses {
@@ -301,8 +363,11 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         }
     }
     let mut out = serde_json::json!({
-        "lenses": lenses.iter().map(|(n, p)| serde_json::json!({
-            "run": n, "points": p, "front": front(p),
+        "lenses": lenses.iter().zip(&groups).map(|((n, p), g)| serde_json::json!({
+            "run": n,
+            "runs": g.iter().map(|r| r.display().to_string()).collect::<Vec<_>>(),
+            "points": p,
+            "front": front(p),
         })).collect::<Vec<_>>(),
         "dominates": dom,
         "subnets": archs.len(),
@@ -311,6 +376,9 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     });
     if let Some(b) = &boot {
         out["bootstrap"] = bootstrap_json(b, &lenses);
+    }
+    if !seed_diff.is_empty() {
+        out["seed_differences"] = seed_diff.clone().into();
     }
     if a.json {
         println!("{out}");
@@ -349,6 +417,20 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
                     );
                 }
             }
+        }
+        for (k, d) in &seed_diff {
+            let d: Vec<String> = d
+                .as_array()
+                .into_iter()
+                .flatten()
+                .filter_map(|v| v.as_f64())
+                .map(|v| format!("{v:+.2}°"))
+                .collect();
+            println!(
+                "mean of V({}) seed by seed: {}",
+                k.replace(" - ", ") − V("),
+                d.join(", ")
+            );
         }
         println!("plot: {}", a.plot.display());
     }

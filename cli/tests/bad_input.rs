@@ -702,6 +702,11 @@ fn sim_and_search_loss_name_their_bad_flags() {
         ];
         refused(&args, flag, p);
     }
+    // An empty run in a lens's `+` list or between commas: refused naming --runs.
+    for runs in ["nope+,x", "x,,y", "+"] {
+        let args = ["search", "pareto", "--runs", runs, "--dataset", "ds2"];
+        refused(&args, "--runs", p);
+    }
 }
 
 #[test]

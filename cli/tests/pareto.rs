@@ -139,6 +139,42 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     assert!(!svg.contains("median V"));
     assert_eq!(points(&none, "points"), pts);
 
+    // Runs of one lens joined by `+` are averaged subnet by subnet: the same run twice
+    // averages to its own points exactly ((x + x) / 2 = x, MACs too), and its seed-by-seed
+    // paired differences against itself are exactly 0, one per seed.
+    let seeds = [
+        "search",
+        "pareto",
+        "--runs",
+        "run+run,run+run",
+        "--dataset",
+        "ds",
+        "--subnets",
+        "3",
+        "--aperture-step-um",
+        "10",
+        "--exposure-ms",
+        "0.0004",
+        "--plot",
+        "seeds.svg",
+        "--json",
+    ];
+    let o = nanoeye(&seeds, p);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let seeds: Value = serde_json::from_slice(&o.stdout).expect("JSON");
+    assert_eq!(points(&seeds, "points"), pts);
+    assert_eq!(seeds["lenses"][0]["run"], "run+run");
+    assert_eq!(
+        seeds["lenses"][1]["runs"],
+        serde_json::json!(["run", "run"])
+    );
+    assert_eq!(
+        seeds["seed_differences"]["run+run - run+run"],
+        serde_json::json!([0.0, 0.0])
+    );
+    assert_eq!(plain["lenses"][0]["runs"], serde_json::json!(["run"]));
+    assert!(plain.get("seed_differences").is_none());
+
     // The state beside the plot holds the points; cut back to the first one (a run killed
     // after one subnet), the rerun scores the other two to the same numbers and errors.
     let mut st: Value = serde_json::from_slice(&std::fs::read(&sp).unwrap()).unwrap();

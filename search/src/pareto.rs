@@ -70,6 +70,85 @@ pub struct LensFrames {
     pub errors_deg: Vec<Vec<f64>>,
 }
 
+impl LensFrames {
+    /// Per subnet, V: the mean of its frames' errors (degrees), summed as `evaluate_net` sums.
+    pub fn points(&self) -> Vec<Point> {
+        self.macs
+            .iter()
+            .zip(&self.errors_deg)
+            .map(|(&macs, e)| Point {
+                macs,
+                v_deg: e.iter().sum::<f64>() / e.len() as f64,
+            })
+            .collect()
+    }
+}
+
+/// One lens trained several times (other seeds) as one: per subnet and frame the mean of the
+/// runs' errors, so each subnet's V is the mean of its runs' V, and per subnet the mean of the
+/// runs' MACs, rounded (a learned pitch differs from run to run, and with it the MACs at the
+/// resolution it gives). The training's randomness then averages out of the comparison
+/// instead of deciding it; the runs must hold the same subnets on the same frames.
+pub fn average_runs(runs: &[LensFrames]) -> Result<LensFrames, String> {
+    let Some(first) = runs.first() else {
+        return Err("no runs to average".into());
+    };
+    let (ns, nf) = (
+        first.errors_deg.len(),
+        first.errors_deg.first().map_or(0, Vec::len),
+    );
+    for (k, r) in runs.iter().enumerate() {
+        if r.macs.len() != ns || r.errors_deg.len() != ns {
+            return Err(format!(
+                "run {k}: {} subnets ({} MAC counts), run 0 has {ns}",
+                r.errors_deg.len(),
+                r.macs.len()
+            ));
+        }
+        if let Some(e) = r.errors_deg.iter().find(|e| e.len() != nf) {
+            return Err(format!("run {k}: {} frames, run 0 has {nf}", e.len()));
+        }
+    }
+    if runs.len() == 1 {
+        return Ok(first.clone());
+    }
+    let n = runs.len() as f64;
+    Ok(LensFrames {
+        macs: (0..ns)
+            .map(|s| (runs.iter().map(|r| r.macs[s] as f64).sum::<f64>() / n).round() as u64)
+            .collect(),
+        errors_deg: (0..ns)
+            .map(|s| {
+                (0..nf)
+                    .map(|f| runs.iter().map(|r| r.errors_deg[s][f]).sum::<f64>() / n)
+                    .collect()
+            })
+            .collect(),
+    })
+}
+
+/// Per training seed i, the mean over subnets of V(a's run i) − V(b's run i) (degrees): lens
+/// a's and lens b's runs paired by position, as `--runs` lists them. None unless both lenses
+/// hold the same number of runs, each with the same number of subnets.
+pub fn seed_differences(a: &[LensFrames], b: &[LensFrames]) -> Option<Vec<f64>> {
+    if a.len() != b.len() {
+        return None;
+    }
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| {
+            let (px, py) = (x.points(), y.points());
+            (px.len() == py.len() && !px.is_empty()).then(|| {
+                px.iter()
+                    .zip(&py)
+                    .map(|(p, q)| p.v_deg - q.v_deg)
+                    .sum::<f64>()
+                    / px.len() as f64
+            })
+        })
+        .collect()
+}
+
 /// An estimate with its central 90 % bootstrap interval (degrees).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Interval {
@@ -373,6 +452,49 @@ mod tests {
         for (got, want) in [(iv.hi - iv.value, half), (iv.value - iv.lo, half)] {
             assert!((got / want - 1.0).abs() < 0.15, "{got} vs {want}");
         }
+    }
+
+    /// Averaging runs is linear: each subnet's V is the mean of the runs' V, the MACs their
+    /// rounded mean; one run is itself; runs with other subnets or frames are refused.
+    #[test]
+    fn averaged_runs_have_the_mean_of_their_v() {
+        let a = lens(&[100, 200, 301], pattern(5, 0.0));
+        let b = lens(&[102, 200, 300], pattern(5, 3.0));
+        let c = lens(&[104, 200, 300], pattern(5, -1.5));
+        let m = average_runs(&[a.clone(), b.clone(), c.clone()]).unwrap();
+        assert_eq!(m.macs, vec![102, 200, 300]);
+        let (pa, pb, pc, pm) = (a.points(), b.points(), c.points(), m.points());
+        for s in 0..3 {
+            let want = (pa[s].v_deg + pb[s].v_deg + pc[s].v_deg) / 3.0;
+            assert!(
+                (pm[s].v_deg - want).abs() < 1e-12,
+                "{} vs {want}",
+                pm[s].v_deg
+            );
+            // 0 + 3 − 1.5 over three runs: 0.5° above run a on every subnet.
+            assert!((pm[s].v_deg - pa[s].v_deg - 0.5).abs() < 1e-12);
+        }
+        assert_eq!(average_runs(std::slice::from_ref(&a)).unwrap(), a);
+        assert!(average_runs(&[]).is_err());
+        let fewer = lens(&[100, 200], pattern(5, 0.0)[..2].to_vec());
+        assert!(
+            average_runs(&[a.clone(), fewer])
+                .unwrap_err()
+                .contains("subnets")
+        );
+        let short = lens(&[100, 200, 301], pattern(4, 0.0));
+        assert!(
+            average_runs(&[a.clone(), short])
+                .unwrap_err()
+                .contains("frames")
+        );
+        // Per seed, the paired differences: b − a is +3 on every subnet, c − a −1.5.
+        let d = seed_differences(&[b.clone(), c.clone()], &[a.clone(), a.clone()]).unwrap();
+        assert!(
+            (d[0] - 3.0).abs() < 1e-12 && (d[1] + 1.5).abs() < 1e-12,
+            "{d:?}"
+        );
+        assert!(seed_differences(&[b, c], std::slice::from_ref(&a)).is_none());
     }
 
     #[test]
