@@ -11,11 +11,16 @@ use std::path::Path;
 
 /// `search pareto` of `subnets` subnets on `run` (dataset `ds`) with `extra` flags.
 fn pareto_run(p: &Path, subnets: &str, extra: &[&str]) -> std::process::Output {
+    pareto_runs(p, "run", subnets, extra)
+}
+
+/// `search pareto` of `subnets` subnets on the runs `runs` (dataset `ds`) with `extra` flags.
+fn pareto_runs(p: &Path, runs: &str, subnets: &str, extra: &[&str]) -> std::process::Output {
     let args: Vec<&str> = [
         "search",
         "pareto",
         "--runs",
-        "run",
+        runs,
         "--dataset",
         "ds",
         "--subnets",
@@ -29,6 +34,11 @@ fn pareto_run(p: &Path, subnets: &str, extra: &[&str]) -> std::process::Output {
 
 /// Three subnets with the run's own chain; returns the printed JSON.
 fn pareto(p: &Path, extra: &[&str]) -> Value {
+    pareto_of(p, "run", extra)
+}
+
+/// [`pareto`] on the runs `runs`.
+fn pareto_of(p: &Path, runs: &str, extra: &[&str]) -> Value {
     let chain = [
         "--aperture-step-um",
         "10",
@@ -36,7 +46,7 @@ fn pareto(p: &Path, extra: &[&str]) -> Value {
         "0.0004",
         "--json",
     ];
-    let o = pareto_run(p, "3", &[&chain[..], extra].concat());
+    let o = pareto_runs(p, runs, "3", &[&chain[..], extra].concat());
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     serde_json::from_slice(&o.stdout).expect("JSON")
 }
@@ -142,26 +152,7 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     // Runs of one lens joined by `+` are averaged subnet by subnet: the same run twice
     // averages to its own points exactly ((x + x) / 2 = x, MACs too), and its seed-by-seed
     // paired differences against itself are exactly 0, one per seed.
-    let seeds = [
-        "search",
-        "pareto",
-        "--runs",
-        "run+run,run+run",
-        "--dataset",
-        "ds",
-        "--subnets",
-        "3",
-        "--aperture-step-um",
-        "10",
-        "--exposure-ms",
-        "0.0004",
-        "--plot",
-        "seeds.svg",
-        "--json",
-    ];
-    let o = nanoeye(&seeds, p);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let seeds: Value = serde_json::from_slice(&o.stdout).expect("JSON");
+    let seeds = pareto_of(p, "run+run,run+run", &["--plot", "seeds.svg"]);
     assert_eq!(points(&seeds, "points"), pts);
     assert_eq!(seeds["lenses"][0]["run"], "run+run");
     assert_eq!(

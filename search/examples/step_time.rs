@@ -45,14 +45,14 @@ fn main() {
     let mut net = Supernet::new(SupernetConfig::default(), 0).expect("supernet");
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
     let min_only = args.get(7).is_some_and(|s| s == "min");
-    let mut archs = if min_only {
+    let archs: Vec<Arch> = if min_only {
         vec![Arch::min()]
     } else {
-        vec![Arch::max(), Arch::min()]
+        [Arch::max(), Arch::min()]
+            .into_iter()
+            .chain((0..n_random).map(|_| Arch::sample(&mut rng)))
+            .collect()
     };
-    if !min_only {
-        archs.extend((0..n_random).map(|_| Arch::sample(&mut rng)));
-    }
     // [load, psf stack, chain forward, network, chain backward, psf vjp]
     let mut t = [0.0f64; 6];
     let mut shape = (0, 0);
