@@ -6,10 +6,11 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::Arch;
-use nanoeye_search::Trainer;
 use nanoeye_search::pareto::{
     Interval, LensFrames, Point, average_runs, bootstrap, dominates, front, seed_differences,
 };
+use nanoeye_search::train::ALL_FRAMES_BYTES;
+use nanoeye_search::{ChainedSet, Trainer, evaluate_chained};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -40,9 +41,14 @@ pub struct ParetoArgs {
     seed: u64,
     /// Score each subnet as `nanoeye run` deploys it: BN statistics over every frame of the
     /// BN set (`--train`, default the evaluation set) and the calibration head's output layer
-    /// solved on them (docs/run.md); without it, BN from 2 batches and the trained head.
+    /// solved on them (docs/run.md); without it, BN from `--bn-batches` and the trained head.
     #[arg(long)]
     head_refit: bool,
+    /// Batches of the BN set (of the run's training batch size, in its training order) each
+    /// subnet's BN statistics are computed over, without `--head-refit`.
+    #[arg(long, default_value_t = 2, conflicts_with = "head_refit", allow_negative_numbers = true,
+          value_parser = clap::value_parser!(u64).range(1..))]
+    bn_batches: u64,
     /// Plot file (SVG).
     #[arg(long, default_value = "pareto.svg")]
     plot: PathBuf,
@@ -59,6 +65,14 @@ pub struct ParetoArgs {
     /// Print JSON.
     #[arg(long)]
     json: bool,
+}
+
+/// Where a run's subnets take their BN statistics from, computed once per run.
+enum Bn {
+    /// Every frame of the BN set, with the head refit (`--head-refit`).
+    Refit(nanoeye_search::headfit::FitFrames),
+    /// The network inputs of `--bn-batches` training batches.
+    Batches(Vec<nanoeye_nets::Tensor>),
 }
 
 /// The scatter with each lens's front; each legend line names the lens and, with a bootstrap,
@@ -228,38 +242,62 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         let map = tr.phase_map()?;
         let p_hat = tr.pitch_um * 1e-6;
         let (h, w) = chain.native().at(p_hat)?.shape();
-        // The BN set through this lens once, for every subnet's statistics and head fit.
-        let all = if a.head_refit {
-            Some(tr.all_frames()?)
+        // The BN set through this lens once, for every subnet's statistics (and head fit):
+        // the same images in every subnet's recalibration, so computed once per run.
+        let bn = if a.head_refit {
+            Bn::Refit(tr.all_frames()?)
         } else {
-            None
+            let (th, tw) = tchain.native().at(p_hat)?.shape();
+            let frames = a.bn_batches as u128 * tcfg.batch.max(1) as u128;
+            let need = frames * (th * tw * std::mem::size_of::<f32>()) as u128;
+            if need > ALL_FRAMES_BYTES as u128 {
+                bail!(
+                    "--bn-batches {}: {frames} frames of {th}×{tw} pixels through {} need {} MiB \
+                     of network inputs, above the {} MiB kept; give fewer batches",
+                    a.bn_batches,
+                    run.display(),
+                    need >> 20,
+                    ALL_FRAMES_BYTES >> 20
+                );
+            }
+            Bn::Batches(tr.recalibration_inputs(a.bn_batches as usize)?)
         };
+        // The evaluation set through this lens once when it fits the same budget (the same
+        // images and noise for every subnet, bit for bit); else through the chain per subnet.
+        let kept = (ChainedSet::bytes_for(ds.len(), h, w) <= ALL_FRAMES_BYTES)
+            .then(|| ChainedSet::new(&chain, &ds, &map, p_hat, tcfg.batch, tcfg.seed))
+            .transpose()?;
+        let solves = [(
+            nanoeye_search::SolverInput::Predicted,
+            tcfg.solver,
+            tcfg.pupil_centre,
+        )];
         // Each subnet's score depends on the run and the subnet only (BN statistics and the
         // head are recomputed from scratch), so a resumed run gives the same points.
         for k in state.lenses[r].len()..archs.len() {
             let arch = &archs[k];
-            match &all {
-                Some(all) => {
+            match &bn {
+                Bn::Refit(all) => {
                     nanoeye_search::headfit::recalibrate_and_refit(&mut tr.net, arch, all)?;
                 }
-                None => tr.recalibrate(arch, 2)?,
+                Bn::Batches(inputs) => tr.net.recalibrate_bn(arch, inputs)?,
             }
-            let setup = nanoeye_search::EvalSetup {
-                chain: &chain,
-                data: &ds,
-                map: &map,
-                p_hat_m: p_hat,
-                arch,
-                batch: tcfg.batch,
-                seed: tcfg.seed,
+            let mut e = match &kept {
+                Some(set) => evaluate_chained(&mut tr.net, arch, set, &solves)?,
+                None => {
+                    let setup = nanoeye_search::EvalSetup {
+                        chain: &chain,
+                        data: &ds,
+                        map: &map,
+                        p_hat_m: p_hat,
+                        arch,
+                        batch: tcfg.batch,
+                        seed: tcfg.seed,
+                    };
+                    nanoeye_search::evaluate_frames_multi(&mut tr.net, &setup, &solves)?
+                }
             };
-            let e = nanoeye_search::train::evaluate_frames(
-                &mut tr.net,
-                &setup,
-                nanoeye_search::SolverInput::Predicted,
-                tcfg.solver,
-                tcfg.pupil_centre,
-            )?;
+            let e = e.remove(0);
             let errs = e.scored_errors_deg();
             if errs.is_empty() {
                 bail!("--dataset {}: no frames to score", a.dataset.display());
@@ -483,6 +521,15 @@ struct Key {
     archs: Vec<Arch>,
     /// Whether each subnet was scored with the head refit.
     head_refit: bool,
+    /// The BN batches without the head refit (absent in states written before the flag: 2,
+    /// its default, so they resume).
+    #[serde(default = "two_batches")]
+    bn_batches: u64,
+}
+
+/// `--bn-batches` before it was a flag.
+fn two_batches() -> u64 {
+    2
 }
 
 impl Key {
@@ -516,6 +563,7 @@ impl Key {
             ),
             archs: archs.to_vec(),
             head_refit: a.head_refit,
+            bn_batches: a.bn_batches,
         })
     }
 }
@@ -554,6 +602,7 @@ impl State {
                     "the subnets (--subnets, --seed or the first run's search)",
                 ),
                 ("head_refit", "--head-refit"),
+                ("bn_batches", "--bn-batches"),
             ]
             .into_iter()
             .filter(|(f, _)| old[f] != new[f])

@@ -689,18 +689,17 @@ fn sim_and_search_loss_name_their_bad_flags() {
         ("--state", "."),
         ("--state", "pareto.svg"),
         ("--bootstrap", "2000000"),
+        ("--bn-batches", "0"),
+        ("--bn-batches", "-1"),
+        ("--bn-batches", "two"),
     ] {
-        let args = [
-            "search",
-            "pareto",
-            "--runs",
-            "nope",
-            "--dataset",
-            "ds2",
-            flag,
-            value,
-        ];
-        refused(&args, flag, p);
+        let pareto = ["search", "pareto", "--runs", "nope", "--dataset", "ds2"];
+        refused(&[&pareto[..], &[flag, value]].concat(), flag, p);
+        // BN batches mean nothing with the refit (it takes every frame): refused, not ignored.
+        if flag == "--head-refit" {
+            let both = [&pareto[..], &[flag, "--bn-batches", "4"]].concat();
+            refused(&both, "--bn-batches", p);
+        }
     }
     // An empty run in a lens's `+` list or between commas: refused naming --runs.
     for runs in ["nope+,x", "x,,y", "+"] {

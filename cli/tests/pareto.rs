@@ -32,6 +32,16 @@ fn pareto_runs(p: &Path, runs: &str, subnets: &str, extra: &[&str]) -> std::proc
     nanoeye(&args, p)
 }
 
+/// The run's own chain (the flags it was trained with).
+const RUN_CHAIN: [&str; 4] = ["--aperture-step-um", "10", "--exposure-ms", "0.0004"];
+
+/// `subnets` subnets of `run` with its own chain and `extra`, refused: its stderr.
+fn pareto_refused(p: &Path, subnets: &str, extra: &[&str]) -> String {
+    let o = pareto_run(p, subnets, &[&RUN_CHAIN[..], extra].concat());
+    assert!(!o.status.success(), "{extra:?} was not refused");
+    String::from_utf8_lossy(&o.stderr).to_string()
+}
+
 /// Three subnets with the run's own chain; returns the printed JSON.
 fn pareto(p: &Path, extra: &[&str]) -> Value {
     pareto_of(p, "run", extra)
@@ -39,14 +49,7 @@ fn pareto(p: &Path, extra: &[&str]) -> Value {
 
 /// [`pareto`] on the runs `runs`.
 fn pareto_of(p: &Path, runs: &str, extra: &[&str]) -> Value {
-    let chain = [
-        "--aperture-step-um",
-        "10",
-        "--exposure-ms",
-        "0.0004",
-        "--json",
-    ];
-    let o = pareto_runs(p, runs, "3", &[&chain[..], extra].concat());
+    let o = pareto_runs(p, runs, "3", &[&RUN_CHAIN[..], &["--json"], extra].concat());
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     serde_json::from_slice(&o.stdout).expect("JSON")
 }
@@ -181,32 +184,14 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     let mut old = whole.clone();
     old.as_object_mut().unwrap().remove("frame_errors");
     std::fs::write(&sp, serde_json::to_vec(&old).unwrap()).unwrap();
-    let o = pareto_run(
-        p,
-        "3",
-        &[
-            "--aperture-step-um",
-            "10",
-            "--exposure-ms",
-            "0.0004",
-            "--plot",
-            "plain.svg",
-        ],
-    );
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
+    let err = pareto_refused(p, "3", &["--plot", "plain.svg"]);
     assert!(
         err.contains("per-frame errors") && err.contains("plain.state.json"),
         "{err}"
     );
     std::fs::write(&sp, serde_json::to_vec(&whole).unwrap()).unwrap();
     // Other inputs against that state: refused, naming what differs, the state kept.
-    let rerun = |subnets: &str| {
-        let chain = ["--aperture-step-um", "10", "--exposure-ms", "0.0004"];
-        let o = pareto_run(p, subnets, &[&chain[..], &["--plot", "plain.svg"]].concat());
-        assert!(!o.status.success());
-        String::from_utf8_lossy(&o.stderr).to_string()
-    };
+    let rerun = |subnets: &str| pareto_refused(p, subnets, &["--plot", "plain.svg"]);
     let before = std::fs::read(&sp).unwrap();
     let err = rerun("2");
     assert!(
@@ -221,6 +206,29 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
         err.contains("--state") && err.contains("plain.state.json"),
         "{err}"
     );
+
+    // A state written before `--bn-batches` (no `bn_batches` in its key) is one of 2
+    // batches: it resumes as that, the points as they were.
+    let mut older = whole.clone();
+    older["key"].as_object_mut().unwrap().remove("bn_batches");
+    std::fs::write(&sp, serde_json::to_vec(&older).unwrap()).unwrap();
+    assert_eq!(points(&pareto(p, &["--plot", "plain.svg"]), "points"), pts);
+    // BN over three batches (every frame of the set at batch 2): the same subnets and MACs,
+    // other V; refused against the two-batch state, naming the flag.
+    let three = pareto(p, &["--bn-batches", "3", "--plot", "three.svg"]);
+    let tp = points(&three, "points");
+    assert_eq!(
+        tp.iter().map(|q| q.0).collect::<Vec<_>>(),
+        pts.iter().map(|q| q.0).collect::<Vec<_>>()
+    );
+    assert_ne!(tp, pts, "BN over more frames changed no score");
+    let err = pareto_refused(p, "3", &["--bn-batches", "3", "--plot", "plain.svg"]);
+    assert!(err.contains("--bn-batches"), "{err}");
+    // More BN batches than the kept inputs' budget: refused naming the flag, no state left.
+    let huge = ["--bn-batches", "18446744073709551615", "--plot", "huge.svg"];
+    let err = pareto_refused(p, "3", &huge);
+    assert!(err.contains("--bn-batches") && err.contains("MiB"), "{err}");
+    assert!(!p.join("huge.state.json").exists());
 
     // The refit scores the same subnets (same MACs): the same
     // numbers on a second run, and other V than the trained head's.
@@ -247,13 +255,7 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
 
     // A truncated search state: refused naming it, not replaced by uniform draws.
     std::fs::write(p.join("run/rea_state.json"), "{\"evaluated\": [").unwrap();
-    let o = pareto_run(
-        p,
-        "1",
-        &["--aperture-step-um", "10", "--exposure-ms", "0.0004"],
-    );
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
+    let err = pareto_refused(p, "1", &[]);
     assert!(
         err.contains("--runs") && err.contains("rea_state.json"),
         "{err}"

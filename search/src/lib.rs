@@ -28,6 +28,6 @@ pub use rea::{CycleRecord, EvalPool, Evaluator, Individual, Rea, ReaConfig, ReaS
 pub use split::{DepthSplit, OneProcess};
 pub use task::{TaskLoss, task_loss};
 pub use train::{
-    Budget, EvalSetup, FrameEval, Metrics, SolverInput, StepRecord, TrainConfig, Trainer,
-    evaluate_frames, evaluate_frames_multi, evaluate_net, load_model,
+    Budget, ChainedSet, EvalSetup, FrameEval, Metrics, SolverInput, StepRecord, TrainConfig,
+    Trainer, evaluate_chained, evaluate_frames, evaluate_frames_multi, evaluate_net, load_model,
 };

@@ -1002,43 +1002,127 @@ pub fn evaluate_frames_multi(
     s: &EvalSetup,
     solves: &[(SolverInput, SolverKind, PupilCentre)],
 ) -> Result<Vec<FrameEval>> {
-    let &EvalSetup {
-        chain,
-        data: val,
-        map,
-        p_hat_m: p_hat,
-        arch,
-        batch,
-        seed,
-    } = s;
     if solves.is_empty() {
         return Err(param("solves", "need at least one solver input"));
     }
-    let rig0: &Rig = &val.manifest.rig;
     let mut out = vec![FrameEval::default(); solves.len()];
-    let ids: Vec<usize> = (0..val.len()).collect();
-    for chunk in ids.chunks(batch.max(1)) {
-        let frames = chain.load(val, chunk)?;
+    let ids: Vec<usize> = (0..s.data.len()).collect();
+    for chunk in ids.chunks(s.batch.max(1)) {
+        let b = ChainedBatch::new(s.chain, s.data, chunk, s.map, s.p_hat_m, s.seed)?;
+        b.score(net, s.arch, solves, &mut out)?;
+    }
+    Ok(out)
+}
+
+/// An evaluation set through the chain once, at one lens (φ, p̂) and noise seed, as
+/// [`evaluate_frames`] images it: network inputs, targets and records per batch, so that any
+/// number of subnets are scored on it ([`evaluate_chained`]) without reloading the frames,
+/// reimaging them or redrawing their noise.
+pub struct ChainedSet {
+    batches: Vec<ChainedBatch>,
+}
+
+/// One batch of a [`ChainedSet`]: what scoring a subnet on it needs.
+struct ChainedBatch {
+    /// Network input (N, 1, H, W) on the p̂ grid.
+    input: Tensor,
+    /// Visible-pupil coverage (N, 1, H, W).
+    mask: Tensor,
+    /// Slippage targets (N, 3, 1, 1), mm.
+    slip_mm: Tensor,
+    /// The rig with the camera at p̂.
+    rig: Rig,
+    /// Per frame, its record (state, gaze).
+    records: Vec<nanoeye_datagen::render::FrameRecord>,
+    /// Per frame, the slippage the network is trained to estimate (m, rig frame, f64).
+    slip_target_m: Vec<[f64; 3]>,
+}
+
+impl ChainedSet {
+    /// Every frame of `data` through `chain` at φ = `map`, p̂ = `p_hat_m` (m), in batches of
+    /// `batch`, sensor noise drawn from `seed` (the images [`evaluate_frames`] scores).
+    pub fn new(
+        chain: &CameraChain,
+        data: &Dataset,
+        map: &PhaseMap,
+        p_hat_m: f64,
+        batch: usize,
+        seed: u64,
+    ) -> Result<ChainedSet> {
+        let ids: Vec<usize> = (0..data.len()).collect();
+        let batches = ids
+            .chunks(batch.max(1))
+            .map(|chunk| ChainedBatch::new(chain, data, chunk, map, p_hat_m, seed))
+            .collect::<Result<_>>()?;
+        Ok(ChainedSet { batches })
+    }
+
+    /// Bytes a set of `frames` frames of `h`×`w` p̂ pixels holds (network inputs and masks,
+    /// f32): to decide before computing one whether it fits.
+    pub fn bytes_for(frames: usize, h: usize, w: usize) -> usize {
+        frames
+            .saturating_mul(h)
+            .saturating_mul(w)
+            .saturating_mul(2 * std::mem::size_of::<f32>())
+    }
+}
+
+impl ChainedBatch {
+    /// Frames `ids` of `data` through the chain, as [`evaluate_frames`] images them.
+    fn new(
+        chain: &CameraChain,
+        data: &Dataset,
+        ids: &[usize],
+        map: &PhaseMap,
+        p_hat_m: f64,
+        seed: u64,
+    ) -> Result<ChainedBatch> {
+        let frames = chain.load(data, ids)?;
         let psfs = chain.psfs(map, &chain.active(&frames))?;
         let fwd = chain.forward_with(
             &frames,
             &psfs,
-            p_hat,
+            p_hat_m,
             NoiseMode::Gaussian,
             seed ^ 0xBEEF,
             false,
         )?;
-        let o = net.forward(arch, &fwd.input, BnMode::Eval)?;
         let rig = Rig {
             camera: fwd.grid.camera.clone(),
-            ..rig0.clone()
+            ..data.manifest.rig.clone()
         };
+        // In f64 from the state (the tensor holds it in f32 for the loss).
+        let slip_target_m = frames
+            .iter()
+            .map(|f| chain.config().slip_target.of(&rig.camera, &f.record.state))
+            .collect();
+        Ok(ChainedBatch {
+            input: fwd.input,
+            mask: fwd.mask,
+            slip_mm: fwd.slip_mm,
+            rig,
+            records: frames.into_iter().map(|f| f.record).collect(),
+            slip_target_m,
+        })
+    }
+
+    /// Subnet `arch` (BN as it stands) on this batch, each frame solved as every triple of
+    /// `solves` says, appended to `out` (one [`FrameEval`] per triple).
+    fn score(
+        &self,
+        net: &mut Supernet,
+        arch: &Arch,
+        solves: &[(SolverInput, SolverKind, PupilCentre)],
+        out: &mut [FrameEval],
+    ) -> Result<()> {
+        let o = net.forward(arch, &self.input, BnMode::Eval)?;
+        let rig = &self.rig;
         let solvers = solves
             .iter()
-            .map(|&(_, k, _)| solver_for(&rig, k))
+            .map(|&(_, k, _)| solver_for(rig, k))
             .collect::<std::result::Result<Vec<_>, _>>()?;
-        let (h, w) = fwd.grid.shape();
-        for (b, f) in frames.iter().enumerate() {
+        let (h, w) = (self.input.h, self.input.w);
+        for (b, record) in self.records.iter().enumerate() {
             let one = |t: &Tensor, c: usize| Tensor {
                 n: 1,
                 c: t.c,
@@ -1046,7 +1130,7 @@ pub fn evaluate_frames_multi(
                 w: t.w,
                 data: t.data[b * c * t.h * t.w..(b + 1) * c * t.h * t.w].to_vec(),
             };
-            let target = one(&fwd.mask, 1);
+            let target = one(&self.mask, 1);
             let hard = Tensor {
                 data: target
                     .data
@@ -1056,17 +1140,16 @@ pub fn evaluate_frames_multi(
                 ..target
             };
             let dice = hard_dice(&one(&o.mask_logits, 1), &hard)?;
-            let slip_sq = slip_mse(&one(&o.slip, 3), &one(&fwd.slip_mm, 3))?.0;
+            let slip_sq = slip_mse(&one(&o.slip, 3), &one(&self.slip_mm, 3))?.0;
             // The network's soft mask as S9 defines it. Cutting it to its dominant blob
             // (gaze::centroid::dominant_blob) was measured to add failures (docs/gaze.md).
             let predicted = Mat::from_fn(h, w, |i, j| {
                 let l = o.mask_logits.image(b)[i * w + j];
                 1.0 / (1.0 + (-l).exp())
             });
-            let truth = Mat::from_fn(h, w, |i, j| fwd.mask.image(b)[i * w + j]);
+            let truth = Mat::from_fn(h, w, |i, j| self.mask.image(b)[i * w + j]);
             let net_slip_mm = [0, 1, 2].map(|a| o.slip.data[b * 3 + a] as f64);
-            // In f64 from the state (the tensor holds it in f32 for the loss).
-            let target_m = chain.config().slip_target.of(&rig.camera, &f.record.state);
+            let target_m = self.slip_target_m[b];
             let true_slip_mm = target_m.map(|v| v * 1e3);
             for ((&(input, _, centre), solver), e) in
                 solves.iter().zip(&solvers).zip(out.iter_mut())
@@ -1085,7 +1168,7 @@ pub fn evaluate_frames_multi(
                     SolverInput::NoSlip => [0.0; 3],
                     SolverInput::Truth | SolverInput::PredictedMaskTrueSlip => target_m,
                     SolverInput::TruthEyeEquivalent => {
-                        let st = &f.record.state;
+                        let st = &record.state;
                         rig.camera.eye_equivalent_slip(st.slip_m, st.cam_rot_rad)
                     }
                     SolverInput::Predicted | SolverInput::TrueMaskPredictedSlip => {
@@ -1095,12 +1178,30 @@ pub fn evaluate_frames_multi(
                 let sol = solver.solve_mask_with(probs.as_ref(), slip, centre).ok();
                 e.errors_deg.push(
                     sol.as_ref()
-                        .map(|s| angular_error(s.gaze, f.record.gaze).to_degrees()),
+                        .map(|s| angular_error(s.gaze, record.gaze).to_degrees()),
                 );
                 e.fallback.push(sol.is_some_and(|s| s.fallback));
                 e.gaze.push(sol.map(|s| s.gaze));
             }
         }
+        Ok(())
+    }
+}
+
+/// [`evaluate_frames_multi`] on a set already through the chain: the same per-frame results,
+/// bit for bit, as scoring `arch` (BN as it stands) on the set's data, lens and seed.
+pub fn evaluate_chained(
+    net: &mut Supernet,
+    arch: &Arch,
+    set: &ChainedSet,
+    solves: &[(SolverInput, SolverKind, PupilCentre)],
+) -> Result<Vec<FrameEval>> {
+    if solves.is_empty() {
+        return Err(param("solves", "need at least one solver input"));
+    }
+    let mut out = vec![FrameEval::default(); solves.len()];
+    for b in &set.batches {
+        b.score(net, arch, solves, &mut out)?;
     }
     Ok(out)
 }

@@ -95,6 +95,66 @@ fn sandwich_training_lowers_both_losses_and_moves_the_optics() {
 }
 
 #[test]
+fn a_set_through_the_chain_once_scores_every_subnet_as_the_chain_pass_does() {
+    use nanoeye_gaze::{PupilCentre, SolverKind};
+    use nanoeye_search::{ChainedSet, EvalSetup, SolverInput, evaluate_chained};
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 5);
+    let c = chain(&ds);
+    let mut t = Trainer::new(&c, &ds, cfg(2), phase0(&c)).unwrap();
+    for _ in 0..2 {
+        t.train_step().unwrap();
+    }
+    let map = t.phase_map().unwrap();
+    let p_hat = t.pitch_um * 1e-6;
+    // Two frames per batch over three frames: a full batch and a partial one.
+    let set = ChainedSet::new(&c, &ds, &map, p_hat, 2, 11).unwrap();
+    let solves = [
+        (
+            SolverInput::Predicted,
+            SolverKind::Refractive,
+            PupilCentre::Centroid,
+        ),
+        (
+            SolverInput::Truth,
+            SolverKind::Refractive,
+            PupilCentre::Centroid,
+        ),
+        (
+            SolverInput::NoSlip,
+            SolverKind::Refractive,
+            PupilCentre::Centroid,
+        ),
+    ];
+    let (h, w) = c.native().at(p_hat).unwrap().shape();
+    assert_eq!(ChainedSet::bytes_for(3, h, w), 3 * h * w * 8);
+    assert_eq!(ChainedSet::bytes_for(usize::MAX, h, w), usize::MAX);
+    for arch in [Arch::max(), Arch::min()] {
+        t.recalibrate(&arch, 1).unwrap();
+        let s = EvalSetup {
+            chain: &c,
+            data: &ds,
+            map: &map,
+            p_hat_m: p_hat,
+            arch: &arch,
+            batch: 2,
+            seed: 11,
+        };
+        let direct = nanoeye_search::evaluate_frames_multi(&mut t.net, &s, &solves).unwrap();
+        let kept = evaluate_chained(&mut t.net, &arch, &set, &solves).unwrap();
+        assert_eq!(direct[0].errors_deg.len(), 3);
+        // Debug prints every f64 exactly (shortest round trip): equal text, equal bits.
+        assert_eq!(format!("{direct:?}"), format!("{kept:?}"));
+    }
+    // Another noise seed is another set: the kept one is tied to its seed.
+    let other = ChainedSet::new(&c, &ds, &map, p_hat, 2, 12).unwrap();
+    let arch = Arch::max();
+    let a = evaluate_chained(&mut t.net, &arch, &set, &solves[..1]).unwrap();
+    let b = evaluate_chained(&mut t.net, &arch, &other, &solves[..1]).unwrap();
+    assert_ne!(format!("{:?}", a[0].slip_mm), format!("{:?}", b[0].slip_mm));
+}
+
+#[test]
 fn a_killed_run_resumes_to_the_same_bits_and_other_parameters_are_refused() {
     let d = tempfile::tempdir().unwrap();
     let ds = dataset(d.path(), 4);
