@@ -409,6 +409,10 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         })).collect::<Vec<_>>(),
         "dominates": dom,
         "subnets": archs.len(),
+        // How each subnet's BN statistics were taken (null batches: every frame, with the
+        // head refit).
+        "head_refit": a.head_refit,
+        "bn_batches": (!a.head_refit).then_some(a.bn_batches),
         "plot": a.plot.display().to_string(),
         "seconds": t0.elapsed().as_secs_f64(),
     });

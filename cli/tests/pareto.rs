@@ -218,6 +218,14 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     let three = pareto(p, &["--bn-batches", "3", "--plot", "three.svg"]);
     let tp = points(&three, "points");
     assert_eq!(
+        (
+            &three["bn_batches"],
+            &plain["bn_batches"],
+            &three["head_refit"]
+        ),
+        (&Value::from(3), &Value::from(2), &Value::from(false))
+    );
+    assert_eq!(
         tp.iter().map(|q| q.0).collect::<Vec<_>>(),
         pts.iter().map(|q| q.0).collect::<Vec<_>>()
     );
@@ -234,6 +242,10 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     // numbers on a second run, and other V than the trained head's.
     let refit = pareto(p, &["--head-refit", "--plot", "refit.svg"]);
     let rp = points(&refit, "points");
+    assert_eq!(
+        (&refit["bn_batches"], &refit["head_refit"]),
+        (&Value::Null, &Value::from(true))
+    );
     assert_eq!(
         rp,
         points(
