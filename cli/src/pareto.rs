@@ -57,6 +57,12 @@ pub struct ParetoArgs {
     /// refused (default: the plot's path with the extension `state.json`).
     #[arg(long)]
     state: Option<PathBuf>,
+    /// States of earlier `search pareto` runs (repeatable) whose complete runs are taken as
+    /// scored instead of scoring them again: a run with the same checkpoint (size and digest),
+    /// scored on the same evaluation and BN sets, chain, subnets and BN setting; a state
+    /// scored from other inputs is refused, naming them.
+    #[arg(long)]
+    reuse: Vec<PathBuf>,
     /// Resamples of the paired bootstrap over the evaluation set (each lens's median V and the
     /// fronts' dominance recomputed on its items drawn with replacement, an item's frames
     /// together, seed 0); 0: none.
@@ -221,8 +227,25 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         },
         Err(e) => return Err(e).with_context(|| format!("--state {}", state_path.display())),
     };
+    let reused = reusable(&a.reuse, &state.key)?;
     for (r, run) in runs.iter().enumerate() {
         if state.lenses.get(r).is_some_and(|p| p.len() == archs.len()) {
+            continue;
+        }
+        let (_, bytes, digest) = &state.key.runs[r];
+        if let Some((points, errors, from)) = reused.get(&(*bytes, digest.clone())) {
+            state.lenses.truncate(r);
+            state.frame_errors.truncate(r);
+            state.lenses.push(points.clone());
+            state.frame_errors.push(errors.clone());
+            util::write_atomic(&state_path, &serde_json::to_vec(&state)?)
+                .with_context(|| format!("--state {}", state_path.display()))?;
+            eprintln!(
+                "{}: {} subnets taken from --reuse {}",
+                run.display(),
+                points.len(),
+                from.display()
+            );
             continue;
         }
         if state.lenses.len() == r {
@@ -537,6 +560,27 @@ fn two_batches() -> u64 {
 }
 
 impl Key {
+    /// The flags whose inputs differ between `self` and `other` (with `runs`, the runs too).
+    fn differences(&self, other: &Key, runs: bool) -> Result<Vec<&'static str>> {
+        let (old, new) = (serde_json::to_value(self)?, serde_json::to_value(other)?);
+        Ok([
+            ("runs", "--runs (or a run's checkpoint)"),
+            ("dataset", "--dataset"),
+            ("train", "--train"),
+            ("camera", "the chain flags"),
+            (
+                "archs",
+                "the subnets (--subnets, --seed or the first run's search)",
+            ),
+            ("head_refit", "--head-refit"),
+            ("bn_batches", "--bn-batches"),
+        ]
+        .into_iter()
+        .filter(|&(f, _)| (runs || f != "runs") && old[f] != new[f])
+        .map(|(_, flag)| flag)
+        .collect())
+    }
+
     fn new(a: &ParetoArgs, runs: &[PathBuf], archs: &[Arch]) -> Result<Key> {
         let data = |flag: &str, dir: &Path| -> Result<(String, String)> {
             let mut d = util::Digest::default();
@@ -572,6 +616,40 @@ impl Key {
     }
 }
 
+/// A run's points and per-frame errors, and the state they come from.
+type Scored = (Vec<Point>, Vec<Vec<f64>>, PathBuf);
+
+/// The complete runs of the `--reuse` states, by checkpoint (size, digest); a state scored
+/// from other inputs than `key` (runs aside) is refused, naming them.
+fn reusable(
+    paths: &[PathBuf],
+    key: &Key,
+) -> Result<std::collections::HashMap<(u64, String), Scored>> {
+    let mut out = std::collections::HashMap::new();
+    for p in paths {
+        let bytes = std::fs::read(p).with_context(|| format!("--reuse {}", p.display()))?;
+        let st: State = serde_json::from_slice(&bytes)
+            .with_context(|| format!("--reuse {}: not a `search pareto` state", p.display()))?;
+        let differ = st.key.differences(key, false)?;
+        if !differ.is_empty() {
+            bail!(
+                "--reuse {} was scored from other inputs ({} differ); reuse a state of the same \
+                 inputs, or leave it out",
+                p.display(),
+                differ.join(", ")
+            );
+        }
+        let n = key.archs.len();
+        for ((run, points), errors) in st.key.runs.iter().zip(&st.lenses).zip(&st.frame_errors) {
+            if points.len() == n && errors.len() == n {
+                out.entry((run.1, run.2.clone()))
+                    .or_insert_with(|| (points.clone(), errors.clone(), p.clone()));
+            }
+        }
+    }
+    Ok(out)
+}
+
 /// A `search pareto` run's state file (docs/formats.md): the key and the points per run so
 /// far, in the order of `--runs` (the last one may be partial).
 #[derive(Debug, Serialize, Deserialize)]
@@ -595,23 +673,7 @@ impl State {
             )
         })?;
         if &st.key != key {
-            let (old, new) = (serde_json::to_value(&st.key)?, serde_json::to_value(key)?);
-            let differ: Vec<&str> = [
-                ("runs", "--runs (or a run's checkpoint)"),
-                ("dataset", "--dataset"),
-                ("train", "--train"),
-                ("camera", "the chain flags"),
-                (
-                    "archs",
-                    "the subnets (--subnets, --seed or the first run's search)",
-                ),
-                ("head_refit", "--head-refit"),
-                ("bn_batches", "--bn-batches"),
-            ]
-            .into_iter()
-            .filter(|(f, _)| old[f] != new[f])
-            .map(|(_, flag)| flag)
-            .collect();
+            let differ = st.key.differences(key, true)?;
             bail!(
                 "--state {} holds points scored from other inputs ({} differ); rerun with the \
                  same inputs, give another --state, or delete it",

@@ -167,6 +167,65 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
         serde_json::json!([0.0, 0.0])
     );
     assert_eq!(plain["lenses"][0]["runs"], serde_json::json!(["run"]));
+    // `--reuse`: a run scored in another state with the same inputs is taken from it, not
+    // scored again. A copy of the plain state with its first subnet's errors set to 1°
+    // gives that subnet V = 1 exactly in the averaged lens (its own score is other).
+    let mut doctored: Value =
+        serde_json::from_slice(&std::fs::read(p.join("plain.state.json")).unwrap()).unwrap();
+    assert_ne!(doctored["lenses"][0][0]["v_deg"], Value::from(1.0));
+    doctored["lenses"][0][0]["v_deg"] = 1.0.into();
+    doctored["frame_errors"][0][0] = Value::from(vec![1.0; 6]);
+    std::fs::write(
+        p.join("doctored.json"),
+        serde_json::to_vec(&doctored).unwrap(),
+    )
+    .unwrap();
+    let reused = pareto_of(
+        p,
+        "run+run,run+run",
+        &[
+            "--plot",
+            "reused.svg",
+            "--reuse",
+            "doctored.json",
+            "--bootstrap",
+            "0",
+        ],
+    );
+    let rp = points(&reused, "points");
+    assert_eq!(rp[0], (pts[0].0, 1.0));
+    assert_eq!(rp[1..], pts[1..]);
+    // A state of other inputs (BN over three batches), or none: refused naming --reuse.
+    let three_state = p.join("three.state.json");
+    assert!(!three_state.exists());
+    let o = pareto_run(
+        p,
+        "3",
+        &[
+            &RUN_CHAIN[..],
+            &[
+                "--bn-batches",
+                "3",
+                "--plot",
+                "three.svg",
+                "--reuse",
+                "doctored.json",
+            ],
+        ]
+        .concat(),
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--reuse") && err.contains("--bn-batches"),
+        "{err}"
+    );
+    assert!(!three_state.exists(), "nothing scored before the refusal");
+    let err = pareto_refused(p, "3", &["--plot", "x.svg", "--reuse", "nope.json"]);
+    assert!(
+        err.contains("--reuse") && err.contains("nope.json"),
+        "{err}"
+    );
     assert!(plain.get("seed_differences").is_none());
 
     // The state beside the plot holds the points; cut back to the first one (a run killed
