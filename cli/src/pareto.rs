@@ -8,6 +8,7 @@ use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::Arch;
 use nanoeye_search::pareto::{
     Interval, LensFrames, Point, average_runs, bootstrap, dominates, front, seed_differences,
+    seed_interval,
 };
 use nanoeye_search::train::ALL_FRAMES_BYTES;
 use nanoeye_search::{ChainedSet, Trainer, evaluate_chained};
@@ -380,6 +381,7 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     // With several seeds per lens, the lenses' paired differences seed by seed: how far the
     // training's randomness moves what the average says.
     let mut seed_diff = serde_json::Map::new();
+    let mut seed_int = serde_json::Map::new();
     if groups.iter().all(|g| g.len() > 1) {
         for (i, na) in names.iter().enumerate() {
             for (j, nb) in names.iter().enumerate() {
@@ -387,6 +389,14 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
                     .then(|| seed_differences(by_lens[i], by_lens[j]))
                     .flatten()
                 {
+                    if let Some(t) = seed_interval(&d) {
+                        seed_int.insert(
+                            format!("{na} - {nb}"),
+                            serde_json::json!({
+                                "value": t.value, "lo": t.lo, "hi": t.hi, "seeds": d.len(),
+                            }),
+                        );
+                    }
                     seed_diff.insert(format!("{na} - {nb}"), d.into());
                 }
             }
@@ -444,6 +454,7 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     }
     if !seed_diff.is_empty() {
         out["seed_differences"] = seed_diff.clone().into();
+        out["seed_intervals"] = seed_int.clone().into();
     }
     if a.json {
         println!("{out}");
@@ -491,8 +502,19 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
                 .filter_map(|v| v.as_f64())
                 .map(|v| format!("{v:+.2}°"))
                 .collect();
+            let t = seed_int
+                .get(k)
+                .map(|t| {
+                    format!(
+                        "; mean {:+.2}°, Student's t 90 % [{:+.2}, {:+.2}]",
+                        t["value"].as_f64().unwrap_or(f64::NAN),
+                        t["lo"].as_f64().unwrap_or(f64::NAN),
+                        t["hi"].as_f64().unwrap_or(f64::NAN)
+                    )
+                })
+                .unwrap_or_default();
             println!(
-                "mean of V({}) seed by seed: {}",
+                "mean of V({}) seed by seed: {}{t}",
                 k.replace(" - ", ") − V("),
                 d.join(", ")
             );

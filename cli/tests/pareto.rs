@@ -166,7 +166,12 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
         seeds["seed_differences"]["run+run - run+run"],
         serde_json::json!([0.0, 0.0])
     );
+    assert_eq!(
+        seeds["seed_intervals"]["run+run - run+run"],
+        serde_json::json!({"value": 0.0, "lo": 0.0, "hi": 0.0, "seeds": 2})
+    );
     assert_eq!(plain["lenses"][0]["runs"], serde_json::json!(["run"]));
+    assert!(plain.get("seed_intervals").is_none());
     // `--reuse`: a run scored in another state with the same inputs is taken from it, not
     // scored again. A copy of the plain state with its first subnet's errors set to 1°
     // gives that subnet V = 1 exactly in the averaged lens (its own score is other).

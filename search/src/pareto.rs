@@ -149,6 +149,28 @@ pub fn seed_differences(a: &[LensFrames], b: &[LensFrames]) -> Option<Vec<f64>> 
         .collect()
 }
 
+/// The mean of `d` (one value per training seed, degrees) with its Student's t central 90 %
+/// interval, mean ± t₀.₉₅,ₙ₋₁·s/√n with s the sample standard deviation: how far the seeds
+/// place the mean. None for fewer than two values or a value not finite.
+pub fn seed_interval(d: &[f64]) -> Option<Interval> {
+    use statrs::distribution::{ContinuousCDF, StudentsT};
+    let n = d.len();
+    if n < 2 || d.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    let mean = d.iter().sum::<f64>() / n as f64;
+    let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    let t = StudentsT::new(0.0, 1.0, (n - 1) as f64)
+        .ok()?
+        .inverse_cdf(0.95);
+    let half = t * (var / n as f64).sqrt();
+    Some(Interval {
+        value: mean,
+        lo: mean - half,
+        hi: mean + half,
+    })
+}
+
 /// An estimate with its central 90 % bootstrap interval (degrees).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Interval {
@@ -456,6 +478,29 @@ mod tests {
 
     /// Averaging runs is linear: each subnet's V is the mean of the runs' V, the MACs their
     /// rounded mean; one run is itself; runs with other subnets or frames are refused.
+    #[test]
+    fn seed_intervals_are_students_t_from_the_tables() {
+        // t₀.₉₅ with 2 and 1 degrees of freedom: 2.919986 and 6.313752 (standard tables).
+        let i = seed_interval(&[-1.0, 0.0, 1.0]).unwrap();
+        let half = 2.919986 / 3f64.sqrt();
+        assert!(
+            i.value.abs() < 1e-15 && (i.hi - half).abs() < 1e-6 && (i.lo + half).abs() < 1e-6,
+            "{i:?}"
+        );
+        let i = seed_interval(&[0.0, 2.0]).unwrap();
+        assert!(
+            (i.value - 1.0).abs() < 1e-15 && (i.hi - 1.0 - 6.313752).abs() < 1e-6,
+            "{i:?}"
+        );
+        assert!((i.value - i.lo - (i.hi - i.value)).abs() < 1e-12);
+        // Equal seeds: no spread, the interval is the point.
+        let i = seed_interval(&[0.5; 4]).unwrap();
+        assert_eq!((i.lo, i.value, i.hi), (0.5, 0.5, 0.5));
+        assert!(seed_interval(&[1.0]).is_none());
+        assert!(seed_interval(&[]).is_none());
+        assert!(seed_interval(&[1.0, f64::NAN]).is_none());
+    }
+
     #[test]
     fn averaged_runs_have_the_mean_of_their_v() {
         let a = lens(&[100, 200, 301], pattern(5, 0.0));
