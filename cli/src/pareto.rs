@@ -45,11 +45,16 @@ pub struct ParetoArgs {
     /// solved on them (docs/run.md); without it, BN from `--bn-batches` and the trained head.
     #[arg(long)]
     head_refit: bool,
-    /// Batches of the BN set (of the run's training batch size, in its training order) each
-    /// subnet's BN statistics are computed over, without `--head-refit`.
-    #[arg(long, default_value_t = 2, conflicts_with = "head_refit", allow_negative_numbers = true,
-          value_parser = clap::value_parser!(u64).range(1..))]
-    bn_batches: u64,
+    /// What each subnet's BN statistics are computed over, without `--head-refit`: `all`,
+    /// every frame of the BN set (in its order, in batches of the run's training batch size),
+    /// or N batches of it in the run's training order (2 was the fixed count before the flag).
+    #[arg(
+        long,
+        default_value = "all",
+        conflicts_with = "head_refit",
+        allow_negative_numbers = true
+    )]
+    bn_batches: BnBatches,
     /// Plot file (SVG).
     #[arg(long, default_value = "pareto.svg")]
     plot: PathBuf,
@@ -72,6 +77,32 @@ pub struct ParetoArgs {
     /// Print JSON.
     #[arg(long)]
     json: bool,
+}
+
+/// `--bn-batches`: every frame of the BN set (`None`), or this many batches of it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct BnBatches(Option<u64>);
+
+impl std::str::FromStr for BnBatches {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "all" => Ok(BnBatches(None)),
+            _ => match s.parse::<u64>() {
+                Ok(n) if n >= 1 => Ok(BnBatches(Some(n))),
+                _ => Err(format!("`{s}` is neither `all` nor a count of batches ≥ 1")),
+            },
+        }
+    }
+}
+
+impl std::fmt::Display for BnBatches {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.0 {
+            None => write!(f, "all"),
+            Some(n) => write!(f, "{n}"),
+        }
+    }
 }
 
 /// Where a run's subnets take their BN statistics from, computed once per run.
@@ -270,9 +301,9 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         // the same images in every subnet's recalibration, so computed once per run.
         let bn = if a.head_refit {
             Bn::Refit(tr.all_frames()?)
-        } else {
+        } else if let BnBatches(Some(n)) = a.bn_batches {
             let (th, tw) = tchain.native().at(p_hat)?.shape();
-            let frames = a.bn_batches as u128 * tcfg.batch.max(1) as u128;
+            let frames = n as u128 * tcfg.batch.max(1) as u128;
             let need = frames * (th * tw * std::mem::size_of::<f32>()) as u128;
             if need > ALL_FRAMES_BYTES as u128 {
                 bail!(
@@ -284,7 +315,20 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
                     ALL_FRAMES_BYTES >> 20
                 );
             }
-            Bn::Batches(tr.recalibration_inputs(a.bn_batches as usize)?)
+            Bn::Batches(tr.recalibration_inputs(n as usize)?)
+        } else {
+            let all = tr.all_frames()?.inputs;
+            let n: usize = all.iter().map(|t| t.n).sum();
+            if n < train.len() {
+                eprintln!(
+                    "{}: BN over the first {n} of the BN set's {} frames (the {} MiB of network \
+                     inputs kept)",
+                    run.display(),
+                    train.len(),
+                    ALL_FRAMES_BYTES >> 20
+                );
+            }
+            Bn::Batches(all)
         };
         // The evaluation set through this lens once when it fits the same budget (the same
         // images and noise for every subnet, bit for bit); else through the chain per subnet.
@@ -445,7 +489,10 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         // How each subnet's BN statistics were taken (null batches: every frame, with the
         // head refit).
         "head_refit": a.head_refit,
-        "bn_batches": (!a.head_refit).then_some(a.bn_batches),
+        "bn_batches": (!a.head_refit).then(|| match a.bn_batches.0 {
+            None => serde_json::json!("all"),
+            Some(n) => serde_json::json!(n),
+        }),
         "plot": a.plot.display().to_string(),
         "seconds": t0.elapsed().as_secs_f64(),
     });
@@ -570,15 +617,15 @@ struct Key {
     archs: Vec<Arch>,
     /// Whether each subnet was scored with the head refit.
     head_refit: bool,
-    /// The BN batches without the head refit (absent in states written before the flag: 2,
-    /// its default, so they resume).
+    /// The BN batches without the head refit, null for every frame (absent in states
+    /// written before the flag: 2, the count then fixed, so they resume with `--bn-batches 2`).
     #[serde(default = "two_batches")]
-    bn_batches: u64,
+    bn_batches: Option<u64>,
 }
 
 /// `--bn-batches` before it was a flag.
-fn two_batches() -> u64 {
-    2
+fn two_batches() -> Option<u64> {
+    Some(2)
 }
 
 impl Key {
@@ -633,7 +680,7 @@ impl Key {
             ),
             archs: archs.to_vec(),
             head_refit: a.head_refit,
-            bn_batches: a.bn_batches,
+            bn_batches: a.bn_batches.0,
         })
     }
 }

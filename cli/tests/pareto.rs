@@ -200,7 +200,7 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     let rp = points(&reused, "points");
     assert_eq!(rp[0], (pts[0].0, 1.0));
     assert_eq!(rp[1..], pts[1..]);
-    // A state of other inputs (BN over three batches), or none: refused naming --reuse.
+    // A state of other inputs (BN over two batches), or none: refused naming --reuse.
     let three_state = p.join("three.state.json");
     assert!(!three_state.exists());
     let o = pareto_run(
@@ -271,30 +271,32 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
         "{err}"
     );
 
-    // A state written before `--bn-batches` (no `bn_batches` in its key) is one of 2
-    // batches: it resumes as that, the points as they were.
-    let mut older = whole.clone();
-    older["key"].as_object_mut().unwrap().remove("bn_batches");
-    std::fs::write(&sp, serde_json::to_vec(&older).unwrap()).unwrap();
-    assert_eq!(points(&pareto(p, &["--plot", "plain.svg"]), "points"), pts);
-    // BN over three batches (every frame of the set at batch 2): the same subnets and MACs,
-    // other V; refused against the two-batch state, naming the flag.
-    let three = pareto(p, &["--bn-batches", "3", "--plot", "three.svg"]);
-    let tp = points(&three, "points");
+    // BN over two batches (four of the six frames) instead of every frame (the default): the
+    // same subnets and MACs, other V; refused against the every-frame state, naming the flag.
+    let two = pareto(p, &["--bn-batches", "2", "--plot", "two.svg"]);
+    let tp = points(&two, "points");
     assert_eq!(
-        (
-            &three["bn_batches"],
-            &plain["bn_batches"],
-            &three["head_refit"]
-        ),
-        (&Value::from(3), &Value::from(2), &Value::from(false))
+        (&two["bn_batches"], &plain["bn_batches"], &two["head_refit"]),
+        (&Value::from(2), &Value::from("all"), &Value::from(false))
     );
     assert_eq!(
         tp.iter().map(|q| q.0).collect::<Vec<_>>(),
         pts.iter().map(|q| q.0).collect::<Vec<_>>()
     );
-    assert_ne!(tp, pts, "BN over more frames changed no score");
-    let err = pareto_refused(p, "3", &["--bn-batches", "3", "--plot", "plain.svg"]);
+    assert_ne!(tp, pts, "BN over fewer frames changed no score");
+    std::fs::write(&sp, serde_json::to_vec(&whole).unwrap()).unwrap();
+    let err = pareto_refused(p, "3", &["--bn-batches", "2", "--plot", "plain.svg"]);
+    assert!(err.contains("--bn-batches"), "{err}");
+    // A state written before `--bn-batches` (no `bn_batches` in its key) is one of 2
+    // batches, the count then fixed: it resumes with `--bn-batches 2`, its points as they
+    // were, and is refused under the new default, naming the flag.
+    let tsp = p.join("two.state.json");
+    let mut older: Value = serde_json::from_slice(&std::fs::read(&tsp).unwrap()).unwrap();
+    older["key"].as_object_mut().unwrap().remove("bn_batches");
+    std::fs::write(&tsp, serde_json::to_vec(&older).unwrap()).unwrap();
+    let again = pareto(p, &["--bn-batches", "2", "--plot", "two.svg"]);
+    assert_eq!(points(&again, "points"), tp);
+    let err = pareto_refused(p, "3", &["--plot", "two.svg"]);
     assert!(err.contains("--bn-batches"), "{err}");
     // More BN batches than the kept inputs' budget: refused naming the flag, no state left.
     let huge = ["--bn-batches", "18446744073709551615", "--plot", "huge.svg"];
