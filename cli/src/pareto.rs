@@ -6,6 +6,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::Arch;
+use nanoeye_search::BnBatches;
 use nanoeye_search::pareto::{
     Interval, LensFrames, Point, average_runs, bootstrap, dominates, front, seed_differences,
     seed_interval,
@@ -77,32 +78,6 @@ pub struct ParetoArgs {
     /// Print JSON.
     #[arg(long)]
     json: bool,
-}
-
-/// `--bn-batches`: every frame of the BN set (`None`), or this many batches of it.
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct BnBatches(Option<u64>);
-
-impl std::str::FromStr for BnBatches {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "all" => Ok(BnBatches(None)),
-            _ => match s.parse::<u64>() {
-                Ok(n) if n >= 1 => Ok(BnBatches(Some(n))),
-                _ => Err(format!("`{s}` is neither `all` nor a count of batches ≥ 1")),
-            },
-        }
-    }
-}
-
-impl std::fmt::Display for BnBatches {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self.0 {
-            None => write!(f, "all"),
-            Some(n) => write!(f, "{n}"),
-        }
-    }
 }
 
 /// Where a run's subnets take their BN statistics from, computed once per run.
@@ -301,21 +276,12 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         // the same images in every subnet's recalibration, so computed once per run.
         let bn = if a.head_refit {
             Bn::Refit(tr.all_frames()?)
-        } else if let BnBatches(Some(n)) = a.bn_batches {
-            let (th, tw) = tchain.native().at(p_hat)?.shape();
-            let frames = n as u128 * tcfg.batch.max(1) as u128;
-            let need = frames * (th * tw * std::mem::size_of::<f32>()) as u128;
-            if need > ALL_FRAMES_BYTES as u128 {
-                bail!(
-                    "--bn-batches {}: {frames} frames of {th}×{tw} pixels through {} need {} MiB \
-                     of network inputs, above the {} MiB kept; give fewer batches",
-                    a.bn_batches,
-                    run.display(),
-                    need >> 20,
-                    ALL_FRAMES_BYTES >> 20
-                );
-            }
-            Bn::Batches(tr.recalibration_inputs(n as usize)?)
+        } else if let BnBatches::Count(n) = a.bn_batches {
+            let shape = tchain.native().at(p_hat)?.shape();
+            a.bn_batches
+                .check_fits(tcfg.batch, shape)
+                .map_err(|e| anyhow::anyhow!("--bn-batches, through {}: {e}", run.display()))?;
+            Bn::Batches(tr.recalibration_inputs(n)?)
         } else {
             let all = tr.all_frames()?.inputs;
             let n: usize = all.iter().map(|t| t.n).sum();
@@ -489,10 +455,7 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         // How each subnet's BN statistics were taken (null batches: every frame, with the
         // head refit).
         "head_refit": a.head_refit,
-        "bn_batches": (!a.head_refit).then(|| match a.bn_batches.0 {
-            None => serde_json::json!("all"),
-            Some(n) => serde_json::json!(n),
-        }),
+        "bn_batches": (!a.head_refit).then_some(a.bn_batches),
         "plot": a.plot.display().to_string(),
         "seconds": t0.elapsed().as_secs_f64(),
     });
@@ -680,7 +643,10 @@ impl Key {
             ),
             archs: archs.to_vec(),
             head_refit: a.head_refit,
-            bn_batches: a.bn_batches.0,
+            bn_batches: match a.bn_batches {
+                BnBatches::All => None,
+                BnBatches::Count(n) => Some(n as u64),
+            },
         })
     }
 }

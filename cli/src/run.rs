@@ -17,8 +17,8 @@ use nanoeye_datagen::render::{
 use nanoeye_gaze::{PupilCentre, Rig, SolverKind};
 use nanoeye_nets::Arch;
 use nanoeye_search::{
-    CameraChain, ChainConfig, LensSpec, Rea, ReaConfig, ReaState, SlipTarget, SolverInput,
-    TrainConfig, Trainer,
+    BnBatches, CameraChain, ChainConfig, LensSpec, Rea, ReaConfig, ReaState, SlipTarget,
+    SolverInput, TrainConfig, Trainer,
 };
 use serde::{Deserialize, Serialize};
 use std::io::IsTerminal;
@@ -139,6 +139,10 @@ pub struct RunConfig {
     /// Score the REA's candidates as the protocol stage deploys the pick (BN statistics over
     /// every training frame, head refit); off by default (docs/run.md).
     pub rea_head_refit: bool,
+    /// What each REA candidate's BN statistics are computed over before its V, without
+    /// `rea_head_refit`: a count of training batches (Table S1's search: 2) or "all", every
+    /// training frame once (docs/run.md).
+    pub rea_bn_batches: BnBatches,
     /// Start each REA candidate's fine-tune, and the final one behind each lens, at the
     /// smallest p̂ of `pitch_range_um` at which the subnet fits `budget_macs` (docs/run.md).
     pub rea_fit_pitch: bool,
@@ -194,6 +198,7 @@ impl Default for RunConfig {
             slip_target: SlipTarget::Translation,
             slip_head_refit: true,
             rea_head_refit: false,
+            rea_bn_batches: BnBatches::Count(2),
             // Without it the hinge alone moves p̂ by about 0.0125 µm a step in the final 40
             // (Adam, 0.25 × 0.05 µm), and the job's pick cost 83–160 M MACs against the 40 M
             // budget on three of four seeds (docs/run.md, twenty-fifth session).
@@ -309,15 +314,14 @@ fn check(cfg: &RunConfig) -> Result<()> {
         ["--config: fisher_iterations", "--config: fisher_photons"],
     )?;
     // Everything a later stage would refuse is refused here, before any work or output.
-    let native = nanoeye_datagen::render::dataset::rig_at_size(
+    let camera = nanoeye_datagen::render::dataset::rig_at_size(
         &cfg.rig.clone().unwrap_or_default(),
         cfg.width_px,
         cfg.height_px,
     )
     .context("--config: width_px/height_px")?
-    .camera
-    .pixel_pitch_m
-        * 1e6;
+    .camera;
+    let native = camera.pixel_pitch_m * 1e6;
     if cfg.pitch_range_um[0] < native * (1.0 - 1e-9) {
         bail!(
             "--config: pitch_range_um starts at {} µm, finer than the {native:.3} µm pixels of a \
@@ -330,6 +334,14 @@ fn check(cfg: &RunConfig) -> Result<()> {
     train_config(cfg, false)
         .validate()
         .context("--config (training)")?;
+    // The REA's network inputs are largest at the finest p̂ a candidate may reach.
+    let finest = nanoeye_search::NativeGrid::new(camera)?
+        .at(cfg.pitch_range_um[0] * 1e-6)
+        .context("--config: pitch_range_um")?
+        .shape();
+    cfg.rea_bn_batches
+        .check_fits(cfg.batch, finest)
+        .context("--config: rea_bn_batches")?;
     rea_config(cfg).validate().context("--config (search)")?;
     Ok(())
 }
@@ -372,6 +384,7 @@ fn rea_config(cfg: &RunConfig) -> ReaConfig {
         seed: cfg.seed,
         head_refit: cfg.rea_head_refit,
         fit_pitch: cfg.rea_fit_pitch,
+        recal_batches: cfg.rea_bn_batches,
         ..ReaConfig::default()
     }
 }

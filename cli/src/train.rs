@@ -560,6 +560,16 @@ pub struct ReaArgs {
     /// frame and the calibration head's output layer solved on them (docs/run.md).
     #[arg(long)]
     head_refit: bool,
+    /// What each candidate's BN statistics are computed over before its V, without
+    /// `--head-refit`: N training batches in training order (Table S1's search: 2) or `all`,
+    /// every training frame once (docs/run.md).
+    #[arg(
+        long,
+        default_value = "2",
+        conflicts_with = "head_refit",
+        allow_negative_numbers = true
+    )]
+    bn_batches: nanoeye_search::BnBatches,
     /// Start each candidate's fine-tune at the smallest p̂ of the run's pitch range at which it
     /// fits --budget-macs, instead of the inherited p̂ (docs/run.md).
     #[arg(long)]
@@ -611,6 +621,7 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         seed: a.seed,
         head_refit: a.head_refit,
         fit_pitch: a.fit_pitch,
+        recal_batches: a.bn_batches,
         ..ReaConfig::default()
     };
     cfg.validate().map_err(|e| {
@@ -631,6 +642,15 @@ pub fn rea(a: ReaArgs) -> Result<()> {
     let v = val.as_ref().unwrap_or(&ds);
     let mut r =
         Rea::new(&chain, &ds, v, &ck, cfg).with_context(|| format!("--run {}", a.run.display()))?;
+    {
+        // Before any fine-tune: the network inputs are largest at the finest p̂ a candidate
+        // may reach.
+        let tcfg = nanoeye_search::train::read_config(&ck)?;
+        let shape = chain.native().at(tcfg.pitch_range_um[0] * 1e-6)?.shape();
+        a.bn_batches
+            .check_fits(tcfg.batch, shape)
+            .map_err(|e| anyhow::anyhow!("--bn-batches: {e}"))?;
+    }
     let w = crate::dist::world();
     if w.is_distributed() && !w.is_root() {
         // Ranks 1.. evaluate the candidates rank 0 sends them until it says stop.

@@ -678,6 +678,29 @@ fn sim_and_search_loss_name_their_bad_flags() {
         let rea = ["search", "rea", "--dataset", "ds2", "--run", "nope", flag];
         refused(&rea, flag, p);
     }
+    // --bn-batches: parsed before the run is read; meaningless with the refit, so refused.
+    for value in ["0", "-1", "two", "1.5", "ALL"] {
+        let rea = ["search", "rea", "--dataset", "ds2", "--run", "nope"];
+        refused(
+            &[&rea[..], &["--bn-batches", value]].concat(),
+            "--bn-batches",
+            p,
+        );
+    }
+    let rea = [
+        "search",
+        "rea",
+        "--dataset",
+        "ds2",
+        "--run",
+        "nope",
+        "--head-refit",
+    ];
+    refused(
+        &[&rea[..], &["--bn-batches", "4"]].concat(),
+        "--bn-batches",
+        p,
+    );
     // pareto: the refit's set, the chain settings named like everywhere else, and outputs that
     // are directories, before any run is read.
     for (flag, value) in [
@@ -735,6 +758,17 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         (r#"{"slip_head_refit": 1}"#, "slip_head_refit"),
         (r#"{"slip_head_refit": null}"#, "slip_head_refit"),
         (r#"{"rea_head_refit": "yes"}"#, "rea_head_refit"),
+        (r#"{"rea_bn_batches": 0}"#, "rea_bn_batches"),
+        (r#"{"rea_bn_batches": -1}"#, "rea_bn_batches"),
+        (r#"{"rea_bn_batches": 1.5}"#, "rea_bn_batches"),
+        (r#"{"rea_bn_batches": "ALL"}"#, "rea_bn_batches"),
+        (r#"{"rea_bn_batches": null}"#, "rea_bn_batches"),
+        // 1e9 batches of 4 frames cannot be held: refused with the MiB needed, not allocated.
+        (r#"{"rea_bn_batches": 1000000000}"#, "rea_bn_batches"),
+        (
+            r#"{"rea_bn_batches": 18446744073709551615}"#,
+            "rea_bn_batches",
+        ),
         (r#"{"train_items": 2}"#, "slip_head_refit"),
         (
             r#"{"train_items": 2, "slip_head_refit": false, "rea_head_refit": true}"#,

@@ -8,6 +8,7 @@
 //! resumed search repeats the uninterrupted one exactly; the state (population, history,
 //! next id) is one atomic JSON file rewritten after every evaluation.
 
+use crate::bn::BnBatches;
 use crate::chain::CameraChain;
 use crate::error::{Result, param};
 use crate::train::{Budget, Metrics, Trainer};
@@ -43,9 +44,10 @@ pub struct ReaConfig {
     pub lambda_budget: f64,
     /// Learning-rate scale of the fine-tune relative to the run's.
     pub lr_scale: f64,
-    /// Training batches for BN recalibration before each evaluation (unused with
-    /// `head_refit`).
-    pub recal_batches: usize,
+    /// BN recalibration set before each evaluation: a count of training batches (Table S1's
+    /// search: 2) or every training frame; unused with `head_refit` (every frame then). A
+    /// state written when this was a bare count reads as that count.
+    pub recal_batches: BnBatches,
     /// Evaluate each candidate as `nanoeye run` deploys it: BN statistics over every training
     /// frame and the calibration head's output layer solved on them
     /// ([`crate::headfit::refit_slip_head`]). Off in Table S1's search.
@@ -73,7 +75,7 @@ impl Default for ReaConfig {
             budget_macs: 0,
             lambda_budget: 1.0,
             lr_scale: 0.1,
-            recal_batches: 2,
+            recal_batches: BnBatches::Count(2),
             head_refit: false,
             fit_pitch: false,
             seed: 0,
@@ -302,7 +304,9 @@ impl Evaluator<'_> {
             crate::headfit::recalibrate_and_refit(&mut t.net, arch, &all)?;
             t.validate(self.val, arch)?
         } else {
-            t.evaluate(self.val, arch, c.recal_batches)?
+            let inputs = t.bn_inputs(c.recal_batches)?;
+            t.net.recalibrate_bn(arch, &inputs)?;
+            t.validate(self.val, arch)?
         };
         // With the fit, at the p̂ the candidate leaves with (the one its record names); without
         // it, at the last step's p̂, as the search always counted.

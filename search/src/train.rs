@@ -6,6 +6,7 @@
 //! Validation V (docs/train.md): mean angular gaze error of the full chain — predicted mask →
 //! S9 centroid → S10–S14 with the predicted slippage — after BN recalibration.
 
+use crate::bn::BnBatches;
 use crate::chain::{CameraChain, ChainFrame};
 use crate::error::{Result, param};
 use crate::task::task_loss;
@@ -515,9 +516,24 @@ impl<'a> Trainer<'a> {
         for b in 0..batches.max(1) {
             let frames = self.frames(b)?;
             let (_, fwd) = self.through_chain(&frames, &map, self.cfg.seed ^ 0xEEEE, false)?;
+            // Refused after the first batch, before the rest is allocated: a count that cannot
+            // be held is a parameter error, not an out-of-memory kill.
+            if b == 0 {
+                let t = &fwd.input;
+                BnBatches::Count(batches.max(1)).check_fits(t.n, (t.c * t.h, t.w))?;
+            }
             recal.push(fwd.input);
         }
         Ok(recal)
+    }
+
+    /// The network inputs BN statistics are taken over, as `bn` says ([`Self::all_frames`]
+    /// or [`Self::recalibration_inputs`]), at the current φ and p̂.
+    pub fn bn_inputs(&self, bn: BnBatches) -> Result<Vec<Tensor>> {
+        match bn {
+            BnBatches::All => Ok(self.all_frames()?.inputs),
+            BnBatches::Count(n) => self.recalibration_inputs(n),
+        }
     }
 
     /// The training frames in order through the chain at the current φ and p̂, one noise

@@ -215,7 +215,7 @@ fn rea_cfg() -> nanoeye_search::ReaConfig {
         tournament: 2,
         epochs: 1.0,
         budget_macs: 200_000,
-        recal_batches: 1,
+        recal_batches: nanoeye_search::BnBatches::Count(1),
         seed: 9,
         ..nanoeye_search::ReaConfig::default()
     }
@@ -347,7 +347,7 @@ fn a_fitted_pitch_is_the_budgets_edge_and_fine_tuning_keeps_it_inside() {
         tournament: 1,
         epochs: 1.0,
         budget_macs: 200_000,
-        recal_batches: 1,
+        recal_batches: nanoeye_search::BnBatches::Count(1),
         fit_pitch: true,
         seed: 4,
         ..ReaConfig::default()
@@ -555,4 +555,39 @@ fn a_search_with_the_head_refit_scores_the_model_the_main_job_deploys() {
     assert_eq!(got.metrics.slip_mse, want.slip_mse);
     // The trained layer scores otherwise.
     assert_ne!(score(false).metrics.slip_mse, got.metrics.slip_mse);
+}
+
+#[test]
+fn a_search_with_bn_over_every_frame_scores_as_the_main_job_recalibrates() {
+    use nanoeye_search::{BnBatches, Rea, ReaConfig};
+    let d = tempfile::tempdir().unwrap();
+    let (ds, c, run) = search_fixture(d.path());
+    let arch = Arch::min();
+    let score = |recal_batches| {
+        let cfg = ReaConfig {
+            epochs: 0.0,
+            recal_batches,
+            ..rea_cfg()
+        };
+        let rea = Rea::new(&c, &ds, &ds, &run, cfg).unwrap();
+        rea.evaluator().evaluate(0, &arch).unwrap()
+    };
+    let got = score(BnBatches::All);
+    // By hand, as `nanoeye run` deploys the pick: BN over every training frame, then V with
+    // the trained head.
+    let mut t = Trainer::from_checkpoint(&c, &ds, &run).unwrap();
+    let all = t.all_frames().unwrap();
+    assert_eq!(all.inputs.iter().map(|x| x.n).sum::<usize>(), ds.len());
+    t.net.recalibrate_bn(&arch, &all.inputs).unwrap();
+    let want = t.validate(&ds, &arch).unwrap();
+    assert_eq!(got.v, want.v_deg);
+    assert_eq!(got.metrics.slip_mse, want.slip_mse);
+    // One batch's statistics are other statistics.
+    assert_ne!(
+        score(BnBatches::Count(1)).metrics.slip_mse,
+        got.metrics.slip_mse
+    );
+    // A count that cannot be held is refused after one batch, naming the setting.
+    let e = t.recalibration_inputs(usize::MAX).unwrap_err().to_string();
+    assert!(e.contains("bn_batches") && e.contains("MiB"), "{e}");
 }
