@@ -723,6 +723,10 @@ pub fn rea(a: ReaArgs) -> Result<()> {
                  "fitness": best.fitness, "id": best.id},
         "evaluated": r.state.evaluated.len(),
         "cycles": r.state.history.len(),
+        // How each candidate's BN statistics were taken (null batches: every frame, with the
+        // head refit).
+        "head_refit": a.head_refit,
+        "bn_batches": (!a.head_refit).then_some(a.bn_batches),
         "seconds": t0.elapsed().as_secs_f64(),
     });
     if a.json {
