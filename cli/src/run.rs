@@ -140,8 +140,8 @@ pub struct RunConfig {
     /// every training frame, head refit); off by default (docs/run.md).
     pub rea_head_refit: bool,
     /// What each REA candidate's BN statistics are computed over before its V, without
-    /// `rea_head_refit`: a count of training batches (Table S1's search: 2) or "all", every
-    /// training frame once (docs/run.md).
+    /// `rea_head_refit`: "all", every training frame once, or a count of training batches
+    /// (docs/run.md).
     pub rea_bn_batches: BnBatches,
     /// Start each REA candidate's fine-tune, and the final one behind each lens, at the
     /// smallest p̂ of `pitch_range_um` at which the subnet fits `budget_macs` (docs/run.md).
@@ -198,7 +198,10 @@ impl Default for RunConfig {
             slip_target: SlipTarget::Translation,
             slip_head_refit: true,
             rea_head_refit: false,
-            rea_bn_batches: BnBatches::Count(2),
+            // 2 batches until 2026-12-02: the candidates' V moved 1–3° on average against
+            // every frame, and seed 3's pick was over the budget by 0.1° of fitness; every
+            // frame adds a chain pass per candidate (docs/run.md, thirty-eighth session).
+            rea_bn_batches: BnBatches::All,
             // Without it the hinge alone moves p̂ by about 0.0125 µm a step in the final 40
             // (Adam, 0.25 × 0.05 µm), and the job's pick cost 83–160 M MACs against the 40 M
             // budget on three of four seeds (docs/run.md, twenty-fifth session).

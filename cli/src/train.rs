@@ -561,11 +561,11 @@ pub struct ReaArgs {
     #[arg(long)]
     head_refit: bool,
     /// What each candidate's BN statistics are computed over before its V, without
-    /// `--head-refit`: N training batches in training order (Table S1's search: 2) or `all`,
-    /// every training frame once (docs/run.md).
+    /// `--head-refit`: `all`, every training frame once, or N training batches in training
+    /// order (2 until 2026-12-02; a search begun then resumes with `--bn-batches 2`).
     #[arg(
         long,
-        default_value = "2",
+        default_value = "all",
         conflicts_with = "head_refit",
         allow_negative_numbers = true
     )]

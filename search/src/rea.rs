@@ -44,9 +44,9 @@ pub struct ReaConfig {
     pub lambda_budget: f64,
     /// Learning-rate scale of the fine-tune relative to the run's.
     pub lr_scale: f64,
-    /// BN recalibration set before each evaluation: a count of training batches (Table S1's
-    /// search: 2) or every training frame; unused with `head_refit` (every frame then). A
-    /// state written when this was a bare count reads as that count.
+    /// BN recalibration set before each evaluation: every training frame (the default) or a
+    /// count of training batches (2 until 2026-12-02); unused with `head_refit` (every frame
+    /// then). A state written when this was a bare count reads as that count.
     pub recal_batches: BnBatches,
     /// Evaluate each candidate as `nanoeye run` deploys it: BN statistics over every training
     /// frame and the calibration head's output layer solved on them
@@ -75,7 +75,9 @@ impl Default for ReaConfig {
             budget_macs: 0,
             lambda_budget: 1.0,
             lr_scale: 0.1,
-            recal_batches: BnBatches::Count(2),
+            // Two batches moved a candidate's V by 1–3° on average (up to 7°) against every
+            // frame, as much as the tournaments decide on (docs/run.md, thirty-eighth session).
+            recal_batches: BnBatches::All,
             head_refit: false,
             fit_pitch: false,
             seed: 0,
@@ -130,6 +132,23 @@ impl ReaConfig {
         }
         Ok(())
     }
+}
+
+/// The fields in which `was` and `now` differ, as `name: was there, now now`.
+fn config_differences(was: &ReaConfig, now: &ReaConfig) -> String {
+    let (Ok(serde_json::Value::Object(a)), Ok(serde_json::Value::Object(b))) =
+        (serde_json::to_value(was), serde_json::to_value(now))
+    else {
+        return String::from("unreadable");
+    };
+    a.iter()
+        .filter(|(k, v)| b.get(*k) != Some(v))
+        .map(|(k, v)| {
+            let n = b.get(k).map_or(String::from("none"), |x| x.to_string());
+            format!("{k}: {v} there, {n} now")
+        })
+        .collect::<Vec<_>>()
+        .join("; ")
 }
 
 /// One evaluated architecture.
@@ -361,8 +380,10 @@ impl<'a> Rea<'a> {
             return Err(param(
                 "out",
                 format!(
-                    "{} holds a search with other parameters; use a new --out or the same flags",
-                    path.display()
+                    "{} holds a search with other parameters ({}); use a new --out or the same \
+                     flags",
+                    path.display(),
+                    config_differences(&st.config, &self.state.config)
                 ),
             ));
         }

@@ -286,7 +286,21 @@ fn regularized_evolution_ages_out_the_oldest_and_resumes_exactly() {
         },
     )
     .unwrap();
-    assert!(other.resume(&state_path).is_err());
+    let e = other.resume(&state_path).unwrap_err().to_string();
+    assert!(e.contains("gamma: 10.0 there, 1.0 now"), "{e}");
+    // A count is written as the bare number states held before "all" existed: such a state
+    // resumes under `Count(n)` and is refused under `All`, naming the field.
+    let saved = std::fs::read_to_string(&state_path).unwrap();
+    assert!(saved.contains(r#""recal_batches":1,"#), "{saved}");
+    let mut same = Rea::new(&c, &ds, &ds, &run, rea_cfg()).unwrap();
+    same.resume(&state_path).unwrap();
+    let all = nanoeye_search::ReaConfig {
+        recal_batches: nanoeye_search::BnBatches::All,
+        ..rea_cfg()
+    };
+    let mut other = Rea::new(&c, &ds, &ds, &run, all).unwrap();
+    let e = other.resume(&state_path).unwrap_err().to_string();
+    assert!(e.contains(r#"recal_batches: 1 there, "all" now"#), "{e}");
 }
 
 #[test]
