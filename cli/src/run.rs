@@ -338,8 +338,9 @@ fn check(cfg: &RunConfig) -> Result<()> {
         .validate()
         .context("--config (training)")?;
     // The REA's network inputs are largest at the finest p̂ a candidate may reach.
-    let finest = nanoeye_search::NativeGrid::new(camera)?
-        .at(cfg.pitch_range_um[0] * 1e-6)
+    let grid = nanoeye_search::NativeGrid::new(camera)?;
+    let finest = grid
+        .at((cfg.pitch_range_um[0] * 1e-6).max(grid.pitch_m()))
         .context("--config: pitch_range_um")?
         .shape();
     cfg.rea_bn_batches

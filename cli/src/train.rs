@@ -74,6 +74,11 @@ pub struct TrainArgs {
     /// reaches the frame's edge, then its boundary's fitted ellipse; docs/gaze.md).
     #[arg(long, default_value = "centroid")]
     pupil_centre: String,
+    /// BN statistics of N_min and N_max before the final validation: `all`, every training
+    /// frame once, or N training batches in training order (2 until 2026-12-02). Training does
+    /// not depend on it, so a resume may change it.
+    #[arg(long, default_value = "all", allow_negative_numbers = true)]
+    bn_batches: nanoeye_search::BnBatches,
     /// Steps between checkpoints.
     #[arg(long, default_value_t = 10)]
     checkpoint_every: usize,
@@ -311,6 +316,16 @@ pub fn train(a: TrainArgs) -> Result<()> {
     if a.checkpoint_every == 0 {
         bail!("--checkpoint-every: must be at least 1");
     }
+    // Before training: the network inputs are largest at the finest p̂ the run may reach
+    // (the range's bottom, or the native grid where the range starts finer).
+    let native = chain.native();
+    let finest = native
+        .at((lo * 1e-6).max(native.pitch_m()))
+        .context("--pitch-range-um")?
+        .shape();
+    a.bn_batches
+        .check_fits(a.batch, finest)
+        .map_err(|e| anyhow::anyhow!("--bn-batches: {e}"))?;
     let val = match &a.val {
         Some(p) => Some(Dataset::open(p).with_context(|| format!("--val {}", p.display()))?),
         None => None,
@@ -464,8 +479,14 @@ pub fn train(a: TrainArgs) -> Result<()> {
     }
     // Every rank evaluates: the chain's PSF stacks are shared out among them.
     let v = val.as_ref().unwrap_or(&ds);
-    let m = t.evaluate(v, &Arch::min(), 2)?;
-    let mmax = t.evaluate(v, &Arch::max(), 2)?;
+    // One chain pass of the BN set for both subnets' statistics.
+    let bn = t.bn_inputs(a.bn_batches)?;
+    let mut validate = |arch: &Arch| -> Result<nanoeye_search::Metrics> {
+        t.net.recalibrate_bn(arch, &bn)?;
+        Ok(t.validate(v, arch)?)
+    };
+    let m = validate(&Arch::min())?;
+    let mmax = validate(&Arch::max())?;
     let out = serde_json::json!({
         "steps": t.step,
         "v_deg": m.v_deg,
@@ -475,6 +496,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
         "slip_mse": m.slip_mse,
         "max_subnet": {"v_deg": mmax.v_deg, "dice": mmax.dice, "slip_mse": mmax.slip_mse},
         "pitch_um": t.pitch_um,
+        "bn_batches": a.bn_batches,
         "seconds": t0.elapsed().as_secs_f64(),
         // Wall time of the steps this invocation ran (checkpoints included), per step.
         "seconds_per_step": train_s / (t.step - step0).max(1) as f64,
@@ -644,9 +666,12 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         Rea::new(&chain, &ds, v, &ck, cfg).with_context(|| format!("--run {}", a.run.display()))?;
     {
         // Before any fine-tune: the network inputs are largest at the finest p̂ a candidate
-        // may reach.
+        // may reach (the run's range bottom, or the native grid where the range starts finer).
         let tcfg = nanoeye_search::train::read_config(&ck)?;
-        let shape = chain.native().at(tcfg.pitch_range_um[0] * 1e-6)?.shape();
+        let native = chain.native();
+        let shape = native
+            .at((tcfg.pitch_range_um[0] * 1e-6).max(native.pitch_m()))?
+            .shape();
         a.bn_batches
             .check_fits(tcfg.batch, shape)
             .map_err(|e| anyhow::anyhow!("--bn-batches: {e}"))?;

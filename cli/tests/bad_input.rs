@@ -633,6 +633,33 @@ fn sim_and_search_loss_name_their_bad_flags() {
             ],
             "--slip-axis-weights",
         ),
+        (
+            vec![
+                "search",
+                "train",
+                "--dataset",
+                "ds",
+                "--bn-batches",
+                "0",
+                "--out",
+                "o",
+            ],
+            "--bn-batches",
+        ),
+        // A count whose inputs cannot be held: refused before training, not after it.
+        (
+            vec![
+                "search",
+                "train",
+                "--dataset",
+                "ds",
+                "--bn-batches",
+                "1000000000",
+                "--out",
+                "o",
+            ],
+            "--bn-batches",
+        ),
     ] {
         refused(&args, flag, p);
     }
