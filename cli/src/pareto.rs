@@ -277,9 +277,8 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
         let bn = if a.head_refit {
             Bn::Refit(tr.all_frames()?)
         } else if let BnBatches::Count(n) = a.bn_batches {
-            let shape = tchain.native().at(p_hat)?.shape();
             a.bn_batches
-                .check_fits(tcfg.batch, shape)
+                .check_fits_from(tcfg.batch, tchain.native(), p_hat)
                 .map_err(|e| anyhow::anyhow!("--bn-batches, through {}: {e}", run.display()))?;
             Bn::Batches(tr.recalibration_inputs(n)?)
         } else {

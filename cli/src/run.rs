@@ -339,12 +339,8 @@ fn check(cfg: &RunConfig) -> Result<()> {
         .context("--config (training)")?;
     // The REA's network inputs are largest at the finest p̂ a candidate may reach.
     let grid = nanoeye_search::NativeGrid::new(camera)?;
-    let finest = grid
-        .at((cfg.pitch_range_um[0] * 1e-6).max(grid.pitch_m()))
-        .context("--config: pitch_range_um")?
-        .shape();
     cfg.rea_bn_batches
-        .check_fits(cfg.batch, finest)
+        .check_fits_from(cfg.batch, &grid, cfg.pitch_range_um[0] * 1e-6)
         .context("--config: rea_bn_batches")?;
     rea_config(cfg).validate().context("--config (search)")?;
     Ok(())

@@ -316,15 +316,9 @@ pub fn train(a: TrainArgs) -> Result<()> {
     if a.checkpoint_every == 0 {
         bail!("--checkpoint-every: must be at least 1");
     }
-    // Before training: the network inputs are largest at the finest p̂ the run may reach
-    // (the range's bottom, or the native grid where the range starts finer).
-    let native = chain.native();
-    let finest = native
-        .at((lo * 1e-6).max(native.pitch_m()))
-        .context("--pitch-range-um")?
-        .shape();
+    // Before training: the network inputs are largest at the finest p̂ the run may reach.
     a.bn_batches
-        .check_fits(a.batch, finest)
+        .check_fits_from(a.batch, chain.native(), lo * 1e-6)
         .map_err(|e| anyhow::anyhow!("--bn-batches: {e}"))?;
     let val = match &a.val {
         Some(p) => Some(Dataset::open(p).with_context(|| format!("--val {}", p.display()))?),
@@ -664,18 +658,12 @@ pub fn rea(a: ReaArgs) -> Result<()> {
     let v = val.as_ref().unwrap_or(&ds);
     let mut r =
         Rea::new(&chain, &ds, v, &ck, cfg).with_context(|| format!("--run {}", a.run.display()))?;
-    {
-        // Before any fine-tune: the network inputs are largest at the finest p̂ a candidate
-        // may reach (the run's range bottom, or the native grid where the range starts finer).
-        let tcfg = nanoeye_search::train::read_config(&ck)?;
-        let native = chain.native();
-        let shape = native
-            .at((tcfg.pitch_range_um[0] * 1e-6).max(native.pitch_m()))?
-            .shape();
-        a.bn_batches
-            .check_fits(tcfg.batch, shape)
-            .map_err(|e| anyhow::anyhow!("--bn-batches: {e}"))?;
-    }
+    // Before any fine-tune: the network inputs are largest at the finest p̂ a candidate may
+    // reach.
+    let tcfg = nanoeye_search::train::read_config(&ck)?;
+    a.bn_batches
+        .check_fits_from(tcfg.batch, chain.native(), tcfg.pitch_range_um[0] * 1e-6)
+        .map_err(|e| anyhow::anyhow!("--bn-batches: {e}"))?;
     let w = crate::dist::world();
     if w.is_distributed() && !w.is_root() {
         // Ranks 1.. evaluate the candidates rank 0 sends them until it says stop.

@@ -2,6 +2,7 @@
 //! (B.6): every frame of the training set, or a few batches of it in training order.
 
 use crate::error::{Result, param};
+use crate::geometry::NativeGrid;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 /// The BN recalibration set: `All` frames of the training set once (as many as
@@ -38,6 +39,15 @@ impl BnBatches {
             ));
         }
         Ok(())
+    }
+}
+
+impl BnBatches {
+    /// [`Self::check_fits`] for the network inputs at the finest p̂ a run may reach:
+    /// `finest_m` (m), or the native grid's pitch where that is finer.
+    pub fn check_fits_from(self, batch: usize, native: &NativeGrid, finest_m: f64) -> Result<()> {
+        let shape = native.at(finest_m.max(native.pitch_m()))?.shape();
+        self.check_fits(batch, shape)
     }
 }
 
@@ -164,8 +174,16 @@ mod tests {
         for bad in [
             "0", "-1", "1.5", "\"ALL\"", "\"two\"", "null", "\"\"", "1e3",
         ] {
-            assert!(serde_json::from_str::<BnBatches>(bad).is_err(), "{bad}");
+            let e = serde_json::from_str::<BnBatches>(bad)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("neither \"all\""), "{bad}: {e}");
         }
+        // Neither a number nor text: serde's own message, naming what was expected.
+        let e = serde_json::from_str::<BnBatches>("[2]")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("\"all\" or a count of batches"), "{e}");
         for bad in ["0", "-1", "two", "1.5", "ALL", ""] {
             let e = bad.parse::<BnBatches>().unwrap_err();
             assert!(e.contains("neither `all`"), "{e}");
