@@ -17,8 +17,8 @@ use nanoeye_datagen::render::{
 use nanoeye_gaze::{PupilCentre, Rig, SolverKind};
 use nanoeye_nets::Arch;
 use nanoeye_search::{
-    BnBatches, CameraChain, ChainConfig, LensSpec, Rea, ReaConfig, ReaState, SlipTarget,
-    SolverInput, TrainConfig, Trainer,
+    BnBatches, CameraChain, ChainConfig, LensSpec, PhaseBasis, Rea, ReaConfig, ReaState,
+    SlipTarget, SolverInput, TrainConfig, Trainer,
 };
 use serde::{Deserialize, Serialize};
 use std::io::IsTerminal;
@@ -91,6 +91,10 @@ pub struct RunConfig {
     pub lr_net: f64,
     /// Phase learning rate (rad per step).
     pub lr_phase_rad: f64,
+    /// What the learned lens's phase steps are taken in: "pixels" (every aperture sample, the
+    /// supplement's φ_opt) or "zernike:N" (the Zernike modes of radial order 1..=N over the
+    /// aperture; docs/run.md).
+    pub phase_basis: PhaseBasis,
     /// Pitch learning rate (µm per step).
     pub lr_pitch_um: f64,
     /// Slippage loss weight (per mm²).
@@ -177,6 +181,7 @@ impl Default for RunConfig {
             random_subnets: 2,
             lr_net: 4e-3,
             lr_phase_rad: 2e-2,
+            phase_basis: PhaseBasis::Pixels,
             lr_pitch_um: 5e-2,
             lambda_slip: 0.3,
             slip_axis_weights: [1.0; 3],
@@ -354,6 +359,7 @@ fn train_config(cfg: &RunConfig, fixed_lens: bool) -> TrainConfig {
         n_random: cfg.random_subnets,
         lr_net: cfg.lr_net,
         lr_phase_rad: cfg.lr_phase_rad,
+        phase_basis: cfg.phase_basis,
         lr_pitch_um: cfg.lr_pitch_um,
         lambda_slip: cfg.lambda_slip,
         slip_axis_weights: cfg.slip_axis_weights,

@@ -49,6 +49,10 @@ pub struct TrainArgs {
     /// Learning rate of the phase map (rad per step, Adam).
     #[arg(long, default_value_t = 2e-2)]
     lr_phase_rad: f64,
+    /// What the phase map's steps are taken in: `pixels` (every aperture sample) or
+    /// `zernike:N` (the Zernike modes of radial order 1..=N over the aperture).
+    #[arg(long, default_value = "pixels")]
+    phase_basis: nanoeye_search::PhaseBasis,
     /// Learning rate of the pitch (µm per step, Adam).
     #[arg(long, default_value_t = 5e-2)]
     lr_pitch_um: f64,
@@ -282,6 +286,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
         n_random: a.random_subnets,
         lr_net: a.lr_net,
         lr_phase_rad: a.lr_phase_rad,
+        phase_basis: a.phase_basis,
         lr_pitch_um: a.lr_pitch_um,
         lambda_slip: a.lambda_slip,
         slip_axis_weights: parse_axes("--slip-axis-weights", &a.slip_axis_weights)?,
@@ -304,6 +309,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
                 ("n_random", "--random-subnets"),
                 ("lr_net", "--lr-net"),
                 ("lr_phase_rad", "--lr-phase-rad"),
+                ("phase_basis", "--phase-basis"),
                 ("lr_pitch_um", "--lr-pitch-um"),
                 ("lambda_slip", "--lambda-slip"),
                 ("slip_axis_weights", "--slip-axis-weights"),

@@ -663,6 +663,29 @@ fn sim_and_search_loss_name_their_bad_flags() {
     ] {
         refused(&args, flag, p);
     }
+    // The phase basis: parsed by clap, so refused before the dataset is read.
+    for basis in [
+        "zernike:0",
+        "zernike:21",
+        "zernike:-1",
+        "zernike:1.5",
+        "zernike:nan",
+        "zernike",
+        "Zernike:4",
+        "",
+    ] {
+        let args = [
+            "search",
+            "train",
+            "--dataset",
+            "ds",
+            "--phase-basis",
+            basis,
+            "--out",
+            "o",
+        ];
+        refused(&args, "--phase-basis", p);
+    }
     assert!(!p.join("o").exists(), "a refused sim must write nothing");
     std::fs::write(p.join("file"), b"").unwrap();
     refused(
@@ -785,6 +808,11 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         (r#"{"slip_head_refit": 1}"#, "slip_head_refit"),
         (r#"{"slip_head_refit": null}"#, "slip_head_refit"),
         (r#"{"rea_head_refit": "yes"}"#, "rea_head_refit"),
+        (r#"{"phase_basis": "zernike:0"}"#, "phase_basis"),
+        (r#"{"phase_basis": "zernike:99"}"#, "phase_basis"),
+        (r#"{"phase_basis": 8}"#, "phase_basis"),
+        (r#"{"phase_basis": null}"#, "phase_basis"),
+        (r#"{"phase_basis": "pixel"}"#, "phase_basis"),
         (r#"{"rea_bn_batches": 0}"#, "rea_bn_batches"),
         (r#"{"rea_bn_batches": -1}"#, "rea_bn_batches"),
         (r#"{"rea_bn_batches": 1.5}"#, "rea_bn_batches"),

@@ -3,6 +3,7 @@
 //! pitch), the task loss through the supernet (S7, S8), and — in later modules — sandwich
 //! training (S22) and the evolutionary search (S16–S21). Crates compose here; the CLI wires it.
 
+pub mod basis;
 pub mod bn;
 pub mod chain;
 pub mod error;
@@ -17,6 +18,7 @@ pub mod split;
 pub mod task;
 pub mod train;
 
+pub use basis::PhaseBasis;
 pub use bn::BnBatches;
 pub use chain::{
     CameraChain, ChainConfig, ChainForward, ChainFrame, ChainGrad, PsfGradAccumulator, SlipTarget,

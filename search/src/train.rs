@@ -6,6 +6,7 @@
 //! Validation V (docs/train.md): mean angular gaze error of the full chain — predicted mask →
 //! S9 centroid → S10–S14 with the predicted slippage — after BN recalibration.
 
+use crate::basis::{PhaseBasis, Zernike};
 use crate::bn::BnBatches;
 use crate::chain::{CameraChain, ChainFrame};
 use crate::error::{Result, param};
@@ -39,8 +40,13 @@ pub struct TrainConfig {
     pub n_random: usize,
     /// Peak learning rate of the network weights (Adam, cosine decay to 0).
     pub lr_net: f64,
-    /// Learning rate of φ (rad per step, Adam).
+    /// Learning rate of φ (rad per step, Adam; per mode's unit-RMS coefficient with a
+    /// Zernike `phase_basis`).
     pub lr_phase_rad: f64,
+    /// What φ's steps are taken in: every aperture sample (`pixels`, the default and what
+    /// checkpoints without the field used) or the Zernike modes up to a radial order.
+    #[serde(default)]
+    pub phase_basis: PhaseBasis,
     /// Learning rate of p̂ (µm per step, Adam).
     pub lr_pitch_um: f64,
     /// Weight of the slippage MSE (per mm²).
@@ -78,6 +84,7 @@ impl Default for TrainConfig {
             n_random: 2,
             lr_net: 2e-3,
             lr_phase_rad: 2e-2,
+            phase_basis: PhaseBasis::Pixels,
             lr_pitch_um: 5e-2,
             lambda_slip: 0.1,
             slip_axis_weights: unit_axes(),
@@ -131,6 +138,7 @@ impl TrainConfig {
                 return Err(param(name, format!("must be finite in [0, 1000], got {v}")));
             }
         }
+        self.phase_basis.validate()?;
         for (axis, &v) in ["x", "y", "z"].iter().zip(&self.slip_axis_weights) {
             if !(v.is_finite() && (0.0..=1e3).contains(&v)) {
                 return Err(param(
@@ -270,7 +278,10 @@ pub struct Trainer<'a> {
     opt: Adam,
     /// Phase map φ (rad) on the chain's aperture grid.
     pub phase: Mat<f64>,
+    /// Adam over φ's parameters: one per aperture sample, or one per mode of `zernike`.
     phase_adam: VecAdam,
+    /// The modes φ steps in (`phase_basis` Zernike), or `None` for every sample.
+    zernike: Option<Zernike>,
     /// Effective pitch p̂ (µm).
     pub pitch_um: f64,
     pitch_adam: VecAdam,
@@ -324,13 +335,22 @@ impl<'a> Trainer<'a> {
         }
         let batcher = Batcher::new(&[ds.len()], cfg.batch.min(ds.len()), cfg.seed)?;
         let net = Supernet::new(cfg.supernet.clone(), cfg.weights_seed)?;
+        // A fixed lens takes no φ steps: no modes to evaluate, no moments to keep.
+        let zernike = match cfg.phase_basis {
+            PhaseBasis::Zernike(order) if !cfg.fixed_lens => {
+                Some(Zernike::new(order, *chain.aperture_grid())?)
+            }
+            _ => None,
+        };
+        let params = zernike.as_ref().map_or(n * n, Zernike::len);
         Ok(Trainer {
             chain,
             ds,
             batcher,
             net,
             opt: Adam::default(),
-            phase_adam: VecAdam::new(n * n),
+            phase_adam: VecAdam::new(params),
+            zernike,
             phase: phase0,
             pitch_um: cfg.pitch_init_um,
             pitch_adam: VecAdam::new(1),
@@ -439,12 +459,22 @@ impl<'a> Trainer<'a> {
         if !self.cfg.fixed_lens {
             let g = self.chain.finish(&s.map, &s.psfs, acc)?;
             let n = self.phase.nrows();
-            let mut x: Vec<f64> = (0..n * n).map(|k| self.phase[(k / n, k % n)]).collect();
-            let gv: Vec<f64> = (0..n * n).map(|k| g.phase_rad[(k / n, k % n)]).collect();
-            phase_step = self
-                .phase_adam
-                .step(&mut x, &gv, self.cfg.lr_phase_rad * lr_scale);
-            self.phase = Mat::from_fn(n, n, |i, j| x[i * n + j]);
+            let lr = self.cfg.lr_phase_rad * lr_scale;
+            match &self.zernike {
+                None => {
+                    let mut x: Vec<f64> = (0..n * n).map(|k| self.phase[(k / n, k % n)]).collect();
+                    let gv: Vec<f64> = (0..n * n).map(|k| g.phase_rad[(k / n, k % n)]).collect();
+                    phase_step = self.phase_adam.step(&mut x, &gv, lr);
+                    self.phase = Mat::from_fn(n, n, |i, j| x[i * n + j]);
+                }
+                Some(z) => {
+                    // Adam moves the coefficients from 0 by −Δc; φ takes Σ_j Δc_j Z_j.
+                    let mut dc = vec![0.0; z.len()];
+                    self.phase_adam.step(&mut dc, &z.project(&g.phase_rad), lr);
+                    let ss = z.add_to(&dc, &mut self.phase);
+                    phase_step = (ss / (n * n) as f64).sqrt();
+                }
+            }
         }
         let mut p = [self.pitch_um];
         self.pitch_adam
@@ -807,6 +837,13 @@ impl<'a> Trainer<'a> {
         let n = meta.phase_n;
         if n != self.phase.nrows() {
             return Err(bad("phase grid differs from this run's aperture grid"));
+        }
+        if meta.phase_adam.m.len() != self.phase_adam.m.len()
+            || meta.phase_adam.v.len() != self.phase_adam.m.len()
+        {
+            return Err(bad(
+                "the phase optimiser's state does not match the phase basis",
+            ));
         }
         let mut ph = Vec::with_capacity(n * n);
         for _ in 0..n * n {

@@ -199,6 +199,81 @@ fn a_killed_run_resumes_to_the_same_bits_and_other_parameters_are_refused() {
     assert!(y.load(&ck).unwrap_err().to_string().contains("checksum"));
 }
 
+#[test]
+fn a_zernike_basis_moves_phi_within_its_modes_and_resumes_to_the_same_bits() {
+    use faer::linalg::solvers::Solve;
+    use nanoeye_search::PhaseBasis;
+    use nanoeye_search::basis::Zernike;
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 5);
+    let c = chain(&ds);
+    let zcfg = |steps| TrainConfig {
+        phase_basis: PhaseBasis::Zernike(3),
+        ..cfg(steps)
+    };
+    let p0 = phase0(&c);
+    let mut a = Trainer::new(&c, &ds, zcfg(4), p0.clone()).unwrap();
+    for _ in 0..4 {
+        a.train_step().unwrap();
+    }
+    // Δφ is a combination of the nine modes of orders 1–3: the least-squares fit (normal
+    // equations on the grid) reconstructs it, zero outside the disc included.
+    let g = *c.aperture_grid();
+    let z = Zernike::new(3, g).unwrap();
+    let n = g.n;
+    let dphi = faer::Mat::from_fn(n, n, |i, j| a.phase[(i, j)] - p0[(i, j)]);
+    let modes: Vec<faer::Mat<f64>> = (0..z.len())
+        .map(|k| {
+            let mut e = vec![0.0; z.len()];
+            e[k] = 1.0;
+            let mut m = faer::Mat::zeros(n, n);
+            z.add_to(&e, &mut m);
+            m
+        })
+        .collect();
+    let gram = faer::Mat::from_fn(z.len(), z.len(), |p, q| z.project(&modes[q])[p]);
+    let rhs = z.project(&dphi);
+    let coef = gram
+        .partial_piv_lu()
+        .solve(&faer::Mat::from_fn(z.len(), 1, |p, _| rhs[p]));
+    let norm = dphi.norm_l2();
+    assert!(norm > 1e-6, "φ did not move: {norm}");
+    let mut fit = faer::Mat::zeros(n, n);
+    let cf: Vec<f64> = (0..z.len()).map(|p| coef[(p, 0)]).collect();
+    z.add_to(&cf, &mut fit);
+    let resid = (&fit - &dphi).norm_l2();
+    assert!(
+        resid <= 1e-9 * norm,
+        "Δφ leaves the modes' span: {resid} of {norm}"
+    );
+    // The same start with a step per sample moves φ otherwise.
+    let mut px = Trainer::new(&c, &ds, cfg(1), p0.clone()).unwrap();
+    px.train_step().unwrap();
+    let mut z1 = Trainer::new(&c, &ds, zcfg(1), p0.clone()).unwrap();
+    z1.train_step().unwrap();
+    assert_ne!(px.phase, z1.phase);
+    // Killed after two steps and resumed: the same bits as the four uninterrupted steps.
+    let ck = d.path().join("zrun/checkpoint.bin");
+    let mut b = Trainer::new(&c, &ds, zcfg(4), p0.clone()).unwrap();
+    for _ in 0..2 {
+        b.train_step().unwrap();
+    }
+    b.save(&ck).unwrap();
+    drop(b);
+    let mut r = Trainer::new(&c, &ds, zcfg(4), p0.clone()).unwrap();
+    r.load(&ck).unwrap();
+    for _ in 0..2 {
+        r.train_step().unwrap();
+    }
+    assert_eq!(r.history, a.history);
+    assert_eq!(r.phase, a.phase);
+    assert_eq!(r.pitch_um, a.pitch_um);
+    // Resumed under a per-sample basis: refused, naming the field.
+    let mut x = Trainer::new(&c, &ds, cfg(4), p0).unwrap();
+    let e = x.load(&ck).unwrap_err().to_string();
+    assert!(e.contains("phase_basis"), "{e}");
+}
+
 fn trained_run(dir: &std::path::Path, c: &CameraChain, ds: &Dataset) -> std::path::PathBuf {
     let mut t = Trainer::new(c, ds, cfg(2), phase0(c)).unwrap();
     t.train_step().unwrap();
