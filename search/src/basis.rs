@@ -90,6 +90,8 @@ impl PhaseBasis {
 /// m < 0), normalised to unit mean square over the unit disc.
 #[derive(Clone, Debug)]
 struct Mode {
+    /// Radial order n.
+    n: usize,
     /// |m|.
     am: usize,
     /// Whether the azimuthal factor is sin(|m|θ).
@@ -132,6 +134,7 @@ impl Zernike {
                     radial[half - k] = if k % 2 == 0 { a } else { -a } * norm;
                 }
                 modes.push(Mode {
+                    n,
                     am,
                     sine: m < 0,
                     radial,
@@ -144,6 +147,13 @@ impl Zernike {
     /// Number of modes (parameters).
     pub fn len(&self) -> usize {
         self.modes.len()
+    }
+
+    /// (n, m) of mode `j` (m < 0: the sin(|m|θ) mode), in the order of the coefficients.
+    pub fn index(&self, j: usize) -> (usize, isize) {
+        let md = &self.modes[j];
+        let am = md.am as isize;
+        (md.n, if md.sine { -am } else { am })
     }
 
     /// Whether there are no modes (never: order ≥ 1 gives tip and tilt).
@@ -313,6 +323,10 @@ mod tests {
         for (a, b) in out.iter().zip(want) {
             assert!((a - b).abs() < 1e-12, "{out:?} against {want:?}");
         }
+        assert_eq!(
+            (0..5).map(|j| z.index(j)).collect::<Vec<_>>(),
+            [(1, -1), (1, 1), (2, -2), (2, 0), (2, 2)]
+        );
         // Outside the disc: zero.
         z.values(0, 0, &mut out, &mut pw);
         assert!(out.iter().all(|&x| x == 0.0));

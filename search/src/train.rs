@@ -395,13 +395,18 @@ impl<'a> Trainer<'a> {
     /// The batch of step `t` through the chain at the current φ and p̂, with the noise stream
     /// of step `t`.
     fn chain_step(&self, t: usize) -> Result<StepData> {
+        self.chain_step_with(t, !self.cfg.fixed_lens)
+    }
+
+    /// [`Self::chain_step`], keeping what the backward to φ needs when `psf_grad`.
+    fn chain_step_with(&self, t: usize, psf_grad: bool) -> Result<StepData> {
         let frames = self.frames(t)?;
         let map = self.phase_map()?;
         let (psfs, fwd) = self.through_chain(
             &frames,
             &map,
             self.cfg.seed ^ (t as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
-            !self.cfg.fixed_lens,
+            psf_grad,
         )?;
         Ok(StepData {
             frames,
@@ -484,12 +489,14 @@ impl<'a> Trainer<'a> {
         Ok(phase_step)
     }
 
-    /// One sandwich step (S22).
-    pub fn train_step(&mut self) -> Result<StepRecord> {
-        let t = self.step;
-        let s = self.chain_step(t)?;
+    /// The sandwich loss of step `t`'s subnets on its chain output, per subnet, and its
+    /// gradient in the network input; the network's gradients accumulated from zero.
+    fn sandwich_loss(
+        &mut self,
+        t: usize,
+        fwd: &crate::chain::ChainForward,
+    ) -> Result<(Vec<f64>, Tensor)> {
         self.net.zero_grad();
-        let fwd = &s.fwd;
         let mut dx = Tensor::zeros(fwd.input.n, 1, fwd.input.h, fwd.input.w);
         let mut losses = Vec::new();
         for a in self.subnets(t) {
@@ -511,6 +518,28 @@ impl<'a> Trainer<'a> {
                 format!("step {t}: the loss is not finite ({losses:?}); lower the learning rates"),
             ));
         }
+        Ok((losses, dx))
+    }
+
+    /// ∂L/∂φ (rad⁻¹, on the aperture grid) of step `t`'s sandwich loss (its batch, subnets
+    /// and noise) at the current weights, φ and p̂, and that loss; nothing is updated but the
+    /// network's gradient buffers (and BN's running statistics, as a training pass moves
+    /// them). For measuring how consistent φ's gradient is from batch to batch.
+    pub fn phase_gradient(&mut self, t: usize) -> Result<(f64, Mat<f64>)> {
+        let s = self.chain_step_with(t, true)?;
+        let (losses, dx) = self.sandwich_loss(t, &s.fwd)?;
+        let mut acc = self.chain.accumulator();
+        self.chain
+            .backward(&s.frames, &s.psfs, &s.fwd, &dx, &mut acc)?;
+        let g = self.chain.finish(&s.map, &s.psfs, acc)?;
+        Ok((losses.iter().sum(), g.phase_rad))
+    }
+
+    /// One sandwich step (S22).
+    pub fn train_step(&mut self) -> Result<StepRecord> {
+        let t = self.step;
+        let s = self.chain_step(t)?;
+        let (losses, dx) = self.sandwich_loss(t, &s.fwd)?;
         self.opt.step(
             &mut self.net,
             cosine_lr(self.cfg.lr_net, 0.0, t, self.cfg.steps),

@@ -274,6 +274,31 @@ fn a_zernike_basis_moves_phi_within_its_modes_and_resumes_to_the_same_bits() {
     assert!(e.contains("phase_basis"), "{e}");
 }
 
+#[test]
+fn the_phase_gradient_is_what_a_training_step_descends() {
+    // Adam's first step is lr · g / (|g| + ε) per sample: a fresh trainer's first step moves φ
+    // by exactly that for the g `phase_gradient(0)` reports (same batch, subnets and noise).
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 6);
+    let c = chain(&ds);
+    let p0 = phase0(&c);
+    let mut a = Trainer::new(&c, &ds, cfg(2), p0.clone()).unwrap();
+    let (loss, g) = a.phase_gradient(0).unwrap();
+    let mut b = Trainer::new(&c, &ds, cfg(2), p0.clone()).unwrap();
+    let rec = b.train_step().unwrap();
+    assert_eq!(loss, rec.loss_total);
+    let lr = cfg(2).lr_phase_rad;
+    let mut moved = 0;
+    for i in 0..p0.nrows() {
+        for j in 0..p0.ncols() {
+            let want = p0[(i, j)] - lr * g[(i, j)] / (g[(i, j)].abs() + 1e-12);
+            assert!((b.phase[(i, j)] - want).abs() <= 1e-12, "({i}, {j})");
+            moved += usize::from(g[(i, j)] != 0.0);
+        }
+    }
+    assert!(moved > 0, "no gradient");
+}
+
 fn trained_run(dir: &std::path::Path, c: &CameraChain, ds: &Dataset) -> std::path::PathBuf {
     let mut t = Trainer::new(c, ds, cfg(2), phase0(c)).unwrap();
     t.train_step().unwrap();
