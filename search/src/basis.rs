@@ -118,11 +118,7 @@ impl Zernike {
         let fact = |k: usize| (1..=k).map(|i| i as f64).product::<f64>();
         let mut modes = Vec::new();
         for n in 1..=order {
-            for m in (0..=n).rev().step_by(2).map(|am| -(am as isize)).chain(
-                (0..=n)
-                    .filter(|am| (n - am) % 2 == 0 && *am > 0)
-                    .map(|am| am as isize),
-            ) {
+            for m in (-(n as isize)..=n as isize).step_by(2) {
                 let am = m.unsigned_abs();
                 let half = (n - am) / 2;
                 let norm = (if am == 0 { 1.0 } else { 2.0 } * (n as f64 + 1.0)).sqrt();
