@@ -17,8 +17,8 @@ use nanoeye_datagen::render::{
 use nanoeye_gaze::{PupilCentre, Rig, SolverKind};
 use nanoeye_nets::Arch;
 use nanoeye_search::{
-    BnBatches, CameraChain, ChainConfig, LensSpec, PhaseBasis, Rea, ReaConfig, ReaState,
-    SlipTarget, SolverInput, TrainConfig, Trainer,
+    BnBatches, CameraChain, ChainConfig, LensSpec, PhaseBasis, PhaseSchedule, Rea, ReaConfig,
+    ReaState, SlipTarget, SolverInput, TrainConfig, Trainer,
 };
 use serde::{Deserialize, Serialize};
 use std::io::IsTerminal;
@@ -95,6 +95,10 @@ pub struct RunConfig {
     /// supplement's φ_opt) or "zernike:N" (the Zernike modes of radial order 1..=N over the
     /// aperture; docs/run.md).
     pub phase_basis: PhaseBasis,
+    /// How the learned lens's phase rate moves over the sandwich steps: "constant", "cosine"
+    /// or "cosine:F" (decay to zero over the first fraction F of the steps, φ fixed after;
+    /// docs/run.md).
+    pub phase_schedule: PhaseSchedule,
     /// Pitch learning rate (µm per step).
     pub lr_pitch_um: f64,
     /// Slippage loss weight (per mm²).
@@ -182,6 +186,7 @@ impl Default for RunConfig {
             lr_net: 4e-3,
             lr_phase_rad: 2e-2,
             phase_basis: PhaseBasis::Pixels,
+            phase_schedule: PhaseSchedule::Constant,
             lr_pitch_um: 5e-2,
             lambda_slip: 0.3,
             slip_axis_weights: [1.0; 3],
@@ -360,6 +365,7 @@ fn train_config(cfg: &RunConfig, fixed_lens: bool) -> TrainConfig {
         lr_net: cfg.lr_net,
         lr_phase_rad: cfg.lr_phase_rad,
         phase_basis: cfg.phase_basis,
+        phase_schedule: cfg.phase_schedule,
         lr_pitch_um: cfg.lr_pitch_um,
         lambda_slip: cfg.lambda_slip,
         slip_axis_weights: cfg.slip_axis_weights,

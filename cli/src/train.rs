@@ -53,6 +53,10 @@ pub struct TrainArgs {
     /// `zernike:N` (the Zernike modes of radial order 1..=N over the aperture).
     #[arg(long, default_value = "pixels")]
     phase_basis: nanoeye_search::PhaseBasis,
+    /// How the phase map's rate moves over the steps: `constant`, `cosine` or `cosine:F`
+    /// (cosine decay to zero over the first fraction F of the steps, the lens fixed after).
+    #[arg(long, default_value = "constant")]
+    phase_schedule: nanoeye_search::PhaseSchedule,
     /// Learning rate of the pitch (µm per step, Adam).
     #[arg(long, default_value_t = 5e-2)]
     lr_pitch_um: f64,
@@ -287,6 +291,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
         lr_net: a.lr_net,
         lr_phase_rad: a.lr_phase_rad,
         phase_basis: a.phase_basis,
+        phase_schedule: a.phase_schedule,
         lr_pitch_um: a.lr_pitch_um,
         lambda_slip: a.lambda_slip,
         slip_axis_weights: parse_axes("--slip-axis-weights", &a.slip_axis_weights)?,
@@ -310,6 +315,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
                 ("lr_net", "--lr-net"),
                 ("lr_phase_rad", "--lr-phase-rad"),
                 ("phase_basis", "--phase-basis"),
+                ("phase_schedule", "--phase-schedule"),
                 ("lr_pitch_um", "--lr-pitch-um"),
                 ("lambda_slip", "--lambda-slip"),
                 ("slip_axis_weights", "--slip-axis-weights"),

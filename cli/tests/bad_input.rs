@@ -686,6 +686,28 @@ fn sim_and_search_loss_name_their_bad_flags() {
         ];
         refused(&args, "--phase-basis", p);
     }
+    for sched in [
+        "cosine:0",
+        "cosine:-0.5",
+        "cosine:1.5",
+        "cosine:nan",
+        "cosine:inf",
+        "cosine:",
+        "linear",
+        "",
+    ] {
+        let args = [
+            "search",
+            "train",
+            "--dataset",
+            "ds",
+            "--phase-schedule",
+            sched,
+            "--out",
+            "o",
+        ];
+        refused(&args, "--phase-schedule", p);
+    }
     assert!(!p.join("o").exists(), "a refused sim must write nothing");
     std::fs::write(p.join("file"), b"").unwrap();
     refused(
@@ -813,6 +835,11 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         (r#"{"phase_basis": 8}"#, "phase_basis"),
         (r#"{"phase_basis": null}"#, "phase_basis"),
         (r#"{"phase_basis": "pixel"}"#, "phase_basis"),
+        (r#"{"phase_schedule": "cosine:0"}"#, "phase_schedule"),
+        (r#"{"phase_schedule": "cosine:2"}"#, "phase_schedule"),
+        (r#"{"phase_schedule": 0.5}"#, "phase_schedule"),
+        (r#"{"phase_schedule": null}"#, "phase_schedule"),
+        (r#"{"phase_schedule": "cosine:1e999"}"#, "phase_schedule"),
         (r#"{"rea_bn_batches": 0}"#, "rea_bn_batches"),
         (r#"{"rea_bn_batches": -1}"#, "rea_bn_batches"),
         (r#"{"rea_bn_batches": 1.5}"#, "rea_bn_batches"),

@@ -13,6 +13,7 @@ pub mod lens;
 pub mod pareto;
 pub mod radiometry;
 pub mod rea;
+pub mod schedule;
 pub mod spectra;
 pub mod split;
 pub mod task;
@@ -29,6 +30,7 @@ pub use geometry::{NativeGrid, PitchGrid};
 pub use lens::LensSpec;
 pub use radiometry::Radiometry;
 pub use rea::{CycleRecord, EvalPool, Evaluator, Individual, Rea, ReaConfig, ReaState};
+pub use schedule::PhaseSchedule;
 pub use split::{DepthSplit, OneProcess};
 pub use task::{TaskLoss, task_loss};
 pub use train::{

@@ -10,6 +10,7 @@ use crate::basis::{PhaseBasis, Zernike};
 use crate::bn::BnBatches;
 use crate::chain::{CameraChain, ChainFrame};
 use crate::error::{Result, param};
+use crate::schedule::PhaseSchedule;
 use crate::task::task_loss;
 use faer::Mat;
 use nanoeye_datagen::render::{Batcher, Dataset};
@@ -47,6 +48,10 @@ pub struct TrainConfig {
     /// checkpoints without the field used) or the Zernike modes up to a radial order.
     #[serde(default)]
     pub phase_basis: PhaseBasis,
+    /// How φ's rate moves over the sandwich steps (absent in older checkpoints: constant); the
+    /// inner loop's fine-tune (S16) runs at its own fraction of `lr_phase_rad` regardless.
+    #[serde(default)]
+    pub phase_schedule: PhaseSchedule,
     /// Learning rate of p̂ (µm per step, Adam).
     pub lr_pitch_um: f64,
     /// Weight of the slippage MSE (per mm²).
@@ -85,6 +90,7 @@ impl Default for TrainConfig {
             lr_net: 2e-3,
             lr_phase_rad: 2e-2,
             phase_basis: PhaseBasis::Pixels,
+            phase_schedule: PhaseSchedule::Constant,
             lr_pitch_um: 5e-2,
             lambda_slip: 0.1,
             slip_axis_weights: unit_axes(),
@@ -139,6 +145,7 @@ impl TrainConfig {
             }
         }
         self.phase_basis.validate()?;
+        self.phase_schedule.validate()?;
         for (axis, &v) in ["x", "y", "z"].iter().zip(&self.slip_axis_weights) {
             if !(v.is_finite() && (0.0..=1e3).contains(&v)) {
                 return Err(param(
@@ -395,7 +402,16 @@ impl<'a> Trainer<'a> {
     /// The batch of step `t` through the chain at the current φ and p̂, with the noise stream
     /// of step `t`.
     fn chain_step(&self, t: usize) -> Result<StepData> {
-        self.chain_step_with(t, !self.cfg.fixed_lens)
+        self.chain_step_with(t, self.phase_lr(t) > 0.0)
+    }
+
+    /// φ's learning rate at sandwich step `t` (rad): zero for a fixed lens and once the
+    /// schedule has decayed, where the step needs no gradient to φ.
+    fn phase_lr(&self, t: usize) -> f64 {
+        if self.cfg.fixed_lens {
+            return 0.0;
+        }
+        self.cfg.lr_phase_rad * self.cfg.phase_schedule.scale(t, self.cfg.steps)
     }
 
     /// [`Self::chain_step`], keeping what the backward to φ needs when `psf_grad`.
@@ -441,41 +457,45 @@ impl<'a> Trainer<'a> {
         Ok((psfs, fwd))
     }
 
-    /// The chain's backward from ∂L/∂input `dx`, then one Adam step of φ (unless the lens is
-    /// fixed) and of p̂ (with `extra_dp_um` added to its gradient, per µm), each at `lr_scale`
-    /// times its rate, p̂ clamped to its range. Returns the RMS change of φ (rad).
+    /// The chain's backward from ∂L/∂input `dx`, then one Adam step of φ at rate `lr_phase`
+    /// (none, and no gradient to φ, where it is 0: `s` must then come from a step without
+    /// `psf_grad`, and where it is not, with) and of p̂ (with `extra_dp_um` added to its
+    /// gradient, per µm) at `lr_scale` times its rate, p̂ clamped to its range. Returns the RMS
+    /// change of φ (rad).
     fn update_optics(
         &mut self,
         s: StepData,
         dx: &Tensor,
         extra_dp_um: f64,
+        lr_phase: f64,
         lr_scale: f64,
     ) -> Result<f64> {
-        // A fixed lens needs ∂L/∂p̂ only: the chain skips S1's PSF adjoint for it.
-        let mut acc = if self.cfg.fixed_lens {
-            self.chain.pitch_accumulator()
-        } else {
+        // A step that does not move φ needs ∂L/∂p̂ only: the chain skips S1's PSF adjoint.
+        let moves_phase = lr_phase > 0.0;
+        let mut acc = if moves_phase {
             self.chain.accumulator()
+        } else {
+            self.chain.pitch_accumulator()
         };
         self.chain
             .backward(&s.frames, &s.psfs, &s.fwd, dx, &mut acc)?;
         let dp_um = acc.p_hat() * 1e-6 + extra_dp_um;
         let mut phase_step = 0.0;
-        if !self.cfg.fixed_lens {
+        if moves_phase {
             let g = self.chain.finish(&s.map, &s.psfs, acc)?;
             let n = self.phase.nrows();
-            let lr = self.cfg.lr_phase_rad * lr_scale;
             match &self.zernike {
                 None => {
                     let mut x: Vec<f64> = (0..n * n).map(|k| self.phase[(k / n, k % n)]).collect();
                     let gv: Vec<f64> = (0..n * n).map(|k| g.phase_rad[(k / n, k % n)]).collect();
-                    phase_step = self.phase_adam.step(&mut x, &gv, lr);
+                    phase_step = self.phase_adam.step(&mut x, &gv, lr_phase);
                     self.phase = Mat::from_fn(n, n, |i, j| x[i * n + j]);
                 }
                 Some(z) => {
                     // Adam moves the coefficients from 0 by −Δc; φ takes Σ_j Δc_j Z_j.
                     let mut dc = vec![0.0; z.len()];
-                    self.phase_adam.step(&mut dc, &z.project(&g.phase_rad), lr);
+                    self.phase_adam
+                        .step(&mut dc, &z.project(&g.phase_rad), lr_phase);
                     let ss = z.add_to(&dc, &mut self.phase);
                     phase_step = (ss / (n * n) as f64).sqrt();
                 }
@@ -544,7 +564,8 @@ impl<'a> Trainer<'a> {
             &mut self.net,
             cosine_lr(self.cfg.lr_net, 0.0, t, self.cfg.steps),
         )?;
-        let phase_step = self.update_optics(s, &dx, 0.0, 1.0)?;
+        let lr_phase = self.phase_lr(t);
+        let phase_step = self.update_optics(s, &dx, 0.0, lr_phase, 1.0)?;
         let rec = StepRecord {
             step: t,
             loss_max: losses[0],
@@ -707,7 +728,14 @@ impl<'a> Trainer<'a> {
         if budget.fit_pitch {
             self.fit_pitch_to_budget(arch, budget.macs)?;
         }
-        let s = self.chain_step(self.step)?;
+        // The inner loop fine-tunes φ at `lr_scale` times its rate whatever the sandwich
+        // schedule did (S16).
+        let lr_phase = if self.cfg.fixed_lens {
+            0.0
+        } else {
+            self.cfg.lr_phase_rad * lr_scale
+        };
+        let s = self.chain_step_with(self.step, lr_phase > 0.0)?;
         self.net.zero_grad();
         let (l, dx) = task_loss(
             &mut self.net,
@@ -732,7 +760,7 @@ impl<'a> Trainer<'a> {
         } else {
             0.0
         };
-        self.update_optics(s, &dx, hinge, lr_scale)?;
+        self.update_optics(s, &dx, hinge, lr_phase, lr_scale)?;
         if budget.fit_pitch {
             self.fit_pitch_to_budget(arch, budget.macs)?;
         }

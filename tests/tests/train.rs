@@ -275,6 +275,73 @@ fn a_zernike_basis_moves_phi_within_its_modes_and_resumes_to_the_same_bits() {
 }
 
 #[test]
+fn a_cosine_phase_schedule_halves_the_second_step_then_fixes_phi_and_resumes_exactly() {
+    use nanoeye_search::PhaseSchedule;
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 7);
+    let sched = |steps| TrainConfig {
+        phase_schedule: PhaseSchedule::Cosine(0.5),
+        ..cfg(steps)
+    };
+    let p0 = {
+        let c = chain(&ds);
+        phase0(&c)
+    };
+    // Over 4 steps the decay lasts 2: factors 1, ½, 0, 0.
+    let (cs, cc) = (chain(&ds), chain(&ds));
+    let mut a = Trainer::new(&cs, &ds, sched(4), p0.clone()).unwrap();
+    let mut k = Trainer::new(&cc, &ds, cfg(4), p0.clone()).unwrap();
+    a.train_step().unwrap();
+    k.train_step().unwrap();
+    assert_eq!(a.phase, k.phase, "step 0 runs at the full rate under both");
+    let p1 = a.phase.clone();
+    a.train_step().unwrap();
+    k.train_step().unwrap();
+    // Same state, batch and gradient: Adam's step at half the rate is half the step.
+    let (ds_a, ds_k) = (&a.phase - &p1, &k.phase - &p1);
+    let half = &ds_k * faer::Scale(0.5);
+    let diff = (&ds_a - &half).norm_l2();
+    assert!(ds_k.norm_l2() > 1e-6, "φ did not move at step 1");
+    assert!(
+        diff <= 1e-12 * ds_k.norm_l2(),
+        "step 1 is not half the constant rate's: {diff} of {}",
+        ds_k.norm_l2()
+    );
+    let p2 = a.phase.clone();
+    let pitch2 = a.pitch_um;
+    // Past the decay φ stays, bit for bit, while p̂ and the network still train; the steps
+    // take no gradient to φ, so S1's images come from the chain's cache (a step that moves φ
+    // never reads or fills it).
+    assert_eq!(cs.cached_s1_images(), 0);
+    for _ in 2..4 {
+        let rec = a.train_step().unwrap();
+        assert_eq!(rec.phase_step_rad, 0.0);
+    }
+    assert_eq!(a.phase, p2);
+    assert_ne!(a.pitch_um, pitch2);
+    assert!(cs.cached_s1_images() > 0);
+    assert_eq!(cc.cached_s1_images(), 0);
+    // Killed past the decay and resumed: the same bits; resumed as constant: refused.
+    let ck = d.path().join("srun/checkpoint.bin");
+    let c2 = chain(&ds);
+    let mut b = Trainer::new(&c2, &ds, sched(4), p0.clone()).unwrap();
+    for _ in 0..3 {
+        b.train_step().unwrap();
+    }
+    b.save(&ck).unwrap();
+    drop(b);
+    let mut r = Trainer::new(&c2, &ds, sched(4), p0.clone()).unwrap();
+    r.load(&ck).unwrap();
+    r.train_step().unwrap();
+    assert_eq!(r.history, a.history);
+    assert_eq!(r.phase, a.phase);
+    assert_eq!(r.pitch_um, a.pitch_um);
+    let mut x = Trainer::new(&c2, &ds, cfg(4), p0).unwrap();
+    let e = x.load(&ck).unwrap_err().to_string();
+    assert!(e.contains("phase_schedule"), "{e}");
+}
+
+#[test]
 fn the_phase_gradient_is_what_a_training_step_descends() {
     // Adam's first step is lr · g / (|g| + ε) per sample: a fresh trainer's first step moves φ
     // by exactly that for the g `phase_gradient(0)` reports (same batch, subnets and noise).
