@@ -663,50 +663,40 @@ fn sim_and_search_loss_name_their_bad_flags() {
     ] {
         refused(&args, flag, p);
     }
-    // The phase basis: parsed by clap, so refused before the dataset is read.
-    for basis in [
-        "zernike:0",
-        "zernike:21",
-        "zernike:-1",
-        "zernike:1.5",
-        "zernike:nan",
-        "zernike",
-        "Zernike:4",
-        "",
-    ] {
-        let args = [
-            "search",
-            "train",
-            "--dataset",
-            "ds",
+    // φ's basis and schedule: parsed by clap, so refused before the dataset is read.
+    let phase_flags: [(&str, &[&str]); 2] = [
+        (
             "--phase-basis",
-            basis,
-            "--out",
-            "o",
-        ];
-        refused(&args, "--phase-basis", p);
-    }
-    for sched in [
-        "cosine:0",
-        "cosine:-0.5",
-        "cosine:1.5",
-        "cosine:nan",
-        "cosine:inf",
-        "cosine:",
-        "linear",
-        "",
-    ] {
-        let args = [
-            "search",
-            "train",
-            "--dataset",
-            "ds",
+            &[
+                "zernike:0",
+                "zernike:21",
+                "zernike:-1",
+                "zernike:1.5",
+                "zernike:nan",
+                "zernike",
+                "Zernike:4",
+                "",
+            ],
+        ),
+        (
             "--phase-schedule",
-            sched,
-            "--out",
-            "o",
-        ];
-        refused(&args, "--phase-schedule", p);
+            &[
+                "cosine:0",
+                "cosine:-0.5",
+                "cosine:1.5",
+                "cosine:nan",
+                "cosine:inf",
+                "cosine:",
+                "linear",
+                "",
+            ],
+        ),
+    ];
+    for (flag, values) in phase_flags {
+        for &v in values {
+            let args = ["search", "train", "--dataset", "ds", flag, v, "--out", "o"];
+            refused(&args, flag, p);
+        }
     }
     assert!(!p.join("o").exists(), "a refused sim must write nothing");
     std::fs::write(p.join("file"), b"").unwrap();
