@@ -408,10 +408,16 @@ impl<'a> Trainer<'a> {
     /// φ's learning rate at sandwich step `t` (rad): zero for a fixed lens and once the
     /// schedule has decayed, where the step needs no gradient to φ.
     fn phase_lr(&self, t: usize) -> f64 {
+        self.phase_rate(self.cfg.phase_schedule.scale(t, self.cfg.steps))
+    }
+
+    /// φ's learning rate at `scale` times `lr_phase_rad` (rad); zero for a fixed lens.
+    fn phase_rate(&self, scale: f64) -> f64 {
         if self.cfg.fixed_lens {
-            return 0.0;
+            0.0
+        } else {
+            self.cfg.lr_phase_rad * scale
         }
-        self.cfg.lr_phase_rad * self.cfg.phase_schedule.scale(t, self.cfg.steps)
     }
 
     /// [`Self::chain_step`], keeping what the backward to φ needs when `psf_grad`.
@@ -730,11 +736,7 @@ impl<'a> Trainer<'a> {
         }
         // The inner loop fine-tunes φ at `lr_scale` times its rate whatever the sandwich
         // schedule did (S16).
-        let lr_phase = if self.cfg.fixed_lens {
-            0.0
-        } else {
-            self.cfg.lr_phase_rad * lr_scale
-        };
+        let lr_phase = self.phase_rate(lr_scale);
         let s = self.chain_step_with(self.step, lr_phase > 0.0)?;
         self.net.zero_grad();
         let (l, dx) = task_loss(

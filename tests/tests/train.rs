@@ -62,6 +62,32 @@ fn phase0(c: &CameraChain) -> faer::Mat<f64> {
         .phase_rad
 }
 
+/// A run of `cfg.steps` killed after `kill_at` steps (checkpoint at `ck`) and resumed to the
+/// end by a new trainer.
+fn resumed_after<'a>(
+    c: &'a CameraChain,
+    ds: &'a Dataset,
+    cfg: TrainConfig,
+    p0: &faer::Mat<f64>,
+    ck: &std::path::Path,
+    kill_at: usize,
+) -> Trainer<'a> {
+    let steps = cfg.steps;
+    let mut b = Trainer::new(c, ds, cfg.clone(), p0.clone()).unwrap();
+    for _ in 0..kill_at {
+        b.train_step().unwrap();
+    }
+    b.save(ck).unwrap();
+    drop(b);
+    let mut r = Trainer::new(c, ds, cfg, p0.clone()).unwrap();
+    r.load(ck).unwrap();
+    assert_eq!(r.step, kill_at);
+    for _ in kill_at..steps {
+        r.train_step().unwrap();
+    }
+    r
+}
+
 #[test]
 fn sandwich_training_lowers_both_losses_and_moves_the_optics() {
     let d = tempfile::tempdir().unwrap();
@@ -164,18 +190,7 @@ fn a_killed_run_resumes_to_the_same_bits_and_other_parameters_are_refused() {
     for _ in 0..4 {
         a.train_step().unwrap();
     }
-    let mut b = Trainer::new(&c, &ds, cfg(4), phase0(&c)).unwrap();
-    for _ in 0..2 {
-        b.train_step().unwrap();
-    }
-    b.save(&ck).unwrap();
-    drop(b);
-    let mut r = Trainer::new(&c, &ds, cfg(4), phase0(&c)).unwrap();
-    r.load(&ck).unwrap();
-    assert_eq!(r.step, 2);
-    for _ in 0..2 {
-        r.train_step().unwrap();
-    }
+    let mut r = resumed_after(&c, &ds, cfg(4), &phase0(&c), &ck, 2);
     assert_eq!(r.history, a.history);
     assert_eq!(r.pitch_um, a.pitch_um);
     assert_eq!(r.phase, a.phase);
@@ -254,17 +269,7 @@ fn a_zernike_basis_moves_phi_within_its_modes_and_resumes_to_the_same_bits() {
     assert_ne!(px.phase, z1.phase);
     // Killed after two steps and resumed: the same bits as the four uninterrupted steps.
     let ck = d.path().join("zrun/checkpoint.bin");
-    let mut b = Trainer::new(&c, &ds, zcfg(4), p0.clone()).unwrap();
-    for _ in 0..2 {
-        b.train_step().unwrap();
-    }
-    b.save(&ck).unwrap();
-    drop(b);
-    let mut r = Trainer::new(&c, &ds, zcfg(4), p0.clone()).unwrap();
-    r.load(&ck).unwrap();
-    for _ in 0..2 {
-        r.train_step().unwrap();
-    }
+    let r = resumed_after(&c, &ds, zcfg(4), &p0, &ck, 2);
     assert_eq!(r.history, a.history);
     assert_eq!(r.phase, a.phase);
     assert_eq!(r.pitch_um, a.pitch_um);
@@ -324,15 +329,7 @@ fn a_cosine_phase_schedule_halves_the_second_step_then_fixes_phi_and_resumes_exa
     // Killed past the decay and resumed: the same bits; resumed as constant: refused.
     let ck = d.path().join("srun/checkpoint.bin");
     let c2 = chain(&ds);
-    let mut b = Trainer::new(&c2, &ds, sched(4), p0.clone()).unwrap();
-    for _ in 0..3 {
-        b.train_step().unwrap();
-    }
-    b.save(&ck).unwrap();
-    drop(b);
-    let mut r = Trainer::new(&c2, &ds, sched(4), p0.clone()).unwrap();
-    r.load(&ck).unwrap();
-    r.train_step().unwrap();
+    let r = resumed_after(&c2, &ds, sched(4), &p0, &ck, 3);
     assert_eq!(r.history, a.history);
     assert_eq!(r.phase, a.phase);
     assert_eq!(r.pitch_um, a.pitch_um);
