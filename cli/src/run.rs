@@ -230,7 +230,11 @@ pub struct RunArgs {
     /// Configuration file (JSON or TOML); missing keys take the defaults.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Print the configuration (defaults merged with --config) as JSON and exit.
+    /// One configuration key over the defaults and --config, as KEY=VALUE; VALUE is read as
+    /// JSON, or else as a string (`--set seed=3 --set phase_schedule=cosine:0.25`). Repeatable.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+    /// Print the configuration (defaults merged with --config and --set) as JSON and exit.
     #[arg(long)]
     print_config: bool,
     /// Rig JSON file (default: the built-in rig); overrides the configuration's `rig`.
@@ -267,6 +271,44 @@ fn load_config(p: Option<&Path>) -> Result<RunConfig> {
         })?
     };
     Ok(cfg)
+}
+
+/// `cfg` with each `KEY=VALUE` of `sets` in place of its key: VALUE as JSON where it parses
+/// (numbers, booleans, arrays, null, quoted strings), else as the string itself, so that
+/// `phase_schedule=cosine:0.25` needs no quotes. An unknown key, a key set twice and a value
+/// its key does not take are refused naming `--set KEY`.
+fn apply_sets(cfg: RunConfig, sets: &[String]) -> Result<RunConfig> {
+    if sets.is_empty() {
+        return Ok(cfg);
+    }
+    let base = serde_json::to_value(&cfg)?;
+    let mut merged = base.clone();
+    let Some(obj) = merged.as_object_mut() else {
+        bail!("--set: the configuration is not a JSON object");
+    };
+    let mut seen = std::collections::HashSet::new();
+    for s in sets {
+        let Some((key, text)) = s.split_once('=').filter(|(k, _)| !k.is_empty()) else {
+            bail!("--set {s:?}: expected KEY=VALUE, e.g. --set seed=3");
+        };
+        if !obj.contains_key(key) {
+            bail!(
+                "--set {key}: no such configuration key; `nanoeye run --print-config` lists them"
+            );
+        }
+        if !seen.insert(key) {
+            bail!("--set {key}: given twice");
+        }
+        let value = serde_json::from_str::<serde_json::Value>(text)
+            .unwrap_or_else(|_| serde_json::Value::String(text.to_string()));
+        // Alone over the base, so that the error names this key and no other.
+        let mut one = base.clone();
+        one[key] = value.clone();
+        serde_json::from_value::<RunConfig>(one)
+            .map_err(|e| anyhow::anyhow!("--set {key}={text}: {e}"))?;
+        obj.insert(key.to_string(), value);
+    }
+    serde_json::from_value(merged).context("--set: the merged configuration")
 }
 
 /// The first key of a JSON object that does not deserialize on its own (serde's error for an
@@ -479,7 +521,10 @@ fn render(
 
 /// Runs the main job.
 pub fn run(a: RunArgs) -> Result<()> {
-    let mut cfg = load_config(a.config.as_deref())?;
+    if a.rig.is_some() && a.set.iter().any(|s| s.starts_with("rig=")) {
+        bail!("--set rig and --rig both give the rig; use one");
+    }
+    let mut cfg = apply_sets(load_config(a.config.as_deref())?, &a.set)?;
     if a.rig.is_some() {
         cfg.rig = Some(crate::rig::load(a.rig.as_deref())?);
     } else if let Some(r) = &cfg.rig {
@@ -488,7 +533,14 @@ pub fn run(a: RunArgs) -> Result<()> {
     if a.print_config {
         return util::print_json(&cfg);
     }
-    check(&cfg)?;
+    // check's messages name the key; with --set the value may not come from --config.
+    check(&cfg).map_err(|e| {
+        if a.set.is_empty() {
+            e
+        } else {
+            e.context(format!("with --set {}", a.set.join(" --set ")))
+        }
+    })?;
     let t0 = Instant::now();
     let out = a
         .out

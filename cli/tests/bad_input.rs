@@ -861,6 +861,75 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
     }
 }
 
+/// `run --set KEY=VALUE` replaces one key over the defaults and `--config` (the file's value
+/// too), reads VALUE as JSON or else as a string, and refuses what it cannot apply naming
+/// `--set` and the key, before any work or output.
+#[test]
+fn run_set_overrides_one_key_and_refuses_bad_ones_naming_it() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    std::fs::write(p.join("c.json"), r#"{"seed": 5, "train_steps": 7}"#).unwrap();
+    let out = nanoeye(
+        &[
+            "run",
+            "--print-config",
+            "--config",
+            "c.json",
+            "--set",
+            "seed=3",
+            "--set",
+            "phase_schedule=cosine:0.25",
+            "--set",
+            "pitch_range_um=[12, 20]",
+            "--set",
+            "solver=\"sphere\"",
+        ],
+        p,
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let cfg: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(cfg["seed"], 3, "--set wins over the file");
+    assert_eq!(cfg["train_steps"], 7, "the file's other keys stay");
+    assert_eq!(cfg["phase_schedule"], "cosine:0.25");
+    assert_eq!(cfg["pitch_range_um"], serde_json::json!([12.0, 20.0]));
+    assert_eq!(cfg["solver"], "sphere");
+    std::fs::write(p.join("r.json"), "{}").unwrap();
+    for (sets, key) in [
+        (&["seed"][..], "seed"),
+        (&["=3"], "=3"),
+        (&["bogus=1"], "bogus"),
+        (&["seed=1", "seed=2"], "seed"),
+        (&["seed=-1"], "seed"),
+        (&["seed=1e999"], "seed"),
+        (&["seed="], "seed"),
+        (&["lr_net=nan"], "lr_net"),
+        (&["slip_target=null"], "slip_target"),
+        (&["phase_schedule=cosine:0"], "phase_schedule"),
+        (&["pitch_range_um=[24, 12]"], "pitch_range_um"),
+        (&["train_steps=0"], "train_steps"),
+        (&["rig=5"], "rig"),
+    ] {
+        let mut args = vec!["run", "--out", "r"];
+        for s in sets {
+            args.extend(["--set", s]);
+        }
+        let err = refused(&args, "--set", p);
+        assert!(err.contains(key), "{sets:?}: {err}");
+        assert!(
+            !p.join("r").exists(),
+            "{sets:?}: a refused run must write nothing"
+        );
+    }
+    let both = ["run", "--out", "r", "--rig", "r.json", "--set", "rig=null"];
+    let err = refused(&both, "--rig", p);
+    assert!(err.contains("--set rig"), "{err}");
+    assert!(!p.join("r").exists());
+}
+
 #[test]
 fn datagen_export_refuses_bad_states_and_writes_a_glb() {
     let d = tempfile::tempdir().unwrap();

@@ -298,6 +298,29 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     assert!(again.status.success());
     let r2: serde_json::Value = serde_json::from_slice(&again.stdout).unwrap();
     assert_eq!(r2, r);
+    // `--set` to the value the run has is the same configuration; to another value it is not.
+    let with_set = |kv: &str| {
+        Command::new(env!("CARGO_BIN_EXE_nanoeye"))
+            .args(["run", "--json", "--set", kv, "--config"])
+            .arg(&cfg)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap()
+    };
+    let same = with_set("seed=0");
+    assert!(
+        same.status.success(),
+        "{}",
+        String::from_utf8_lossy(&same.stderr)
+    );
+    assert_eq!(
+        serde_json::from_slice::<serde_json::Value>(&same.stdout).unwrap(),
+        r
+    );
+    let other = with_set("seed=1");
+    assert!(!other.status.success());
+    assert!(String::from_utf8_lossy(&other.stderr).contains("another configuration"));
     // Another configuration in the same directory is refused.
     // (a valid configuration, so it is the directory check that refuses it)
     let tiny = std::fs::read_to_string(&cfg).unwrap();
