@@ -99,6 +99,9 @@ pub struct RunConfig {
     /// or "cosine:F" (decay to zero over the first fraction F of the steps, φ fixed after;
     /// docs/run.md).
     pub phase_schedule: PhaseSchedule,
+    /// Sandwich steps per step of the learned lens's phase (M): φ fixed over each window of M
+    /// steps, then one step by the mean of their gradients (docs/run.md).
+    pub phase_every: usize,
     /// Pitch learning rate (µm per step).
     pub lr_pitch_um: f64,
     /// Slippage loss weight (per mm²).
@@ -187,6 +190,7 @@ impl Default for RunConfig {
             lr_phase_rad: 2e-2,
             phase_basis: PhaseBasis::Pixels,
             phase_schedule: PhaseSchedule::Constant,
+            phase_every: 1,
             lr_pitch_um: 5e-2,
             lambda_slip: 0.3,
             slip_axis_weights: [1.0; 3],
@@ -408,6 +412,7 @@ fn train_config(cfg: &RunConfig, fixed_lens: bool) -> TrainConfig {
         lr_phase_rad: cfg.lr_phase_rad,
         phase_basis: cfg.phase_basis,
         phase_schedule: cfg.phase_schedule,
+        phase_every: cfg.phase_every,
         lr_pitch_um: cfg.lr_pitch_um,
         lambda_slip: cfg.lambda_slip,
         slip_axis_weights: cfg.slip_axis_weights,

@@ -57,6 +57,10 @@ pub struct TrainArgs {
     /// (cosine decay to zero over the first fraction F of the steps, the lens fixed after).
     #[arg(long, default_value = "constant")]
     phase_schedule: nanoeye_search::PhaseSchedule,
+    /// Sandwich steps per phase-map step (M): φ is fixed over each window of M steps and
+    /// steps once after it by the mean of their gradients (one PSF VJP per window).
+    #[arg(long, default_value_t = 1)]
+    phase_every: usize,
     /// Learning rate of the pitch (µm per step, Adam).
     #[arg(long, default_value_t = 5e-2)]
     lr_pitch_um: f64,
@@ -292,6 +296,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
         lr_phase_rad: a.lr_phase_rad,
         phase_basis: a.phase_basis,
         phase_schedule: a.phase_schedule,
+        phase_every: a.phase_every,
         lr_pitch_um: a.lr_pitch_um,
         lambda_slip: a.lambda_slip,
         slip_axis_weights: parse_axes("--slip-axis-weights", &a.slip_axis_weights)?,
@@ -316,6 +321,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
                 ("lr_phase_rad", "--lr-phase-rad"),
                 ("phase_basis", "--phase-basis"),
                 ("phase_schedule", "--phase-schedule"),
+                ("phase_every", "--phase-every"),
                 ("lr_pitch_um", "--lr-pitch-um"),
                 ("lambda_slip", "--lambda-slip"),
                 ("slip_axis_weights", "--slip-axis-weights"),

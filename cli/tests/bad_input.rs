@@ -663,8 +663,8 @@ fn sim_and_search_loss_name_their_bad_flags() {
     ] {
         refused(&args, flag, p);
     }
-    // φ's basis and schedule: parsed by clap, so refused before the dataset is read.
-    let phase_flags: [(&str, &[&str]); 2] = [
+    // φ's basis, schedule and window: refused naming the flag (the first two by clap).
+    let phase_flags: [(&str, &[&str]); 3] = [
         (
             "--phase-basis",
             &[
@@ -691,6 +691,10 @@ fn sim_and_search_loss_name_their_bad_flags() {
                 "",
             ],
         ),
+        (
+            "--phase-every",
+            &["0", "1.5", "nan", "10000001", "18446744073709551616", ""],
+        ),
     ];
     for (flag, values) in phase_flags {
         for &v in values {
@@ -698,6 +702,16 @@ fn sim_and_search_loss_name_their_bad_flags() {
             refused(&args, flag, p);
         }
     }
+    let args = [
+        "search",
+        "train",
+        "--dataset",
+        "ds",
+        "--phase-every=-1",
+        "--out",
+        "o",
+    ];
+    refused(&args, "--phase-every", p);
     assert!(!p.join("o").exists(), "a refused sim must write nothing");
     std::fs::write(p.join("file"), b"").unwrap();
     refused(
@@ -830,6 +844,11 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         (r#"{"phase_schedule": 0.5}"#, "phase_schedule"),
         (r#"{"phase_schedule": null}"#, "phase_schedule"),
         (r#"{"phase_schedule": "cosine:1e999"}"#, "phase_schedule"),
+        (r#"{"phase_every": 0}"#, "phase_every"),
+        (r#"{"phase_every": -2}"#, "phase_every"),
+        (r#"{"phase_every": 2.5}"#, "phase_every"),
+        (r#"{"phase_every": null}"#, "phase_every"),
+        (r#"{"phase_every": 100000000}"#, "phase_every"),
         (r#"{"rea_bn_batches": 0}"#, "rea_bn_batches"),
         (r#"{"rea_bn_batches": -1}"#, "rea_bn_batches"),
         (r#"{"rea_bn_batches": 1.5}"#, "rea_bn_batches"),

@@ -887,13 +887,27 @@ impl CameraChain {
     }
 
     /// The one PSF VJP of a step: ∂L/∂φ from the accumulated ∂L/∂P̂, ∂L/∂η
-    /// (∂P̂/∂P = (I − P̂·1ᵀ)/η, ∂η/∂P = 1).
+    /// (∂P̂/∂P = (I − P̂·1ᵀ)/η, ∂η/∂P = 1): [`Self::psf_grads`] then [`Self::phase_vjp`].
     pub fn finish(
         &self,
         map: &PhaseMap,
         psfs: &StepPsfs,
         acc: PsfGradAccumulator,
     ) -> Result<ChainGrad> {
+        let (grads, p_hat) = self.psf_grads(psfs, acc)?;
+        let phase_rad = self.phase_vjp(map, &grads)?;
+        Ok(ChainGrad { phase_rad, p_hat })
+    }
+
+    /// ∂L/∂P per slab (the PSF window, `psf_px()`², before normalisation; zero for slabs the
+    /// step did not use) and ∂L/∂p̂ (per metre) from an accumulator filled against `psfs`.
+    /// Linear in the accumulator at a fixed φ, so steps at one φ may sum these and take one
+    /// [`Self::phase_vjp`] of the sum.
+    pub fn psf_grads(
+        &self,
+        psfs: &StepPsfs,
+        acc: PsfGradAccumulator,
+    ) -> Result<(Vec<Mat<f64>>, f64)> {
         let wp = self.psf_px();
         let p_hat = acc.p_hat;
         let Some(kernels) = acc.kernels else {
@@ -924,14 +938,27 @@ impl CameraChain {
                 Mat::from_fn(wp, wp, |r, c| (g[(r, c)] - dot) / e + g_eta)
             })
             .collect();
+        Ok((grads, p_hat))
+    }
+
+    /// ∂L/∂φ (per radian, aperture grid) at φ = `map` from ∂L/∂P per slab (`psf_grads`'s
+    /// layout): the PSF model's VJP, the expensive half of [`Self::finish`].
+    pub fn phase_vjp(&self, map: &PhaseMap, grads: &[Mat<f64>]) -> Result<Mat<f64>> {
+        let wp = self.psf_px();
+        if grads.len() != self.spec.count || grads.iter().any(|g| g.shape() != (wp, wp)) {
+            return Err(param(
+                "grads",
+                format!("need {} slabs of {wp}×{wp}", self.spec.count),
+            ));
+        }
         // AsmPsf::vjp through the chain's split: each process the terms of its depths, then
         // every term added in increasing depth from zero, as `vjp` adds them (the same bits).
-        let items = depths_with_gradient(&grads);
+        let items = depths_with_gradient(grads);
         let n = self.aperture_grid().n;
         let terms = map_gather(&*self.split, &items, n * n, |mine| {
             Ok(self
                 .psf
-                .vjp_terms(map, &self.depths_m, &grads, mine)?
+                .vjp_terms(map, &self.depths_m, grads, mine)?
                 .iter()
                 .map(|t| col_major(&t.phase_rad))
                 .collect())
@@ -940,7 +967,7 @@ impl CameraChain {
         for t in &terms {
             add_cells(&mut phase_rad, &Mat::from_fn(n, n, |i, j| t[j * n + i]));
         }
-        Ok(ChainGrad { phase_rad, p_hat })
+        Ok(phase_rad)
     }
 }
 

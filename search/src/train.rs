@@ -52,6 +52,11 @@ pub struct TrainConfig {
     /// inner loop's fine-tune (S16) runs at its own fraction of `lr_phase_rad` regardless.
     #[serde(default)]
     pub phase_schedule: PhaseSchedule,
+    /// Sandwich steps per φ step (M ≥ 1; absent in older checkpoints: 1): φ stays fixed over
+    /// each window of M steps, their ∂L/∂PSF are summed, and one PSF VJP of their mean takes
+    /// one Adam step at the schedule's rate of the window's first step after its last.
+    #[serde(default = "one")]
+    pub phase_every: usize,
     /// Learning rate of p̂ (µm per step, Adam).
     pub lr_pitch_um: f64,
     /// Weight of the slippage MSE (per mm²).
@@ -91,6 +96,7 @@ impl Default for TrainConfig {
             lr_phase_rad: 2e-2,
             phase_basis: PhaseBasis::Pixels,
             phase_schedule: PhaseSchedule::Constant,
+            phase_every: 1,
             lr_pitch_um: 5e-2,
             lambda_slip: 0.1,
             slip_axis_weights: unit_axes(),
@@ -104,6 +110,19 @@ impl Default for TrainConfig {
             pupil_centre: PupilCentre::default(),
         }
     }
+}
+
+/// The first step of the window of `every` sandwich steps that holds step `t`, and whether
+/// `t` ends it (windows start at multiples of `every`; the last of `steps` ends the last one).
+fn window_of(t: usize, every: usize, steps: usize) -> (usize, bool) {
+    let m = every.max(1);
+    let first = t - t % m;
+    (first, t + 1 >= (first + m).min(steps))
+}
+
+/// One step per φ step.
+fn one() -> usize {
+    1
 }
 
 /// Every slippage axis weighted alike.
@@ -146,6 +165,12 @@ impl TrainConfig {
         }
         self.phase_basis.validate()?;
         self.phase_schedule.validate()?;
+        if self.phase_every == 0 || self.phase_every > 10_000_000 {
+            return Err(param(
+                "phase_every",
+                format!("must be 1..=1e7 steps per φ step, got {}", self.phase_every),
+            ));
+        }
         for (axis, &v) in ["x", "y", "z"].iter().zip(&self.slip_axis_weights) {
             if !(v.is_finite() && (0.0..=1e3).contains(&v)) {
                 return Err(param(
@@ -251,6 +276,40 @@ struct StepData {
     fwd: crate::chain::ChainForward,
 }
 
+/// ∂L/∂P per slab summed over the steps of φ's current window (`phase_every`) so far.
+#[derive(Clone, Debug)]
+struct PendingPhase {
+    /// One PSF window per slab (the chain's `psf_grads` layout).
+    grads: Vec<Mat<f64>>,
+    /// Steps summed.
+    steps: usize,
+}
+
+impl PendingPhase {
+    /// As stored in a checkpoint: the sums' bits, slab after slab, column-major, so a resume
+    /// continues the window with the same bits.
+    fn to_stored(&self) -> StoredPending {
+        let wp = self.grads.first().map_or(0, |g| g.nrows());
+        StoredPending {
+            steps: self.steps,
+            psf_px: wp,
+            bits: self
+                .grads
+                .iter()
+                .flat_map(|g| (0..wp).flat_map(move |c| (0..wp).map(move |r| g[(r, c)].to_bits())))
+                .collect(),
+        }
+    }
+}
+
+/// [`PendingPhase`] in a checkpoint's metadata.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct StoredPending {
+    steps: usize,
+    psf_px: usize,
+    bits: Vec<u64>,
+}
+
 /// Everything a resume needs besides the network and its optimiser.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 struct Meta {
@@ -261,6 +320,9 @@ struct Meta {
     phase_adam: VecAdam,
     history: Vec<StepRecord>,
     phase_n: usize,
+    /// φ's window in progress (`phase_every` > 1), absent between windows.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    phase_pending: Option<StoredPending>,
 }
 
 /// The MAC budget of S16's inner loop.
@@ -292,6 +354,8 @@ pub struct Trainer<'a> {
     /// Effective pitch p̂ (µm).
     pub pitch_um: f64,
     pitch_adam: VecAdam,
+    /// ∂L/∂P of φ's window in progress (`phase_every` > 1).
+    pending: Option<PendingPhase>,
     /// Steps done.
     pub step: usize,
     /// Per-step losses.
@@ -361,6 +425,7 @@ impl<'a> Trainer<'a> {
             phase: phase0,
             pitch_um: cfg.pitch_init_um,
             pitch_adam: VecAdam::new(1),
+            pending: None,
             step: 0,
             history: Vec::new(),
             cfg,
@@ -399,10 +464,12 @@ impl<'a> Trainer<'a> {
         self.chain.load(self.ds, &ids)
     }
 
-    /// The batch of step `t` through the chain at the current φ and p̂, with the noise stream
-    /// of step `t`.
-    fn chain_step(&self, t: usize) -> Result<StepData> {
-        self.chain_step_with(t, self.phase_lr(t) > 0.0)
+    /// φ's rate over the window of `phase_every` steps that holds sandwich step `t` (the
+    /// schedule's at the window's first step; `t`'s own for one step per window) and whether
+    /// `t` ends that window (the run's last step ends the last one).
+    fn phase_window(&self, t: usize) -> (f64, bool) {
+        let (first, ends) = window_of(t, self.cfg.phase_every, self.cfg.steps);
+        (self.phase_lr(first), ends)
     }
 
     /// φ's learning rate at sandwich step `t` (rad): zero for a fixed lens and once the
@@ -420,7 +487,8 @@ impl<'a> Trainer<'a> {
         }
     }
 
-    /// [`Self::chain_step`], keeping what the backward to φ needs when `psf_grad`.
+    /// The batch of step `t` through the chain at the current φ and p̂, with the noise stream
+    /// of step `t`, keeping what the backward to φ needs when `psf_grad`.
     fn chain_step_with(&self, t: usize, psf_grad: bool) -> Result<StepData> {
         let frames = self.frames(t)?;
         let map = self.phase_map()?;
@@ -466,8 +534,9 @@ impl<'a> Trainer<'a> {
     /// The chain's backward from ∂L/∂input `dx`, then one Adam step of φ at rate `lr_phase`
     /// (none, and no gradient to φ, where it is 0: `s` must then come from a step without
     /// `psf_grad`, and where it is not, with) and of p̂ (with `extra_dp_um` added to its
-    /// gradient, per µm) at `lr_scale` times its rate, p̂ clamped to its range. Returns the RMS
-    /// change of φ (rad).
+    /// gradient, per µm) at `lr_scale` times its rate, p̂ clamped to its range. With
+    /// `window` = `Some(ends)` the step's ∂L/∂P joins φ's window in progress and φ steps, by
+    /// the window's mean, only where `ends`. Returns the RMS change of φ (rad).
     fn update_optics(
         &mut self,
         s: StepData,
@@ -475,6 +544,7 @@ impl<'a> Trainer<'a> {
         extra_dp_um: f64,
         lr_phase: f64,
         lr_scale: f64,
+        window: Option<bool>,
     ) -> Result<f64> {
         // A step that does not move φ needs ∂L/∂p̂ only: the chain skips S1's PSF adjoint.
         let moves_phase = lr_phase > 0.0;
@@ -487,21 +557,25 @@ impl<'a> Trainer<'a> {
             .backward(&s.frames, &s.psfs, &s.fwd, dx, &mut acc)?;
         let dp_um = acc.p_hat() * 1e-6 + extra_dp_um;
         let mut phase_step = 0.0;
-        if moves_phase {
-            let g = self.chain.finish(&s.map, &s.psfs, acc)?;
+        let grads = if moves_phase {
+            self.window_grads(&s, acc, window)?
+        } else {
+            None
+        };
+        if let Some(grads) = grads {
+            let g = self.chain.phase_vjp(&s.map, &grads)?;
             let n = self.phase.nrows();
             match &self.zernike {
                 None => {
                     let mut x: Vec<f64> = (0..n * n).map(|k| self.phase[(k / n, k % n)]).collect();
-                    let gv: Vec<f64> = (0..n * n).map(|k| g.phase_rad[(k / n, k % n)]).collect();
+                    let gv: Vec<f64> = (0..n * n).map(|k| g[(k / n, k % n)]).collect();
                     phase_step = self.phase_adam.step(&mut x, &gv, lr_phase);
                     self.phase = Mat::from_fn(n, n, |i, j| x[i * n + j]);
                 }
                 Some(z) => {
                     // Adam moves the coefficients from 0 by −Δc; φ takes Σ_j Δc_j Z_j.
                     let mut dc = vec![0.0; z.len()];
-                    self.phase_adam
-                        .step(&mut dc, &z.project(&g.phase_rad), lr_phase);
+                    self.phase_adam.step(&mut dc, &z.project(&g), lr_phase);
                     let ss = z.add_to(&dc, &mut self.phase);
                     phase_step = (ss / (n * n) as f64).sqrt();
                 }
@@ -513,6 +587,40 @@ impl<'a> Trainer<'a> {
         let [lo, hi] = self.cfg.pitch_range_um;
         self.pitch_um = p[0].clamp(lo, hi);
         Ok(phase_step)
+    }
+
+    /// ∂L/∂P per slab that φ steps by now: the step's own (`window` None), or, in a window,
+    /// the step's added to the window's sum and then their mean where the window ends (`None`
+    /// before: φ does not step).
+    fn window_grads(
+        &mut self,
+        s: &StepData,
+        acc: crate::chain::PsfGradAccumulator,
+        window: Option<bool>,
+    ) -> Result<Option<Vec<Mat<f64>>>> {
+        let (grads, _) = self.chain.psf_grads(&s.psfs, acc)?;
+        let Some(ends) = window else {
+            return Ok(Some(grads));
+        };
+        let p = self.pending.get_or_insert_with(|| PendingPhase {
+            grads: grads
+                .iter()
+                .map(|g| Mat::zeros(g.nrows(), g.ncols()))
+                .collect(),
+            steps: 0,
+        });
+        for (a, g) in p.grads.iter_mut().zip(&grads) {
+            *a += g;
+        }
+        p.steps += 1;
+        if !ends {
+            return Ok(None);
+        }
+        let p = self.pending.take().expect("filled above");
+        let inv = 1.0 / p.steps as f64;
+        Ok(Some(
+            p.grads.into_iter().map(|g| g * faer::Scale(inv)).collect(),
+        ))
     }
 
     /// The sandwich loss of step `t`'s subnets on its chain output, per subnet, and its
@@ -564,14 +672,15 @@ impl<'a> Trainer<'a> {
     /// One sandwich step (S22).
     pub fn train_step(&mut self) -> Result<StepRecord> {
         let t = self.step;
-        let s = self.chain_step(t)?;
+        let (lr_phase, ends) = self.phase_window(t);
+        let s = self.chain_step_with(t, lr_phase > 0.0)?;
         let (losses, dx) = self.sandwich_loss(t, &s.fwd)?;
         self.opt.step(
             &mut self.net,
             cosine_lr(self.cfg.lr_net, 0.0, t, self.cfg.steps),
         )?;
-        let lr_phase = self.phase_lr(t);
-        let phase_step = self.update_optics(s, &dx, 0.0, lr_phase, 1.0)?;
+        let window = (self.cfg.phase_every > 1).then_some(ends);
+        let phase_step = self.update_optics(s, &dx, 0.0, lr_phase, 1.0, window)?;
         let rec = StepRecord {
             step: t,
             loss_max: losses[0],
@@ -762,7 +871,8 @@ impl<'a> Trainer<'a> {
         } else {
             0.0
         };
-        self.update_optics(s, &dx, hinge, lr_phase, lr_scale)?;
+        // Per step, whatever `phase_every`: the window of sandwich training is not its.
+        self.update_optics(s, &dx, hinge, lr_phase, lr_scale, None)?;
         if budget.fit_pitch {
             self.fit_pitch_to_budget(arch, budget.macs)?;
         }
@@ -821,6 +931,7 @@ impl<'a> Trainer<'a> {
             phase_adam: self.phase_adam.clone(),
             history: self.history.clone(),
             phase_n: self.phase.nrows(),
+            phase_pending: self.pending.as_ref().map(PendingPhase::to_stored),
         };
         let json = serde_json::to_vec(&meta).map_err(|e| param("checkpoint", e.to_string()))?;
         let net = nanoeye_nets::checkpoint::to_bytes(&mut self.net)?;
@@ -933,6 +1044,27 @@ impl<'a> Trainer<'a> {
         self.pitch_adam = meta.pitch_adam;
         self.phase_adam = meta.phase_adam;
         self.history = meta.history;
+        self.pending = match meta.phase_pending {
+            None => None,
+            Some(sp) => {
+                let wp = self.chain.psf_px();
+                let count = self.chain.depths_m().len();
+                if sp.psf_px != wp || sp.bits.len() != count * wp * wp || sp.steps == 0 {
+                    return Err(bad(
+                        "φ's window in progress does not match this chain's PSFs",
+                    ));
+                }
+                let grads = sp
+                    .bits
+                    .chunks(wp * wp)
+                    .map(|c| Mat::from_fn(wp, wp, |r, j| f64::from_bits(c[j * wp + r])))
+                    .collect();
+                Some(PendingPhase {
+                    grads,
+                    steps: sp.steps,
+                })
+            }
+        };
         Ok(())
     }
 }
@@ -1342,4 +1474,51 @@ pub fn evaluate_net(
         slip_mse: e.slip_sq_mm2.iter().sum::<f64>() / nb as f64,
         frames: nb,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn windows_start_at_multiples_and_the_last_step_ends_the_last() {
+        let ends = |every, steps| -> Vec<(usize, usize)> {
+            (0..steps)
+                .filter_map(|t| {
+                    let (first, e) = window_of(t, every, steps);
+                    e.then_some((first, t))
+                })
+                .collect()
+        };
+        assert_eq!(ends(1, 3), [(0, 0), (1, 1), (2, 2)]);
+        assert_eq!(ends(2, 5), [(0, 1), (2, 3), (4, 4)]);
+        assert_eq!(ends(3, 6), [(0, 2), (3, 5)]);
+        // A window longer than the run: φ steps once, after the last step.
+        assert_eq!(ends(10, 4), [(0, 3)]);
+        for t in 0..7 {
+            assert_eq!(window_of(t, 3, 7).0, t / 3 * 3);
+        }
+    }
+
+    #[test]
+    fn phase_every_zero_or_huge_is_refused_by_name() {
+        for m in [0, 10_000_001, usize::MAX] {
+            let c = TrainConfig {
+                phase_every: m,
+                ..TrainConfig::default()
+            };
+            let e = c.validate().unwrap_err().to_string();
+            assert!(e.contains("phase_every"), "{m}: {e}");
+        }
+        let ok = TrainConfig {
+            phase_every: 7,
+            ..TrainConfig::default()
+        };
+        ok.validate().unwrap();
+        // Older checkpoints' configurations, without the field, read as one step per step.
+        let mut v = serde_json::to_value(&ok).unwrap();
+        v.as_object_mut().unwrap().remove("phase_every");
+        let back: TrainConfig = serde_json::from_value(v).unwrap();
+        assert_eq!(back.phase_every, 1);
+    }
 }

@@ -339,6 +339,78 @@ fn a_cosine_phase_schedule_halves_the_second_step_then_fixes_phi_and_resumes_exa
 }
 
 #[test]
+fn phase_every_steps_phi_once_a_window_by_its_mean_gradient_and_resumes_mid_window() {
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 8);
+    let every = |m, steps| TrainConfig {
+        phase_every: m,
+        ..cfg(steps)
+    };
+    let c = chain(&ds);
+    let p0 = phase0(&c);
+    // Each step's gradient at the state that step sees: φ0 throughout the first window.
+    let mut q = Trainer::new(&c, &ds, every(2, 4), p0.clone()).unwrap();
+    let (_, g0) = q.phase_gradient(0).unwrap();
+    assert_eq!(q.train_step().unwrap().phase_step_rad, 0.0);
+    assert_eq!(q.phase, p0, "φ moved inside its window");
+    let (_, g1) = q.phase_gradient(1).unwrap();
+    assert!(q.train_step().unwrap().phase_step_rad > 0.0);
+    // Adam's first step is lr · ḡ / (|ḡ| + ε) per sample for the window's mean ḡ (summed
+    // before the PSF VJP in training, after it here: equal up to round-off, so samples where
+    // ḡ is round-off of zero are skipped).
+    let mean = (&g0 + &g1) * faer::Scale(0.5);
+    let big = (0..p0.nrows())
+        .flat_map(|i| (0..p0.ncols()).map(move |j| (i, j)))
+        .map(|(i, j)| mean[(i, j)].abs())
+        .fold(0.0, f64::max);
+    let lr = cfg(4).lr_phase_rad;
+    let (mut checked, mut unlike_last) = (0, 0);
+    for i in 0..p0.nrows() {
+        for j in 0..p0.ncols() {
+            let m = mean[(i, j)];
+            if m.abs() <= 1e-9 * big {
+                continue;
+            }
+            let want = p0[(i, j)] - lr * m / (m.abs() + 1e-12);
+            assert!((q.phase[(i, j)] - want).abs() <= 1e-12, "({i}, {j})");
+            checked += 1;
+            unlike_last += usize::from(g1[(i, j)].signum() != m.signum());
+        }
+    }
+    assert!(checked > 0, "no gradient");
+    // Otherwise the check could not tell the window's mean from its last step's gradient.
+    assert!(unlike_last > 0, "ḡ has g1's signs everywhere");
+    // The second window: φ fixed at step 2, stepped at 3.
+    let p2 = q.phase.clone();
+    assert_eq!(q.train_step().unwrap().phase_step_rad, 0.0);
+    assert_eq!(q.phase, p2);
+    assert!(q.train_step().unwrap().phase_step_rad > 0.0);
+    // Killed inside a window (its sum in the checkpoint) or at its end, and resumed: the
+    // uninterrupted run's bits.
+    let cu = chain(&ds);
+    let mut u = Trainer::new(&cu, &ds, every(2, 4), p0.clone()).unwrap();
+    for _ in 0..4 {
+        u.train_step().unwrap();
+    }
+    let ck = d.path().join("wrun/checkpoint.bin");
+    for kill_at in [1, 2, 3] {
+        let c2 = chain(&ds);
+        let r = resumed_after(&c2, &ds, every(2, 4), &p0, &ck, kill_at);
+        assert_eq!(r.history, u.history, "killed after {kill_at}");
+        assert_eq!(r.phase, u.phase, "killed after {kill_at}");
+        assert_eq!(r.pitch_um, u.pitch_um, "killed after {kill_at}");
+    }
+    // A checkpoint inside a window resumed with another window length: refused by name.
+    let c3 = chain(&ds);
+    let mut b = Trainer::new(&c3, &ds, every(2, 4), p0.clone()).unwrap();
+    b.train_step().unwrap();
+    b.save(&ck).unwrap();
+    let mut x = Trainer::new(&c3, &ds, every(1, 4), p0).unwrap();
+    let e = x.load(&ck).unwrap_err().to_string();
+    assert!(e.contains("phase_every"), "{e}");
+}
+
+#[test]
 fn the_phase_gradient_is_what_a_training_step_descends() {
     // Adam's first step is lr · g / (|g| + ε) per sample: a fresh trainer's first step moves φ
     // by exactly that for the g `phase_gradient(0)` reports (same batch, subnets and noise).
