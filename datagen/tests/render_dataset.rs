@@ -186,3 +186,29 @@ fn blink_fraction_closes_that_share_of_envelope_lids_and_changes_nothing_else() 
         assert!(e.to_string().contains("blink_fraction"), "{e}");
     }
 }
+
+/// A variational set's manifest says its triplets share their pixel samples; one begun before
+/// (no such key) is refused on resume, naming the key, rather than completed with frames
+/// whose samples differ.
+#[test]
+fn a_variational_render_begun_with_per_frame_samples_is_not_resumed() {
+    let d = tempfile::tempdir().unwrap();
+    let o = DatasetOptions {
+        set: RenderSet::Variational,
+        ..opts(d.path(), 2)
+    };
+    write_dataset(&o).unwrap();
+    let path = d.path().join("dataset.json");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut m: serde_json::Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(m["triplet_samples_shared"], true);
+    m.as_object_mut().unwrap().remove("triplet_samples_shared");
+    std::fs::write(&path, serde_json::to_string(&m).unwrap()).unwrap();
+    let e = write_dataset(&o).unwrap_err().to_string();
+    assert!(e.contains("`triplet_samples_shared`"), "{e}");
+    // Other sets do not carry the key.
+    let a = tempfile::tempdir().unwrap();
+    write_dataset(&opts(a.path(), 2)).unwrap();
+    let t = std::fs::read_to_string(a.path().join("dataset.json")).unwrap();
+    assert!(!t.contains("triplet_samples_shared"));
+}

@@ -146,6 +146,15 @@ pub struct DatasetManifest {
     /// Share of envelope frames drawn with a blink or partial closure (absent: 0).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub blink_fraction: f64,
+    /// True where a variational triplet's three frames share their pixel samples (rendered
+    /// since 2026-12-03; [`pixel_seed`]); absent (false) where every frame has its own — so a
+    /// render resumed across that change is refused rather than mixed.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub triplet_samples_shared: bool,
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
 }
 
 fn is_zero(x: &f64) -> bool {
@@ -496,6 +505,7 @@ pub fn manifest_for(opts: &DatasetOptions) -> Result<DatasetManifest, RenderErro
         rig,
         frames,
         blink_fraction: opts.blink_fraction,
+        triplet_samples_shared: opts.set == RenderSet::Variational,
     })
 }
 
@@ -537,6 +547,7 @@ fn check_existing(dir: &Path, manifest: &DatasetManifest) -> Result<(), RenderEr
                 let field = match (a.as_object(), b.as_object()) {
                     (Some(x), Some(y)) => x
                         .keys()
+                        .chain(y.keys())
                         .find(|k| x.get(*k) != y.get(*k))
                         .cloned()
                         .unwrap_or_else(|| "?".into()),
@@ -806,6 +817,21 @@ fn check_frame_memory(
     }
 }
 
+/// The seed of frame `i`'s pixel samples (item `item` of `set`). A variational triplet's three
+/// frames share their item's samples (common random numbers), so the finite differences the
+/// triplet exists for (C.2) hold the change of the scene, not the renderer's sampling noise;
+/// every other frame has its own.
+pub fn pixel_seed(set: RenderSet, seed: u64, i: usize, item: usize) -> u64 {
+    match set {
+        RenderSet::Variational => {
+            seed ^ (item as u64)
+                .wrapping_add(1 << 62)
+                .wrapping_mul(0xE703_7ED1_A0B4_28DB)
+        }
+        _ => seed ^ (i as u64).wrapping_mul(0xA076_1D64_78BD_642F),
+    }
+}
+
 /// Renders and writes frame `i` of `plan` (record last); false when it was already complete.
 fn render_one(opts: &DatasetOptions, plan: &DatasetPlan, i: usize) -> Result<bool, RenderError> {
     let rig = &plan.manifest.rig;
@@ -815,7 +841,7 @@ fn render_one(opts: &DatasetOptions, plan: &DatasetPlan, i: usize) -> Result<boo
     if finished_record(&opts.out_dir, i).is_some() {
         return Ok(false);
     }
-    let pixel_seed = opts.seed ^ (i as u64).wrapping_mul(0xA076_1D64_78BD_642F);
+    let pixel_seed = pixel_seed(opts.set, opts.seed, i, f.item);
     let (frame, lm) = render_planned(rig, &opts.source, f, opts.spp, pixel_seed, opts.layers)?;
     let files = FrameFiles {
         preview: format!("{stem}_preview.png"),
@@ -962,6 +988,28 @@ fn visible_fraction(visible: &Mat<f32>, unoccluded: &Mat<f32>) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A variational triplet's frames share their pixel samples, triplets do not; every other
+    /// set keeps one seed per frame (the bits of datasets rendered before).
+    #[test]
+    fn a_triplet_shares_its_pixel_samples_and_other_frames_do_not() {
+        let v = |i: usize| pixel_seed(RenderSet::Variational, 7, i, i / 3);
+        assert_eq!(v(0), v(1));
+        assert_eq!(v(1), v(2));
+        assert_ne!(v(2), v(3));
+        assert_ne!(v(0), v(300));
+        for set in [
+            RenderSet::Ambiguity,
+            RenderSet::Envelope,
+            RenderSet::Protocol,
+        ] {
+            assert_ne!(pixel_seed(set, 7, 0, 0), pixel_seed(set, 7, 1, 0));
+            assert_eq!(
+                pixel_seed(set, 7, 5, 1),
+                7 ^ 5u64.wrapping_mul(0xA076_1D64_78BD_642F)
+            );
+        }
+    }
 
     /// A frame larger than the memory available is refused, one that fits is not; without a
     /// figure for the available memory nothing is refused.
