@@ -6,6 +6,7 @@
 mod datagen;
 mod datagen_render;
 mod dist;
+mod embed;
 mod figures;
 mod fisher;
 mod gaze;

@@ -129,6 +129,8 @@ pub enum SearchCmd {
     Train(crate::train::TrainArgs),
     /// Regularized evolution over subnets with inner-loop fine-tuning (S16–S21).
     Rea(crate::train::ReaArgs),
+    /// The lens optimised for the optical embedding (S15) on variational triplets.
+    Embed(crate::embed::EmbedArgs),
     /// Accuracy–compute Pareto fronts of several trained lenses (B.6, Fig. 8).
     Pareto(crate::pareto::ParetoArgs),
 }
@@ -341,6 +343,7 @@ pub fn search(cmd: SearchCmd) -> Result<()> {
         SearchCmd::Train(a) => crate::train::train(a),
         SearchCmd::Rea(a) => crate::train::rea(a),
         SearchCmd::Pareto(a) => crate::pareto::pareto(a),
+        SearchCmd::Embed(a) => crate::embed::embed(a),
     }
 }
 

@@ -126,9 +126,9 @@ fn parse_axes(flag: &str, text: &str) -> Result<[f64; 3]> {
 }
 
 /// A 640×360 line plot of `n` points over x = 0 … n − 1 and y = 0 … `ymax`.
-struct Plot {
-    n: f64,
-    ymax: f64,
+pub(crate) struct Plot {
+    pub(crate) n: f64,
+    pub(crate) ymax: f64,
 }
 
 impl Plot {
@@ -146,7 +146,7 @@ impl Plot {
     }
 
     /// "x,y x,y …" of `values`.
-    fn polyline(&self, values: impl Iterator<Item = f64>) -> String {
+    pub(crate) fn polyline(&self, values: impl Iterator<Item = f64>) -> String {
         values
             .enumerate()
             .map(|(i, v)| {
@@ -158,7 +158,13 @@ impl Plot {
     }
 
     /// The self-contained SVG: axes, labels, `body`, and `legend` as (text, colour) lines.
-    fn svg(&self, xlabel: &str, ylabel: &str, body: &str, legend: &[(&str, &str)]) -> String {
+    pub(crate) fn svg(
+        &self,
+        xlabel: &str,
+        ylabel: &str,
+        body: &str,
+        legend: &[(&str, &str)],
+    ) -> String {
         let (w, ht, m) = (Self::W, Self::H, Self::M);
         let (b, r, cx, tb, cy) = (ht - m, w - m, w / 2.0, ht - 8.0, ht / 2.0);
         let last = (self.n as usize).saturating_sub(1);

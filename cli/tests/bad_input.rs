@@ -1178,3 +1178,86 @@ fn a_wrapped_stage_error_is_printed_once() {
     assert_eq!(err.matches("missing.npy").count(), 1, "{err}");
     assert!(!p.join("s").exists(), "{:?}", entries(p));
 }
+
+#[test]
+fn search_embed_runs_resumes_and_names_its_bad_flags() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let mut tv = tiny_dataset("tv");
+    tv[3] = "variational";
+    tv[5] = "2";
+    assert!(nanoeye(&tv, p).status.success());
+    assert!(nanoeye(&tiny_dataset("ds"), p).status.success());
+    let run = |extra: &[&str]| {
+        let mut a = vec!["search", "embed", "--dataset", "tv"];
+        // TINY_CHAIN's camera flags, on the triplets.
+        a.extend(&common::TINY_CHAIN[2..]);
+        a.extend(["--steps", "2", "--batch", "2", "--out", "e", "--json"]);
+        a.extend(extra);
+        a.into_iter().map(String::from).collect::<Vec<_>>()
+    };
+    fn args(v: &[String]) -> Vec<&str> {
+        v.iter().map(String::as_str).collect()
+    }
+    for (extra, flag) in [
+        (vec!["--steps", "10000001"], "--steps"),
+        (vec!["--batch", "0"], "--batch"),
+        (vec!["--batch", "3"], "--batch"),
+        (vec!["--lr-phase-rad", "nan"], "--lr-phase-rad"),
+        (vec!["--lr-phase-rad=-1"], "--lr-phase-rad"),
+        (vec!["--w-sens", "0", "--w-orth", "0"], "--w-sens"),
+        (vec!["--w-orth=-1"], "--w-orth"),
+        (vec!["--w-sens", "inf"], "--w-sens"),
+        (vec!["--checkpoint-every", "0"], "--checkpoint-every"),
+        (vec!["--eval-chunk", "0"], "--eval-chunk"),
+        (vec!["--lens", "file:nope.npy"], "--lens"),
+        (vec!["--lens", "concave"], "--lens"),
+        (vec!["--dataset", "ds"], "--dataset"),
+        (vec!["--pitch-um", "nan"], "--pitch-um"),
+    ] {
+        let v = run(&extra);
+        refused(&args(&v), flag, p);
+        assert!(!p.join("e").exists(), "{extra:?} wrote e/");
+    }
+    let ok = nanoeye(&args(&run(&[])), p);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let out: serde_json::Value = serde_json::from_slice(&ok.stdout).unwrap();
+    assert_eq!(out["steps"], 2);
+    assert_eq!(out["triplets"], 2);
+    for k in ["loss", "l_sens", "l_orth", "crlb_slip_um", "crlb_gaze_deg"] {
+        for s in ["init", "final"] {
+            assert!(
+                out[s][k].as_f64().is_some_and(f64::is_finite),
+                "{s}.{k}: {out}"
+            );
+        }
+    }
+    for f in [
+        "checkpoint.bin",
+        "phase.npy",
+        "history.jsonl",
+        "embed.svg",
+        "metrics.json",
+        "init.json",
+        "lens.json",
+    ] {
+        assert!(p.join("e").join(f).is_file(), "{f} missing");
+    }
+    let hist = std::fs::read_to_string(p.join("e/history.jsonl")).unwrap();
+    assert_eq!(hist.lines().count(), 2);
+    let phase = std::fs::read(p.join("e/phase.npy")).unwrap();
+    // The same command again: nothing left to run, the same lens and bounds.
+    let again = nanoeye(&args(&run(&[])), p);
+    assert!(again.status.success());
+    let out2: serde_json::Value = serde_json::from_slice(&again.stdout).unwrap();
+    assert_eq!(out2["final"], out["final"]);
+    assert_eq!(std::fs::read(p.join("e/phase.npy")).unwrap(), phase);
+    // Another rate or another starting lens is refused, naming it; nothing is changed.
+    refused(&args(&run(&["--lr-phase-rad", "0.01"])), "lr_rad", p);
+    refused(&args(&run(&["--lens", "double-helix"])), "--lens", p);
+    assert_eq!(std::fs::read(p.join("e/phase.npy")).unwrap(), phase);
+}

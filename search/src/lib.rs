@@ -6,6 +6,7 @@
 pub mod basis;
 pub mod bn;
 pub mod chain;
+pub mod embed;
 pub mod error;
 pub mod geometry;
 pub mod headfit;
@@ -25,6 +26,7 @@ pub use chain::{
     CameraChain, ChainConfig, ChainForward, ChainFrame, ChainGrad, PsfGradAccumulator, SlipTarget,
     StepPsfs,
 };
+pub use embed::{EmbedConfig, EmbedEval, EmbedRecord, EmbedWeights, Embedder, embedding_loss};
 pub use error::{Result, SearchError};
 pub use geometry::{NativeGrid, PitchGrid};
 pub use lens::LensSpec;

@@ -235,14 +235,14 @@ pub struct Metrics {
 
 /// Adam for an f64 vector (φ, p̂): bias-corrected moments.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-struct VecAdam {
-    t: i32,
-    m: Vec<f64>,
-    v: Vec<f64>,
+pub(crate) struct VecAdam {
+    pub(crate) t: i32,
+    pub(crate) m: Vec<f64>,
+    pub(crate) v: Vec<f64>,
 }
 
 impl VecAdam {
-    fn new(n: usize) -> VecAdam {
+    pub(crate) fn new(n: usize) -> VecAdam {
         VecAdam {
             t: 0,
             m: vec![0.0; n],
@@ -251,7 +251,7 @@ impl VecAdam {
     }
 
     /// Updates `x` in place; returns the RMS step.
-    fn step(&mut self, x: &mut [f64], g: &[f64], lr: f64) -> f64 {
+    pub(crate) fn step(&mut self, x: &mut [f64], g: &[f64], lr: f64) -> f64 {
         let (b1, b2, eps) = (0.9f64, 0.999f64, 1e-12f64);
         self.t += 1;
         let c1 = 1.0 - b1.powi(self.t);
@@ -365,7 +365,23 @@ pub struct Trainer<'a> {
 /// Magic line of a training checkpoint.
 pub const TRAIN_MAGIC: &[u8] = b"NANOEYE-TRAIN-CKPT-1\n";
 
-fn fnv1a(bytes: &[u8]) -> u64 {
+/// Writes `bytes` to `path` through a temporary file and a rename: one unit, never a mix.
+pub(crate) fn write_file_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).map_err(|e| param("out", format!("{}: {e}", dir.display())))?;
+    let io = |e: std::io::Error| param("out", format!("{}: {e}", path.display()));
+    // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
+    let mut tmp = tempfile::Builder::new()
+        .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
+        .tempfile_in(dir)
+        .map_err(io)?;
+    std::io::Write::write_all(&mut tmp, bytes).map_err(io)?;
+    tmp.as_file().sync_all().map_err(io)?;
+    tmp.persist(path).map_err(|e| io(e.error))?;
+    Ok(())
+}
+
+pub(crate) fn fnv1a(bytes: &[u8]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     for &b in bytes {
         h ^= b as u64;
@@ -958,19 +974,7 @@ impl<'a> Trainer<'a> {
         }
         let h = fnv1a(&b);
         b.extend_from_slice(&h.to_le_bytes());
-        let dir = path.parent().unwrap_or(Path::new("."));
-        std::fs::create_dir_all(dir)
-            .map_err(|e| param("out", format!("{}: {e}", dir.display())))?;
-        let io = |e: std::io::Error| param("out", format!("{}: {e}", path.display()));
-        // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
-        let mut tmp = tempfile::Builder::new()
-            .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
-            .tempfile_in(dir)
-            .map_err(io)?;
-        std::io::Write::write_all(&mut tmp, &b).map_err(io)?;
-        tmp.as_file().sync_all().map_err(io)?;
-        tmp.persist(path).map_err(|e| io(e.error))?;
-        Ok(())
+        write_file_atomic(path, &b)
     }
 
     /// Restores a checkpoint written by [`Self::save`]; refuses one made with another
