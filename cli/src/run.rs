@@ -17,8 +17,8 @@ use nanoeye_datagen::render::{
 use nanoeye_gaze::{PupilCentre, Rig, SolverKind};
 use nanoeye_nets::Arch;
 use nanoeye_search::{
-    BnBatches, CameraChain, ChainConfig, LensSpec, PhaseBasis, PhaseSchedule, Rea, ReaConfig,
-    ReaState, SlipTarget, SolverInput, TrainConfig, Trainer,
+    BnBatches, CameraChain, ChainConfig, EmbedConfig, EmbedWeights, Embedder, LensSpec, PhaseBasis,
+    PhaseSchedule, Rea, ReaConfig, ReaState, SlipTarget, SolverInput, TrainConfig, Trainer,
 };
 use serde::{Deserialize, Serialize};
 use std::io::IsTerminal;
@@ -45,6 +45,30 @@ impl<'de> Deserialize<'de> for TrainSet {
             "ambiguity" => Ok(TrainSet::Ambiguity),
             _ => Err(serde::de::Error::custom(format!(
                 "train_set must be \"envelope\" or \"ambiguity\", got {s:?}"
+            ))),
+        }
+    }
+}
+
+/// How the main job designs the learned lens.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LearnedLens {
+    /// The Fisher initialization, then trained with the network by the sandwich rule.
+    Trained,
+    /// The Fisher initialization, then the optical-embedding objective (S15) on variational
+    /// triplets (`search embed`), then kept fixed while the network trains.
+    Embedding,
+}
+
+impl<'de> Deserialize<'de> for LearnedLens {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        match s.as_str() {
+            "trained" => Ok(LearnedLens::Trained),
+            "embedding" => Ok(LearnedLens::Embedding),
+            _ => Err(serde::de::Error::custom(format!(
+                "learned_lens must be \"trained\" or \"embedding\", got {s:?}"
             ))),
         }
     }
@@ -81,6 +105,19 @@ pub struct RunConfig {
     pub fisher_iterations: usize,
     /// Point-source photons per exposure of the Fisher initialization's noise model.
     pub fisher_photons: f64,
+    /// How the learned lens is designed: "trained" (the Fisher initialization, then trained
+    /// with the network by the sandwich rule) or "embedding" (the Fisher initialization, then
+    /// `embed_steps` Adam steps of the optical-embedding objective S15 on `embed_triplets`
+    /// variational triplets at `pitch_init_um`, then kept fixed while the network trains and
+    /// in the REA's fine-tunes; docs/run.md).
+    pub learned_lens: LearnedLens,
+    /// Variational triplets rendered for `learned_lens: "embedding"` (at least 4: a step's
+    /// batch).
+    pub embed_triplets: usize,
+    /// Adam steps of the embedding objective.
+    pub embed_steps: usize,
+    /// The embedding objective's phase learning rate (rad per step).
+    pub embed_lr_rad: f64,
     /// Sandwich training steps per lens.
     pub train_steps: usize,
     /// Frames per batch.
@@ -179,6 +216,10 @@ impl Default for RunConfig {
             protocol_subjects: 1,
             fisher_iterations: 40,
             fisher_photons: 1e5,
+            learned_lens: LearnedLens::Trained,
+            embed_triplets: 48,
+            embed_steps: 80,
+            embed_lr_rad: 0.05,
             train_steps: 200,
             batch: 4,
             // S22 with two random subnets besides N_max and N_min (the issue's default): with
@@ -355,6 +396,24 @@ fn check(cfg: &RunConfig) -> Result<()> {
     if cfg.spp == 0 || cfg.spp > 1024 {
         bail!("--config: spp must be 1..=1024");
     }
+    if cfg.learned_lens == LearnedLens::Embedding {
+        if !(EMBED_BATCH..=100_000).contains(&cfg.embed_triplets) {
+            bail!(
+                "--config: embed_triplets must lie in {EMBED_BATCH}..=100000 (a step takes \
+                 {EMBED_BATCH}), got {}",
+                cfg.embed_triplets
+            );
+        }
+        embed_config(cfg).validate().map_err(|e| match e {
+            nanoeye_search::SearchError::Param { name: "steps", .. } => {
+                anyhow::anyhow!("--config: embed_steps: {e}")
+            }
+            nanoeye_search::SearchError::Param { name: "lr_rad", .. } => {
+                anyhow::anyhow!("--config: embed_lr_rad: {e}")
+            }
+            _ => anyhow::anyhow!("--config: {e}"),
+        })?;
+    }
     if !(cfg.exposure_ms.is_finite() && cfg.exposure_ms > 0.0 && cfg.exposure_ms <= 1000.0) {
         bail!("--config: exposure_ms must lie in (0, 1000]");
     }
@@ -400,6 +459,21 @@ fn check(cfg: &RunConfig) -> Result<()> {
         .context("--config: rea_bn_batches")?;
     rea_config(cfg).validate().context("--config (search)")?;
     Ok(())
+}
+
+/// Triplets per step of the learned lens's embedding objective.
+const EMBED_BATCH: usize = 4;
+
+/// The embedding objective's settings (`learned_lens: "embedding"`).
+fn embed_config(cfg: &RunConfig) -> EmbedConfig {
+    EmbedConfig {
+        steps: cfg.embed_steps,
+        batch: EMBED_BATCH,
+        lr_rad: cfg.embed_lr_rad,
+        pitch_um: cfg.pitch_init_um,
+        seed: cfg.seed,
+        weights: EmbedWeights::default(),
+    }
 }
 
 /// The sandwich-training configuration of each lens.
@@ -635,6 +709,15 @@ pub fn run(a: RunArgs) -> Result<()> {
         (cfg.sequence_frames.max(1), cfg.seed + 3, 0.0),
         &cfg,
     )?;
+    let triplets = match cfg.learned_lens {
+        LearnedLens::Embedding => Some(render(
+            &out.join("data/triplets"),
+            RenderSet::Variational,
+            (cfg.embed_triplets, cfg.seed + 4, 0.0),
+            &cfg,
+        )?),
+        LearnedLens::Trained => None,
+    };
     stage("render", t.elapsed().as_secs_f64(), &mut stages)?;
 
     let chain_cfg = {
@@ -679,6 +762,34 @@ pub fn run(a: RunArgs) -> Result<()> {
         Some(phase)
     };
     stage("fisher", t.elapsed().as_secs_f64(), &mut stages)?;
+
+    // 2b. The learned lens optimised for the optical embedding on the triplets, then fixed.
+    let learned_init = match &triplets {
+        Some(trip) => {
+            let t = Instant::now();
+            let start = match learned_init {
+                Some(p) => p,
+                None => {
+                    let r = &chain.config().radiometry;
+                    LensSpec::Hyperbolic
+                        .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)?
+                        .phase_rad
+                }
+            };
+            let phase = embed_lens(trip, &chain_cfg, &cfg, start, &out.join("runs/learned"))
+                .context("the learned lens's embedding objective")?;
+            if cfg.embed_steps > 0 {
+                note(&format!(
+                    "  embedding objective of the learned lens: {} steps in {:.0} s",
+                    cfg.embed_steps,
+                    t.elapsed().as_secs_f64()
+                ));
+            }
+            stage("embed", t.elapsed().as_secs_f64(), &mut stages)?;
+            Some(phase)
+        }
+        None => learned_init,
+    };
 
     // 3. Sandwich training, the three lenses at once. One training keeps 2 cores ~165 % busy
     // (its serial parts: optimizer, batching, the chain's per-frame glue), so the three share
@@ -1021,6 +1132,13 @@ pub fn run(a: RunArgs) -> Result<()> {
         "seconds": t0.elapsed().as_secs_f64(),
         "out": out.display().to_string(),
     });
+    let mut result = result;
+    if triplets.is_some() {
+        // The embedding objective over every triplet, before and after (docs/run.md).
+        let m = out.join("runs/learned/embed/metrics.json");
+        let text = std::fs::read_to_string(&m).with_context(|| m.display().to_string())?;
+        result["learned_lens_embedding"] = serde_json::from_str(&text)?;
+    }
     util::write_atomic(
         &out.join("result.json"),
         serde_json::to_string_pretty(&result)?.as_bytes(),
@@ -1083,6 +1201,63 @@ fn for_each_lens<T: Send>(
     results.into_iter().collect()
 }
 
+/// The learned lens's embedding stage (`learned_lens: "embedding"`): Adam on φ from `start`
+/// under the optical-embedding objective on the triplets, resumed from `dir/embed/`
+/// (checkpoint.bin, history.jsonl, metrics.json with the objective before and after over
+/// every triplet); returns φ, also written to `dir/embed_phase.npy`.
+fn embed_lens(
+    trip: &Dataset,
+    chain_cfg: &ChainConfig,
+    cfg: &RunConfig,
+    start: Mat<f64>,
+    dir: &Path,
+) -> Result<Mat<f64>> {
+    let done = dir.join("embed_phase.npy");
+    if done.exists() {
+        return nanoeye_fisher::nanoeye_optics::io::read_phase_npy(&done)
+            .context("--out (resume): runs/learned/embed_phase.npy");
+    }
+    let chain = CameraChain::for_dataset(trip, chain_cfg.clone())?;
+    let mut e = Embedder::new(&chain, trip, embed_config(cfg), start)?;
+    let edir = dir.join("embed");
+    let ck = edir.join("checkpoint.bin");
+    let init_path = edir.join("init.json");
+    if ck.exists() {
+        e.load(&ck).context("--out (resume)")?;
+    }
+    let init = match std::fs::read_to_string(&init_path) {
+        Ok(t) => serde_json::from_str(&t).context("--out (resume): embed/init.json")?,
+        Err(_) => {
+            let ev = e.evaluate(8)?;
+            util::write_atomic(&init_path, serde_json::to_string_pretty(&ev)?.as_bytes())?;
+            ev
+        }
+    };
+    while e.step() < cfg.embed_steps {
+        e.train_step()?;
+        if e.step() % 10 == 0 {
+            e.save(&ck)?;
+        }
+    }
+    e.save(&ck)?;
+    let fin = e.evaluate(8)?;
+    if !(fin.loss.is_finite() && fin.crlb_slip_um.is_finite()) {
+        bail!("the embedding objective is not finite: lower embed_lr_rad");
+    }
+    let lines: String = e
+        .history()
+        .iter()
+        .map(|h| serde_json::to_string(h).unwrap_or_default() + "\n")
+        .collect();
+    util::write_atomic(&edir.join("history.jsonl"), lines.as_bytes())?;
+    util::write_atomic(
+        &edir.join("metrics.json"),
+        serde_json::to_string_pretty(&serde_json::json!({"init": init, "final": fin}))?.as_bytes(),
+    )?;
+    util::write_atomic(&done, &crate::sim::npy_mat64(e.phase())?)?;
+    Ok(e.phase().clone())
+}
+
 /// One lens's sandwich training (stage 3 of the main job), resumed from its checkpoint; writes
 /// `runs/<name>/` (checkpoint, rig, phase map, history).
 struct LensTraining<'a> {
@@ -1113,7 +1288,10 @@ impl LensTraining<'_> {
         let mut tr = Trainer::new(
             &chain,
             self.train,
-            train_config(cfg, name != "learned"),
+            train_config(
+                cfg,
+                name != "learned" || cfg.learned_lens == LearnedLens::Embedding,
+            ),
             phase,
         )?;
         if ck.exists() {

@@ -848,6 +848,30 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         (r#"{"phase_every": -2}"#, "phase_every"),
         (r#"{"phase_every": 2.5}"#, "phase_every"),
         (r#"{"phase_every": null}"#, "phase_every"),
+        (r#"{"learned_lens": "bogus"}"#, "learned_lens"),
+        (r#"{"learned_lens": null}"#, "learned_lens"),
+        (r#"{"learned_lens": 1}"#, "learned_lens"),
+        (
+            r#"{"learned_lens": "embedding", "embed_triplets": 3}"#,
+            "embed_triplets",
+        ),
+        (
+            r#"{"learned_lens": "embedding", "embed_triplets": 1e9}"#,
+            "embed_triplets",
+        ),
+        (
+            r#"{"learned_lens": "embedding", "embed_steps": 100000000}"#,
+            "embed_steps",
+        ),
+        (
+            r#"{"learned_lens": "embedding", "embed_lr_rad": 0}"#,
+            "embed_lr_rad",
+        ),
+        (
+            r#"{"learned_lens": "embedding", "embed_lr_rad": -1}"#,
+            "embed_lr_rad",
+        ),
+        (r#"{"embed_lr_rad": null}"#, "embed_lr_rad"),
         (r#"{"phase_every": 100000000}"#, "phase_every"),
         (r#"{"rea_bn_batches": 0}"#, "rea_bn_batches"),
         (r#"{"rea_bn_batches": -1}"#, "rea_bn_batches"),

@@ -389,3 +389,65 @@ fn search_train_lens_init_is_the_main_jobs_fisher_phase() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--lens"), "{err}");
 }
+
+/// `learned_lens: "embedding"`: the learned lens is `search embed`'s, to the byte, from the
+/// job's Fisher phase on the job's triplets, and stays fixed while the network trains.
+#[test]
+fn the_main_jobs_embedding_lens_is_search_embeds_and_stays_fixed() {
+    let d = tempfile::tempdir().unwrap();
+    let bin = env!("CARGO_BIN_EXE_nanoeye");
+    let cfg = d.path().join("tiny.json");
+    std::fs::write(
+        &cfg,
+        TINY.replacen(
+            '{',
+            r#"{"fisher_iterations": 3, "learned_lens": "embedding", "embed_triplets": 4,
+            "embed_steps": 2, "#,
+            1,
+        ),
+    )
+    .unwrap();
+    let out = d.path().join("run");
+    let o = Command::new(bin)
+        .args(["run", "--json", "--config"])
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(r["stages"]["embed"].as_f64().is_some(), "{r}");
+    let e = &r["learned_lens_embedding"];
+    for s in ["init", "final"] {
+        assert_eq!(e[s]["triplets"], 4);
+        assert!(e[s]["loss"].as_f64().is_some_and(f64::is_finite), "{e}");
+    }
+    let lens = std::fs::read(out.join("runs/learned/embed_phase.npy")).unwrap();
+    assert!(lens != std::fs::read(out.join("runs/learned/fisher_phase.npy")).unwrap());
+    // Fixed through the sandwich training.
+    assert!(lens == std::fs::read(out.join("runs/learned/phase.npy")).unwrap());
+    let fisher = out.join("runs/learned/fisher_phase.npy");
+    let o = Command::new(bin)
+        .args([
+            "search",
+            "embed",
+            "--steps",
+            "2",
+            "--batch",
+            "4",
+            "--pitch-um",
+            "60",
+        ])
+        .args(["--lr-phase-rad", "0.05", "--aperture-step-um", "10"])
+        .args(["--exposure-ms", "0.0004", "--seed", "0", "--json", "--lens"])
+        .arg(format!("file:{}", fisher.display()))
+        .arg("--dataset")
+        .arg(out.join("data/triplets"))
+        .arg("--out")
+        .arg(d.path().join("embed"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(lens == std::fs::read(d.path().join("embed/phase.npy")).unwrap());
+}
