@@ -367,6 +367,40 @@ overlap of the predicted and true pupil masks; slip RMSE: root mean square of th
         writeln!(h, "</tr>")?;
     }
     writeln!(h, "</table>")?;
+    let e = &r["learned_lens_embedding"];
+    if e.is_object() {
+        writeln!(
+            h,
+            "<h2>The learned lens's embedding objective</h2><p>The learned lens of this run was \
+designed by the optical-embedding objective (S15, <code>learned_lens: \"embedding\"</code>): from \
+the Fisher initialization, Adam steps on the phase map that raise the Fisher information of the \
+sensor image in the glasses' slippage and in the gaze (L_sens) and make their two sensitivity \
+fields orthogonal (cos²φ), over {} rendered triplets (anchor, slip+, gaze+); it then stays fixed \
+while the network trains. The bounds are the two-parameter Cramér–Rao bounds of one frame \
+with everything else about the scene known (geometric means over the triplets).</p><table><tr>\
+<th></th><th>objective</th><th>L_sens</th><th>cos²φ</th><th>slip bound (µm)</th>\
+<th>gaze bound (°)</th></tr>",
+            e["final"]["triplets"].as_u64().unwrap_or(0)
+        )?;
+        // The bounds span 1e-4–1: three significant digits, not two decimals.
+        let sig = |v: &serde_json::Value| v.as_f64().map_or("–".into(), |x| format!("{x:.3e}"));
+        for (k, label) in [
+            ("init", "Fisher initialization"),
+            ("final", "after the embedding"),
+        ] {
+            let v = &e[k];
+            writeln!(
+                h,
+                "<tr><td>{label}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+                num(&v["loss"]),
+                num(&v["l_sens"]),
+                sig(&v["l_orth"]),
+                sig(&v["crlb_slip_um"]),
+                sig(&v["crlb_gaze_deg"])
+            )?;
+        }
+        writeln!(h, "</table>")?;
+    }
     // Lenses.
     writeln!(
         h,
@@ -579,6 +613,30 @@ fn num(v: &serde_json::Value) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A run whose learned lens came from the embedding objective shows its objective before
+    /// and after, the bounds with three significant digits; a run without shows no such table.
+    #[test]
+    fn the_embedding_objective_is_shown_only_for_an_embedding_lens() {
+        let d = tempfile::tempdir().unwrap();
+        let ev = |l: f64, b: f64| {
+            serde_json::json!({"triplets": 48, "loss": l, "l_sens": l - 0.1, "l_orth": 0.1346,
+                "crlb_slip_um": b, "crlb_gaze_deg": 0.000_771_2})
+        };
+        let mut r = serde_json::json!({"stages": {}, "protocol": {}});
+        let plain = html(d.path(), &r).unwrap();
+        assert!(!plain.contains("embedding objective"));
+        r["learned_lens_embedding"] =
+            serde_json::json!({"init": ev(-15.8, 0.1666), "final": ev(-16.0, 0.1472)});
+        let h = html(d.path(), &r).unwrap();
+        assert!(h.contains("The learned lens's embedding objective"));
+        assert!(h.contains("over 48 rendered triplets"));
+        for s in [
+            "-15.80", "-16.00", "1.666e-1", "1.472e-1", "7.712e-4", "1.346e-1",
+        ] {
+            assert!(h.contains(s), "{s} missing");
+        }
+    }
 
     /// Two slippage states of two frames each and one estimate off the chart: each panel draws
     /// every frame, one diamond per state at the state's mean, and counts the one outside.
