@@ -101,7 +101,7 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
         .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)
         .context("--lens")?
         .phase_rad;
-    let mut e = Embedder::new(&chain, &ds, cfg.clone(), phase0.clone()).map_err(flag)?;
+    let mut e = Embedder::new(&chain, &ds, cfg, phase0).map_err(flag)?;
     let ck = a.out.join("checkpoint.bin");
     util::check_output_target(&ck)?;
     util::remove_stale_temps_under(&a.out);
@@ -117,24 +117,26 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
                 had.trim()
             );
         }
-        e.load(&ck)
-            .map_err(|e| anyhow::anyhow!("--out (resume): {e}"))?;
-        eprintln!("resuming {} at step {}", a.out.display(), e.step());
     } else {
         std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
         util::write_atomic(&lens_path, lens_json.as_bytes())?;
     }
-    // The bounds of the starting lens over every triplet (kept from the first invocation).
+    // The bounds of the starting lens over every triplet (kept from the first invocation;
+    // `e` is still at the starting lens until the checkpoint is loaded below).
     let init_path = a.out.join("init.json");
     let init = match std::fs::read_to_string(&init_path) {
         Ok(t) => serde_json::from_str(&t).context("--out (resume): init.json")?,
         Err(_) => {
-            let p = Embedder::new(&chain, &ds, cfg, phase0).map_err(flag)?;
-            let ev = p.evaluate(a.eval_chunk)?;
+            let ev = e.evaluate(a.eval_chunk)?;
             util::write_atomic(&init_path, serde_json::to_string_pretty(&ev)?.as_bytes())?;
             ev
         }
     };
+    if ck.exists() {
+        e.load(&ck)
+            .map_err(|e| anyhow::anyhow!("--out (resume): {e}"))?;
+        eprintln!("resuming {} at step {}", a.out.display(), e.step());
+    }
     let tty = std::io::stderr().is_terminal();
     let bar = if tty {
         indicatif::ProgressBar::new(a.steps as u64)

@@ -1222,9 +1222,7 @@ fn embed_lens(
     let edir = dir.join("embed");
     let ck = edir.join("checkpoint.bin");
     let init_path = edir.join("init.json");
-    if ck.exists() {
-        e.load(&ck).context("--out (resume)")?;
-    }
+    // Evaluated at the starting lens, before a checkpoint moves `e` on.
     let init = match std::fs::read_to_string(&init_path) {
         Ok(t) => serde_json::from_str(&t).context("--out (resume): embed/init.json")?,
         Err(_) => {
@@ -1233,6 +1231,9 @@ fn embed_lens(
             ev
         }
     };
+    if ck.exists() {
+        e.load(&ck).context("--out (resume)")?;
+    }
     while e.step() < cfg.embed_steps {
         e.train_step()?;
         if e.step() % 10 == 0 {
