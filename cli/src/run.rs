@@ -502,6 +502,10 @@ fn train_config(cfg: &RunConfig, fixed_lens: bool) -> TrainConfig {
         },
         solver: cfg.solver,
         pupil_centre: cfg.pupil_centre,
+        // The job's lenses learn from the task alone (the embedding lens is fixed).
+        embed_weight: 0.0,
+        embed_batch: EMBED_BATCH,
+        embed_terms: nanoeye_search::EmbedWeights::default(),
     }
 }
 

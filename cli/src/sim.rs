@@ -126,7 +126,7 @@ pub enum SearchCmd {
     /// Task loss of one subnet on the chain's output, with ∂L/∂φ and ∂L/∂p̂.
     Loss(LossArgs),
     /// Sandwich-rule co-design training of lens, pitch and supernet (S22).
-    Train(crate::train::TrainArgs),
+    Train(Box<crate::train::TrainArgs>),
     /// Regularized evolution over subnets with inner-loop fine-tuning (S16–S21).
     Rea(crate::train::ReaArgs),
     /// The lens optimised for the optical embedding (S15) on variational triplets.
@@ -340,7 +340,7 @@ fn parse_subnet(text: &str) -> Result<Arch> {
 pub fn search(cmd: SearchCmd) -> Result<()> {
     match cmd {
         SearchCmd::Loss(a) => loss(a),
-        SearchCmd::Train(a) => crate::train::train(a),
+        SearchCmd::Train(a) => crate::train::train(*a),
         SearchCmd::Rea(a) => crate::train::rea(a),
         SearchCmd::Pareto(a) => crate::pareto::pareto(a),
         SearchCmd::Embed(a) => crate::embed::embed(a),

@@ -91,6 +91,24 @@ pub struct TrainArgs {
     /// not depend on it, so a resume may change it.
     #[arg(long, default_value = "all", allow_negative_numbers = true)]
     bn_batches: nanoeye_search::BnBatches,
+    /// Weight μ of the optical-embedding objective (S15, `search embed`'s) in the phase map's
+    /// loss: every phase step descends the sandwich loss + μ·L_embed on `--embed-triplets`
+    /// (0: none).
+    #[arg(long, default_value_t = 0.0)]
+    embed_weight: f64,
+    /// Variational triplet set of the embedding term (`datagen render --set variational`, on
+    /// the training set's rig and slabs).
+    #[arg(long)]
+    embed_triplets: Option<PathBuf>,
+    /// Triplets per phase step of the embedding term.
+    #[arg(long, default_value_t = 4)]
+    embed_batch: usize,
+    /// Weight of the embedding term's sensitivity part L_sens.
+    #[arg(long, default_value_t = 1.0)]
+    embed_w_sens: f64,
+    /// Weight of the embedding term's orthogonality part cos²φ.
+    #[arg(long, default_value_t = 1.0)]
+    embed_w_orth: f64,
     /// Steps between checkpoints.
     #[arg(long, default_value_t = 10)]
     checkpoint_every: usize,
@@ -314,6 +332,13 @@ pub fn train(a: TrainArgs) -> Result<()> {
         solver: nanoeye_gaze::SolverKind::parse(&a.solver).context("--solver")?,
         pupil_centre: nanoeye_gaze::PupilCentre::parse(&a.pupil_centre)
             .context("--pupil-centre")?,
+        embed_weight: a.embed_weight,
+        embed_batch: a.embed_batch,
+        embed_terms: nanoeye_search::EmbedWeights {
+            w_sens: a.embed_w_sens,
+            w_orth: a.embed_w_orth,
+            ..Default::default()
+        },
         ..TrainConfig::default()
     };
     cfg.validate().map_err(|e| {
@@ -333,10 +358,28 @@ pub fn train(a: TrainArgs) -> Result<()> {
                 ("slip_axis_weights", "--slip-axis-weights"),
                 ("pitch_range_um", "--pitch-range-um"),
                 ("pitch_init_um", "--pitch-um"),
+                ("embed_weight", "--embed-weight"),
+                ("embed_batch", "--embed-batch"),
+                ("w_sens", "--embed-w-sens"),
+                ("w_orth", "--embed-w-orth"),
             ],
             "--out",
         )
     })?;
+    let triplets = match (&a.embed_triplets, a.embed_weight > 0.0) {
+        (Some(p), true) => {
+            Some(Dataset::open(p).with_context(|| format!("--embed-triplets {}", p.display()))?)
+        }
+        (None, true) => bail!(
+            "--embed-triplets: --embed-weight {} needs a variational triplet set (render one \
+             with `nanoeye datagen render --set variational` on the training set's rig)",
+            a.embed_weight
+        ),
+        (Some(_), false) => {
+            bail!("--embed-weight: --embed-triplets given but the weight is 0; set μ > 0")
+        }
+        (None, false) => None,
+    };
     if a.checkpoint_every == 0 {
         bail!("--checkpoint-every: must be at least 1");
     }
@@ -369,6 +412,16 @@ pub fn train(a: TrainArgs) -> Result<()> {
     } else {
         serde_json::json!({"lens": a.lens})
     })?;
+    // So is the embedding term's triplet set (absent without one: older runs' lens.json).
+    let lens_json = match &a.embed_triplets {
+        Some(p) => {
+            let mut v: serde_json::Value = serde_json::from_str(&lens_json)?;
+            let p = std::fs::canonicalize(p).unwrap_or_else(|_| p.clone());
+            v["embed_triplets"] = serde_json::json!(p.display().to_string());
+            serde_json::to_string(&v)?
+        }
+        None => lens_json,
+    };
     let lens_path = a.out.join("lens.json");
     // Rank 0 reads the checkpoint and sends it (empty: none), so --out need not be shared.
     let resume = if w.is_root() {
@@ -378,8 +431,19 @@ pub fn train(a: TrainArgs) -> Result<()> {
         if ck.exists() && lens_path.exists() {
             let had = std::fs::read_to_string(&lens_path).context("--out (resume): lens.json")?;
             if had.trim() != lens_json {
+                // Name the flag that differs: the embedding's triplet set or the lens.
+                let key = |t: &str, k: &str| {
+                    serde_json::from_str::<serde_json::Value>(t)
+                        .map(|v| v[k].clone())
+                        .ok()
+                };
+                let flag = if key(had.trim(), "lens") == key(&lens_json, "lens") {
+                    "--embed-triplets"
+                } else {
+                    "--lens"
+                };
                 bail!(
-                    "--lens: {} was started from {}, not {lens_json}; use another --out",
+                    "{flag}: {} was started from {}, not {lens_json}; use another --out",
                     a.out.display(),
                     had.trim()
                 );
@@ -439,6 +503,10 @@ pub fn train(a: TrainArgs) -> Result<()> {
         });
     }
     let mut t = Trainer::new(&chain, &ds, cfg, phase0).context("--lens / --pitch-um")?;
+    if let Some(trip) = &triplets {
+        t.set_embedding(trip)
+            .map_err(|e| with_flag(e, &[("embed_batch", "--embed-batch")], "--embed-triplets"))?;
+    }
     if !resume.is_empty() {
         t.load_bytes(resume, &ck).context("--out (resume)")?;
         if w.is_root() {
@@ -475,8 +543,11 @@ pub fn train(a: TrainArgs) -> Result<()> {
             rec.loss_max, rec.loss_min
         ));
         if w.is_root() && !tty && (rec.step + 1) % tick == 0 {
+            let embed = rec
+                .embed_loss
+                .map_or(String::new(), |l| format!(", L_embed {l:.4}"));
             eprintln!(
-                "step {}/{}: L_max {:.4}, L_min {:.4}, p̂ {:.3} µm, {:.0} s",
+                "step {}/{}: L_max {:.4}, L_min {:.4}{embed}, p̂ {:.3} µm, {:.0} s",
                 rec.step + 1,
                 a.steps,
                 rec.loss_max,

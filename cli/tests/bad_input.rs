@@ -1285,3 +1285,126 @@ fn search_embed_runs_resumes_and_names_its_bad_flags() {
     refused(&args(&run(&["--lens", "double-helix"])), "--lens", p);
     assert_eq!(std::fs::read(p.join("e/phase.npy")).unwrap(), phase);
 }
+
+#[test]
+fn search_train_embedding_term_runs_resumes_and_names_its_bad_flags() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    for (name, seed) in [("tv", "1"), ("tw", "2")] {
+        let mut tv = tiny_dataset(name);
+        tv[3] = "variational";
+        tv[5] = "2";
+        let mut a: Vec<&str> = tv.to_vec();
+        a.extend(["--seed", seed]);
+        assert!(nanoeye(&a, p).status.success());
+    }
+    assert!(nanoeye(&tiny_dataset("ds"), p).status.success());
+    let run = |extra: &[&str]| {
+        let mut a = vec!["search", "train"];
+        a.extend(common::TINY_CHAIN);
+        a.extend([
+            "--steps",
+            "2",
+            "--batch",
+            "2",
+            "--random-subnets",
+            "0",
+            "--pitch-range-um",
+            "48:120",
+            "--out",
+            "o",
+            "--json",
+        ]);
+        a.extend(extra);
+        a.into_iter().map(String::from).collect::<Vec<_>>()
+    };
+    fn args(v: &[String]) -> Vec<&str> {
+        v.iter().map(String::as_str).collect()
+    }
+    // `plus` leaves out --embed-batch (4 by default, more than the set's 2 triplets): each
+    // case is refused by the setting it names, before the triplet count is looked at.
+    let base = ["--embed-weight", "1", "--embed-triplets", "tv"];
+    let with = [&base[..], &["--embed-batch", "2"]].concat();
+    let plus = |more: &[&'static str]| -> Vec<&'static str> { [&base[..], more].concat() };
+    for (extra, flag) in [
+        (vec!["--embed-weight", "nan"], "--embed-weight"),
+        (
+            vec!["--embed-weight=-1", "--embed-triplets", "tv"],
+            "--embed-weight",
+        ),
+        (
+            vec!["--embed-weight", "2000", "--embed-triplets", "tv"],
+            "--embed-weight",
+        ),
+        (vec!["--embed-weight", "1"], "--embed-triplets"),
+        (vec!["--embed-triplets", "tv"], "--embed-weight"),
+        (plus(&["--fixed-lens"]), "--embed-weight"),
+        (plus(&["--embed-batch", "0"]), "--embed-batch"),
+        (plus(&["--embed-batch", "3"]), "--embed-batch"),
+        (
+            vec!["--embed-weight", "1", "--embed-triplets", "tv"],
+            "--embed-batch",
+        ),
+        (
+            plus(&["--embed-w-sens", "0", "--embed-w-orth", "0"]),
+            "--embed-w-sens",
+        ),
+        (plus(&["--embed-w-orth", "inf"]), "--embed-w-orth"),
+        (
+            vec!["--embed-weight", "1", "--embed-triplets", "ds"],
+            "--embed-triplets",
+        ),
+        (
+            vec!["--embed-weight", "1", "--embed-triplets", "nope"],
+            "--embed-triplets",
+        ),
+    ] {
+        let v = run(&extra);
+        refused(&args(&v), flag, p);
+        assert!(!p.join("o").exists(), "{extra:?} wrote o/");
+    }
+    let ok = nanoeye(&args(&run(&with)), p);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let hist = std::fs::read_to_string(p.join("o/history.jsonl")).unwrap();
+    assert_eq!(hist.lines().count(), 2);
+    for l in hist.lines() {
+        let r: serde_json::Value = serde_json::from_str(l).unwrap();
+        assert!(r["embed_loss"].as_f64().is_some_and(f64::is_finite), "{l}");
+    }
+    let phase = std::fs::read(p.join("o/phase.npy")).unwrap();
+    // The same command again: nothing left to run, the same lens.
+    assert!(nanoeye(&args(&run(&with)), p).status.success());
+    assert_eq!(std::fs::read(p.join("o/phase.npy")).unwrap(), phase);
+    // Another weight or another triplet set is refused, naming it; nothing is changed.
+    refused(
+        &args(&run(&[
+            "--embed-weight",
+            "2",
+            "--embed-triplets",
+            "tv",
+            "--embed-batch",
+            "2",
+        ])),
+        "embed_weight",
+        p,
+    );
+    refused(
+        &args(&run(&[
+            "--embed-weight",
+            "1",
+            "--embed-triplets",
+            "tw",
+            "--embed-batch",
+            "2",
+        ])),
+        "--embed-triplets",
+        p,
+    );
+    // Without the term: the run's triplet set is part of its lens.
+    refused(&args(&run(&[])), "--embed-triplets", p);
+    assert_eq!(std::fs::read(p.join("o/phase.npy")).unwrap(), phase);
+}

@@ -238,6 +238,33 @@ pub fn embedding_loss(
     Ok((eval, grad))
 }
 
+/// The `batch` triplets of step `t`: a seeded permutation of `trips` per pass over them, so a
+/// step's batch depends on (seed, t) only.
+pub fn triplet_batch(trips: &[[usize; 3]], batch: usize, seed: u64, t: usize) -> Vec<[usize; 3]> {
+    let n = trips.len();
+    if n == 0 {
+        return Vec::new();
+    }
+    let perm_of = |e: usize| {
+        let mut p: Vec<usize> = (0..n).collect();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xe3b0_c442);
+        rng.set_stream(e as u64);
+        p.shuffle(&mut rng);
+        p
+    };
+    let first = t * batch;
+    let mut cache: Option<(usize, Vec<usize>)> = None;
+    (first..first + batch)
+        .map(|k| {
+            let e = k / n;
+            if cache.as_ref().is_none_or(|(ce, _)| *ce != e) {
+                cache = Some((e, perm_of(e)));
+            }
+            trips[cache.as_ref().expect("set").1[k % n]]
+        })
+        .collect()
+}
+
 /// The settings of an embedding run (a resume must give the same).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EmbedConfig {
@@ -391,28 +418,9 @@ impl<'a> Embedder<'a> {
         &self.history
     }
 
-    /// The triplets of step `t`: a seeded permutation per pass over the dataset, so a
-    /// step's batch depends on (seed, t) only.
+    /// The triplets of step `t` ([`triplet_batch`] at this run's batch and seed).
     pub fn batch_of(&self, t: usize) -> Vec<[usize; 3]> {
-        let n = self.trips.len();
-        let perm_of = |e: usize| {
-            let mut p: Vec<usize> = (0..n).collect();
-            let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed ^ 0xe3b0_c442);
-            rng.set_stream(e as u64);
-            p.shuffle(&mut rng);
-            p
-        };
-        let first = t * self.cfg.batch;
-        let mut cache: Option<(usize, Vec<usize>)> = None;
-        (first..first + self.cfg.batch)
-            .map(|k| {
-                let e = k / n;
-                if cache.as_ref().is_none_or(|(ce, _)| *ce != e) {
-                    cache = Some((e, perm_of(e)));
-                }
-                self.trips[cache.as_ref().expect("set").1[k % n]]
-            })
-            .collect()
+        triplet_batch(&self.trips, self.cfg.batch, self.cfg.seed, t)
     }
 
     fn map(&self) -> Result<PhaseMap> {

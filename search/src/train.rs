@@ -9,6 +9,7 @@
 use crate::basis::{PhaseBasis, Zernike};
 use crate::bn::BnBatches;
 use crate::chain::{CameraChain, ChainFrame};
+use crate::embed::EmbedWeights;
 use crate::error::{Result, param};
 use crate::schedule::PhaseSchedule;
 use crate::task::task_loss;
@@ -84,6 +85,17 @@ pub struct TrainConfig {
     /// S9's centroid).
     #[serde(default)]
     pub pupil_centre: PupilCentre,
+    /// Weight μ of the optical-embedding objective (S15; `search::embed`) in φ's loss: each
+    /// φ step descends L_train + μ·L_embed, L_embed on `embed_batch` variational triplets at
+    /// the current p̂ (0: none, as in older checkpoints; needs [`Trainer::set_embedding`]).
+    #[serde(default)]
+    pub embed_weight: f64,
+    /// Triplets per φ step of the embedding term.
+    #[serde(default = "four")]
+    pub embed_batch: usize,
+    /// The embedding term's own weights (w_sens, w_orth, floor).
+    #[serde(default)]
+    pub embed_terms: EmbedWeights,
 }
 
 impl Default for TrainConfig {
@@ -108,6 +120,9 @@ impl Default for TrainConfig {
             supernet: SupernetConfig::default(),
             solver: SolverKind::default(),
             pupil_centre: PupilCentre::default(),
+            embed_weight: 0.0,
+            embed_batch: four(),
+            embed_terms: EmbedWeights::default(),
         }
     }
 }
@@ -123,6 +138,11 @@ fn window_of(t: usize, every: usize, steps: usize) -> (usize, bool) {
 /// One step per φ step.
 fn one() -> usize {
     1
+}
+
+/// Four triplets per φ step.
+fn four() -> usize {
+    4
 }
 
 /// Every slippage axis weighted alike.
@@ -193,7 +213,26 @@ impl TrainConfig {
             ));
         }
         self.supernet.validate()?;
-        Ok(())
+        let mu = self.embed_weight;
+        if !(mu.is_finite() && (0.0..=1e3).contains(&mu)) {
+            return Err(param(
+                "embed_weight",
+                format!("must be finite in [0, 1000], got {mu}"),
+            ));
+        }
+        if mu > 0.0 && self.fixed_lens {
+            return Err(param(
+                "embed_weight",
+                "a fixed lens takes no φ steps for the embedding term to act on",
+            ));
+        }
+        if self.embed_batch == 0 || self.embed_batch > 4096 {
+            return Err(param(
+                "embed_batch",
+                format!("must be 1..=4096 triplets, got {}", self.embed_batch),
+            ));
+        }
+        self.embed_terms.validate()
     }
 }
 
@@ -212,6 +251,9 @@ pub struct StepRecord {
     pub pitch_um: f64,
     /// RMS change of φ in the step (rad).
     pub phase_step_rad: f64,
+    /// The embedding term's L_embed on the step's triplets, where φ stepped with one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub embed_loss: Option<f64>,
 }
 
 /// Validation metrics of one subnet.
@@ -266,6 +308,12 @@ impl VecAdam {
         }
         (ss / x.len().max(1) as f64).sqrt()
     }
+}
+
+/// The embedding term's variational triplet set and its triplets [anchor, slip+, gaze+].
+struct EmbedTerm<'a> {
+    ds: &'a Dataset,
+    trips: Vec<[usize; 3]>,
 }
 
 /// One step's batch through the chain: what its backward needs.
@@ -356,6 +404,8 @@ pub struct Trainer<'a> {
     pitch_adam: VecAdam,
     /// ∂L/∂P of φ's window in progress (`phase_every` > 1).
     pending: Option<PendingPhase>,
+    /// The variational triplets of the embedding term (`embed_weight` > 0).
+    embed: Option<EmbedTerm<'a>>,
     /// Steps done.
     pub step: usize,
     /// Per-step losses.
@@ -442,10 +492,64 @@ impl<'a> Trainer<'a> {
             pitch_um: cfg.pitch_init_um,
             pitch_adam: VecAdam::new(1),
             pending: None,
+            embed: None,
             step: 0,
             history: Vec::new(),
             cfg,
         })
+    }
+
+    /// Gives the embedding term (`embed_weight` > 0) its variational triplets: `triplets`
+    /// must be rendered on this chain's grid and slabs and hold at least `embed_batch`.
+    pub fn set_embedding(&mut self, triplets: &'a Dataset) -> Result<()> {
+        let trips = crate::embed::triplets(triplets)?;
+        if self.cfg.embed_batch > trips.len() {
+            return Err(param(
+                "embed_batch",
+                format!(
+                    "{} triplets per step, the triplet set has {}",
+                    self.cfg.embed_batch,
+                    trips.len()
+                ),
+            ));
+        }
+        // Refuses another grid or slab set now rather than at the first φ step.
+        self.chain.load(triplets, &trips[0])?;
+        self.embed = Some(EmbedTerm {
+            ds: triplets,
+            trips,
+        });
+        Ok(())
+    }
+
+    /// L_embed on step `t`'s triplets at φ = `map` and the current p̂, and its ∂/∂φ (rad⁻¹).
+    fn embed_gradient(&self, t: usize, map: &PhaseMap) -> Result<(f64, Mat<f64>)> {
+        let e = self.embed.as_ref().ok_or_else(|| {
+            param(
+                "embed_weight",
+                "the embedding term has no triplets: give a variational set (`search train \
+                 --embed-triplets DIR`, rendered by `datagen render --set variational`)",
+            )
+        })?;
+        let batch = crate::embed::triplet_batch(&e.trips, self.cfg.embed_batch, self.cfg.seed, t);
+        let ids: Vec<usize> = batch.iter().flatten().copied().collect();
+        let frames = self.chain.load(e.ds, &ids)?;
+        let (ev, g) = crate::embed::embedding_loss(
+            self.chain,
+            map,
+            &frames,
+            self.pitch_um * 1e-6,
+            &self.cfg.embed_terms,
+            true,
+        )?;
+        let g = g.ok_or_else(|| param("embed_weight", "no gradient"))?;
+        if !ev.loss.is_finite() {
+            return Err(param(
+                "embed_weight",
+                format!("step {t}: the embedding objective is not finite; lower the rates"),
+            ));
+        }
+        Ok((ev.loss, g.phase_rad))
     }
 
     /// The configuration.
@@ -552,12 +656,16 @@ impl<'a> Trainer<'a> {
     /// `psf_grad`, and where it is not, with) and of p̂ (with `extra_dp_um` added to its
     /// gradient, per µm) at `lr_scale` times its rate, p̂ clamped to its range. With
     /// `window` = `Some(ends)` the step's ∂L/∂P joins φ's window in progress and φ steps, by
-    /// the window's mean, only where `ends`. Returns the RMS change of φ (rad).
+    /// the window's mean, only where `ends`; `extra_phase` (∂/∂φ of a term besides the
+    /// task's, weighted already) joins φ's gradient where φ steps. Returns the RMS change of
+    /// φ (rad).
+    #[allow(clippy::too_many_arguments)]
     fn update_optics(
         &mut self,
         s: StepData,
         dx: &Tensor,
         extra_dp_um: f64,
+        extra_phase: Option<&Mat<f64>>,
         lr_phase: f64,
         lr_scale: f64,
         window: Option<bool>,
@@ -579,7 +687,10 @@ impl<'a> Trainer<'a> {
             None
         };
         if let Some(grads) = grads {
-            let g = self.chain.phase_vjp(&s.map, &grads)?;
+            let mut g = self.chain.phase_vjp(&s.map, &grads)?;
+            if let Some(e) = extra_phase {
+                g += e;
+            }
             let n = self.phase.nrows();
             match &self.zernike {
                 None => {
@@ -696,7 +807,17 @@ impl<'a> Trainer<'a> {
             cosine_lr(self.cfg.lr_net, 0.0, t, self.cfg.steps),
         )?;
         let window = (self.cfg.phase_every > 1).then_some(ends);
-        let phase_step = self.update_optics(s, &dx, 0.0, lr_phase, 1.0, window)?;
+        // The embedding term only where φ steps: at the end of its window, at the φ the
+        // window's task gradients were taken at.
+        let embed = if lr_phase > 0.0 && ends && self.cfg.embed_weight > 0.0 {
+            let (l, mut g) = self.embed_gradient(t, &s.map)?;
+            g *= faer::Scale(self.cfg.embed_weight);
+            Some((l, g))
+        } else {
+            None
+        };
+        let extra = embed.as_ref().map(|(_, g)| g);
+        let phase_step = self.update_optics(s, &dx, 0.0, extra, lr_phase, 1.0, window)?;
         let rec = StepRecord {
             step: t,
             loss_max: losses[0],
@@ -704,6 +825,7 @@ impl<'a> Trainer<'a> {
             loss_total: losses.iter().sum(),
             pitch_um: self.pitch_um,
             phase_step_rad: phase_step,
+            embed_loss: embed.map(|(l, _)| l),
         };
         self.history.push(rec.clone());
         self.step += 1;
@@ -888,7 +1010,7 @@ impl<'a> Trainer<'a> {
             0.0
         };
         // Per step, whatever `phase_every`: the window of sandwich training is not its.
-        self.update_optics(s, &dx, hinge, lr_phase, lr_scale, None)?;
+        self.update_optics(s, &dx, hinge, None, lr_phase, lr_scale, None)?;
         if budget.fit_pitch {
             self.fit_pitch_to_budget(arch, budget.macs)?;
         }

@@ -1,6 +1,7 @@
 //! The optical-embedding objective through the camera chain (S15, C.2): its gradient against
 //! central differences in φ and p̂, its exact scaling with the light, the triplets read from a
-//! variational dataset, and the embedding run's descent, kill-and-resume bits and refusals.
+//! variational dataset, the embedding run's descent, kill-and-resume bits and refusals, and
+//! the embedding as a term of the sandwich training's phase loss.
 
 use faer::Mat;
 use nanoeye_datagen::render::{Dataset, DatasetOptions, LayerSpec, RenderSet, SceneSource};
@@ -8,7 +9,8 @@ use nanoeye_gaze::Rig;
 use nanoeye_optics::PhaseMap;
 use nanoeye_search::embed::triplets;
 use nanoeye_search::{
-    CameraChain, ChainConfig, EmbedConfig, EmbedWeights, Embedder, LensSpec, embedding_loss,
+    CameraChain, ChainConfig, EmbedConfig, EmbedWeights, Embedder, LensSpec, TrainConfig, Trainer,
+    embedding_loss,
 };
 
 fn render(dir: &std::path::Path, set: RenderSet, n: usize) -> Dataset {
@@ -273,4 +275,158 @@ fn embedding_steps_lower_the_objective_and_resume_to_the_same_bits() {
             .to_string();
         assert!(e.contains(&format!("`{field}`")), "{field}: {e}");
     }
+}
+
+#[test]
+fn the_embedding_term_steers_the_sandwich_trainings_lens_and_resumes_to_the_same_bits() {
+    let d = tempfile::tempdir().unwrap();
+    let ds = render(&d.path().join("v"), RenderSet::Variational, 2);
+    let chain = CameraChain::for_dataset(&ds, chain_cfg()).unwrap();
+    let p0 = hyperbolic(&chain).phase_rad;
+    // p̂ held at search embed's pitch, φ at its rate and seed: the same triplet batches.
+    let ecfg = EmbedConfig {
+        steps: 3,
+        batch: 2,
+        lr_rad: 2e-3,
+        pitch_um: 103.0,
+        seed: 3,
+        weights: EmbedWeights::default(),
+    };
+    let tcfg = |mu: f64| TrainConfig {
+        steps: 3,
+        batch: 3,
+        n_random: 1,
+        lr_net: 5e-3,
+        lr_phase_rad: ecfg.lr_rad,
+        lr_pitch_um: 0.0,
+        pitch_init_um: ecfg.pitch_um,
+        pitch_range_um: [48.0, 150.0],
+        seed: ecfg.seed,
+        embed_weight: mu,
+        embed_batch: ecfg.batch,
+        supernet: nanoeye_nets::SupernetConfig {
+            head_expand: 32,
+            head_hidden: 16,
+            ..nanoeye_nets::SupernetConfig::default()
+        },
+        ..TrainConfig::default()
+    };
+    let run = |mu: f64, steps: usize| {
+        let mut t = Trainer::new(&chain, &ds, tcfg(mu), p0.clone()).unwrap();
+        if mu > 0.0 {
+            t.set_embedding(&ds).unwrap();
+        }
+        for _ in 0..steps {
+            t.train_step().unwrap();
+        }
+        t
+    };
+    // The two gradients at φ₀ apart: the task's of step 0 (its batch, subnets and noise) and
+    // the embedding's on search embed's first batch of triplets at the same p̂.
+    let (_, g_task) = Trainer::new(&chain, &ds, tcfg(0.0), p0.clone())
+        .unwrap()
+        .phase_gradient(0)
+        .unwrap();
+    let e = Embedder::new(&chain, &ds, ecfg.clone(), p0.clone()).unwrap();
+    let ids: Vec<usize> = e.batch_of(0).iter().flatten().copied().collect();
+    let frames = chain.load(&ds, &ids).unwrap();
+    let map0 = PhaseMap::phase_only(*chain.aperture_grid(), p0.clone()).unwrap();
+    let (ev, g) = embedding_loss(&chain, &map0, &frames, 103e-6, &ecfg.weights, true).unwrap();
+    let g_embed = g.unwrap().phase_rad;
+    let rms = |m: &Mat<f64>| dot(m, m).sqrt();
+    // The μ that gives both terms the same size: the joint step is neither term's alone.
+    let mu = rms(&g_task) / rms(&g_embed);
+    assert!(mu.is_finite() && mu > 0.0 && mu < 1e3, "{mu}");
+    let joint = run(mu, 1);
+    // Adam's first step is lr·g/(|g| + 1e-12) per sample, g = ∂L_train/∂φ + μ·∂L_embed/∂φ.
+    let lr = ecfg.lr_rad;
+    let (mut worst, mut flipped, mut active) = (0.0f64, 0, 0);
+    let task = run(0.0, 1);
+    for i in 0..p0.nrows() {
+        for j in 0..p0.ncols() {
+            let g = g_task[(i, j)] + mu * g_embed[(i, j)];
+            let want = p0[(i, j)] - lr * g / (g.abs() + 1e-12);
+            worst = worst.max((joint.phase[(i, j)] - want).abs());
+            if g.abs() > 1e-9 * rms(&g_task) {
+                active += 1;
+                // Opposite steps of the task alone and the joint loss: 2·lr apart.
+                flipped += usize::from((joint.phase[(i, j)] - task.phase[(i, j)]).abs() > lr);
+            }
+        }
+    }
+    assert!(worst < 1e-9, "joint step off by {worst} rad");
+    // The embedding term turns some samples' steps around (473 of 8008 when written; the
+    // equal-size terms disagree in sign where the embedding's is the larger of the two).
+    assert!(flipped * 50 > active, "{flipped} of {active}");
+    // The step records the objective on its triplets before the step.
+    assert_eq!(joint.history[0].embed_loss, Some(ev.loss));
+    assert!(task.history.iter().all(|r| r.embed_loss.is_none()));
+
+    // Killed after one step at μ = 1, resumed by a new trainer: the same bits.
+    let full = run(1.0, 3);
+    let ck = d.path().join("ck.bin");
+    let mut a = Trainer::new(&chain, &ds, tcfg(1.0), p0.clone()).unwrap();
+    a.set_embedding(&ds).unwrap();
+    a.train_step().unwrap();
+    a.save(&ck).unwrap();
+    drop(a);
+    let mut b = Trainer::new(&chain, &ds, tcfg(1.0), p0.clone()).unwrap();
+    b.set_embedding(&ds).unwrap();
+    b.load(&ck).unwrap();
+    while b.step < 3 {
+        b.train_step().unwrap();
+    }
+    assert_eq!(b.history, full.history);
+    let bits = |m: &Mat<f64>| {
+        m.col_iter()
+            .flat_map(|c| c.iter().map(|v| v.to_bits()).collect::<Vec<_>>())
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(bits(&b.phase), bits(&full.phase));
+    // A checkpoint of the task alone is another configuration.
+    let mut other = Trainer::new(&chain, &ds, tcfg(0.0), p0.clone()).unwrap();
+    let msg = other.load(&ck).unwrap_err().to_string();
+    assert!(msg.contains("embed_weight"), "{msg}");
+
+    // Refusals, naming the field.
+    let named = |r: nanoeye_search::Result<()>, field: &str| {
+        let m = r.expect_err("refused").to_string();
+        assert!(m.contains(&format!("`{field}`")), "{field}: {m}");
+    };
+    named(
+        TrainConfig {
+            fixed_lens: true,
+            ..tcfg(1.0)
+        }
+        .validate(),
+        "embed_weight",
+    );
+    named(tcfg(f64::NAN).validate(), "embed_weight");
+    named(tcfg(-1.0).validate(), "embed_weight");
+    named(
+        TrainConfig {
+            embed_batch: 0,
+            ..tcfg(1.0)
+        }
+        .validate(),
+        "embed_batch",
+    );
+    // No triplets given: the first φ step says what is missing.
+    let mut none = Trainer::new(&chain, &ds, tcfg(1.0), p0.clone()).unwrap();
+    named(none.train_step().map(|_| ()), "embed_weight");
+    // More triplets per step than the set holds; a set with no triplets.
+    let mut big = Trainer::new(
+        &chain,
+        &ds,
+        TrainConfig {
+            embed_batch: 3,
+            ..tcfg(1.0)
+        },
+        p0.clone(),
+    )
+    .unwrap();
+    named(big.set_embedding(&ds), "embed_batch");
+    let amb = render(&d.path().join("a"), RenderSet::Ambiguity, 1);
+    let mut t = Trainer::new(&chain, &ds, tcfg(1.0), p0.clone()).unwrap();
+    named(t.set_embedding(&amb), "dataset");
 }
