@@ -1302,19 +1302,8 @@ fn search_train_embedding_term_runs_resumes_and_names_its_bad_flags() {
     let run = |extra: &[&str]| {
         let mut a = vec!["search", "train"];
         a.extend(common::TINY_CHAIN);
-        a.extend([
-            "--steps",
-            "2",
-            "--batch",
-            "2",
-            "--random-subnets",
-            "0",
-            "--pitch-range-um",
-            "48:120",
-            "--out",
-            "o",
-            "--json",
-        ]);
+        a.extend(common::TINY_TRAIN);
+        a.extend(["--out", "o", "--json"]);
         a.extend(extra);
         a.into_iter().map(String::from).collect::<Vec<_>>()
     };

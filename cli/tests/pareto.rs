@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::{TINY_CHAIN, nanoeye, tiny_dataset_of};
+use common::{TINY_CHAIN, TINY_TRAIN, nanoeye, tiny_dataset_of};
 use serde_json::Value;
 use std::path::Path;
 
@@ -72,18 +72,8 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     let train: Vec<&str> = [&["search", "train"][..], &TINY_CHAIN]
         .concat()
         .into_iter()
-        .chain([
-            "--steps",
-            "2",
-            "--batch",
-            "2",
-            "--random-subnets",
-            "0",
-            "--pitch-range-um",
-            "48:120",
-            "--out",
-            "run",
-        ])
+        .chain(TINY_TRAIN)
+        .chain(["--out", "run"])
         .collect();
     let o = nanoeye(&train, p);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));

@@ -157,20 +157,26 @@ fn a_dataset_without_triplets_is_refused() {
     );
 }
 
+/// `steps` of search embed over two triplets per step at a small rate, p̂ inside one output
+/// size of the tiny chain.
+fn small_run(steps: usize) -> EmbedConfig {
+    EmbedConfig {
+        steps,
+        batch: 2,
+        lr_rad: 2e-3,
+        pitch_um: 103.0,
+        seed: 3,
+        weights: EmbedWeights::default(),
+    }
+}
+
 #[test]
 fn embedding_steps_lower_the_objective_and_resume_to_the_same_bits() {
     let d = tempfile::tempdir().unwrap();
     let ds = render(d.path(), RenderSet::Variational, 2);
     let chain = CameraChain::for_dataset(&ds, chain_cfg()).unwrap();
     let p0 = hyperbolic(&chain).phase_rad;
-    let cfg = EmbedConfig {
-        steps: 4,
-        batch: 2,
-        lr_rad: 2e-3,
-        pitch_um: 103.0,
-        seed: 3,
-        weights: EmbedWeights::default(),
-    };
+    let cfg = small_run(4);
     let mut a = Embedder::new(&chain, &ds, cfg.clone(), p0.clone()).unwrap();
     let before = a.evaluate(1).unwrap();
     // Evaluated a triplet at a time or both at once: the same objective.
@@ -284,14 +290,7 @@ fn the_embedding_term_steers_the_sandwich_trainings_lens_and_resumes_to_the_same
     let chain = CameraChain::for_dataset(&ds, chain_cfg()).unwrap();
     let p0 = hyperbolic(&chain).phase_rad;
     // p̂ held at search embed's pitch, φ at its rate and seed: the same triplet batches.
-    let ecfg = EmbedConfig {
-        steps: 3,
-        batch: 2,
-        lr_rad: 2e-3,
-        pitch_um: 103.0,
-        seed: 3,
-        weights: EmbedWeights::default(),
-    };
+    let ecfg = small_run(3);
     let tcfg = |mu: f64| TrainConfig {
         steps: 3,
         batch: 3,

@@ -57,6 +57,19 @@ pub const TINY_CHAIN: [&str; 8] = [
     "0.0004",
 ];
 
+/// `search train` flags of a two-step run on [`TINY_CHAIN`] (no random subnets, p̂ within the
+/// tiny chain's grids).
+pub const TINY_TRAIN: [&str; 8] = [
+    "--steps",
+    "2",
+    "--batch",
+    "2",
+    "--random-subnets",
+    "0",
+    "--pitch-range-um",
+    "48:120",
+];
+
 /// Every file under `dir`: relative path → bytes.
 pub fn tree(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
     let mut out = BTreeMap::new();
