@@ -368,26 +368,43 @@ overlap of the predicted and true pupil masks; slip RMSE: root mean square of th
     }
     writeln!(h, "</table>")?;
     let e = &r["learned_lens_embedding"];
+    let joint = e["learned_lens"] == "joint";
     if e.is_object() {
+        let how = if joint {
+            format!(
+                "trained with the network on the task loss plus {} times the optical-embedding \
+objective (S15, <code>learned_lens: \"joint\"</code>): each phase step also raises the Fisher \
+information of the sensor image in the glasses' slippage and in the gaze (L_sens) and makes \
+their two sensitivity fields orthogonal (cos²φ), on 4 of {} rendered triplets (anchor, slip+, \
+gaze+). Below, the objective over every triplet at the Fisher initialization and after training.",
+                num(&e["embed_weight"]),
+                e["final"]["triplets"].as_u64().unwrap_or(0)
+            )
+        } else {
+            format!(
+                "designed by the optical-embedding objective (S15, <code>learned_lens: \
+\"embedding\"</code>): from the Fisher initialization, Adam steps on the phase map that raise the \
+Fisher information of the sensor image in the glasses' slippage and in the gaze (L_sens) and make \
+their two sensitivity fields orthogonal (cos²φ), over {} rendered triplets (anchor, slip+, \
+gaze+); it then stays fixed while the network trains.",
+                e["final"]["triplets"].as_u64().unwrap_or(0)
+            )
+        };
         writeln!(
             h,
             "<h2>The learned lens's embedding objective</h2><p>The learned lens of this run was \
-designed by the optical-embedding objective (S15, <code>learned_lens: \"embedding\"</code>): from \
-the Fisher initialization, Adam steps on the phase map that raise the Fisher information of the \
-sensor image in the glasses' slippage and in the gaze (L_sens) and make their two sensitivity \
-fields orthogonal (cos²φ), over {} rendered triplets (anchor, slip+, gaze+); it then stays fixed \
-while the network trains. The bounds are the two-parameter Cramér–Rao bounds of one frame \
-with everything else about the scene known (geometric means over the triplets).</p><table><tr>\
-<th></th><th>objective</th><th>L_sens</th><th>cos²φ</th><th>slip bound (µm)</th>\
-<th>gaze bound (°)</th></tr>",
-            e["final"]["triplets"].as_u64().unwrap_or(0)
+{how} The bounds are the two-parameter Cramér–Rao bounds of one frame with everything else \
+about the scene known (geometric means over the triplets).</p><table><tr><th></th>\
+<th>objective</th><th>L_sens</th><th>cos²φ</th><th>slip bound (µm)</th><th>gaze bound (°)</th></tr>"
         )?;
         // The bounds span 1e-4–1: three significant digits, not two decimals.
         let sig = |v: &serde_json::Value| v.as_f64().map_or("–".into(), |x| format!("{x:.3e}"));
-        for (k, label) in [
-            ("init", "Fisher initialization"),
-            ("final", "after the embedding"),
-        ] {
+        let after = if joint {
+            "after joint training"
+        } else {
+            "after the embedding"
+        };
+        for (k, label) in [("init", "Fisher initialization"), ("final", after)] {
             let v = &e[k];
             writeln!(
                 h,
@@ -636,6 +653,13 @@ mod tests {
         ] {
             assert!(h.contains(s), "{s} missing");
         }
+        // A jointly trained lens says so, with its weight.
+        r["learned_lens_embedding"]["learned_lens"] = "joint".into();
+        r["learned_lens_embedding"]["embed_weight"] = 10.0.into();
+        let h = html(d.path(), &r).unwrap();
+        assert!(h.contains("plus 10.00 times the optical-embedding objective"));
+        assert!(h.contains("after joint training"));
+        assert!(!h.contains("after the embedding"));
     }
 
     /// Two slippage states of two frames each and one estimate off the chart: each panel draws

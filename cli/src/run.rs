@@ -59,6 +59,9 @@ pub enum LearnedLens {
     /// The Fisher initialization, then the optical-embedding objective (S15) on variational
     /// triplets (`search embed`), then kept fixed while the network trains.
     Embedding,
+    /// The Fisher initialization, then trained with the network by the sandwich rule on the
+    /// task loss plus `embed_weight` times the embedding objective on variational triplets.
+    Joint,
 }
 
 impl<'de> Deserialize<'de> for LearnedLens {
@@ -67,8 +70,9 @@ impl<'de> Deserialize<'de> for LearnedLens {
         match s.as_str() {
             "trained" => Ok(LearnedLens::Trained),
             "embedding" => Ok(LearnedLens::Embedding),
+            "joint" => Ok(LearnedLens::Joint),
             _ => Err(serde::de::Error::custom(format!(
-                "learned_lens must be \"trained\" or \"embedding\", got {s:?}"
+                "learned_lens must be \"trained\", \"embedding\" or \"joint\", got {s:?}"
             ))),
         }
     }
@@ -109,11 +113,14 @@ pub struct RunConfig {
     /// with the network by the sandwich rule) or "embedding" (the Fisher initialization, then
     /// `embed_steps` Adam steps of the optical-embedding objective S15 on `embed_triplets`
     /// variational triplets at `pitch_init_um`, then kept fixed while the network trains and
-    /// in the REA's fine-tunes; docs/run.md).
+    /// in the REA's fine-tunes; docs/run.md) or "joint" (the Fisher initialization, then
+    /// trained with the network on the sandwich loss + `embed_weight`·L_embed).
     pub learned_lens: LearnedLens,
-    /// Variational triplets rendered for `learned_lens: "embedding"` (at least 4: a step's
-    /// batch).
+    /// Variational triplets rendered for `learned_lens` "embedding" or "joint" (at least 4: a
+    /// step's batch).
     pub embed_triplets: usize,
+    /// Weight μ of the embedding objective in the learned lens's loss (`learned_lens: "joint"`).
+    pub embed_weight: f64,
     /// Adam steps of the embedding objective.
     pub embed_steps: usize,
     /// The embedding objective's phase learning rate (rad per step).
@@ -218,6 +225,7 @@ impl Default for RunConfig {
             fisher_photons: 1e5,
             learned_lens: LearnedLens::Trained,
             embed_triplets: 48,
+            embed_weight: 10.0,
             embed_steps: 80,
             embed_lr_rad: 0.05,
             train_steps: 200,
@@ -396,14 +404,24 @@ fn check(cfg: &RunConfig) -> Result<()> {
     if cfg.spp == 0 || cfg.spp > 1024 {
         bail!("--config: spp must be 1..=1024");
     }
-    if cfg.learned_lens == LearnedLens::Embedding {
-        if !(EMBED_BATCH..=100_000).contains(&cfg.embed_triplets) {
+    if cfg.learned_lens != LearnedLens::Trained
+        && !(EMBED_BATCH..=100_000).contains(&cfg.embed_triplets)
+    {
+        bail!(
+            "--config: embed_triplets must lie in {EMBED_BATCH}..=100000 (a step takes \
+             {EMBED_BATCH}), got {}",
+            cfg.embed_triplets
+        );
+    }
+    if cfg.learned_lens == LearnedLens::Joint {
+        let mu = cfg.embed_weight;
+        if !(mu.is_finite() && mu > 0.0 && mu <= 1e3) {
             bail!(
-                "--config: embed_triplets must lie in {EMBED_BATCH}..=100000 (a step takes \
-                 {EMBED_BATCH}), got {}",
-                cfg.embed_triplets
+                "--config: embed_weight must lie in (0, 1000] for learned_lens \"joint\", got {mu:?}"
             );
         }
+    }
+    if cfg.learned_lens == LearnedLens::Embedding {
         embed_config(cfg).validate().map_err(|e| match e {
             nanoeye_search::SearchError::Param { name: "steps", .. } => {
                 anyhow::anyhow!("--config: embed_steps: {e}")
@@ -449,7 +467,7 @@ fn check(cfg: &RunConfig) -> Result<()> {
             cfg.height_px
         );
     }
-    train_config(cfg, false)
+    train_config(cfg, false, learned_embed_weight(cfg))
         .validate()
         .context("--config (training)")?;
     // The REA's network inputs are largest at the finest p̂ a candidate may reach.
@@ -476,8 +494,18 @@ fn embed_config(cfg: &RunConfig) -> EmbedConfig {
     }
 }
 
-/// The sandwich-training configuration of each lens.
-fn train_config(cfg: &RunConfig, fixed_lens: bool) -> TrainConfig {
+/// μ of the learned lens's embedding term: `embed_weight` for `learned_lens: "joint"`, else 0.
+fn learned_embed_weight(cfg: &RunConfig) -> f64 {
+    if cfg.learned_lens == LearnedLens::Joint {
+        cfg.embed_weight
+    } else {
+        0.0
+    }
+}
+
+/// The sandwich-training configuration of each lens, with the embedding term at weight
+/// `embed_weight` (0: the task alone).
+fn train_config(cfg: &RunConfig, fixed_lens: bool, embed_weight: f64) -> TrainConfig {
     TrainConfig {
         steps: cfg.train_steps,
         batch: cfg.batch,
@@ -502,8 +530,7 @@ fn train_config(cfg: &RunConfig, fixed_lens: bool) -> TrainConfig {
         },
         solver: cfg.solver,
         pupil_centre: cfg.pupil_centre,
-        // The job's lenses learn from the task alone (the embedding lens is fixed).
-        embed_weight: 0.0,
+        embed_weight,
         embed_batch: EMBED_BATCH,
         embed_terms: nanoeye_search::EmbedWeights::default(),
     }
@@ -714,7 +741,7 @@ pub fn run(a: RunArgs) -> Result<()> {
         &cfg,
     )?;
     let triplets = match cfg.learned_lens {
-        LearnedLens::Embedding => Some(render(
+        LearnedLens::Embedding | LearnedLens::Joint => Some(render(
             &out.join("data/triplets"),
             RenderSet::Variational,
             (cfg.embed_triplets, cfg.seed + 4, 0.0),
@@ -768,7 +795,10 @@ pub fn run(a: RunArgs) -> Result<()> {
     stage("fisher", t.elapsed().as_secs_f64(), &mut stages)?;
 
     // 2b. The learned lens optimised for the optical embedding on the triplets, then fixed.
-    let learned_init = match &triplets {
+    let learned_init = match triplets
+        .as_ref()
+        .filter(|_| cfg.learned_lens == LearnedLens::Embedding)
+    {
         Some(trip) => {
             let t = Instant::now();
             let start = match learned_init {
@@ -806,6 +836,9 @@ pub fn run(a: RunArgs) -> Result<()> {
             name,
             lens,
             init: learned_init.as_ref().filter(|_| name == "learned"),
+            triplets: triplets
+                .as_ref()
+                .filter(|_| name == "learned" && cfg.learned_lens == LearnedLens::Joint),
             train: &train,
             chain_cfg: &chain_cfg,
             cfg: &cfg,
@@ -814,6 +847,25 @@ pub fn run(a: RunArgs) -> Result<()> {
         .run(&note, failed)
     })?;
     stage("train", t.elapsed().as_secs_f64(), &mut stages)?;
+    if let (Some(trip), LearnedLens::Joint) = (&triplets, cfg.learned_lens) {
+        // What the embedding term did to the lens: its objective over every triplet.
+        let t = Instant::now();
+        let start = match &learned_init {
+            Some(p) => p.clone(),
+            None => {
+                let r = &chain.config().radiometry;
+                LensSpec::Hyperbolic
+                    .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)?
+                    .phase_rad
+            }
+        };
+        let dir = out.join("runs/learned");
+        let trained = nanoeye_fisher::nanoeye_optics::io::read_phase_npy(&dir.join("phase.npy"))
+            .context("--out (resume): runs/learned/phase.npy")?;
+        joint_objective(trip, &chain_cfg, &cfg, start, trained, &dir)
+            .context("the learned lens's embedding objective")?;
+        stage("embed_eval", t.elapsed().as_secs_f64(), &mut stages)?;
+    }
 
     // 4. Short REA on the co-designed run.
     let t = Instant::now();
@@ -1141,7 +1193,12 @@ pub fn run(a: RunArgs) -> Result<()> {
         // The embedding objective over every triplet, before and after (docs/run.md).
         let m = out.join("runs/learned/embed/metrics.json");
         let text = std::fs::read_to_string(&m).with_context(|| m.display().to_string())?;
-        result["learned_lens_embedding"] = serde_json::from_str(&text)?;
+        let mut e: serde_json::Value = serde_json::from_str(&text)?;
+        e["learned_lens"] = serde_json::to_value(cfg.learned_lens)?;
+        if cfg.learned_lens == LearnedLens::Joint {
+            e["embed_weight"] = serde_json::json!(cfg.embed_weight);
+        }
+        result["learned_lens_embedding"] = e;
     }
     util::write_atomic(
         &out.join("result.json"),
@@ -1263,6 +1320,33 @@ fn embed_lens(
     Ok(e.phase().clone())
 }
 
+/// The embedding objective over every triplet at the learned lens's start `start` and after
+/// its joint training `trained` (`learned_lens: "joint"`), at `pitch_init_um`, as
+/// `dir/embed/metrics.json` (the embedding stage's format; kept on a resume).
+fn joint_objective(
+    trip: &Dataset,
+    chain_cfg: &ChainConfig,
+    cfg: &RunConfig,
+    start: Mat<f64>,
+    trained: Mat<f64>,
+    dir: &Path,
+) -> Result<()> {
+    let path = dir.join("embed/metrics.json");
+    if path.exists() {
+        return Ok(());
+    }
+    let chain = CameraChain::for_dataset(trip, chain_cfg.clone())?;
+    let init = Embedder::new(&chain, trip, embed_config(cfg), start)?.evaluate(8)?;
+    let fin = Embedder::new(&chain, trip, embed_config(cfg), trained)?.evaluate(8)?;
+    if !(fin.loss.is_finite() && fin.crlb_slip_um.is_finite()) {
+        bail!("the embedding objective of the trained lens is not finite");
+    }
+    util::write_atomic(
+        &path,
+        serde_json::to_string_pretty(&serde_json::json!({"init": init, "final": fin}))?.as_bytes(),
+    )
+}
+
 /// One lens's sandwich training (stage 3 of the main job), resumed from its checkpoint; writes
 /// `runs/<name>/` (checkpoint, rig, phase map, history).
 struct LensTraining<'a> {
@@ -1270,6 +1354,8 @@ struct LensTraining<'a> {
     lens: &'static str,
     /// The Fisher-initialized phase map (rad), for the learned lens.
     init: Option<&'a Mat<f64>>,
+    /// The embedding term's triplets (the learned lens under `learned_lens: "joint"`).
+    triplets: Option<&'a Dataset>,
     train: &'a Dataset,
     chain_cfg: &'a ChainConfig,
     cfg: &'a RunConfig,
@@ -1296,9 +1382,18 @@ impl LensTraining<'_> {
             train_config(
                 cfg,
                 name != "learned" || cfg.learned_lens == LearnedLens::Embedding,
+                if self.triplets.is_some() {
+                    cfg.embed_weight
+                } else {
+                    0.0
+                },
             ),
             phase,
         )?;
+        if let Some(trip) = self.triplets {
+            tr.set_embedding(trip)
+                .context("the learned lens's embedding term")?;
+        }
         if ck.exists() {
             tr.load(&ck).context("--out (resume)")?;
         }

@@ -872,6 +872,24 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
             "embed_lr_rad",
         ),
         (r#"{"embed_lr_rad": null}"#, "embed_lr_rad"),
+        (
+            r#"{"learned_lens": "joint", "embed_weight": 0}"#,
+            "embed_weight",
+        ),
+        (
+            r#"{"learned_lens": "joint", "embed_weight": -1}"#,
+            "embed_weight",
+        ),
+        (
+            r#"{"learned_lens": "joint", "embed_weight": 1e4}"#,
+            "embed_weight",
+        ),
+        (r#"{"embed_weight": null}"#, "embed_weight"),
+        (r#"{"embed_weight": "10"}"#, "embed_weight"),
+        (
+            r#"{"learned_lens": "joint", "embed_triplets": 3}"#,
+            "embed_triplets",
+        ),
         (r#"{"phase_every": 100000000}"#, "phase_every"),
         (r#"{"rea_bn_batches": 0}"#, "rea_bn_batches"),
         (r#"{"rea_bn_batches": -1}"#, "rea_bn_batches"),

@@ -451,3 +451,74 @@ fn the_main_jobs_embedding_lens_is_search_embeds_and_stays_fixed() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(lens == std::fs::read(d.path().join("embed/phase.npy")).unwrap());
 }
+
+/// `learned_lens: "joint"`: the learned lens trains on the task plus the embedding objective on
+/// the job's triplets (every step records it; the fixed lenses' do not), ends elsewhere than
+/// the same job on the task alone, and the result reports the objective before and after.
+#[test]
+fn the_main_jobs_joint_lens_trains_on_the_embedding_term_too() {
+    let d = tempfile::tempdir().unwrap();
+    let bin = env!("CARGO_BIN_EXE_nanoeye");
+    let job = |extra: &str, name: &str| {
+        let cfg = d.path().join(format!("{name}.json"));
+        std::fs::write(
+            &cfg,
+            TINY.replacen('{', &format!("{{\"fisher_iterations\": 3, {extra}"), 1),
+        )
+        .unwrap();
+        let out = d.path().join(name);
+        let o = Command::new(bin)
+            .args(["run", "--json", "--config"])
+            .arg(&cfg)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        (r, out)
+    };
+    let (r, out) = job(
+        r#""learned_lens": "joint", "embed_triplets": 4, "embed_weight": 5.0, "#,
+        "joint",
+    );
+    assert!(r["stages"]["embed_eval"].as_f64().is_some(), "{r}");
+    assert!(r["stages"].get("embed").is_none(), "{r}");
+    let e = &r["learned_lens_embedding"];
+    assert_eq!(e["learned_lens"], "joint");
+    assert_eq!(e["embed_weight"], 5.0);
+    for s in ["init", "final"] {
+        assert_eq!(e[s]["triplets"], 4);
+        assert!(e[s]["loss"].as_f64().is_some_and(f64::is_finite), "{e}");
+    }
+    let lines = |name: &str| {
+        std::fs::read_to_string(out.join(format!("runs/{name}/history.jsonl")))
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .collect::<Vec<_>>()
+    };
+    let learned = lines("learned");
+    assert_eq!(learned.len(), 2);
+    assert!(
+        learned
+            .iter()
+            .all(|h| h["embed_loss"].as_f64().is_some_and(f64::is_finite))
+    );
+    assert!(
+        lines("hyperbolic")
+            .iter()
+            .all(|h| h.get("embed_loss").is_none())
+    );
+    let (plain, plain_out) = job("", "trained");
+    assert!(plain.get("learned_lens_embedding").is_none());
+    // The same Fisher start, another lens after training.
+    let read = |o: &std::path::Path, f: &str| std::fs::read(o.join(f)).unwrap();
+    let fisher = "runs/learned/fisher_phase.npy";
+    assert!(read(&out, fisher) == read(&plain_out, fisher));
+    // Two deterministic jobs that differ in μ alone: had the term not acted, the same bytes.
+    let phase = "runs/learned/phase.npy";
+    assert!(read(&out, phase) != read(&plain_out, phase));
+    let fixed = "runs/hyperbolic/checkpoint.bin";
+    assert!(read(&out, fixed) == read(&plain_out, fixed));
+}
