@@ -212,7 +212,8 @@ impl Plot {
     }
 }
 
-/// Loss curves of N_max and N_min as a self-contained SVG.
+/// Loss curves of N_max and N_min as a self-contained SVG, and the embedding term's L_embed
+/// (on its own scale, from its lowest to its highest value) where the run has one.
 pub fn svg_curves(h: &[StepRecord]) -> String {
     let p = Plot {
         n: h.len().max(2) as f64,
@@ -221,18 +222,40 @@ pub fn svg_curves(h: &[StepRecord]) -> String {
             .flat_map(|r| [r.loss_max, r.loss_min])
             .fold(1e-9f64, f64::max),
     };
-    let body = format!(
+    let mut body = format!(
         r##"<polyline fill="none" stroke="#c0392b" stroke-width="1.5" points="{}"/>
 <polyline fill="none" stroke="#2471a3" stroke-width="1.5" points="{}"/>"##,
         p.polyline(h.iter().map(|r| r.loss_max)),
         p.polyline(h.iter().map(|r| r.loss_min)),
     );
-    p.svg(
-        "step",
-        "task loss",
-        &body,
-        &[("N_max", "#c0392b"), ("N_min", "#2471a3")],
-    )
+    let mut legend = vec![
+        ("N_max".to_string(), "#c0392b"),
+        ("N_min".to_string(), "#2471a3"),
+    ];
+    let embed: Vec<(usize, f64)> = h
+        .iter()
+        .enumerate()
+        .filter_map(|(i, r)| r.embed_loss.filter(|l| l.is_finite()).map(|l| (i, l)))
+        .collect();
+    if !embed.is_empty() {
+        let lo = embed.iter().map(|e| e.1).fold(f64::INFINITY, f64::min);
+        let hi = embed.iter().map(|e| e.1).fold(f64::NEG_INFINITY, f64::max);
+        let span = (hi - lo).max(1e-12);
+        let pts: Vec<String> = embed
+            .iter()
+            .map(|&(i, l)| {
+                let (x, y) = p.xy(i, (l - lo) / span * p.ymax);
+                format!("{x:.1},{y:.1}")
+            })
+            .collect();
+        body.push_str(&format!(
+            "\n<polyline fill=\"none\" stroke=\"#27ae60\" stroke-width=\"1\" points=\"{}\"/>",
+            pts.join(" ")
+        ));
+        legend.push((format!("L_embed ({lo:.3} … {hi:.3})"), "#27ae60"));
+    }
+    let legend: Vec<(&str, &str)> = legend.iter().map(|(t, c)| (t.as_str(), *c)).collect();
+    p.svg("step", "task loss", &body, &legend)
 }
 
 /// Fitness curve of a search as a self-contained SVG: per cycle the child's V (degrees) and its
@@ -958,6 +981,31 @@ mod tests {
             },
             removed: 0,
         }
+    }
+
+    #[test]
+    fn the_loss_plot_shows_the_embedding_term_on_its_own_scale_only_where_there_is_one() {
+        let rec = |i: usize, e: Option<f64>| StepRecord {
+            step: i,
+            loss_max: 2.0 - 0.1 * i as f64,
+            loss_min: 3.0 - 0.1 * i as f64,
+            loss_total: 5.0,
+            pitch_um: 14.0,
+            phase_step_rad: 0.01,
+            embed_loss: e,
+        };
+        let plain: Vec<_> = (0..4).map(|i| rec(i, None)).collect();
+        assert!(!svg_curves(&plain).contains("L_embed"));
+        assert_eq!(svg_curves(&plain).matches("<polyline").count(), 2);
+        let joint: Vec<_> = (0..4)
+            .map(|i| rec(i, Some(-16.0 - 0.05 * i as f64)))
+            .collect();
+        let svg = svg_curves(&joint);
+        assert!(svg.contains("L_embed (-16.150 … -16.000)"), "{svg}");
+        assert_eq!(svg.matches("<polyline").count(), 3);
+        // Its highest value at the top of the axes (y = M = 40), its lowest at the bottom.
+        assert!(svg.contains("40.0,40.0 "), "{svg}");
+        assert!(svg.contains(",320.0\"/>"), "{svg}");
     }
 
     #[test]
