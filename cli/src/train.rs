@@ -454,13 +454,19 @@ pub fn train(a: TrainArgs) -> Result<()> {
         if ck.exists() && lens_path.exists() {
             let had = std::fs::read_to_string(&lens_path).context("--out (resume): lens.json")?;
             if had.trim() != lens_json {
-                // Name the flag that differs: the embedding's triplet set or the lens.
-                let key = |t: &str, k: &str| {
+                // Name the flag that differs: the embedding's triplet set, where all else
+                // agrees, or the lens.
+                let without = |t: &str| {
                     serde_json::from_str::<serde_json::Value>(t)
-                        .map(|v| v[k].clone())
                         .ok()
+                        .map(|mut v| {
+                            if let Some(o) = v.as_object_mut() {
+                                o.remove("embed_triplets");
+                            }
+                            v
+                        })
                 };
-                let flag = if key(had.trim(), "lens") == key(&lens_json, "lens") {
+                let flag = if without(had.trim()) == without(&lens_json) {
                     "--embed-triplets"
                 } else {
                     "--lens"

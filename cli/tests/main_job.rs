@@ -2,6 +2,7 @@
 //! the chain (the learned and baseline lenses give different protocol errors), the report's
 //! images exist, and a second call reports the finished run without redoing it.
 
+use std::path::PathBuf;
 use std::process::Command;
 
 /// The smallest configuration that runs every stage.
@@ -11,6 +12,24 @@ const TINY: &str = r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items":
     "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0, "final_steps": 2,
     "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16],
     "sequence_frames": 5, "train_blink_fraction": 0.5}"#;
+
+/// `nanoeye run --json` on [`TINY`] with 3 Fisher iterations and the keys `extra` (`"k": v, `
+/// each) in `dir/NAME/`; asserts it succeeds and returns its result and directory.
+fn tiny_job(dir: &std::path::Path, name: &str, extra: &str) -> (serde_json::Value, PathBuf) {
+    let cfg = dir.join(format!("{name}.json"));
+    let text = TINY.replacen('{', &format!("{{\"fisher_iterations\": 3, {extra}"), 1);
+    std::fs::write(&cfg, text).unwrap();
+    let out = dir.join(name);
+    let o = Command::new(env!("CARGO_BIN_EXE_nanoeye"))
+        .args(["run", "--json", "--config"])
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    (serde_json::from_slice(&o.stdout).unwrap(), out)
+}
 
 #[test]
 fn the_main_job_runs_end_to_end_on_a_tiny_config() {
@@ -347,17 +366,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
 fn search_train_lens_init_is_the_main_jobs_fisher_phase() {
     let d = tempfile::tempdir().unwrap();
     let bin = env!("CARGO_BIN_EXE_nanoeye");
-    let cfg = d.path().join("tiny.json");
-    std::fs::write(&cfg, TINY.replacen('{', r#"{"fisher_iterations": 3, "#, 1)).unwrap();
-    let out = d.path().join("run");
-    let o = Command::new(bin)
-        .args(["run", "--json", "--config"])
-        .arg(&cfg)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (_, out) = tiny_job(d.path(), "run", "");
     // `search train` on the run's training set with the run's chain and pitch.
     let train = |lens: &[&str], run: &std::path::Path| {
         Command::new(bin)
@@ -396,27 +405,11 @@ fn search_train_lens_init_is_the_main_jobs_fisher_phase() {
 fn the_main_jobs_embedding_lens_is_search_embeds_and_stays_fixed() {
     let d = tempfile::tempdir().unwrap();
     let bin = env!("CARGO_BIN_EXE_nanoeye");
-    let cfg = d.path().join("tiny.json");
-    std::fs::write(
-        &cfg,
-        TINY.replacen(
-            '{',
-            r#"{"fisher_iterations": 3, "learned_lens": "embedding", "embed_triplets": 4,
-            "embed_steps": 2, "#,
-            1,
-        ),
-    )
-    .unwrap();
-    let out = d.path().join("run");
-    let o = Command::new(bin)
-        .args(["run", "--json", "--config"])
-        .arg(&cfg)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let (r, out) = tiny_job(
+        d.path(),
+        "run",
+        r#""learned_lens": "embedding", "embed_triplets": 4, "embed_steps": 2, "#,
+    );
     assert!(r["stages"]["embed"].as_f64().is_some(), "{r}");
     let e = &r["learned_lens_embedding"];
     for s in ["init", "final"] {
@@ -458,26 +451,7 @@ fn the_main_jobs_embedding_lens_is_search_embeds_and_stays_fixed() {
 #[test]
 fn the_main_jobs_joint_lens_trains_on_the_embedding_term_too() {
     let d = tempfile::tempdir().unwrap();
-    let bin = env!("CARGO_BIN_EXE_nanoeye");
-    let job = |extra: &str, name: &str| {
-        let cfg = d.path().join(format!("{name}.json"));
-        std::fs::write(
-            &cfg,
-            TINY.replacen('{', &format!("{{\"fisher_iterations\": 3, {extra}"), 1),
-        )
-        .unwrap();
-        let out = d.path().join(name);
-        let o = Command::new(bin)
-            .args(["run", "--json", "--config"])
-            .arg(&cfg)
-            .arg("--out")
-            .arg(&out)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-        (r, out)
-    };
+    let job = |extra: &str, name: &str| tiny_job(d.path(), name, extra);
     let (r, out) = job(
         r#""learned_lens": "joint", "embed_triplets": 4, "embed_weight": 5.0, "#,
         "joint",
