@@ -162,6 +162,45 @@ pub fn embedding_loss(
     w: &EmbedWeights,
     grad: bool,
 ) -> Result<(EmbedEval, Option<ChainGrad>)> {
+    let (eval, back) = objective(chain, map, frames, p_hat_m, w, grad)?;
+    let grad = match back {
+        Some((psfs, acc)) => Some(chain.finish(map, &psfs, acc)?),
+        None => None,
+    };
+    Ok((eval, grad))
+}
+
+/// The objective as [`embedding_loss`], and its ∂L/∂P per slab and ∂L/∂p̂ (per metre) in the
+/// layout of [`CameraChain::psf_grads`]: linear at a fixed φ, so a caller may add them to
+/// another loss's at the same φ and take one [`CameraChain::phase_vjp`] of the sum.
+pub fn embedding_psf_grads(
+    chain: &CameraChain,
+    map: &PhaseMap,
+    frames: &[ChainFrame],
+    p_hat_m: f64,
+    w: &EmbedWeights,
+) -> Result<(EmbedEval, Vec<Mat<f64>>, f64)> {
+    let (eval, back) = objective(chain, map, frames, p_hat_m, w, true)?;
+    let (psfs, acc) = back.ok_or_else(|| param("embedding", "no gradient"))?;
+    let (grads, p_hat) = chain.psf_grads(&psfs, acc)?;
+    Ok((eval, grads, p_hat))
+}
+
+/// What the backward left to do: the step's PSF stack and the accumulator filled against it.
+type Backward = (
+    std::sync::Arc<crate::chain::StepPsfs>,
+    crate::chain::PsfGradAccumulator,
+);
+
+/// The objective, and with `grad` the chain's backward into an accumulator.
+fn objective(
+    chain: &CameraChain,
+    map: &PhaseMap,
+    frames: &[ChainFrame],
+    p_hat_m: f64,
+    w: &EmbedWeights,
+    grad: bool,
+) -> Result<(EmbedEval, Option<Backward>)> {
     w.validate()?;
     if frames.is_empty() || frames.len() % 3 != 0 {
         return Err(param(
@@ -227,15 +266,15 @@ pub fn embedding_loss(
         crlb_slip_um: (ln_s / n).exp() * 1e3,
         crlb_gaze_deg: (ln_g / n).exp(),
     };
-    let grad = match d_input {
+    let back = match d_input {
         Some(d) => {
             let mut acc = chain.accumulator();
             chain.backward(frames, &psfs, &fwd, &d, &mut acc)?;
-            Some(chain.finish(map, &psfs, acc)?)
+            Some((psfs, acc))
         }
         None => None,
     };
-    Ok((eval, grad))
+    Ok((eval, back))
 }
 
 /// The `batch` triplets of step `t`: a seeded permutation of `trips` per pass over them, so a

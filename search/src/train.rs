@@ -522,8 +522,9 @@ impl<'a> Trainer<'a> {
         Ok(())
     }
 
-    /// L_embed on step `t`'s triplets at φ = `map` and the current p̂, and its ∂/∂φ (rad⁻¹).
-    fn embed_gradient(&self, t: usize, map: &PhaseMap) -> Result<(f64, Mat<f64>)> {
+    /// L_embed on step `t`'s triplets at φ = `map` and the current p̂, and its ∂/∂P per slab
+    /// (the layout of [`CameraChain::psf_grads`]).
+    fn embed_gradient(&self, t: usize, map: &PhaseMap) -> Result<(f64, Vec<Mat<f64>>)> {
         let e = self.embed.as_ref().ok_or_else(|| {
             param(
                 "embed_weight",
@@ -534,22 +535,20 @@ impl<'a> Trainer<'a> {
         let batch = crate::embed::triplet_batch(&e.trips, self.cfg.embed_batch, self.cfg.seed, t);
         let ids: Vec<usize> = batch.iter().flatten().copied().collect();
         let frames = self.chain.load(e.ds, &ids)?;
-        let (ev, g) = crate::embed::embedding_loss(
+        let (ev, grads, _) = crate::embed::embedding_psf_grads(
             self.chain,
             map,
             &frames,
             self.pitch_um * 1e-6,
             &self.cfg.embed_terms,
-            true,
         )?;
-        let g = g.ok_or_else(|| param("embed_weight", "no gradient"))?;
         if !ev.loss.is_finite() {
             return Err(param(
                 "embed_weight",
                 format!("step {t}: the embedding objective is not finite; lower the rates"),
             ));
         }
-        Ok((ev.loss, g.phase_rad))
+        Ok((ev.loss, grads))
     }
 
     /// The configuration.
@@ -656,16 +655,16 @@ impl<'a> Trainer<'a> {
     /// `psf_grad`, and where it is not, with) and of p̂ (with `extra_dp_um` added to its
     /// gradient, per µm) at `lr_scale` times its rate, p̂ clamped to its range. With
     /// `window` = `Some(ends)` the step's ∂L/∂P joins φ's window in progress and φ steps, by
-    /// the window's mean, only where `ends`; `extra_phase` (∂/∂φ of a term besides the
-    /// task's, weighted already) joins φ's gradient where φ steps. Returns the RMS change of
-    /// φ (rad).
+    /// the window's mean, only where `ends`; `extra_psf` (∂/∂P per slab of a term besides the
+    /// task's at the same φ, weighted already) joins it where φ steps, before the one PSF VJP
+    /// of the step. Returns the RMS change of φ (rad).
     #[allow(clippy::too_many_arguments)]
     fn update_optics(
         &mut self,
         s: StepData,
         dx: &Tensor,
         extra_dp_um: f64,
-        extra_phase: Option<&Mat<f64>>,
+        extra_psf: Option<&[Mat<f64>]>,
         lr_phase: f64,
         lr_scale: f64,
         window: Option<bool>,
@@ -686,11 +685,13 @@ impl<'a> Trainer<'a> {
         } else {
             None
         };
-        if let Some(grads) = grads {
-            let mut g = self.chain.phase_vjp(&s.map, &grads)?;
-            if let Some(e) = extra_phase {
-                g += e;
+        if let Some(mut grads) = grads {
+            if let Some(extra) = extra_psf {
+                for (g, e) in grads.iter_mut().zip(extra) {
+                    *g += e;
+                }
             }
+            let g = self.chain.phase_vjp(&s.map, &grads)?;
             let n = self.phase.nrows();
             match &self.zernike {
                 None => {
@@ -810,13 +811,15 @@ impl<'a> Trainer<'a> {
         // The embedding term only where φ steps: at the end of its window, at the φ the
         // window's task gradients were taken at.
         let embed = if lr_phase > 0.0 && ends && self.cfg.embed_weight > 0.0 {
-            let (l, mut g) = self.embed_gradient(t, &s.map)?;
-            g *= faer::Scale(self.cfg.embed_weight);
-            Some((l, g))
+            let (l, mut grads) = self.embed_gradient(t, &s.map)?;
+            for g in &mut grads {
+                *g *= faer::Scale(self.cfg.embed_weight);
+            }
+            Some((l, grads))
         } else {
             None
         };
-        let extra = embed.as_ref().map(|(_, g)| g);
+        let extra = embed.as_ref().map(|(_, g)| g.as_slice());
         let phase_step = self.update_optics(s, &dx, 0.0, extra, lr_phase, 1.0, window)?;
         let rec = StepRecord {
             step: t,

@@ -337,7 +337,8 @@ fn the_embedding_term_steers_the_sandwich_trainings_lens_and_resumes_to_the_same
     let mu = rms(&g_task) / rms(&g_embed);
     assert!(mu.is_finite() && mu > 0.0 && mu < 1e3, "{mu}");
     let joint = run(mu, 1);
-    // Adam's first step is lr·g/(|g| + 1e-12) per sample, g = ∂L_train/∂φ + μ·∂L_embed/∂φ.
+    // Adam's first step is lr·g/(|g| + 1e-12) per sample, g = ∂L_train/∂φ + μ·∂L_embed/∂φ:
+    // the trainer's one PSF VJP of the summed ∂L/∂P against the two VJPs taken apart above.
     let lr = ecfg.lr_rad;
     let (mut worst, mut flipped, mut active) = (0.0f64, 0, 0);
     let task = run(0.0, 1);
