@@ -801,15 +801,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     {
         Some(trip) => {
             let t = Instant::now();
-            let start = match learned_init {
-                Some(p) => p,
-                None => {
-                    let r = &chain.config().radiometry;
-                    LensSpec::Hyperbolic
-                        .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)?
-                        .phase_rad
-                }
-            };
+            let start = learned_start(&chain, learned_init.as_ref())?;
             let phase = embed_lens(trip, &chain_cfg, &cfg, start, &out.join("runs/learned"))
                 .context("the learned lens's embedding objective")?;
             if cfg.embed_steps > 0 {
@@ -850,15 +842,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     if let (Some(trip), LearnedLens::Joint) = (&triplets, cfg.learned_lens) {
         // What the embedding term did to the lens: its objective over every triplet.
         let t = Instant::now();
-        let start = match &learned_init {
-            Some(p) => p.clone(),
-            None => {
-                let r = &chain.config().radiometry;
-                LensSpec::Hyperbolic
-                    .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)?
-                    .phase_rad
-            }
-        };
+        let start = learned_start(&chain, learned_init.as_ref())?;
         let dir = out.join("runs/learned");
         let trained = nanoeye_fisher::nanoeye_optics::io::read_phase_npy(&dir.join("phase.npy"))
             .context("--out (resume): runs/learned/phase.npy")?;
@@ -1262,6 +1246,18 @@ fn for_each_lens<T: Send>(
     results.into_iter().collect()
 }
 
+/// The learned lens's starting phase map (rad): the Fisher initialization where there is one,
+/// else the hyperbolic lens.
+fn learned_start(chain: &CameraChain, fisher: Option<&Mat<f64>>) -> Result<Mat<f64>> {
+    if let Some(p) = fisher {
+        return Ok(p.clone());
+    }
+    let r = &chain.config().radiometry;
+    Ok(LensSpec::Hyperbolic
+        .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)?
+        .phase_rad)
+}
+
 /// The learned lens's embedding stage (`learned_lens: "embedding"`): Adam on φ from `start`
 /// under the optical-embedding objective on the triplets, resumed from `dir/embed/`
 /// (checkpoint.bin, history.jsonl, metrics.json with the objective before and after over
@@ -1382,11 +1378,7 @@ impl LensTraining<'_> {
             train_config(
                 cfg,
                 name != "learned" || cfg.learned_lens == LearnedLens::Embedding,
-                if self.triplets.is_some() {
-                    cfg.embed_weight
-                } else {
-                    0.0
-                },
+                self.triplets.map_or(0.0, |_| cfg.embed_weight),
             ),
             phase,
         )?;
