@@ -3,6 +3,7 @@
 //! One subcommand group per stage crate; every command that prints results takes `--json`.
 //! Errors name the offending parameter and exit non-zero; outputs are written atomically.
 
+mod compare;
 mod datagen;
 mod datagen_render;
 mod dist;
@@ -73,6 +74,8 @@ enum Command {
     Track(track::TrackArgs),
     /// Largest eye-safe LED intensity for glint illumination, indoors and outdoors (D.5).
     Safety(safety::SafetyArgs),
+    /// Finished `run` jobs side by side: per lens and per setting, paired over seeds.
+    Compare(compare::CompareArgs),
 }
 
 fn dispatch(command: Command) -> anyhow::Result<()> {
@@ -90,6 +93,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         Command::Search(c) => sim::search(c),
         Command::Track(a) => track::track(a),
         Command::Safety(a) => safety::run(a),
+        Command::Compare(a) => compare::run(a),
     }
 }
 

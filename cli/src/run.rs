@@ -302,7 +302,8 @@ pub struct RunArgs {
 /// uses 0.1 for its few steps).
 const FINAL_LR_SCALE: f64 = 0.25;
 
-const LENSES: [(&str, &str); 3] = [
+/// The main job's lenses: (name in result.json and runs/, lens spec); the learned lens first.
+pub(crate) const LENSES: [(&str, &str); 3] = [
     ("learned", "hyperbolic"),
     ("hyperbolic", "hyperbolic"),
     ("double_helix", "double-helix"),

@@ -1415,3 +1415,41 @@ fn search_train_embedding_term_runs_resumes_and_names_its_bad_flags() {
     refused(&args(&run(&[])), "--embed-triplets", p);
     assert_eq!(std::fs::read(p.join("o/phase.npy")).unwrap(), phase);
 }
+
+#[test]
+fn compare_names_what_it_cannot_read_and_writes_nothing_then() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    // A finished run as `nanoeye run` leaves it: today's default configuration and a result.
+    let cfg = nanoeye(&["run", "--print-config"], p);
+    assert!(cfg.status.success());
+    std::fs::create_dir_all(p.join("r0")).unwrap();
+    std::fs::write(p.join("r0/config.json"), &cfg.stdout).unwrap();
+    let result = serde_json::json!({"protocol": {
+        "learned": {"mean_deg": 9.5}, "hyperbolic": {"mean_deg": 9.0},
+        "double_helix": {"mean_deg": 8.0}}});
+    std::fs::write(p.join("r0/result.json"), result.to_string()).unwrap();
+    let ok = nanoeye(&["compare", "r0", "--json"], p);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let c: serde_json::Value = serde_json::from_slice(&ok.stdout).unwrap();
+    assert_eq!(c["groups"][0]["learned_minus"][1]["mean_deg"], 1.5);
+    let before = entries(p);
+    refused(&["compare"], "RUNS", p);
+    refused(&["compare", "nowhere"], "nowhere: no config.json", p);
+    refused(&["compare", "r0", "r0"], "same configuration and seed 0", p);
+    refused(&["compare", "r0", "--svg", "r0"], "--svg", p);
+    refused(&["compare", "r0", "--svg", "r0/config.json/c.svg"], "--svg", p);
+    std::fs::create_dir_all(p.join("r1")).unwrap();
+    std::fs::write(p.join("r1/config.json"), &cfg.stdout).unwrap();
+    refused(&["compare", "r0", "r1"], "r1: no result.json", p);
+    std::fs::write(p.join("r1/result.json"), "{\"protocol\": {}").unwrap();
+    refused(&["compare", "r1"], "r1/result.json: not JSON", p);
+    assert_eq!(
+        entries(p),
+        before.into_iter().chain(["r1".into()]).collect::<Vec<_>>()
+    );
+}

@@ -495,4 +495,43 @@ fn the_main_jobs_joint_lens_trains_on_the_embedding_term_too() {
     assert!(read(&out, phase) != read(&plain_out, phase));
     let fixed = "runs/hyperbolic/checkpoint.bin";
     assert!(read(&out, fixed) == read(&plain_out, fixed));
+    // `nanoeye compare` reads both finished jobs back: two groups told apart by the keys that
+    // differ, each run's errors as result.json has them, and B − A seed by seed.
+    let svg = d.path().join("cmp.svg");
+    let o = Command::new(env!("CARGO_BIN_EXE_nanoeye"))
+        .args(["compare", "--json", "--svg"])
+        .args([&svg, &out, &plain_out])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let c: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let lenses = ["learned", "hyperbolic", "double_helix"];
+    assert_eq!(c["lenses"], serde_json::json!(lenses));
+    let differs: Vec<&String> = c["groups"][0]["differs"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .collect();
+    assert_eq!(differs, ["embed_triplets", "embed_weight", "learned_lens"]);
+    assert_eq!(c["groups"][1]["differs"]["learned_lens"], "trained");
+    for (k, (res, run)) in [(&r, &c["runs"][0]), (&plain, &c["runs"][1])]
+        .into_iter()
+        .enumerate()
+    {
+        for (l, lens) in lenses.iter().enumerate() {
+            assert_eq!(
+                run["mean_deg"][l], res["protocol"][lens]["mean_deg"],
+                "run {k}"
+            );
+        }
+        assert_eq!(run["macs"], res["macs"]);
+    }
+    let v = &c["versus"][0];
+    let learned =
+        |res: &serde_json::Value| res["protocol"]["learned"]["mean_deg"].as_f64().unwrap();
+    assert_eq!(
+        v["per_lens"][0]["mean_deg"].as_f64().unwrap(),
+        learned(&plain) - learned(&r)
+    );
+    assert!(std::fs::read_to_string(&svg).unwrap().starts_with("<svg"));
 }

@@ -1,0 +1,769 @@
+//! `nanoeye compare`: finished main-job runs side by side. One run's protocol error moves by
+//! about ±2° with the seed alone (docs/run.md), so a lens or a setting is judged on paired
+//! differences over seeds: runs whose configurations differ only in `seed` form a group; within
+//! a group the learned lens is set against each fixed lens run by run, and two groups are set
+//! against each other seed by seed, each difference as a mean with its standard error.
+
+use crate::run::{LENSES, RunConfig};
+use crate::util;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+/// Most runs one comparison reads (each a config.json and a result.json held in memory).
+const MAX_RUNS: usize = 10_000;
+
+/// `nanoeye compare` options.
+#[derive(Debug, Args)]
+pub struct CompareArgs {
+    /// Output folders of finished `nanoeye run` jobs (config.json and result.json in each).
+    #[arg(required = true)]
+    runs: Vec<PathBuf>,
+    /// Also draw every run's error per lens, by group, with lines joining equal seeds, as an
+    /// SVG written to this path.
+    #[arg(long)]
+    svg: Option<PathBuf>,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Mean of paired differences a − b (degrees) with its standard error.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Paired {
+    /// Number of pairs.
+    pub n: usize,
+    /// Mean difference (deg).
+    pub mean_deg: f64,
+    /// Standard error of the mean (deg): the sample standard deviation over √n; absent for
+    /// one pair.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub se_deg: Option<f64>,
+    /// Pairs in which a is lower than b.
+    pub lower: usize,
+}
+
+impl Paired {
+    /// The summary of the differences `d` (deg); `d` is not empty.
+    fn of(d: &[f64]) -> Paired {
+        let n = d.len();
+        let mean = d.iter().sum::<f64>() / n as f64;
+        let se_deg = (n > 1).then(|| {
+            let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+            (var / n as f64).sqrt()
+        });
+        Paired {
+            n,
+            mean_deg: mean,
+            se_deg,
+            lower: d.iter().filter(|&&x| x < 0.0).count(),
+        }
+    }
+
+    fn text(&self) -> String {
+        let se = self.se_deg.map_or(String::new(), |s| format!(" ± {s:.2}"));
+        format!("{:+.2}{se}°", self.mean_deg)
+    }
+}
+
+/// One finished run.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunRow {
+    /// Its output folder.
+    pub run: String,
+    /// Its `seed`.
+    pub seed: u64,
+    /// Name of its group (A, B, …).
+    pub group: String,
+    /// Protocol mean gaze error per lens (deg), in [`lens_names`] order.
+    pub mean_deg: Vec<f64>,
+    /// Mean gaze error on the demo sequence (deg), where the run has one.
+    pub demo_deg: Option<f64>,
+    /// MACs of the selected subnet.
+    pub macs: Option<u64>,
+    /// The learned lens's final p̂ (µm).
+    pub pitch_um: Option<f64>,
+    /// The lens with the lowest protocol error.
+    pub lowest: String,
+}
+
+/// Runs that differ only in `seed`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Group {
+    /// A, B, … in the order of the first run of each.
+    pub name: String,
+    /// The configuration keys that tell this group from the others, with this group's values.
+    pub differs: serde_json::Map<String, serde_json::Value>,
+    /// Its runs' seeds, ascending.
+    pub seeds: Vec<u64>,
+    /// Mean over its runs of the protocol error per lens (deg), in [`lens_names`] order.
+    pub mean_deg: Vec<f64>,
+    /// Mean demo-sequence error (deg) over its runs that have one.
+    pub demo_mean_deg: Option<f64>,
+    /// The learned lens's error minus each fixed lens's, run by run (fixed lenses in
+    /// [`lens_names`] order after the first).
+    pub learned_minus: Vec<Paired>,
+    /// Runs in which the learned lens has the lowest error.
+    pub learned_lowest: usize,
+}
+
+/// Group b against group a on their common seeds.
+#[derive(Debug, Clone, Serialize)]
+pub struct Versus {
+    /// The later group's name.
+    pub b: String,
+    /// The earlier group's name.
+    pub a: String,
+    /// Common seeds, ascending.
+    pub seeds: Vec<u64>,
+    /// b − a per lens, seed by seed, in [`lens_names`] order.
+    pub per_lens: Vec<Paired>,
+    /// b − a on the demo sequence, where both runs of a seed have one.
+    pub demo: Option<Paired>,
+}
+
+/// The whole comparison.
+#[derive(Debug, Clone, Serialize)]
+pub struct Comparison {
+    /// Lens names, the learned lens first.
+    pub lenses: Vec<String>,
+    pub runs: Vec<RunRow>,
+    pub groups: Vec<Group>,
+    pub versus: Vec<Versus>,
+}
+
+/// The main job's lens names, the learned lens first.
+pub fn lens_names() -> Vec<String> {
+    LENSES.iter().map(|(n, _)| n.to_string()).collect()
+}
+
+/// Reads one run: its configuration as JSON without `seed` (keys an older run lacks take
+/// today's defaults, which by the job's rule keep the behaviour it had), and its row.
+fn load(dir: &Path, lenses: &[String]) -> Result<(serde_json::Value, RunRow)> {
+    let d = dir.display();
+    let cpath = dir.join("config.json");
+    let text = std::fs::read_to_string(&cpath)
+        .with_context(|| format!("{d}: no config.json; is it the --out of `nanoeye run`?"))?;
+    let cfg: RunConfig = serde_json::from_str(&text)
+        .with_context(|| format!("{}: not a run configuration", cpath.display()))?;
+    let mut key = serde_json::to_value(&cfg)?;
+    if let Some(m) = key.as_object_mut() {
+        m.remove("seed");
+    }
+    let rpath = dir.join("result.json");
+    let text = std::fs::read_to_string(&rpath).with_context(|| {
+        format!(
+            "{d}: no result.json, the job has not finished (resume it: `nanoeye run --out {d}` \
+             with its configuration)"
+        )
+    })?;
+    let r: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{}: not JSON", rpath.display()))?;
+    let mut mean_deg = Vec::with_capacity(lenses.len());
+    for lens in lenses {
+        let v = r["protocol"][lens]["mean_deg"].as_f64();
+        match v {
+            Some(v) if v.is_finite() && v >= 0.0 => mean_deg.push(v),
+            _ => bail!(
+                "{}: protocol.{lens}.mean_deg is missing or not a finite error",
+                rpath.display()
+            ),
+        }
+    }
+    let finite = |v: &serde_json::Value| v.as_f64().filter(|x| x.is_finite());
+    let lowest = lenses[mean_deg
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.total_cmp(b.1))
+        .map_or(0, |(k, _)| k)]
+    .clone();
+    Ok((
+        key,
+        RunRow {
+            run: d.to_string(),
+            seed: cfg.seed,
+            group: String::new(),
+            mean_deg,
+            demo_deg: finite(&r["demo_sequence"]["mean_deg"]),
+            macs: r["macs"].as_u64(),
+            pitch_um: finite(&r["pitch_um"]),
+            lowest,
+        },
+    ))
+}
+
+/// Groups the runs by configuration (`seed` aside) and sets them against each other.
+pub fn compare(dirs: &[PathBuf]) -> Result<Comparison> {
+    if dirs.is_empty() {
+        bail!("RUNS: give at least one run folder");
+    }
+    if dirs.len() > MAX_RUNS {
+        bail!("RUNS: at most {MAX_RUNS} runs, got {}", dirs.len());
+    }
+    let lenses = lens_names();
+    let mut keys: Vec<serde_json::Value> = Vec::new();
+    let mut runs: Vec<RunRow> = Vec::with_capacity(dirs.len());
+    let mut group_of = Vec::with_capacity(dirs.len());
+    for dir in dirs {
+        let (key, mut row) = load(dir, &lenses)?;
+        let g = match keys.iter().position(|k| *k == key) {
+            Some(g) => g,
+            None => {
+                keys.push(key);
+                keys.len() - 1
+            }
+        };
+        if let Some(k) = (0..runs.len()).find(|&k| group_of[k] == g && runs[k].seed == row.seed) {
+            let other: &RunRow = &runs[k];
+            bail!(
+                "RUNS: {} and {} have the same configuration and seed {}; give one of them",
+                other.run,
+                row.run,
+                row.seed
+            );
+        }
+        row.group = group_name(g);
+        group_of.push(g);
+        runs.push(row);
+    }
+    // The keys on which the groups' configurations do not all agree.
+    let varying: Vec<String> = keys[0]
+        .as_object()
+        .map(|m| {
+            m.keys()
+                .filter(|k| keys.iter().any(|c| c[k.as_str()] != keys[0][k.as_str()]))
+                .cloned()
+                .collect()
+        })
+        .unwrap_or_default();
+    let groups: Vec<Group> = keys
+        .iter()
+        .enumerate()
+        .map(|(g, key)| {
+            let members: Vec<&RunRow> = (0..runs.len())
+                .filter(|&k| group_of[k] == g)
+                .map(|k| &runs[k])
+                .collect();
+            summarize_group(g, key, &varying, &members, lenses.len())
+        })
+        .collect();
+    let mut versus = Vec::new();
+    for b in 0..groups.len() {
+        for a in 0..b {
+            if let Some(v) = against(&runs, &group_of, a, b, lenses.len()) {
+                versus.push(v);
+            }
+        }
+    }
+    Ok(Comparison {
+        lenses,
+        runs,
+        groups,
+        versus,
+    })
+}
+
+/// A, B, …, Z, then G27, G28, ….
+fn group_name(g: usize) -> String {
+    if g < 26 {
+        char::from(b'A' + g as u8).to_string()
+    } else {
+        format!("G{}", g + 1)
+    }
+}
+
+fn summarize_group(
+    g: usize,
+    key: &serde_json::Value,
+    varying: &[String],
+    members: &[&RunRow],
+    n_lenses: usize,
+) -> Group {
+    let n = members.len() as f64;
+    let mean_deg = (0..n_lenses)
+        .map(|l| members.iter().map(|r| r.mean_deg[l]).sum::<f64>() / n)
+        .collect();
+    let demos: Vec<f64> = members.iter().filter_map(|r| r.demo_deg).collect();
+    let learned_minus = (1..n_lenses)
+        .map(|l| {
+            let d: Vec<f64> = members
+                .iter()
+                .map(|r| r.mean_deg[0] - r.mean_deg[l])
+                .collect();
+            Paired::of(&d)
+        })
+        .collect();
+    let mut seeds: Vec<u64> = members.iter().map(|r| r.seed).collect();
+    seeds.sort_unstable();
+    Group {
+        name: group_name(g),
+        differs: varying
+            .iter()
+            .map(|k| (k.clone(), key[k.as_str()].clone()))
+            .collect(),
+        seeds,
+        mean_deg,
+        demo_mean_deg: (!demos.is_empty()).then(|| demos.iter().sum::<f64>() / demos.len() as f64),
+        learned_minus,
+        learned_lowest: members
+            .iter()
+            .filter(|r| (1..n_lenses).all(|l| r.mean_deg[0] < r.mean_deg[l]))
+            .count(),
+    }
+}
+
+/// Group b − group a seed by seed; `None` when they share no seed.
+fn against(
+    runs: &[RunRow],
+    group_of: &[usize],
+    a: usize,
+    b: usize,
+    n_lenses: usize,
+) -> Option<Versus> {
+    let mut pairs: Vec<(&RunRow, &RunRow)> = Vec::new();
+    for (kb, rb) in runs.iter().enumerate() {
+        if group_of[kb] != b {
+            continue;
+        }
+        if let Some(ka) = (0..runs.len()).find(|&k| group_of[k] == a && runs[k].seed == rb.seed) {
+            pairs.push((&runs[ka], rb));
+        }
+    }
+    if pairs.is_empty() {
+        return None;
+    }
+    pairs.sort_by_key(|(ra, _)| ra.seed);
+    let per_lens = (0..n_lenses)
+        .map(|l| {
+            let d: Vec<f64> = pairs
+                .iter()
+                .map(|(ra, rb)| rb.mean_deg[l] - ra.mean_deg[l])
+                .collect();
+            Paired::of(&d)
+        })
+        .collect();
+    let demo: Vec<f64> = pairs
+        .iter()
+        .filter_map(|(ra, rb)| Some(rb.demo_deg? - ra.demo_deg?))
+        .collect();
+    Some(Versus {
+        b: group_name(b),
+        a: group_name(a),
+        seeds: pairs.iter().map(|(ra, _)| ra.seed).collect(),
+        per_lens,
+        demo: (!demo.is_empty()).then(|| Paired::of(&demo)),
+    })
+}
+
+/// `key=value, …` of a group's distinguishing keys (strings unquoted); "all runs" for none.
+fn differs_text(g: &Group) -> String {
+    if g.differs.is_empty() {
+        return "all runs".into();
+    }
+    g.differs
+        .iter()
+        .map(|(k, v)| match v.as_str() {
+            Some(s) => format!("{k}={s}"),
+            None => format!("{k}={v}"),
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// The comparison as the text `nanoeye compare` prints.
+pub fn text(c: &Comparison) -> String {
+    let mut s = format!("{:<32} {:>6} {:>5}", "run", "seed", "group");
+    for l in &c.lenses {
+        s += &format!(" {:>13}", format!("{l} °"));
+    }
+    s += &format!(" {:>7} {:>11} {:>7}\n", "demo °", "MACs", "p̂ µm");
+    let opt = |v: Option<f64>| v.map_or("-".into(), |x| format!("{x:.2}"));
+    for r in &c.runs {
+        s += &format!("{:<32} {:>6} {:>5}", r.run, r.seed, r.group);
+        for v in &r.mean_deg {
+            s += &format!(" {v:>13.2}");
+        }
+        s += &format!(
+            " {:>7} {:>11} {:>7}\n",
+            opt(r.demo_deg),
+            r.macs.map_or("-".into(), |m| m.to_string()),
+            opt(r.pitch_um)
+        );
+    }
+    let learned = &c.lenses[0];
+    for g in &c.groups {
+        let n = g.seeds.len();
+        s += &format!(
+            "\ngroup {} ({}): {n} run{}, seeds {}\n  mean:",
+            g.name,
+            differs_text(g),
+            if n == 1 { "" } else { "s" },
+            seeds_text(&g.seeds)
+        );
+        for (l, v) in c.lenses.iter().zip(&g.mean_deg) {
+            s += &format!(" {l} {v:.2}°,");
+        }
+        s.pop();
+        if let Some(d) = g.demo_mean_deg {
+            s += &format!("; demo {d:.2}°");
+        }
+        s.push('\n');
+        for (l, p) in c.lenses[1..].iter().zip(&g.learned_minus) {
+            s += &format!(
+                "  {learned} − {l}: {} ({learned} lower in {} of {})\n",
+                p.text(),
+                p.lower,
+                p.n
+            );
+        }
+        s += &format!(
+            "  {learned} lowest of the {} lenses in {} of {n}\n",
+            c.lenses.len(),
+            g.learned_lowest
+        );
+    }
+    for v in &c.versus {
+        s += &format!(
+            "\n{} − {}, seed by seed ({} common: {}):\n",
+            v.b,
+            v.a,
+            v.seeds.len(),
+            seeds_text(&v.seeds)
+        );
+        for (l, p) in c.lenses.iter().zip(&v.per_lens) {
+            s += &format!(
+                "  {l}: {} ({} lower in {} of {})\n",
+                p.text(),
+                v.b,
+                p.lower,
+                p.n
+            );
+        }
+        if let Some(p) = &v.demo {
+            s += &format!(
+                "  demo: {} ({} lower in {} of {})\n",
+                p.text(),
+                v.b,
+                p.lower,
+                p.n
+            );
+        }
+    }
+    s += "\n± is one standard error of the mean over runs (seeds); keys an older run's \
+          config.json lacks count as today's defaults.\n";
+    s
+}
+
+/// Ascending seeds with runs of consecutive ones shortened: "0–4, 7, 9, 10".
+fn seeds_text(seeds: &[u64]) -> String {
+    let mut parts: Vec<String> = Vec::new();
+    let mut k = 0;
+    while k < seeds.len() {
+        let mut e = k;
+        while e + 1 < seeds.len() && seeds[e + 1] == seeds[e] + 1 {
+            e += 1;
+        }
+        parts.push(match e - k {
+            0 => seeds[k].to_string(),
+            1 => format!("{}, {}", seeds[k], seeds[e]),
+            _ => format!("{}–{}", seeds[k], seeds[e]),
+        });
+        k = e + 1;
+    }
+    parts.join(", ")
+}
+
+/// Every run's error per lens as dots, one column per (lens, group), the group's mean as a
+/// bar, grey lines joining the runs of one seed across groups; groups coloured and named in
+/// the legend.
+pub fn svg(c: &Comparison) -> String {
+    const COLOURS: [&str; 6] = [
+        "#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b",
+    ];
+    let (ng, nl) = (c.groups.len(), c.lenses.len());
+    let col_w = 40.0;
+    let (ml, mr, mt, mb) = (56.0, 16.0, 16.0, 48.0 + 16.0 * ng as f64);
+    let panel = col_w * ng as f64 + 40.0;
+    let (w, ht) = (ml + mr + panel * nl as f64, 320.0 + mb);
+    let all = c.runs.iter().flat_map(|r| r.mean_deg.iter().copied());
+    let hi = all.fold(0.0_f64, f64::max);
+    let step = [1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0]
+        .into_iter()
+        .find(|s| hi / s <= 8.0)
+        .unwrap_or(200.0);
+    let top = ((hi / step).ceil() * step).max(step);
+    let y = |d: f64| mt + (ht - mt - mb) * (1.0 - d / top);
+    let x = |l: usize, g: usize| ml + panel * l as f64 + 20.0 + col_w * (g as f64 + 0.5);
+    let mut s = format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{ht}\" \
+         font-family=\"sans-serif\" font-size=\"12\">\n\
+         <rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n\
+         <text x=\"12\" y=\"{cy}\" transform=\"rotate(-90 12 {cy})\" text-anchor=\"middle\">\
+         protocol mean gaze error (°)</text>\n",
+        cy = (ht - mb + mt) / 2.0
+    );
+    let mut t = 0.0;
+    while t <= top + 1e-9 {
+        s += &format!(
+            "<line x1=\"{ml}\" y1=\"{yy:.1}\" x2=\"{r}\" y2=\"{yy:.1}\" stroke=\"#eee\"/>\
+             <text x=\"{tx}\" y=\"{ty:.1}\" text-anchor=\"end\">{t}</text>\n",
+            yy = y(t),
+            r = w - mr,
+            tx = ml - 4.0,
+            ty = y(t) + 4.0
+        );
+        t += step;
+    }
+    for (l, name) in c.lenses.iter().enumerate() {
+        s += &format!(
+            "<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">{}</text>\n",
+            ml + panel * (l as f64 + 0.5),
+            ht - mb + 18.0,
+            crate::report::esc(name)
+        );
+        // Lines joining one seed's runs across groups, under the dots.
+        let seeds: std::collections::BTreeSet<u64> = c.runs.iter().map(|r| r.seed).collect();
+        for seed in seeds {
+            let pts: Vec<String> = (0..ng)
+                .filter_map(|g| {
+                    c.runs
+                        .iter()
+                        .find(|r| r.seed == seed && r.group == c.groups[g].name)
+                        .map(|r| format!("{:.1},{:.1}", x(l, g), y(r.mean_deg[l])))
+                })
+                .collect();
+            if pts.len() > 1 {
+                s += &format!(
+                    "<polyline fill=\"none\" stroke=\"#bbb\" points=\"{}\"/>\n",
+                    pts.join(" ")
+                );
+            }
+        }
+        for (g, grp) in c.groups.iter().enumerate() {
+            let colour = COLOURS[g % COLOURS.len()];
+            for r in c.runs.iter().filter(|r| r.group == grp.name) {
+                s += &format!(
+                    "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"3.5\" fill=\"{colour}\"><title>{} \
+                     seed {}: {:.2}°</title></circle>\n",
+                    x(l, g),
+                    y(r.mean_deg[l]),
+                    crate::report::esc(&r.run),
+                    r.seed,
+                    r.mean_deg[l]
+                );
+            }
+            s += &format!(
+                "<line x1=\"{:.1}\" y1=\"{m:.1}\" x2=\"{:.1}\" y2=\"{m:.1}\" stroke=\"{colour}\" \
+                 stroke-width=\"3\"/>\n",
+                x(l, g) - 14.0,
+                x(l, g) + 14.0,
+                m = y(grp.mean_deg[l])
+            );
+        }
+    }
+    for (g, grp) in c.groups.iter().enumerate() {
+        s += &format!(
+            "<circle cx=\"{ml}\" cy=\"{cy:.1}\" r=\"4\" fill=\"{}\"/><text x=\"{tx}\" \
+             y=\"{ty:.1}\">{} ({}): {} run{}; bar = mean</text>\n",
+            COLOURS[g % COLOURS.len()],
+            grp.name,
+            crate::report::esc(&differs_text(grp)),
+            grp.seeds.len(),
+            if grp.seeds.len() == 1 { "" } else { "s" },
+            cy = ht - mb + 36.0 + 16.0 * g as f64,
+            tx = ml + 10.0,
+            ty = ht - mb + 40.0 + 16.0 * g as f64
+        );
+    }
+    s + "</svg>\n"
+}
+
+/// `nanoeye compare`.
+pub fn run(a: CompareArgs) -> Result<()> {
+    let c = compare(&a.runs)?;
+    if let Some(p) = &a.svg {
+        util::check_output_target(p).context("--svg")?;
+        util::write_atomic(p, svg(&c).as_bytes())
+            .with_context(|| format!("--svg {}", p.display()))?;
+    }
+    if a.json {
+        util::print_json(&c)
+    } else {
+        print!("{}", text(&c));
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A finished run in `root/name`: the default configuration with `set` applied and the
+    /// protocol's mean error per lens `deg` (learned, hyperbolic, double-helix).
+    fn fake_run(
+        root: &Path,
+        name: &str,
+        set: &[(&str, serde_json::Value)],
+        deg: [f64; 3],
+        demo: f64,
+    ) -> PathBuf {
+        let dir = root.join(name);
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut cfg = serde_json::to_value(RunConfig::default()).unwrap();
+        for (k, v) in set {
+            cfg[*k] = v.clone();
+        }
+        std::fs::write(dir.join("config.json"), cfg.to_string()).unwrap();
+        let mut protocol = serde_json::Map::new();
+        for (l, d) in lens_names().iter().zip(deg) {
+            protocol.insert(l.clone(), serde_json::json!({"mean_deg": d, "frames": 7}));
+        }
+        protocol.insert(
+            "geometric_no_slip".into(),
+            serde_json::json!({"mean_deg": 1.0}),
+        );
+        let r = serde_json::json!({"protocol": protocol, "demo_sequence": {"mean_deg": demo},
+            "macs": 1000, "pitch_um": 15.5});
+        std::fs::write(dir.join("result.json"), r.to_string()).unwrap();
+        dir
+    }
+
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() < 1e-12
+    }
+
+    #[test]
+    fn groups_by_configuration_and_pairs_by_seed() {
+        let t = tempfile::tempdir().unwrap();
+        let joint = || ("learned_lens", serde_json::json!("joint"));
+        // Group A (defaults), seeds 0..3; group B (joint), seeds 1..4, listed out of order.
+        let a = [[10.0, 9.0, 8.0], [12.0, 11.0, 13.0], [9.0, 9.5, 10.0]];
+        let b = [[11.0, 11.5, 12.5], [8.0, 9.5, 9.0], [7.0, 8.0, 6.0]];
+        let mut dirs = Vec::new();
+        for (s, d) in a.iter().enumerate() {
+            let seed = ("seed", serde_json::json!(s));
+            dirs.push(fake_run(
+                t.path(),
+                &format!("a{s}"),
+                &[seed],
+                *d,
+                5.0 + s as f64,
+            ));
+        }
+        for (k, d) in b.iter().enumerate().rev() {
+            let seed = ("seed", serde_json::json!(k + 1));
+            dirs.push(fake_run(
+                t.path(),
+                &format!("b{}", k + 1),
+                &[seed, joint()],
+                *d,
+                4.0,
+            ));
+        }
+        let c = compare(&dirs).unwrap();
+        assert_eq!(c.groups.len(), 2);
+        let (ga, gb) = (&c.groups[0], &c.groups[1]);
+        assert_eq!((ga.name.as_str(), gb.name.as_str()), ("A", "B"));
+        // Only the key that differs names the groups.
+        assert_eq!(ga.differs.len(), 1);
+        assert_eq!(ga.differs["learned_lens"], "trained");
+        assert_eq!(gb.differs["learned_lens"], "joint");
+        assert_eq!(
+            (ga.seeds.clone(), gb.seeds.clone()),
+            (vec![0, 1, 2], vec![1, 2, 3])
+        );
+        assert!(close(ga.mean_deg[0], 31.0 / 3.0));
+        assert!(close(ga.demo_mean_deg.unwrap(), 6.0));
+        // learned − hyperbolic in A: 1, 1, −0.5 → mean 0.5, sd √0.75, SE 0.5.
+        let p = &ga.learned_minus[0];
+        assert!(
+            close(p.mean_deg, 0.5) && close(p.se_deg.unwrap(), 0.5),
+            "{p:?}"
+        );
+        assert_eq!((p.n, p.lower), (3, 1));
+        // Learned lowest: A's seed 2 (9 < 9.5, 10) only; B's seeds 1 and 2, not 3 (7 > 6).
+        assert_eq!((ga.learned_lowest, gb.learned_lowest), (1, 2));
+        // B − A on the common seeds 1 and 2, learned: (11 − 12, 8 − 9) = (−1, −1).
+        let v = &c.versus[0];
+        assert_eq!(
+            (v.b.as_str(), v.a.as_str(), v.seeds.clone()),
+            ("B", "A", vec![1, 2])
+        );
+        assert!(close(v.per_lens[0].mean_deg, -1.0) && close(v.per_lens[0].se_deg.unwrap(), 0.0));
+        assert_eq!(v.per_lens[0].lower, 2);
+        // Double-helix: (12.5 − 13, 9 − 10) = (−0.5, −1): mean −0.75, SE 0.25.
+        let p = &v.per_lens[2];
+        assert!(
+            close(p.mean_deg, -0.75) && close(p.se_deg.unwrap(), 0.25),
+            "{p:?}"
+        );
+        // Demo: (4 − 6, 4 − 7).
+        assert!(close(v.demo.as_ref().unwrap().mean_deg, -2.5));
+        let s = text(&c);
+        assert!(
+            s.contains("group B (learned_lens=joint): 3 runs, seeds 1–3"),
+            "{s}"
+        );
+        assert!(
+            s.contains("learned: -1.00 ± 0.00° (B lower in 2 of 2)"),
+            "{s}"
+        );
+        assert_eq!(seeds_text(&[0, 1, 2, 3, 4, 7, 9, 10]), "0–4, 7, 9, 10");
+        // One dot per run and lens, one legend dot per group; the JSON has no null.
+        let svg = svg(&c);
+        assert_eq!(svg.matches("<circle").count(), 6 * 3 + 2);
+        assert!(!serde_json::to_string(&c).unwrap().contains("null"));
+    }
+
+    #[test]
+    fn an_older_configuration_groups_with_todays_defaults() {
+        let t = tempfile::tempdir().unwrap();
+        let new = fake_run(t.path(), "new", &[], [9.0, 9.0, 9.0], 9.0);
+        let old = fake_run(
+            t.path(),
+            "old",
+            &[("seed", serde_json::json!(1))],
+            [8.0; 3],
+            8.0,
+        );
+        let mut cfg: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(old.join("config.json")).unwrap())
+                .unwrap();
+        cfg.as_object_mut().unwrap().remove("embed_weight");
+        std::fs::write(old.join("config.json"), cfg.to_string()).unwrap();
+        let c = compare(&[new, old]).unwrap();
+        assert_eq!(c.groups.len(), 1);
+        assert!(c.groups[0].differs.is_empty() && c.versus.is_empty());
+        // One run per group has no standard error, and says so by leaving it out.
+        let one = compare(&[t.path().join("new")]).unwrap();
+        assert!(one.groups[0].learned_minus[0].se_deg.is_none());
+        assert!(!serde_json::to_string(&one).unwrap().contains("se_deg"));
+    }
+
+    #[test]
+    fn refuses_what_it_cannot_compare_and_names_it() {
+        let t = tempfile::tempdir().unwrap();
+        let a = fake_run(t.path(), "a", &[], [9.0; 3], 9.0);
+        let b = fake_run(t.path(), "b", &[], [8.0; 3], 8.0);
+        let err = |dirs: &[PathBuf]| format!("{:#}", compare(dirs).unwrap_err());
+        assert!(err(&[]).contains("at least one"));
+        let e = err(&[a.clone(), b.clone()]);
+        assert!(e.contains("same configuration and seed 0"), "{e}");
+        // Unfinished: no result.json.
+        std::fs::remove_file(b.join("result.json")).unwrap();
+        let e = err(std::slice::from_ref(&b));
+        assert!(
+            e.contains("no result.json") && e.contains("nanoeye run --out"),
+            "{e}"
+        );
+        // A lens without a finite error (JSON writes NaN as null).
+        let r = serde_json::json!({"protocol": {"learned": {"mean_deg": null}}});
+        std::fs::write(b.join("result.json"), r.to_string()).unwrap();
+        assert!(err(std::slice::from_ref(&b)).contains("protocol.learned.mean_deg"));
+        // Not a run folder; a configuration with an unknown key.
+        assert!(err(&[t.path().join("nowhere")]).contains("no config.json"));
+        std::fs::write(a.join("config.json"), r#"{"seed": 1, "bogus": 2}"#).unwrap();
+        assert!(err(&[a]).contains("not a run configuration"));
+    }
+}
