@@ -14,12 +14,66 @@ use std::path::{Path, PathBuf};
 /// Most runs one comparison reads (each a config.json and a result.json held in memory).
 const MAX_RUNS: usize = 10_000;
 
+/// The protocol summary's field that `nanoeye compare` sets side by side (lower is better for
+/// all but `dice`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+#[value(rename_all = "snake_case")]
+pub enum Metric {
+    /// Mean gaze error (deg).
+    MeanDeg,
+    /// Median gaze error (deg).
+    MedianDeg,
+    /// 95th-percentile gaze error (deg).
+    P95Deg,
+    /// RMS error of the tracked slippage (mm).
+    SlipRmseMm,
+    /// Dice of the predicted pupil mask (1: perfect).
+    Dice,
+}
+
+impl Metric {
+    /// Its key in result.json's protocol and demo summaries.
+    pub fn key(self) -> &'static str {
+        match self {
+            Metric::MeanDeg => "mean_deg",
+            Metric::MedianDeg => "median_deg",
+            Metric::P95Deg => "p95_deg",
+            Metric::SlipRmseMm => "slip_rmse_mm",
+            Metric::Dice => "dice",
+        }
+    }
+
+    /// Its unit as printed after a number.
+    fn unit(self) -> &'static str {
+        match self {
+            Metric::SlipRmseMm => " mm",
+            Metric::Dice => "",
+            _ => "°",
+        }
+    }
+
+    /// The plot's axis title.
+    fn title(self) -> &'static str {
+        match self {
+            Metric::MeanDeg => "protocol mean gaze error (°)",
+            Metric::MedianDeg => "protocol median gaze error (°)",
+            Metric::P95Deg => "protocol 95th-percentile gaze error (°)",
+            Metric::SlipRmseMm => "protocol slippage RMS error (mm)",
+            Metric::Dice => "protocol pupil Dice",
+        }
+    }
+}
+
 /// `nanoeye compare` options.
 #[derive(Debug, Args)]
 pub struct CompareArgs {
     /// Output folders of finished `nanoeye run` jobs (config.json and result.json in each).
     #[arg(required = true)]
     runs: Vec<PathBuf>,
+    /// The protocol summary's field to compare.
+    #[arg(long, value_enum, default_value = "mean_deg")]
+    metric: Metric,
     /// Also draw every run's error per lens, by group, with lines joining equal seeds, as an
     /// SVG written to this path.
     #[arg(long)]
@@ -29,17 +83,16 @@ pub struct CompareArgs {
     json: bool,
 }
 
-/// Mean of paired differences a − b (degrees) with its standard error.
+/// Mean of paired differences a − b (in the metric's unit) with its standard error.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Paired {
     /// Number of pairs.
     pub n: usize,
-    /// Mean difference (deg).
-    pub mean_deg: f64,
-    /// Standard error of the mean (deg): the sample standard deviation over √n; absent for
-    /// one pair.
+    /// Mean difference.
+    pub mean: f64,
+    /// Standard error of the mean: the sample standard deviation over √n; absent for one pair.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub se_deg: Option<f64>,
+    pub se: Option<f64>,
     /// Pairs in which a is lower than b.
     pub lower: usize,
 }
@@ -49,21 +102,21 @@ impl Paired {
     fn of(d: &[f64]) -> Paired {
         let n = d.len();
         let mean = d.iter().sum::<f64>() / n as f64;
-        let se_deg = (n > 1).then(|| {
+        let se = (n > 1).then(|| {
             let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
             (var / n as f64).sqrt()
         });
         Paired {
             n,
-            mean_deg: mean,
-            se_deg,
+            mean,
+            se,
             lower: d.iter().filter(|&&x| x < 0.0).count(),
         }
     }
 
-    fn text(&self) -> String {
-        let se = self.se_deg.map_or(String::new(), |s| format!(" ± {s:.2}"));
-        format!("{:+.2}{se}°", self.mean_deg)
+    fn text(&self, unit: &str) -> String {
+        let se = self.se.map_or(String::new(), |s| format!(" ± {s:.2}"));
+        format!("{:+.2}{se}{unit}", self.mean)
     }
 }
 
@@ -76,15 +129,18 @@ pub struct RunRow {
     pub seed: u64,
     /// Name of its group (A, B, …).
     pub group: String,
-    /// Protocol mean gaze error per lens (deg), in [`lens_names`] order.
-    pub mean_deg: Vec<f64>,
-    /// Mean gaze error on the demo sequence (deg), where the run has one.
-    pub demo_deg: Option<f64>,
+    /// The protocol's metric per lens, in [`lens_names`] order.
+    pub values: Vec<f64>,
+    /// The demo sequence's metric, where the run has one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub demo: Option<f64>,
     /// MACs of the selected subnet.
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub macs: Option<u64>,
     /// The learned lens's final p̂ (µm).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub pitch_um: Option<f64>,
-    /// The lens with the lowest protocol error.
+    /// The lens with the lowest value of the metric.
     pub lowest: String,
 }
 
@@ -97,14 +153,15 @@ pub struct Group {
     pub differs: serde_json::Map<String, serde_json::Value>,
     /// Its runs' seeds, ascending.
     pub seeds: Vec<u64>,
-    /// Mean over its runs of the protocol error per lens (deg), in [`lens_names`] order.
-    pub mean_deg: Vec<f64>,
-    /// Mean demo-sequence error (deg) over its runs that have one.
-    pub demo_mean_deg: Option<f64>,
+    /// Mean over its runs of the metric per lens, in [`lens_names`] order.
+    pub mean: Vec<f64>,
+    /// Mean of the demo sequence's metric over its runs that have one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub demo_mean: Option<f64>,
     /// The learned lens's error minus each fixed lens's, run by run (fixed lenses in
     /// [`lens_names`] order after the first).
     pub learned_minus: Vec<Paired>,
-    /// Runs in which the learned lens has the lowest error.
+    /// Runs in which the learned lens has the lowest value.
     pub learned_lowest: usize,
 }
 
@@ -120,12 +177,15 @@ pub struct Versus {
     /// b − a per lens, seed by seed, in [`lens_names`] order.
     pub per_lens: Vec<Paired>,
     /// b − a on the demo sequence, where both runs of a seed have one.
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub demo: Option<Paired>,
 }
 
 /// The whole comparison.
 #[derive(Debug, Clone, Serialize)]
 pub struct Comparison {
+    /// The protocol's field compared.
+    pub metric: Metric,
     /// Lens names, the learned lens first.
     pub lenses: Vec<String>,
     pub runs: Vec<RunRow>,
@@ -140,15 +200,15 @@ pub fn lens_names() -> Vec<String> {
 
 /// Reads one run: its configuration as JSON without `seed` (keys an older run lacks take
 /// today's defaults, which by the job's rule keep the behaviour it had), and its row.
-fn load(dir: &Path, lenses: &[String]) -> Result<(serde_json::Value, RunRow)> {
+fn load(dir: &Path, lenses: &[String], metric: Metric) -> Result<(serde_json::Value, RunRow)> {
     let d = dir.display();
     let cpath = dir.join("config.json");
     let text = std::fs::read_to_string(&cpath)
         .with_context(|| format!("{d}: no config.json; is it the --out of `nanoeye run`?"))?;
     let cfg: RunConfig = serde_json::from_str(&text)
         .with_context(|| format!("{}: not a run configuration", cpath.display()))?;
-    let mut key = serde_json::to_value(&cfg)?;
-    if let Some(m) = key.as_object_mut() {
+    let mut config = serde_json::to_value(&cfg)?;
+    if let Some(m) = config.as_object_mut() {
         m.remove("seed");
     }
     let rpath = dir.join("result.json");
@@ -160,32 +220,32 @@ fn load(dir: &Path, lenses: &[String]) -> Result<(serde_json::Value, RunRow)> {
     })?;
     let r: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("{}: not JSON", rpath.display()))?;
-    let mut mean_deg = Vec::with_capacity(lenses.len());
+    let key = metric.key();
+    let mut values = Vec::with_capacity(lenses.len());
     for lens in lenses {
-        let v = r["protocol"][lens]["mean_deg"].as_f64();
-        match v {
-            Some(v) if v.is_finite() && v >= 0.0 => mean_deg.push(v),
+        match r["protocol"][lens][key].as_f64() {
+            Some(v) if v.is_finite() && v >= 0.0 => values.push(v),
             _ => bail!(
-                "{}: protocol.{lens}.mean_deg is missing or not a finite error",
+                "{}: protocol.{lens}.{key} is missing or not a finite value ≥ 0",
                 rpath.display()
             ),
         }
     }
     let finite = |v: &serde_json::Value| v.as_f64().filter(|x| x.is_finite());
-    let lowest = lenses[mean_deg
+    let lowest = lenses[values
         .iter()
         .enumerate()
         .min_by(|a, b| a.1.total_cmp(b.1))
         .map_or(0, |(k, _)| k)]
     .clone();
     Ok((
-        key,
+        config,
         RunRow {
             run: d.to_string(),
             seed: cfg.seed,
             group: String::new(),
-            mean_deg,
-            demo_deg: finite(&r["demo_sequence"]["mean_deg"]),
+            values,
+            demo: finite(&r["demo_sequence"][key]),
             macs: r["macs"].as_u64(),
             pitch_um: finite(&r["pitch_um"]),
             lowest,
@@ -194,7 +254,7 @@ fn load(dir: &Path, lenses: &[String]) -> Result<(serde_json::Value, RunRow)> {
 }
 
 /// Groups the runs by configuration (`seed` aside) and sets them against each other.
-pub fn compare(dirs: &[PathBuf]) -> Result<Comparison> {
+pub fn compare(dirs: &[PathBuf], metric: Metric) -> Result<Comparison> {
     if dirs.is_empty() {
         bail!("RUNS: give at least one run folder");
     }
@@ -206,7 +266,7 @@ pub fn compare(dirs: &[PathBuf]) -> Result<Comparison> {
     let mut runs: Vec<RunRow> = Vec::with_capacity(dirs.len());
     let mut group_of = Vec::with_capacity(dirs.len());
     for dir in dirs {
-        let (key, mut row) = load(dir, &lenses)?;
+        let (key, mut row) = load(dir, &lenses, metric)?;
         let g = match keys.iter().position(|k| *k == key) {
             Some(g) => g,
             None => {
@@ -257,6 +317,7 @@ pub fn compare(dirs: &[PathBuf]) -> Result<Comparison> {
         }
     }
     Ok(Comparison {
+        metric,
         lenses,
         runs,
         groups,
@@ -281,16 +342,13 @@ fn summarize_group(
     n_lenses: usize,
 ) -> Group {
     let n = members.len() as f64;
-    let mean_deg = (0..n_lenses)
-        .map(|l| members.iter().map(|r| r.mean_deg[l]).sum::<f64>() / n)
+    let mean = (0..n_lenses)
+        .map(|l| members.iter().map(|r| r.values[l]).sum::<f64>() / n)
         .collect();
-    let demos: Vec<f64> = members.iter().filter_map(|r| r.demo_deg).collect();
+    let demos: Vec<f64> = members.iter().filter_map(|r| r.demo).collect();
     let learned_minus = (1..n_lenses)
         .map(|l| {
-            let d: Vec<f64> = members
-                .iter()
-                .map(|r| r.mean_deg[0] - r.mean_deg[l])
-                .collect();
+            let d: Vec<f64> = members.iter().map(|r| r.values[0] - r.values[l]).collect();
             Paired::of(&d)
         })
         .collect();
@@ -303,12 +361,12 @@ fn summarize_group(
             .map(|k| (k.clone(), key[k.as_str()].clone()))
             .collect(),
         seeds,
-        mean_deg,
-        demo_mean_deg: (!demos.is_empty()).then(|| demos.iter().sum::<f64>() / demos.len() as f64),
+        mean,
+        demo_mean: (!demos.is_empty()).then(|| demos.iter().sum::<f64>() / demos.len() as f64),
         learned_minus,
         learned_lowest: members
             .iter()
-            .filter(|r| (1..n_lenses).all(|l| r.mean_deg[0] < r.mean_deg[l]))
+            .filter(|r| (1..n_lenses).all(|l| r.values[0] < r.values[l]))
             .count(),
     }
 }
@@ -338,14 +396,14 @@ fn against(
         .map(|l| {
             let d: Vec<f64> = pairs
                 .iter()
-                .map(|(ra, rb)| rb.mean_deg[l] - ra.mean_deg[l])
+                .map(|(ra, rb)| rb.values[l] - ra.values[l])
                 .collect();
             Paired::of(&d)
         })
         .collect();
     let demo: Vec<f64> = pairs
         .iter()
-        .filter_map(|(ra, rb)| Some(rb.demo_deg? - ra.demo_deg?))
+        .filter_map(|(ra, rb)| Some(rb.demo? - ra.demo?))
         .collect();
     Some(Versus {
         b: group_name(b),
@@ -373,20 +431,32 @@ fn differs_text(g: &Group) -> String {
 
 /// The comparison as the text `nanoeye compare` prints.
 pub fn text(c: &Comparison) -> String {
-    let mut s = format!("{:<32} {:>6} {:>5}", "run", "seed", "group");
+    let unit = c.metric.unit();
+    let better = if c.metric == Metric::Dice {
+        "higher is better"
+    } else {
+        "lower is better"
+    };
+    let mut s = format!(
+        "{}; {better}\n{:<32} {:>6} {:>5}",
+        c.metric.title(),
+        "run",
+        "seed",
+        "group"
+    );
     for l in &c.lenses {
-        s += &format!(" {:>13}", format!("{l} °"));
+        s += &format!(" {l:>13}");
     }
-    s += &format!(" {:>7} {:>11} {:>7}\n", "demo °", "MACs", "p̂ µm");
+    s += &format!(" {:>7} {:>11} {:>7}\n", "demo", "MACs", "p̂ µm");
     let opt = |v: Option<f64>| v.map_or("-".into(), |x| format!("{x:.2}"));
     for r in &c.runs {
         s += &format!("{:<32} {:>6} {:>5}", r.run, r.seed, r.group);
-        for v in &r.mean_deg {
+        for v in &r.values {
             s += &format!(" {v:>13.2}");
         }
         s += &format!(
             " {:>7} {:>11} {:>7}\n",
-            opt(r.demo_deg),
+            opt(r.demo),
             r.macs.map_or("-".into(), |m| m.to_string()),
             opt(r.pitch_um)
         );
@@ -401,18 +471,18 @@ pub fn text(c: &Comparison) -> String {
             if n == 1 { "" } else { "s" },
             seeds_text(&g.seeds)
         );
-        for (l, v) in c.lenses.iter().zip(&g.mean_deg) {
-            s += &format!(" {l} {v:.2}°,");
+        for (l, v) in c.lenses.iter().zip(&g.mean) {
+            s += &format!(" {l} {v:.2}{unit},");
         }
         s.pop();
-        if let Some(d) = g.demo_mean_deg {
-            s += &format!("; demo {d:.2}°");
+        if let Some(d) = g.demo_mean {
+            s += &format!("; demo {d:.2}{unit}");
         }
         s.push('\n');
         for (l, p) in c.lenses[1..].iter().zip(&g.learned_minus) {
             s += &format!(
                 "  {learned} − {l}: {} ({learned} lower in {} of {})\n",
-                p.text(),
+                p.text(unit),
                 p.lower,
                 p.n
             );
@@ -434,7 +504,7 @@ pub fn text(c: &Comparison) -> String {
         for (l, p) in c.lenses.iter().zip(&v.per_lens) {
             s += &format!(
                 "  {l}: {} ({} lower in {} of {})\n",
-                p.text(),
+                p.text(unit),
                 v.b,
                 p.lower,
                 p.n
@@ -443,7 +513,7 @@ pub fn text(c: &Comparison) -> String {
         if let Some(p) = &v.demo {
             s += &format!(
                 "  demo: {} ({} lower in {} of {})\n",
-                p.text(),
+                p.text(unit),
                 v.b,
                 p.lower,
                 p.n
@@ -481,14 +551,14 @@ pub fn svg(c: &Comparison) -> String {
     const COLOURS: [&str; 6] = [
         "#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b",
     ];
-    let (ng, nl) = (c.groups.len(), c.lenses.len());
+    let (ng, nl, unit) = (c.groups.len(), c.lenses.len(), c.metric.unit());
     let col_w = 40.0;
     let (ml, mr, mt, mb) = (56.0, 16.0, 16.0, 48.0 + 16.0 * ng as f64);
     let panel = col_w * ng as f64 + 40.0;
     let (w, ht) = (ml + mr + panel * nl as f64, 320.0 + mb);
-    let all = c.runs.iter().flat_map(|r| r.mean_deg.iter().copied());
+    let all = c.runs.iter().flat_map(|r| r.values.iter().copied());
     let hi = all.fold(0.0_f64, f64::max);
-    let step = [1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0]
+    let step = [0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0]
         .into_iter()
         .find(|s| hi / s <= 8.0)
         .unwrap_or(200.0);
@@ -500,20 +570,21 @@ pub fn svg(c: &Comparison) -> String {
          font-family=\"sans-serif\" font-size=\"12\">\n\
          <rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n\
          <text x=\"12\" y=\"{cy}\" transform=\"rotate(-90 12 {cy})\" text-anchor=\"middle\">\
-         protocol mean gaze error (°)</text>\n",
-        cy = (ht - mb + mt) / 2.0
+         {title}</text>\n",
+        cy = (ht - mb + mt) / 2.0,
+        title = c.metric.title()
     );
-    let mut t = 0.0;
-    while t <= top + 1e-9 {
+    let digits = if step < 1.0 { 1 } else { 0 };
+    for k in 0..=(top / step).round() as usize {
+        let t = k as f64 * step;
         s += &format!(
             "<line x1=\"{ml}\" y1=\"{yy:.1}\" x2=\"{r}\" y2=\"{yy:.1}\" stroke=\"#eee\"/>\
-             <text x=\"{tx}\" y=\"{ty:.1}\" text-anchor=\"end\">{t}</text>\n",
+             <text x=\"{tx}\" y=\"{ty:.1}\" text-anchor=\"end\">{t:.digits$}</text>\n",
             yy = y(t),
             r = w - mr,
             tx = ml - 4.0,
             ty = y(t) + 4.0
         );
-        t += step;
     }
     for (l, name) in c.lenses.iter().enumerate() {
         s += &format!(
@@ -530,7 +601,7 @@ pub fn svg(c: &Comparison) -> String {
                     c.runs
                         .iter()
                         .find(|r| r.seed == seed && r.group == c.groups[g].name)
-                        .map(|r| format!("{:.1},{:.1}", x(l, g), y(r.mean_deg[l])))
+                        .map(|r| format!("{:.1},{:.1}", x(l, g), y(r.values[l])))
                 })
                 .collect();
             if pts.len() > 1 {
@@ -545,12 +616,12 @@ pub fn svg(c: &Comparison) -> String {
             for r in c.runs.iter().filter(|r| r.group == grp.name) {
                 s += &format!(
                     "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"3.5\" fill=\"{colour}\"><title>{} \
-                     seed {}: {:.2}°</title></circle>\n",
+                     seed {}: {:.2}{unit}</title></circle>\n",
                     x(l, g),
-                    y(r.mean_deg[l]),
+                    y(r.values[l]),
                     crate::report::esc(&r.run),
                     r.seed,
-                    r.mean_deg[l]
+                    r.values[l]
                 );
             }
             s += &format!(
@@ -558,7 +629,7 @@ pub fn svg(c: &Comparison) -> String {
                  stroke-width=\"3\"/>\n",
                 x(l, g) - 14.0,
                 x(l, g) + 14.0,
-                m = y(grp.mean_deg[l])
+                m = y(grp.mean[l])
             );
         }
     }
@@ -581,7 +652,7 @@ pub fn svg(c: &Comparison) -> String {
 
 /// `nanoeye compare`.
 pub fn run(a: CompareArgs) -> Result<()> {
-    let c = compare(&a.runs)?;
+    let c = compare(&a.runs, a.metric)?;
     if let Some(p) = &a.svg {
         util::check_output_target(p).context("--svg")?;
         util::write_atomic(p, svg(&c).as_bytes())
@@ -617,7 +688,8 @@ mod tests {
         std::fs::write(dir.join("config.json"), cfg.to_string()).unwrap();
         let mut protocol = serde_json::Map::new();
         for (l, d) in lens_names().iter().zip(deg) {
-            protocol.insert(l.clone(), serde_json::json!({"mean_deg": d, "frames": 7}));
+            let v = serde_json::json!({"mean_deg": d, "slip_rmse_mm": d / 10.0, "frames": 7});
+            protocol.insert(l.clone(), v);
         }
         protocol.insert(
             "geometric_no_slip".into(),
@@ -661,7 +733,7 @@ mod tests {
                 4.0,
             ));
         }
-        let c = compare(&dirs).unwrap();
+        let c = compare(&dirs, Metric::MeanDeg).unwrap();
         assert_eq!(c.groups.len(), 2);
         let (ga, gb) = (&c.groups[0], &c.groups[1]);
         assert_eq!((ga.name.as_str(), gb.name.as_str()), ("A", "B"));
@@ -673,14 +745,11 @@ mod tests {
             (ga.seeds.clone(), gb.seeds.clone()),
             (vec![0, 1, 2], vec![1, 2, 3])
         );
-        assert!(close(ga.mean_deg[0], 31.0 / 3.0));
-        assert!(close(ga.demo_mean_deg.unwrap(), 6.0));
+        assert!(close(ga.mean[0], 31.0 / 3.0));
+        assert!(close(ga.demo_mean.unwrap(), 6.0));
         // learned − hyperbolic in A: 1, 1, −0.5 → mean 0.5, sd √0.75, SE 0.5.
         let p = &ga.learned_minus[0];
-        assert!(
-            close(p.mean_deg, 0.5) && close(p.se_deg.unwrap(), 0.5),
-            "{p:?}"
-        );
+        assert!(close(p.mean, 0.5) && close(p.se.unwrap(), 0.5), "{p:?}");
         assert_eq!((p.n, p.lower), (3, 1));
         // Learned lowest: A's seed 2 (9 < 9.5, 10) only; B's seeds 1 and 2, not 3 (7 > 6).
         assert_eq!((ga.learned_lowest, gb.learned_lowest), (1, 2));
@@ -690,16 +759,13 @@ mod tests {
             (v.b.as_str(), v.a.as_str(), v.seeds.clone()),
             ("B", "A", vec![1, 2])
         );
-        assert!(close(v.per_lens[0].mean_deg, -1.0) && close(v.per_lens[0].se_deg.unwrap(), 0.0));
+        assert!(close(v.per_lens[0].mean, -1.0) && close(v.per_lens[0].se.unwrap(), 0.0));
         assert_eq!(v.per_lens[0].lower, 2);
         // Double-helix: (12.5 − 13, 9 − 10) = (−0.5, −1): mean −0.75, SE 0.25.
         let p = &v.per_lens[2];
-        assert!(
-            close(p.mean_deg, -0.75) && close(p.se_deg.unwrap(), 0.25),
-            "{p:?}"
-        );
+        assert!(close(p.mean, -0.75) && close(p.se.unwrap(), 0.25), "{p:?}");
         // Demo: (4 − 6, 4 − 7).
-        assert!(close(v.demo.as_ref().unwrap().mean_deg, -2.5));
+        assert!(close(v.demo.as_ref().unwrap().mean, -2.5));
         let s = text(&c);
         assert!(
             s.contains("group B (learned_lens=joint): 3 runs, seeds 1–3"),
@@ -710,6 +776,12 @@ mod tests {
             "{s}"
         );
         assert_eq!(seeds_text(&[0, 1, 2, 3, 4, 7, 9, 10]), "0–4, 7, 9, 10");
+        // Another field of the same summaries; the demo (no such field here) is left out.
+        let slip = compare(&dirs, Metric::SlipRmseMm).unwrap();
+        assert!(close(slip.groups[0].mean[0], 31.0 / 30.0));
+        assert!(close(slip.versus[0].per_lens[2].mean, -0.075));
+        assert!(slip.versus[0].demo.is_none() && slip.runs.iter().all(|r| r.demo.is_none()));
+        assert!(text(&slip).contains("learned: -0.10 ± 0.00 mm (B lower in 2 of 2)"));
         // One dot per run and lens, one legend dot per group; the JSON has no null.
         let svg = svg(&c);
         assert_eq!(svg.matches("<circle").count(), 6 * 3 + 2);
@@ -732,13 +804,13 @@ mod tests {
                 .unwrap();
         cfg.as_object_mut().unwrap().remove("embed_weight");
         std::fs::write(old.join("config.json"), cfg.to_string()).unwrap();
-        let c = compare(&[new, old]).unwrap();
+        let c = compare(&[new, old], Metric::MeanDeg).unwrap();
         assert_eq!(c.groups.len(), 1);
         assert!(c.groups[0].differs.is_empty() && c.versus.is_empty());
         // One run per group has no standard error, and says so by leaving it out.
-        let one = compare(&[t.path().join("new")]).unwrap();
-        assert!(one.groups[0].learned_minus[0].se_deg.is_none());
-        assert!(!serde_json::to_string(&one).unwrap().contains("se_deg"));
+        let one = compare(&[t.path().join("new")], Metric::MeanDeg).unwrap();
+        assert!(one.groups[0].learned_minus[0].se.is_none());
+        assert!(!serde_json::to_string(&one).unwrap().contains("\"se\""));
     }
 
     #[test]
@@ -746,7 +818,7 @@ mod tests {
         let t = tempfile::tempdir().unwrap();
         let a = fake_run(t.path(), "a", &[], [9.0; 3], 9.0);
         let b = fake_run(t.path(), "b", &[], [8.0; 3], 8.0);
-        let err = |dirs: &[PathBuf]| format!("{:#}", compare(dirs).unwrap_err());
+        let err = |dirs: &[PathBuf]| format!("{:#}", compare(dirs, Metric::MeanDeg).unwrap_err());
         assert!(err(&[]).contains("at least one"));
         let e = err(&[a.clone(), b.clone()]);
         assert!(e.contains("same configuration and seed 0"), "{e}");

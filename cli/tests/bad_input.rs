@@ -1436,13 +1436,23 @@ fn compare_names_what_it_cannot_read_and_writes_nothing_then() {
         String::from_utf8_lossy(&ok.stderr)
     );
     let c: serde_json::Value = serde_json::from_slice(&ok.stdout).unwrap();
-    assert_eq!(c["groups"][0]["learned_minus"][1]["mean_deg"], 1.5);
+    assert_eq!(c["groups"][0]["learned_minus"][1]["mean"], 1.5);
     let before = entries(p);
     refused(&["compare"], "RUNS", p);
     refused(&["compare", "nowhere"], "nowhere: no config.json", p);
     refused(&["compare", "r0", "r0"], "same configuration and seed 0", p);
+    refused(&["compare", "r0", "--metric", "nan"], "--metric", p);
+    refused(
+        &["compare", "r0", "--metric", "dice"],
+        "protocol.learned.dice",
+        p,
+    );
     refused(&["compare", "r0", "--svg", "r0"], "--svg", p);
-    refused(&["compare", "r0", "--svg", "r0/config.json/c.svg"], "--svg", p);
+    refused(
+        &["compare", "r0", "--svg", "r0/config.json/c.svg"],
+        "--svg",
+        p,
+    );
     std::fs::create_dir_all(p.join("r1")).unwrap();
     std::fs::write(p.join("r1/config.json"), &cfg.stdout).unwrap();
     refused(&["compare", "r0", "r1"], "r1: no result.json", p);

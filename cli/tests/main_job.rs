@@ -520,7 +520,7 @@ fn the_main_jobs_joint_lens_trains_on_the_embedding_term_too() {
     {
         for (l, lens) in lenses.iter().enumerate() {
             assert_eq!(
-                run["mean_deg"][l], res["protocol"][lens]["mean_deg"],
+                run["values"][l], res["protocol"][lens]["mean_deg"],
                 "run {k}"
             );
         }
@@ -530,7 +530,7 @@ fn the_main_jobs_joint_lens_trains_on_the_embedding_term_too() {
     let learned =
         |res: &serde_json::Value| res["protocol"]["learned"]["mean_deg"].as_f64().unwrap();
     assert_eq!(
-        v["per_lens"][0]["mean_deg"].as_f64().unwrap(),
+        v["per_lens"][0]["mean"].as_f64().unwrap(),
         learned(&plain) - learned(&r)
     );
     assert!(std::fs::read_to_string(&svg).unwrap().starts_with("<svg"));
