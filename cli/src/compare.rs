@@ -9,10 +9,15 @@ use crate::util;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use serde::Serialize;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 /// Most runs one comparison reads (each a config.json and a result.json held in memory).
-const MAX_RUNS: usize = 10_000;
+const MAX_RUNS: usize = 1000;
+
+/// Up to this many groups every pair is compared; beyond, each group against group A only
+/// (the pairs, and the text, grow with the square of the groups).
+const ALL_PAIRS_GROUPS: usize = 8;
 
 /// The protocol summary's field that `nanoeye compare` sets side by side (lower is better for
 /// all but `dice`).
@@ -308,10 +313,18 @@ pub fn compare(dirs: &[PathBuf], metric: Metric) -> Result<Comparison> {
             summarize_group(g, key, &varying, &members, lenses.len())
         })
         .collect();
+    let index: HashMap<(usize, u64), usize> = (0..runs.len())
+        .map(|k| ((group_of[k], runs[k].seed), k))
+        .collect();
     let mut versus = Vec::new();
-    for b in 0..groups.len() {
-        for a in 0..b {
-            if let Some(v) = against(&runs, &group_of, a, b, lenses.len()) {
+    for b in 1..groups.len() {
+        let firsts = if groups.len() <= ALL_PAIRS_GROUPS {
+            b
+        } else {
+            1
+        };
+        for a in 0..firsts {
+            if let Some(v) = against(&runs, &group_of, &index, a, b, lenses.len()) {
                 versus.push(v);
             }
         }
@@ -371,10 +384,12 @@ fn summarize_group(
     }
 }
 
-/// Group b − group a seed by seed; `None` when they share no seed.
+/// Group b − group a seed by seed (`index`: (group, seed) → run); `None` when they share no
+/// seed.
 fn against(
     runs: &[RunRow],
     group_of: &[usize],
+    index: &HashMap<(usize, u64), usize>,
     a: usize,
     b: usize,
     n_lenses: usize,
@@ -384,7 +399,7 @@ fn against(
         if group_of[kb] != b {
             continue;
         }
-        if let Some(ka) = (0..runs.len()).find(|&k| group_of[k] == a && runs[k].seed == rb.seed) {
+        if let Some(&ka) = index.get(&(a, rb.seed)) {
             pairs.push((&runs[ka], rb));
         }
     }
@@ -811,6 +826,32 @@ mod tests {
         let one = compare(&[t.path().join("new")], Metric::MeanDeg).unwrap();
         assert!(one.groups[0].learned_minus[0].se.is_none());
         assert!(!serde_json::to_string(&one).unwrap().contains("\"se\""));
+    }
+
+    #[test]
+    fn many_groups_are_set_against_the_first_only() {
+        let t = tempfile::tempdir().unwrap();
+        let run = |n: usize| {
+            let steps = ("train_steps", serde_json::json!(100 + n));
+            fake_run(
+                t.path(),
+                &format!("r{n}"),
+                &[steps],
+                [9.0, 8.0, n as f64],
+                9.0,
+            )
+        };
+        let pairs = |n: usize| {
+            let c = compare(&(0..n).map(run).collect::<Vec<_>>(), Metric::MeanDeg).unwrap();
+            assert_eq!(c.groups.len(), n);
+            c.versus
+        };
+        // 8 groups: all 28 pairs; 10: the 9 against A.
+        assert_eq!(pairs(ALL_PAIRS_GROUPS).len(), 28);
+        let v = pairs(10);
+        assert_eq!(v.len(), 9);
+        assert!(v.iter().all(|p| p.a == "A"));
+        assert!(close(v[8].per_lens[2].mean, 9.0));
     }
 
     #[test]
