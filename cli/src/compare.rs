@@ -49,6 +49,29 @@ impl Metric {
         }
     }
 
+    /// Whether a higher value is the better one (Dice; every error is better lower).
+    pub fn higher_is_better(self) -> bool {
+        self == Metric::Dice
+    }
+
+    /// "lowest" or "highest": the better end of the metric, in words.
+    fn best_word(self) -> &'static str {
+        if self.higher_is_better() {
+            "highest"
+        } else {
+            "lowest"
+        }
+    }
+
+    /// Orders two values better first (`Less`: `a` is the better one).
+    fn cmp_better(self, a: f64, b: f64) -> std::cmp::Ordering {
+        if self.higher_is_better() {
+            b.total_cmp(&a)
+        } else {
+            a.total_cmp(&b)
+        }
+    }
+
     /// Its unit as printed after a number.
     fn unit(self) -> &'static str {
         match self {
@@ -145,8 +168,8 @@ pub struct RunRow {
     /// The learned lens's final p̂ (µm).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub pitch_um: Option<f64>,
-    /// The lens with the lowest value of the metric.
-    pub lowest: String,
+    /// The lens with the best value of the metric (the lowest; the highest for `dice`).
+    pub best: String,
 }
 
 /// Runs that differ only in `seed`.
@@ -166,8 +189,8 @@ pub struct Group {
     /// The learned lens's error minus each fixed lens's, run by run (fixed lenses in
     /// [`lens_names`] order after the first).
     pub learned_minus: Vec<Paired>,
-    /// Runs in which the learned lens has the lowest value.
-    pub learned_lowest: usize,
+    /// Runs in which the learned lens has the best value (the lowest; the highest for `dice`).
+    pub learned_best: usize,
 }
 
 /// Group b against group a on their common seeds.
@@ -237,10 +260,10 @@ fn load(dir: &Path, lenses: &[String], metric: Metric) -> Result<(serde_json::Va
         }
     }
     let finite = |v: &serde_json::Value| v.as_f64().filter(|x| x.is_finite());
-    let lowest = lenses[values
+    let best = lenses[values
         .iter()
         .enumerate()
-        .min_by(|a, b| a.1.total_cmp(b.1))
+        .min_by(|a, b| metric.cmp_better(*a.1, *b.1))
         .map_or(0, |(k, _)| k)]
     .clone();
     Ok((
@@ -253,7 +276,7 @@ fn load(dir: &Path, lenses: &[String], metric: Metric) -> Result<(serde_json::Va
             demo: finite(&r["demo_sequence"][key]),
             macs: r["macs"].as_u64(),
             pitch_um: finite(&r["pitch_um"]),
-            lowest,
+            best,
         },
     ))
 }
@@ -310,7 +333,7 @@ pub fn compare(dirs: &[PathBuf], metric: Metric) -> Result<Comparison> {
                 .filter(|&k| group_of[k] == g)
                 .map(|k| &runs[k])
                 .collect();
-            summarize_group(g, key, &varying, &members, lenses.len())
+            summarize_group(g, key, &varying, &members, lenses.len(), metric)
         })
         .collect();
     let index: HashMap<(usize, u64), usize> = (0..runs.len())
@@ -353,6 +376,7 @@ fn summarize_group(
     varying: &[String],
     members: &[&RunRow],
     n_lenses: usize,
+    metric: Metric,
 ) -> Group {
     let n = members.len() as f64;
     let mean = (0..n_lenses)
@@ -377,9 +401,9 @@ fn summarize_group(
         mean,
         demo_mean: (!demos.is_empty()).then(|| demos.iter().sum::<f64>() / demos.len() as f64),
         learned_minus,
-        learned_lowest: members
+        learned_best: members
             .iter()
-            .filter(|r| (1..n_lenses).all(|l| r.values[0] < r.values[l]))
+            .filter(|r| (1..n_lenses).all(|l| metric.cmp_better(r.values[0], r.values[l]).is_lt()))
             .count(),
     }
 }
@@ -447,7 +471,7 @@ fn differs_text(g: &Group) -> String {
 /// The comparison as the text `nanoeye compare` prints.
 pub fn text(c: &Comparison) -> String {
     let unit = c.metric.unit();
-    let better = if c.metric == Metric::Dice {
+    let better = if c.metric.higher_is_better() {
         "higher is better"
     } else {
         "lower is better"
@@ -503,9 +527,10 @@ pub fn text(c: &Comparison) -> String {
             );
         }
         s += &format!(
-            "  {learned} lowest of the {} lenses in {} of {n}\n",
+            "  {learned} {} of the {} lenses in {} of {n}\n",
+            c.metric.best_word(),
             c.lenses.len(),
-            g.learned_lowest
+            g.learned_best
         );
     }
     for v in &c.versus {
@@ -703,7 +728,8 @@ mod tests {
         std::fs::write(dir.join("config.json"), cfg.to_string()).unwrap();
         let mut protocol = serde_json::Map::new();
         for (l, d) in lens_names().iter().zip(deg) {
-            let v = serde_json::json!({"mean_deg": d, "slip_rmse_mm": d / 10.0, "frames": 7});
+            let v = serde_json::json!({"mean_deg": d, "slip_rmse_mm": d / 10.0,
+                "dice": 1.0 - d / 20.0, "frames": 7});
             protocol.insert(l.clone(), v);
         }
         protocol.insert(
@@ -767,7 +793,8 @@ mod tests {
         assert!(close(p.mean, 0.5) && close(p.se.unwrap(), 0.5), "{p:?}");
         assert_eq!((p.n, p.lower), (3, 1));
         // Learned lowest: A's seed 2 (9 < 9.5, 10) only; B's seeds 1 and 2, not 3 (7 > 6).
-        assert_eq!((ga.learned_lowest, gb.learned_lowest), (1, 2));
+        assert_eq!((ga.learned_best, gb.learned_best), (1, 2));
+        assert_eq!(c.runs[0].best, "double_helix");
         // B − A on the common seeds 1 and 2, learned: (11 − 12, 8 − 9) = (−1, −1).
         let v = &c.versus[0];
         assert_eq!(
@@ -797,6 +824,15 @@ mod tests {
         assert!(close(slip.versus[0].per_lens[2].mean, -0.075));
         assert!(slip.versus[0].demo.is_none() && slip.runs.iter().all(|r| r.demo.is_none()));
         assert!(text(&slip).contains("learned: -0.10 ± 0.00 mm (B lower in 2 of 2)"));
+        // Dice (here 1 − error/20) is better higher: the same lens is best in every run, and
+        // the count says "highest".
+        let dice = compare(&dirs, Metric::Dice).unwrap();
+        assert_eq!(
+            (dice.groups[0].learned_best, dice.groups[1].learned_best),
+            (1, 2)
+        );
+        assert!(dice.runs.iter().zip(&c.runs).all(|(d, m)| d.best == m.best));
+        assert!(text(&dice).contains("learned highest of the 3 lenses in 2 of 3"));
         // One dot per run and lens, one legend dot per group; the JSON has no null.
         let svg = svg(&c);
         assert_eq!(svg.matches("<circle").count(), 6 * 3 + 2);
