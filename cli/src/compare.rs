@@ -15,6 +15,10 @@ use std::path::{Path, PathBuf};
 /// Most runs one comparison reads (each a config.json and a result.json held in memory).
 const MAX_RUNS: usize = 1000;
 
+/// Largest metric value read: far beyond any error in degrees or mm, and small enough that
+/// the squares in a standard error stay finite (a value of 1e308 made it null).
+const MAX_VALUE: f64 = 1e9;
+
 /// Up to this many groups every pair is compared; beyond, each group against group A only
 /// (the pairs, and the text, grow with the square of the groups).
 const ALL_PAIRS_GROUPS: usize = 8;
@@ -252,9 +256,9 @@ fn load(dir: &Path, lenses: &[String], metric: Metric) -> Result<(serde_json::Va
     let mut values = Vec::with_capacity(lenses.len());
     for lens in lenses {
         match r["protocol"][lens][key].as_f64() {
-            Some(v) if v.is_finite() && v >= 0.0 => values.push(v),
+            Some(v) if (0.0..=MAX_VALUE).contains(&v) => values.push(v),
             _ => bail!(
-                "{}: protocol.{lens}.{key} is missing or not a finite value ≥ 0",
+                "{}: protocol.{lens}.{key} is missing or not a value in [0, {MAX_VALUE:e}]",
                 rpath.display()
             ),
         }
@@ -910,6 +914,10 @@ mod tests {
         let r = serde_json::json!({"protocol": {"learned": {"mean_deg": null}}});
         std::fs::write(b.join("result.json"), r.to_string()).unwrap();
         assert!(err(std::slice::from_ref(&b)).contains("protocol.learned.mean_deg"));
+        // A finite value whose square is not (1e308 gave a null standard error).
+        let r = serde_json::json!({"protocol": {"learned": {"mean_deg": 1e308}}});
+        std::fs::write(b.join("result.json"), r.to_string()).unwrap();
+        assert!(err(std::slice::from_ref(&b)).contains("not a value in [0, 1e9]"));
         // Not a run folder; a configuration with an unknown key.
         assert!(err(&[t.path().join("nowhere")]).contains("no config.json"));
         std::fs::write(a.join("config.json"), r#"{"seed": 1, "bogus": 2}"#).unwrap();

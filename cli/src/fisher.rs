@@ -115,6 +115,19 @@ fn depths(flag: &str, text: &str) -> Result<Vec<f64>> {
 const MAX_PHOTONS: f64 = 1e20;
 
 fn model(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, AsmPsf)> {
+    check_optics(o)?;
+    let grid = ApertureGrid::new(1e-3, o.aperture_step_um * 1e-6).context("--aperture-step-um")?;
+    let cfg = PsfConfig {
+        pitch_m: native_pitch_m,
+        window_px: o.window_px,
+        ..PsfConfig::default()
+    };
+    let m = AsmPsf::new(cfg, grid).context("--window-px / --aperture-step-um")?;
+    Ok((grid, m))
+}
+
+/// The optics flags' own ranges, each error naming its flag.
+fn check_optics(o: &OpticsArgs) -> Result<()> {
     if !(o.aperture_step_um.is_finite() && o.aperture_step_um > 0.0) {
         bail!(
             "--aperture-step-um: must be positive, got {}",
@@ -130,14 +143,7 @@ fn model(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, AsmPsf)> 
             o.photons
         );
     }
-    let grid = ApertureGrid::new(1e-3, o.aperture_step_um * 1e-6).context("--aperture-step-um")?;
-    let cfg = PsfConfig {
-        pitch_m: native_pitch_m,
-        window_px: o.window_px,
-        ..PsfConfig::default()
-    };
-    let m = AsmPsf::new(cfg, grid).context("--window-px / --aperture-step-um")?;
-    Ok((grid, m))
+    Ok(())
 }
 
 /// Fisher noise of the default sensor: electrons = QE · photons · PSF, σ² = read noise².
@@ -242,6 +248,22 @@ fn init(a: InitArgs) -> Result<()> {
     if a.iterations == 0 {
         bail!("--iterations: must be at least 1");
     }
+    // The job's bound on its `fisher_iterations`, and the photons' (checked again with the
+    // optics below, where the message is the same).
+    check_init_budget(
+        a.iterations,
+        a.optics.photons,
+        ["--iterations", "--photons"],
+    )?;
+    if a.checkpoint_every == 0 {
+        bail!("--checkpoint-every: must be at least 1");
+    }
+    if a.out.exists() && !a.out.is_dir() {
+        bail!(
+            "--out: '{}' exists and is not a directory; give a directory (new or of an earlier run)",
+            a.out.display()
+        );
+    }
     if !(a.pitch_um.is_finite() && a.pitch_um >= 3.0) {
         bail!(
             "--pitch-um: must be >= 3 (the native pitch), got {}",
@@ -317,7 +339,7 @@ fn init(a: InitArgs) -> Result<()> {
             per * (a.iterations - state.iteration) as f64
         );
         let _ = std::io::stderr().flush();
-        if a.checkpoint_every > 0 && state.iteration % a.checkpoint_every == 0 {
+        if state.iteration % a.checkpoint_every == 0 {
             state
                 .save(&ckpt, &cfg)
                 .context("--out: writing the checkpoint")?;
@@ -414,6 +436,8 @@ fn compare(a: CompareArgs) -> Result<()> {
         bail!("--pitch-um: need positive pitches");
     }
     let native = pitches_um.iter().copied().fold(f64::INFINITY, f64::min);
+    // The optics flags first, so that the context below only ever wraps the pitch's errors.
+    check_optics(&a.optics)?;
     let (grid, model) = model(&a.optics, native * 1e-6)
         .context("--pitch-um: the smallest pitch is the PSF model's native pitch")?;
     let specs: Vec<&str> = a

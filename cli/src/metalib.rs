@@ -5,7 +5,7 @@ use clap::{Args, Subcommand};
 use nanoeye_metalib::blueprint::{self, BlueprintOptions};
 use nanoeye_metalib::dispersion;
 use nanoeye_metalib::library::{PillarLibrary, TabulatedLibrary};
-use nanoeye_metalib::material::{DEFAULT_WAVELENGTH_M, Materials};
+use nanoeye_metalib::material::{DEFAULT_WAVELENGTH_M, MAX_INDEX, MIN_INDEX, Materials};
 use nanoeye_metalib::rcwa::{
     CellSpec, DEFAULT_HARMONICS, DEFAULT_RULE, LayerModes, Rule, WAVELENGTH_RANGE_M,
 };
@@ -176,6 +176,20 @@ fn sweep_flags(msg: &str) -> String {
 }
 
 /// Turns "invalid parameter `n_pillar`: …" into "n-pillar: …" for flag-named messages.
+/// A blueprint error with the flag that sets its parameter in front.
+fn blueprint_flag(e: nanoeye_metalib::MetalibError) -> anyhow::Error {
+    let flag = match &e {
+        nanoeye_metalib::MetalibError::InvalidParameter { name, .. } => match *name {
+            "diameter_step" => "--diameter-step-nm",
+            "circle_vertices" => "--circle-vertices",
+            "library" => "--pitch-nm (or the library: --library-csv / --sweep)",
+            _ => "--phase",
+        },
+        _ => "--phase",
+    };
+    anyhow!("{flag}: {e}")
+}
+
 fn flagify(msg: &str) -> String {
     msg.replace("invalid parameter `", "")
         .replacen("`:", ":", 1)
@@ -329,6 +343,10 @@ pub fn run(cmd: MetalibCmd) -> Result<()> {
     }
 }
 
+/// Tallest pillar a command takes (m): 100 µm, two orders beyond any metasurface; a height of
+/// 1e300 nm passed every check and gave t = 0 or a non-finite response.
+const MAX_HEIGHT_M: f64 = 1e-4;
+
 fn nm(flag: &str, v: f64) -> Result<f64> {
     if !v.is_finite() {
         bail!("{flag} must be finite, got {v}");
@@ -346,8 +364,12 @@ fn cell(a: CellArgs) -> Result<()> {
         rule: a.solver.rule()?,
     };
     let h = nm("--height-nm", a.height_nm)?;
-    if h < 0.0 {
-        bail!("--height-nm must be >= 0");
+    if !(0.0..=MAX_HEIGHT_M).contains(&h) {
+        bail!(
+            "--height-nm: must lie in [0, {:e}] nm, got {:?}",
+            MAX_HEIGHT_M * 1e9,
+            a.height_nm
+        );
     }
     let r = LayerModes::new(&spec)
         .map_err(|e| anyhow!("{}", cell_flags(&e.to_string())))?
@@ -603,25 +625,23 @@ fn select_cmd(a: SelectArgs) -> Result<()> {
         .map(|p| [(p.height_m * 1e9).round(), (p.pitch_m * 1e9).round()])
         .collect();
     let mut pairs = serde_json::Map::new();
-    let num = |v: f64| {
-        if v.is_finite() {
-            serde_json::json!(v)
-        } else {
-            serde_json::Value::Null
-        }
-    };
     for p in &sel {
-        pairs.insert(
-            key(p),
-            serde_json::json!({
-                "viable": p.viable,
-                "diameter_min_nm": num(p.diameter_min_m * 1e9),
-                "diameter_max_nm": num(p.diameter_max_m * 1e9),
-                "phase_coverage_rad": p.phase_coverage_rad,
-                "min_transmittance_2pi": num(p.min_transmittance_2pi),
-                "max_aspect_ratio": num(p.max_aspect_ratio),
-            }),
-        );
+        // A quantity a pair does not have (a usable run's, for a pair without one) is left
+        // out, not written as null.
+        let mut o = serde_json::Map::new();
+        o.insert("viable".into(), p.viable.into());
+        for (k, v) in [
+            ("diameter_min_nm", p.diameter_min_m * 1e9),
+            ("diameter_max_nm", p.diameter_max_m * 1e9),
+            ("phase_coverage_rad", p.phase_coverage_rad),
+            ("min_transmittance_2pi", p.min_transmittance_2pi),
+            ("max_aspect_ratio", p.max_aspect_ratio),
+        ] {
+            if v.is_finite() {
+                o.insert(k.into(), v.into());
+            }
+        }
+        pairs.insert(key(p), o.into());
     }
     let mut viable_map = Vec::with_capacity(sel.len() * 8);
     for p in &sel {
@@ -656,14 +676,20 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
     if !(h > 0.0 && s > 0.0) {
         bail!("--height-nm/--pitch-nm: must be > 0");
     }
+    if h > MAX_HEIGHT_M {
+        bail!(
+            "--height-nm: must be at most {:e} nm, got {:?}",
+            MAX_HEIGHT_M * 1e9,
+            a.height_nm
+        );
+    }
     let opt = BlueprintOptions {
         diameter_step_m: nm("--diameter-step-nm", a.diameter_step_nm)?,
         circle_vertices: a.circle_vertices,
         layer: 1,
         circular_aperture: !a.square_aperture,
     };
-    opt.validate()
-        .map_err(|e| anyhow!("--{}", flagify(&e.to_string())))?;
+    opt.validate().map_err(blueprint_flag)?;
     a.solver.wavelength_m()?;
     let (shape, phase) =
         sweep::read_npy(&a.phase).with_context(|| format!("--phase {}", a.phase.display()))?;
@@ -726,8 +752,7 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
             lib.pitch_m() * 1e9
         );
     }
-    let bp = blueprint::invert_phase_map(&lib, &phase, rows, cols, &opt)
-        .map_err(|e| anyhow!("--phase: {e}"))?;
+    let bp = blueprint::invert_phase_map(&lib, &phase, rows, cols, &opt).map_err(blueprint_flag)?;
     // Every output is produced in memory and every target checked before the first write,
     // so a failure never leaves new files next to old ones.
     let (dmin, dmax) = lib.diameter_range_m();
@@ -807,6 +832,13 @@ fn study_cmd(a: StudyArgs) -> Result<()> {
     if n_values.len() > 1000 {
         bail!("--n-values: {} values is more than 1000", n_values.len());
     }
+    // The cell's own bounds on a pillar index, checked here before any solve.
+    if let Some(n) = n_values
+        .iter()
+        .find(|n| !(MIN_INDEX..=MAX_INDEX).contains(*n))
+    {
+        bail!("--n-values: {n} is outside [{MIN_INDEX}, {MAX_INDEX}]");
+    }
     let mut k_values = Vec::new();
     for t in a
         .k_values
@@ -817,10 +849,13 @@ fn study_cmd(a: StudyArgs) -> Result<()> {
         let k: f64 = t
             .parse()
             .map_err(|_| anyhow!("--k-values: `{t}` is not a number"))?;
-        if !(k.is_finite() && k >= 0.0) {
-            bail!("--k-values: {k} must be finite and >= 0");
+        if !(k.is_finite() && (0.0..=MAX_INDEX).contains(&k)) {
+            bail!("--k-values: {k} must lie in [0, {MAX_INDEX}]");
         }
         k_values.push(k);
+    }
+    if k_values.is_empty() {
+        bail!("--k-values: give at least one k (0 for a lossless pillar)");
     }
     if k_values.len() > 1000 {
         bail!("--k-values: {} values is more than 1000", k_values.len());

@@ -145,8 +145,9 @@ struct FitReport {
 }
 
 fn fit(a: FitToyArgs) -> Result<()> {
-    if a.steps == 0 {
-        bail!("--steps must be positive");
+    // The bound `search train` has on its steps.
+    if a.steps == 0 || a.steps > 10_000_000 {
+        bail!("--steps: must be 1..=1e7, got {}", a.steps);
     }
     if a.batch < 2 {
         bail!(

@@ -641,9 +641,6 @@ pub fn run(a: RunArgs) -> Result<()> {
     } else if let Some(r) = &cfg.rig {
         r.validate().context("--config: rig")?;
     }
-    if a.print_config {
-        return util::print_json(&cfg);
-    }
     // check's messages name the key; with --set the value may not come from --config.
     check(&cfg).map_err(|e| {
         if a.set.is_empty() {
@@ -652,6 +649,10 @@ pub fn run(a: RunArgs) -> Result<()> {
             e.context(format!("with --set {}", a.set.join(" --set ")))
         }
     })?;
+    // Printed once checked: a configuration printed is one the job would run.
+    if a.print_config {
+        return util::print_json(&cfg);
+    }
     let t0 = Instant::now();
     let out = a
         .out

@@ -3,7 +3,7 @@
 //! t > 1000 s) to 10 mW/cm², ambient included, so I_max = (E_limit − E_ambient)·d².
 
 use crate::util;
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use clap::Args;
 use nanoeye_datagen::render::{Light, Subject};
 use nanoeye_gaze::{Rig, geom};
@@ -40,18 +40,24 @@ pub struct SafetyArgs {
 
 /// I_max (mW/sr) for ambient irradiance `ambient` (mW/cm²) at eye relief `d` (cm).
 pub fn max_intensity_mw_sr(ambient: f64, d: f64) -> Result<f64> {
-    if !(ambient.is_finite() && ambient >= 0.0) {
-        bail!("--ambient-mw-cm2: must be finite and ≥ 0, got {ambient}");
-    }
-    if ambient >= E_LIMIT_MW_CM2 {
-        bail!(
-            "--ambient-mw-cm2: {ambient} mW/cm² already reaches the {E_LIMIT_MW_CM2} mW/cm² limit; no LED power is eye-safe"
-        );
-    }
+    check_ambient("--ambient-mw-cm2", ambient)?;
     if !(d.is_finite() && d > 0.0 && d <= 1000.0) {
         bail!("--eye-relief-cm: must lie in (0, 1000], got {d}");
     }
     Ok((E_LIMIT_MW_CM2 - ambient) * d * d)
+}
+
+/// An ambient irradiance (mW/cm²) below the exposure limit, named `flag` in the error.
+fn check_ambient(flag: &str, ambient: f64) -> Result<()> {
+    if !(ambient.is_finite() && ambient >= 0.0) {
+        bail!("{flag}: must be finite and ≥ 0, got {ambient}");
+    }
+    if ambient >= E_LIMIT_MW_CM2 {
+        bail!(
+            "{flag}: {ambient} mW/cm² already reaches the {E_LIMIT_MW_CM2} mW/cm² limit; no LED power is eye-safe"
+        );
+    }
+    Ok(())
 }
 
 /// Glint visibility at one ambient level (photo-electrons per 3 µm sensor pixel).
@@ -148,7 +154,7 @@ pub fn glint_snr(ambient: f64, d: f64, exposure_s: f64, band: f64) -> Result<Gli
 /// Runs `nanoeye safety`.
 pub fn run(a: SafetyArgs) -> Result<()> {
     let i = max_intensity_mw_sr(a.ambient_mw_cm2, a.eye_relief_cm)?;
-    max_intensity_mw_sr(a.outdoor_mw_cm2, a.eye_relief_cm).context("--outdoor-mw-cm2")?;
+    check_ambient("--outdoor-mw-cm2", a.outdoor_mw_cm2)?;
     let exposure_s = a.exposure_ms * 1e-3;
     let indoor = glint_snr(0.0, a.eye_relief_cm, exposure_s, a.ambient_band_fraction)?;
     let outdoor = glint_snr(

@@ -352,9 +352,11 @@ fn loss(a: LossArgs) -> Result<()> {
     let (ds, chain) = a.chain.build()?;
     let ids = parse_frames("--frames", &a.frames, ds.len())?;
     let arch = parse_subnet(&a.subnet)?;
-    if !(a.lambda_slip.is_finite() && a.lambda_slip >= 0.0) {
+    // `search train`'s bound: far beyond it the loss's gradient overflows in the chain's
+    // backward (1e300 was refused there, naming the sensor's image, not this flag).
+    if !(a.lambda_slip.is_finite() && (0.0..=1e3).contains(&a.lambda_slip)) {
         bail!(
-            "--lambda-slip: must be finite and ≥ 0, got {}",
+            "--lambda-slip: must be finite in [0, 1000], got {}",
             a.lambda_slip
         );
     }

@@ -1,4 +1,4 @@
-//! `nanoeye track`: sensor frames in, gaze out, one JSON line per frame (docs/track.md).
+//! `nanoeye track`: sensor frames in, gaze out, one JSON line per frame (docs/run.md, "`nanoeye track`").
 //!
 //! Model: a run directory of `search train` or `nanoeye run` (its `checkpoint.bin`, `rig.json`
 //! and, when present, the REA's selection in `rea_state.json`). Frames: DN images on the
@@ -222,10 +222,20 @@ fn png_frame(path: &Path, max_dn: f32) -> Frame {
 
 fn stdin_frame(r: &mut impl Read) -> Option<Frame> {
     let mut hdr = [0u8; 16];
-    match r.read_exact(&mut hdr) {
-        Ok(()) => {}
-        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return None,
-        Err(e) => return Some(Err(format!("stdin: {e}"))),
+    // End of input only between frames: a header cut short is an error, not the end.
+    let mut got = 0;
+    while got < hdr.len() {
+        match r.read(&mut hdr[got..]) {
+            Ok(0) if got == 0 => return None,
+            Ok(0) => {
+                return Some(Err(format!(
+                    "stdin: truncated frame header ({got} of 16 bytes)"
+                )));
+            }
+            Ok(n) => got += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Some(Err(format!("stdin: {e}"))),
+        }
     }
     if &hdr[..4] != b"NEYE" {
         return Some(Err("stdin: frame header does not start with NEYE".into()));
@@ -234,6 +244,12 @@ fn stdin_frame(r: &mut impl Read) -> Option<Frame> {
     let h = u32::from_le_bytes(hdr[8..12].try_into().expect("4")) as usize;
     if w == 0 || h == 0 || w > 1 << 14 || h > 1 << 14 {
         return Some(Err(format!("stdin: implausible frame size {w}×{h}")));
+    }
+    let reserved = u32::from_le_bytes(hdr[12..16].try_into().expect("4"));
+    if reserved != 0 {
+        return Some(Err(format!(
+            "stdin: the header's fourth field is {reserved}, must be 0 (reserved)"
+        )));
     }
     let mut buf = vec![0u8; w * h * 4];
     if let Err(e) = r.read_exact(&mut buf) {
@@ -267,6 +283,13 @@ fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, FrameEr
             let v = img[(i, j)];
             if !v.is_finite() {
                 return Err(FrameError::Input(format!("non-finite value at ({i}, {j})")));
+            }
+            // The ADC gives 0 ..= max DN; a value outside is not this sensor's frame.
+            if !(0.0..=m.max_dn).contains(&v) {
+                return Err(FrameError::Input(format!(
+                    "value {v} DN at ({i}, {j}) is outside the sensor's range 0..={} DN",
+                    m.max_dn
+                )));
             }
             m.x[i * w + j] = (v - m.black) / m.span;
         }
@@ -411,4 +434,56 @@ pub fn track(a: TrackArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A raw frame: header with `reserved` in its fourth field, then w·h DN values.
+    fn raw(w: u32, h: u32, reserved: u32, dn: f32) -> Vec<u8> {
+        let mut b = b"NEYE".to_vec();
+        for v in [w, h, reserved] {
+            b.extend(v.to_le_bytes());
+        }
+        for _ in 0..w * h {
+            b.extend(dn.to_le_bytes());
+        }
+        b
+    }
+
+    fn frames(bytes: &[u8]) -> Vec<Frame> {
+        let mut r = std::io::Cursor::new(bytes);
+        std::iter::from_fn(|| stdin_frame(&mut r))
+            .take(10)
+            .collect()
+    }
+
+    #[test]
+    fn stdin_ends_only_between_frames_and_checks_the_reserved_field() {
+        assert!(frames(&[]).is_empty());
+        let one = raw(3, 2, 0, 7.0);
+        let f = frames(&one);
+        assert_eq!(f.len(), 1);
+        let (name, m) = f[0].as_ref().unwrap();
+        assert_eq!(
+            (name.as_str(), m.nrows(), m.ncols(), m[(1, 2)]),
+            ("stdin", 2, 3, 7.0)
+        );
+        // A header cut short, alone or after a whole frame, is an error, not the end.
+        for tail in [&b"XYZW"[..], b"N", b"NEYE\x40\x01"] {
+            let mut b = one.clone();
+            b.extend_from_slice(tail);
+            let f = frames(&b);
+            assert_eq!(f.len(), 2, "{tail:?}");
+            let e = f[1].as_ref().unwrap_err();
+            assert!(
+                e.contains(&format!("truncated frame header ({} of 16", tail.len())),
+                "{e}"
+            );
+            assert!(frames(tail)[0].is_err());
+        }
+        let e = frames(&raw(3, 2, 7, 1.0)).remove(0).unwrap_err();
+        assert!(e.contains("fourth field is 7, must be 0"), "{e}");
+    }
 }

@@ -413,10 +413,17 @@ fn blueprint_validates_everything_before_writing() {
         |extra: &[&'static str]| -> Vec<&str> { base.iter().chain(extra).copied().collect() };
     refused(&with(&["--circle-vertices", "4"]), "--circle-vertices", p);
     assert!(!p.join("bp").exists());
+    // The diameter step is named by its own flag (not by --phase, where it failed before).
+    for step in ["1e300", "-1", "nan"] {
+        let arg = format!("--diameter-step-nm={step}");
+        let args: Vec<&str> = base.iter().copied().chain([arg.as_str()]).collect();
+        refused(&args, "--diameter-step-nm", p);
+        assert!(!p.join("bp").exists());
+    }
     // Library diameters up to 410 nm on a 300 nm pitch: pillars would overlap.
     let mut narrow = base.to_vec();
     narrow[6] = "300";
-    refused(&narrow, "pitch", p);
+    refused(&narrow, "--pitch-nm", p);
     assert!(!p.join("bp").exists());
     // --sweep and --library-csv conflict (clap usage error).
     refused(&with(&["--sweep", "sw"]), "--sweep", p);
@@ -985,6 +992,13 @@ fn run_set_overrides_one_key_and_refuses_bad_ones_naming_it() {
             "{sets:?}: a refused run must write nothing"
         );
     }
+    // A configuration the job would refuse is not printed as if it would run.
+    let err = refused(
+        &["run", "--print-config", "--set", "train_steps=0"],
+        "--set",
+        p,
+    );
+    assert!(err.contains("train_steps"), "{err}");
     let both = ["run", "--out", "r", "--rig", "r.json", "--set", "rig=null"];
     let err = refused(&both, "--rig", p);
     assert!(err.contains("--set rig"), "{err}");

@@ -295,6 +295,27 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         sources.iter().all(|s| s.contains("sensor.npy")),
         "{sources:?}"
     );
+    // Frames outside the ADC's range (here every value's sign flipped) are not this sensor's:
+    // each gets an error line and the tracker exits non-zero.
+    let neg = d.path().join("negative");
+    std::fs::create_dir(&neg).unwrap();
+    let mut b = std::fs::read(sim.join("sensor.npy")).unwrap();
+    assert_eq!(&b[..8], b"\x93NUMPY\x01\x00", "an NPY 1.0 file");
+    let start = 10 + u16::from_le_bytes([b[8], b[9]]) as usize;
+    for v in b[start..].chunks_exact_mut(4) {
+        v[3] ^= 0x80;
+    }
+    std::fs::write(neg.join("sensor.npy"), &b).unwrap();
+    let o = track(&[], &neg);
+    assert!(!o.status.success());
+    let out_lines = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(out_lines.lines().count(), 3, "{out_lines}");
+    assert!(
+        out_lines
+            .lines()
+            .all(|l| l.contains("outside the sensor's range")),
+        "{out_lines}"
+    );
     // A bad stdin header gives an error line, not a crash.
     let mut child = Command::new(bin)
         .args(["track", "--stdin", "--model"])

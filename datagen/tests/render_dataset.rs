@@ -212,3 +212,43 @@ fn a_variational_render_begun_with_per_frame_samples_is_not_resumed() {
     let t = std::fs::read_to_string(a.path().join("dataset.json")).unwrap();
     assert!(!t.contains("triplet_samples_shared"));
 }
+
+/// Options a render would refuse are refused before the output directory is touched, so the
+/// corrected command is a first render, not a resume with other parameters.
+#[test]
+fn a_refused_render_writes_nothing_and_the_corrected_one_runs() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("out");
+    for (bad, what) in [
+        (
+            DatasetOptions {
+                spp: 0,
+                ..opts(&out, 1)
+            },
+            "spp",
+        ),
+        (
+            DatasetOptions {
+                spp: 1 << 17,
+                ..opts(&out, 1)
+            },
+            "spp",
+        ),
+        (
+            DatasetOptions {
+                layers: LayerSpec {
+                    count: 0,
+                    ..LayerSpec::default()
+                },
+                ..opts(&out, 1)
+            },
+            "layers",
+        ),
+    ] {
+        let e = write_dataset(&bad).unwrap_err().to_string();
+        assert!(e.contains(what), "{e}");
+        assert!(!out.exists(), "{e}: {:?}", walk(&out));
+    }
+    write_dataset(&opts(&out, 1)).unwrap();
+    assert!(out.join("dataset.json").is_file());
+}

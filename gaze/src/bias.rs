@@ -50,7 +50,9 @@ pub struct BiasReport {
     pub true_radius_m: f64,
     /// Radius the solver intersects (m).
     pub solver_radius_m: f64,
-    /// Angular error statistics over the grid points in view (deg).
+    /// Angular error statistics over the grid points in view (deg); absent (not null) in
+    /// JSON when no point gave a solution (every ray missed the solver's sphere).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub error_deg: Option<Summary>,
     /// Grid points whose pupil projects inside the image.
     pub in_view: usize,

@@ -468,6 +468,9 @@ impl Rig {
                 reason: format!("must be finite and below 0.5 rad, got {:?}", self.kappa_rad),
             });
         }
+        // The cornea the refraction-aware solver and the renderer use, checked with the rest
+        // (a rig `rig show` accepted was refused by `gaze solve --solver refractive`).
+        self.cornea.validate(self.pupil_sphere_radius_m)?;
         self.camera.validate()?;
         self.slip.validate()?;
         // The camera must sit outside both spheres (with room for the largest slip the
@@ -544,6 +547,15 @@ mod bad_input_tests {
         let mut rig = Rig::default();
         rig.slip.pitch_rate_rad_per_m = -1e300;
         assert_eq!(field_of(&rig), "slip.pitch_rate_rad_per_m");
+        // The cornea is the rig's too: an index below 1, and a pupil beyond the apex.
+        let mut rig = Rig::default();
+        rig.cornea.index = 0.5;
+        assert_eq!(field_of(&rig), "cornea.index");
+        let rig = Rig {
+            pupil_sphere_radius_m: 0.02,
+            ..Rig::default()
+        };
+        assert_eq!(field_of(&rig), "cornea.apex_m");
         Rig::default().validate().unwrap();
     }
 }

@@ -65,15 +65,24 @@ impl BlueprintOptions {
                 format!("must be in 8..=8190, got {}", self.circle_vertices),
             ));
         }
-        if !(self.diameter_step_m.is_finite() && self.diameter_step_m >= 0.0) {
+        // A step of 1e300 m passed and failed later, in the inversion, as a phase error.
+        if !(self.diameter_step_m.is_finite()
+            && (0.0..=MAX_DIAMETER_STEP_M).contains(&self.diameter_step_m))
+        {
             return Err(MetalibError::param(
                 "diameter_step",
-                "must be finite and >= 0",
+                format!(
+                    "must lie in [0, {:e}] m, got {:e}",
+                    MAX_DIAMETER_STEP_M, self.diameter_step_m
+                ),
             ));
         }
         Ok(())
     }
 }
+
+/// Largest diameter quantisation step (m): 1 µm, beyond any lattice pitch at 940 nm.
+pub const MAX_DIAMETER_STEP_M: f64 = 1e-6;
 
 fn wrap(x: f64) -> f64 {
     (x + PI).rem_euclid(2.0 * PI) - PI

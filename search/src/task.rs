@@ -34,10 +34,11 @@ pub fn task_loss(
     if archs.is_empty() {
         return Err(param("subnets", "need at least one subnet"));
     }
-    if !lambda_slip.iter().all(|l| l.is_finite() && *l >= 0.0) {
+    // At most `TrainConfig`'s largest weight times its largest axis weight.
+    if !lambda_slip.iter().all(|l| (0.0..=1e6).contains(l)) {
         return Err(param(
             "lambda_slip",
-            format!("must be finite and ≥ 0 on every axis, got {lambda_slip:?}"),
+            format!("must lie in [0, 1e6] on every axis, got {lambda_slip:?}"),
         ));
     }
     if slip_mm.c != 3 || slip_mm.plane() != 1 {

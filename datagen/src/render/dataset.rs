@@ -669,6 +669,20 @@ pub fn plan_dataset(opts: &DatasetOptions) -> Result<DatasetPlan, RenderError> {
 /// process only.
 pub fn open_dataset(opts: &DatasetOptions) -> Result<DatasetPlan, RenderError> {
     let p = plan_dataset(opts)?;
+    // Everything a render would refuse, refused before the directory is touched: a manifest
+    // written for a render that cannot run would make the corrected command a "resume with
+    // other parameters".
+    RenderOptions {
+        spp: opts.spp,
+        seed: opts.seed,
+        layers: opts.layers,
+    }
+    .validate()?;
+    check_frame_memory(
+        &p.manifest.rig.camera,
+        opts.layers.count,
+        available_memory(),
+    )?;
     check_existing(&opts.out_dir, &p.manifest)?;
     let fdir = opts.out_dir.join("frames");
     std::fs::create_dir_all(&fdir).map_err(|e| io_err(&fdir, e))?;

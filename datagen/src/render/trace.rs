@@ -45,6 +45,30 @@ pub struct RenderOptions {
     pub layers: LayerSpec,
 }
 
+impl RenderOptions {
+    /// Refuses a sample count outside 1..=65536 and a layer spec without 1..=256 layers over
+    /// a finite near < far.
+    pub fn validate(&self) -> Result<(), RenderError> {
+        if self.spp == 0 || self.spp > 1 << 16 {
+            return Err(RenderError::Invalid {
+                what: "spp",
+                reason: format!("must be in 1..=65536, got {}", self.spp),
+            });
+        }
+        let ls = self.layers;
+        if ls.count == 0
+            || ls.count > 256
+            || !(ls.near_m.is_finite() && ls.far_m.is_finite() && ls.near_m < ls.far_m)
+        {
+            return Err(RenderError::Invalid {
+                what: "layers",
+                reason: format!("need 1 ≤ count ≤ 256 and finite near < far, got {ls:?}"),
+            });
+        }
+        Ok(())
+    }
+}
+
 impl Default for RenderOptions {
     fn default() -> Self {
         RenderOptions {
@@ -142,22 +166,8 @@ pub fn render(
     opts: &RenderOptions,
 ) -> Result<Frame, RenderError> {
     camera.validate()?;
-    if opts.spp == 0 || opts.spp > 1 << 16 {
-        return Err(RenderError::Invalid {
-            what: "spp",
-            reason: format!("must be in 1..=65536, got {}", opts.spp),
-        });
-    }
+    opts.validate()?;
     let ls = opts.layers;
-    if ls.count == 0
-        || ls.count > 256
-        || !(ls.near_m.is_finite() && ls.far_m.is_finite() && ls.near_m < ls.far_m)
-    {
-        return Err(RenderError::Invalid {
-            what: "layers",
-            reason: format!("need 1 ≤ count ≤ 256 and finite near < far, got {ls:?}"),
-        });
-    }
     let (w, h) = (camera.width_px, camera.height_px);
     let k = ls.count;
     // Per pixel: radiance, depth, visible mask, pupil mask, then K radiance and K alpha.
