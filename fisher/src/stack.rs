@@ -38,34 +38,7 @@ impl PsfStack {
         depths: &[f64],
         pitch: f64,
     ) -> Result<PsfStack, FisherError> {
-        let bufs = planes
-            .iter()
-            .map(|m| {
-                let mut v = Vec::with_capacity(m.nrows() * m.ncols());
-                for c in 0..m.ncols() {
-                    v.extend(m.col(c).iter().map(|&x| f64::from(x)));
-                }
-                v
-            })
-            .collect();
-        let shape = planes
-            .first()
-            .map(|m| (m.nrows(), m.ncols()))
-            .unwrap_or((0, 0));
-        for (k, m) in planes.iter().enumerate() {
-            if (m.nrows(), m.ncols()) != shape {
-                return Err(FisherError::Shape {
-                    name: "planes",
-                    why: format!(
-                        "plane {k} is {}x{}, plane 0 is {}x{}",
-                        m.nrows(),
-                        m.ncols(),
-                        shape.0,
-                        shape.1
-                    ),
-                });
-            }
-        }
+        let (shape, bufs) = column_buffers(planes, f64::from)?;
         PsfStack::from_buffers(shape.0, shape.1, bufs, depths, pitch)
     }
 
@@ -75,30 +48,7 @@ impl PsfStack {
         depths: &[f64],
         pitch: f64,
     ) -> Result<PsfStack, FisherError> {
-        let shape = planes
-            .first()
-            .map(|m| (m.nrows(), m.ncols()))
-            .unwrap_or((0, 0));
-        let mut bufs = Vec::with_capacity(planes.len());
-        for (k, m) in planes.iter().enumerate() {
-            if (m.nrows(), m.ncols()) != shape {
-                return Err(FisherError::Shape {
-                    name: "planes",
-                    why: format!(
-                        "plane {k} is {}x{}, plane 0 is {}x{}",
-                        m.nrows(),
-                        m.ncols(),
-                        shape.0,
-                        shape.1
-                    ),
-                });
-            }
-            let mut v = Vec::with_capacity(shape.0 * shape.1);
-            for c in 0..m.ncols() {
-                v.extend(m.col(c).iter().copied());
-            }
-            bufs.push(v);
-        }
+        let (shape, bufs) = column_buffers(planes, |x| x)?;
         PsfStack::from_buffers(shape.0, shape.1, bufs, depths, pitch)
     }
 
@@ -208,4 +158,40 @@ impl PsfStack {
                 .collect(),
         }
     }
+}
+
+/// Rows and columns of a plane.
+type Shape = (usize, usize);
+
+/// The planes' common shape and each plane's values column after column, converted by `f`;
+/// a plane whose shape differs from the first's is refused, naming it.
+fn column_buffers<T: Copy>(
+    planes: &[Mat<T>],
+    f: impl Fn(T) -> f64,
+) -> Result<(Shape, Vec<Vec<f64>>), FisherError> {
+    let shape = planes
+        .first()
+        .map(|m| (m.nrows(), m.ncols()))
+        .unwrap_or((0, 0));
+    let mut bufs = Vec::with_capacity(planes.len());
+    for (k, m) in planes.iter().enumerate() {
+        if (m.nrows(), m.ncols()) != shape {
+            return Err(FisherError::Shape {
+                name: "planes",
+                why: format!(
+                    "plane {k} is {}x{}, plane 0 is {}x{}",
+                    m.nrows(),
+                    m.ncols(),
+                    shape.0,
+                    shape.1
+                ),
+            });
+        }
+        let mut v = Vec::with_capacity(shape.0 * shape.1);
+        for c in 0..m.ncols() {
+            v.extend(m.col(c).iter().map(|&x| f(x)));
+        }
+        bufs.push(v);
+    }
+    Ok((shape, bufs))
 }
