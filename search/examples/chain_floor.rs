@@ -223,19 +223,31 @@ fn clock(g: &mut dyn FnMut()) -> f64 {
 /// One 2-D FFT of an ny × nx grid in precision `T` per call: the rows, then the second axis
 /// as contiguous runs of ny (no transposition, no copies, no allocation).
 fn bare_fft2<T: rustfft::FftNum>(ny: usize, nx: usize) -> impl FnMut() {
-    let mut planner = rustfft::FftPlanner::<T>::new();
-    let (fx, fy) = (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny));
-    let z = rustfft::num_complex::Complex::new(T::zero(), T::zero());
-    let mut buf = vec![rustfft::num_complex::Complex::new(T::one(), T::one()); ny * nx];
-    let mut scratch = vec![
-        z;
-        fx.get_inplace_scratch_len()
-            .max(fy.get_inplace_scratch_len())
-    ];
+    let (fx, fy, mut buf, mut scratch) = plans::<T>(ny, nx);
     move || {
         fx.process_with_scratch(&mut buf, &mut scratch);
         fy.process_with_scratch(&mut buf, &mut scratch);
     }
+}
+
+/// A planned FFT.
+type Plan<T> = std::sync::Arc<dyn rustfft::Fft<T>>;
+/// A complex grid or buffer.
+type Grid<T> = Vec<rustfft::num_complex::Complex<T>>;
+
+/// The two forward plans of a ny × nx grid (rows of nx, columns of ny), a grid of ones (1 + i)
+/// and a scratch buffer either plan can use.
+fn plans<T: rustfft::FftNum>(ny: usize, nx: usize) -> (Plan<T>, Plan<T>, Grid<T>, Grid<T>) {
+    let mut planner = rustfft::FftPlanner::<T>::new();
+    let (fx, fy) = (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny));
+    let z = rustfft::num_complex::Complex::new(T::zero(), T::zero());
+    let buf = vec![rustfft::num_complex::Complex::new(T::one(), T::one()); ny * nx];
+    let scratch = vec![
+        z;
+        fx.get_inplace_scratch_len()
+            .max(fy.get_inplace_scratch_len())
+    ];
+    (fx, fy, buf, scratch)
 }
 
 /// One f32 2-D FFT of a row-major ny × nx grid per call, done as a grid in memory needs it:
@@ -245,15 +257,8 @@ fn bare_fft2<T: rustfft::FftNum>(ny: usize, nx: usize) -> impl FnMut() {
 fn fft2_transposed(ny: usize, nx: usize) -> impl FnMut() {
     use rustfft::num_complex::Complex;
     const TILE: usize = 32;
-    let mut planner = rustfft::FftPlanner::<f32>::new();
-    let (fx, fy) = (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny));
-    let mut buf = vec![Complex::new(1.0f32, 1.0); ny * nx];
+    let (fx, fy, mut buf, mut scratch) = plans::<f32>(ny, nx);
     let mut cols = vec![Complex::new(0.0f32, 0.0); ny * nx];
-    let mut scratch = vec![
-        Complex::new(0.0f32, 0.0);
-        fx.get_inplace_scratch_len()
-            .max(fy.get_inplace_scratch_len())
-    ];
     move || {
         fx.process_with_scratch(&mut buf, &mut scratch);
         for r0 in (0..ny).step_by(TILE) {
