@@ -45,12 +45,12 @@ pub struct PsfArgs {
     /// Wavelength in nm.
     #[arg(long, default_value_t = 940.0)]
     wavelength_nm: f64,
-    /// Object distance in focus in mm (hyperbolic lens).
-    #[arg(long, default_value_t = 25.0)]
-    focus_mm: f64,
-    /// Number of annular zones of the double-helix lens.
-    #[arg(long, default_value_t = 4)]
-    dh_zones: usize,
+    /// Object distance in focus in mm, for the hyperbolic lens only [default: 25].
+    #[arg(long)]
+    focus_mm: Option<f64>,
+    /// Number of annular zones, for the double-helix lens only [default: 4].
+    #[arg(long)]
+    dh_zones: Option<usize>,
     /// Spectral period L in mm (padding); default aperture + window.
     #[arg(long)]
     period_mm: Option<f64>,
@@ -105,7 +105,17 @@ fn psf(a: PsfArgs) -> Result<()> {
     let d = positive("--aperture-mm", a.aperture_mm, 1e-3)?;
     let dx = positive("--sample-um", a.sample_um, 1e-6)?;
     let pitch = positive("--pitch-um", a.pitch_um, 1e-6)?;
-    let zf = positive("--focus-mm", a.focus_mm, 1e-3)?;
+    // A flag that shapes another lens than the one chosen would be ignored: refuse it.
+    if a.focus_mm.is_some() && a.lens != "hyperbolic" {
+        bail!("--focus-mm: shapes --lens hyperbolic only, not {}", a.lens);
+    }
+    if a.dh_zones.is_some() && a.lens != "double-helix" {
+        bail!(
+            "--dh-zones: shapes --lens double-helix only, not {}",
+            a.lens
+        );
+    }
+    let zf = positive("--focus-mm", a.focus_mm.unwrap_or(25.0), 1e-3)?;
     if a.window_px == 0 || a.window_px > 1024 {
         bail!("--window-px: must be 1..=1024, got {}", a.window_px);
     }
@@ -200,7 +210,7 @@ fn psf(a: PsfArgs) -> Result<()> {
                     image_distance_m: s,
                     ..DoubleHelix::default().lens
                 },
-                zones: a.dh_zones,
+                zones: a.dh_zones.unwrap_or(DoubleHelix::default().zones),
             };
             dh.phase_map(&grid).context("--dh-zones")?
         }

@@ -1104,6 +1104,15 @@ fn inputs_found_by_the_property_test_are_refused_naming_their_flag() {
     ] {
         refused(&[&psf[..], &["--window-px", "16", args]].concat(), flag, p);
     }
+    // A flag that shapes another lens than the one chosen was silently ignored.
+    for (args, flag) in [
+        (vec!["--dh-zones=0"], "--dh-zones"),
+        (vec!["--lens=double-helix", "--focus-mm=20"], "--focus-mm"),
+        (vec!["--lens=file:p.npy", "--dh-zones=4"], "--dh-zones"),
+    ] {
+        refused(&[&psf[..], &args].concat(), flag, p);
+        assert!(!p.join("o").exists());
+    }
     // 1001 planes of 1024² pixels: 4 GiB of stack and a 1 GB montage.
     refused(
         &[&psf[..], &["--window-px", "1024", "--depths-mm=20:30:0.01"]].concat(),
