@@ -247,12 +247,14 @@ pub struct SelectArgs {
     /// Where to write the figures (default: <sweep>/figures).
     #[arg(long)]
     figures: Option<PathBuf>,
-    /// Height (nm) of the pair marked in the figures.
-    #[arg(long, default_value_t = 700.0)]
-    mark_height_nm: f64,
-    /// Pitch (nm) of the marked pair and of the Fig. S5 curves.
-    #[arg(long, default_value_t = 530.0)]
-    mark_pitch_nm: f64,
+    /// Height (nm) of the pair marked in the figures, one of the sweep's heights [default:
+    /// 700, or the sweep's nearest height].
+    #[arg(long)]
+    mark_height_nm: Option<f64>,
+    /// Pitch (nm) of the marked pair and of the Fig. S5 curves, one of the sweep's pitches
+    /// [default: 530, or the sweep's nearest pitch].
+    #[arg(long)]
+    mark_pitch_nm: Option<f64>,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -590,17 +592,47 @@ fn sweep_distributed(
     Ok(manifest)
 }
 
+/// The sweep value (nm) a mark flag names: `given` when it is one of `grid_m` (to 1e-6
+/// relative), else refused naming `flag`; without it, the grid value nearest `default_nm`.
+fn on_sweep_grid(flag: &str, given: Option<f64>, default_nm: f64, grid_m: &[f64]) -> Result<f64> {
+    let nm: Vec<f64> = grid_m.iter().map(|v| v * 1e9).collect();
+    let target = given.unwrap_or(default_nm);
+    let Some(nearest) = nm
+        .iter()
+        .copied()
+        .min_by(|a, b| (a - target).abs().total_cmp(&(b - target).abs()))
+    else {
+        bail!("--sweep: the sweep has no {flag} values");
+    };
+    if given.is_some() && (nearest - target).abs() > 1e-6 * target {
+        // To the picometre: the grid's values in nm carry the metre's rounding.
+        let pm = |x: f64| (x * 1e3).round() / 1e3;
+        bail!(
+            "{flag}: {target} nm is not one of the sweep's values ({} … {} nm, {} of them)",
+            pm(nm[0]),
+            pm(nm[nm.len() - 1]),
+            nm.len()
+        );
+    }
+    Ok(nearest)
+}
+
 fn select_cmd(a: SelectArgs) -> Result<()> {
     for (flag, v) in [
         ("--mark-height-nm", a.mark_height_nm),
         ("--mark-pitch-nm", a.mark_pitch_nm),
     ] {
-        if !(v.is_finite() && v > 0.0) {
+        if let Some(v) = v.filter(|v| !(v.is_finite() && *v > 0.0)) {
             bail!("{flag}: must be finite and > 0, got {v}");
         }
     }
     let data =
         sweep::load_sweep(&a.sweep).with_context(|| format!("--sweep {}", a.sweep.display()))?;
+    // A mark given must be a pair of the sweep (the figures mark a cell: another value was
+    // drawn at the nearest cell, however far); the default snaps to the nearest.
+    let mark_height_nm =
+        on_sweep_grid("--mark-height-nm", a.mark_height_nm, 700.0, &data.heights_m)?;
+    let mark_pitch_nm = on_sweep_grid("--mark-pitch-nm", a.mark_pitch_nm, 530.0, &data.pitches_m)?;
     let sel = select::select_sweep(&data, &Criteria::default());
     let figdir = a.figures.clone().unwrap_or_else(|| a.sweep.join("figures"));
     let viable_path = figdir.join("viable.npy");
@@ -609,8 +641,8 @@ fn select_cmd(a: SelectArgs) -> Result<()> {
         &figdir,
         &data,
         &sel,
-        Some((a.mark_height_nm * 1e-9, a.mark_pitch_nm * 1e-9)),
-        a.mark_pitch_nm * 1e-9,
+        Some((mark_height_nm * 1e-9, mark_pitch_nm * 1e-9)),
+        mark_pitch_nm * 1e-9,
     )?;
     let key = |p: &select::PairSelection| {
         format!(
@@ -662,7 +694,7 @@ fn select_cmd(a: SelectArgs) -> Result<()> {
             sel.len(),
             figdir.display()
         );
-        let k = format!("{}x{}", a.mark_height_nm.round(), a.mark_pitch_nm.round());
+        let k = format!("{}x{}", mark_height_nm.round(), mark_pitch_nm.round());
         if let Some(p) = pairs.get(&k) {
             println!("{k}: {p}");
         }

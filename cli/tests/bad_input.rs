@@ -1486,3 +1486,65 @@ fn compare_names_what_it_cannot_read_and_writes_nothing_then() {
         before.into_iter().chain(["r1".into()]).collect::<Vec<_>>()
     );
 }
+
+/// `metalib select` marks a cell of the sweep: a mark given off the sweep's grid is refused
+/// naming its flag (it was drawn at the nearest cell, however far); the default snaps to the
+/// nearest pair; the JSON leaves out what a pair does not have rather than writing null.
+#[test]
+fn select_marks_a_pair_of_the_sweep_and_writes_no_null() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let sweep = nanoeye(
+        &[
+            "metalib",
+            "sweep",
+            "--out",
+            "sw",
+            "--harmonics",
+            "1",
+            "--heights-nm",
+            "600:800:100",
+            "--pitches-nm",
+            "500:500:10",
+            "--fractions",
+            "0.3:0.5:0.1",
+        ],
+        p,
+    );
+    assert!(
+        sweep.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sweep.stderr)
+    );
+    fn select<'a>(extra: &[&'a str]) -> Vec<&'a str> {
+        let mut args = vec!["metalib", "select", "--sweep", "sw", "--json"];
+        args.extend_from_slice(extra);
+        args
+    }
+    for (flag, v) in [
+        ("--mark-height-nm", "12345"),
+        ("--mark-height-nm", "650"),
+        ("--mark-pitch-nm", "1e300"),
+    ] {
+        let err = refused(&select(&[flag, v]), flag, p);
+        assert!(
+            err.contains("600 … 800 nm") || err.contains("500 … 500 nm"),
+            "{err}"
+        );
+    }
+    for extra in [
+        &[][..],
+        &["--mark-height-nm", "800", "--mark-pitch-nm", "500"],
+    ] {
+        let out = nanoeye(&select(extra), p);
+        assert!(
+            out.status.success(),
+            "{extra:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let text = String::from_utf8(out.stdout).unwrap();
+        let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(v["pairs"].as_object().unwrap().len(), 3, "{text}");
+        assert!(!text.contains("null"), "{text}");
+    }
+}
