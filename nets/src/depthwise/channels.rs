@@ -35,8 +35,7 @@ fn blocks_per_task(g: &Geom) -> usize {
     (TASK_MACS / (CB * g.ho * g.wo * g.k * g.k).max(1)).max(1)
 }
 
-/// Per-task scratch: padded input and dL/dy with channels innermost, an output block, the
-/// weights per tap and the tap offsets (in pixels).
+/// Per-task scratch: padded input and dL/dy with channels innermost, and an output block.
 #[derive(Default)]
 struct Scratch {
     xin: Vec<f32>,
@@ -45,14 +44,102 @@ struct Scratch {
     dpad: Vec<f32>,
     dshape: Option<[usize; 4]>,
     out: Vec<f32>,
-    wv: Vec<f32>,
+}
+
+/// What every block of a call shares, computed once per call rather than per block of eight
+/// planes (whose whole pass is a microsecond at 8×8): the taps' offsets in the padded input
+/// and, at stride s ≥ 2, the dL/dx phases with their taps.
+struct Plan {
+    /// The k² taps' offsets (pixels) in the padded input, in (ky, kx) order.
     offs: Vec<usize>,
+    /// Stride s ≥ 2: per phase (ρ, γ) with interior cells, its sweep, first cell and taps.
+    phases: Vec<PhaseSweep>,
+    /// Every phase's taps' offsets in the padded dL/dy, phase after phase (ranges in
+    /// `phases`; a phase without interior cells keeps its taps here but has no sweep).
+    phase_offs: Vec<usize>,
+    /// The phases' taps' indices ky·k + kx, in `phase_offs` order: the order of the weight
+    /// table a stride-s backward reads ([`weight_table`]).
+    phase_order: Vec<usize>,
+}
+
+/// One dL/dx phase of a strided backward.
+struct PhaseSweep {
+    sweep: Sweep,
+    /// First dL/dy pixel and first output cell of the sweep.
+    from: usize,
+    at: usize,
+    /// Its taps in [`Plan::phase_offs`] (and its weights, eight per tap, in the table).
+    taps: std::ops::Range<usize>,
+}
+
+impl Plan {
+    /// The weight table of a backward ([`weight_table`]): at stride 1 each kernel turned by
+    /// 180°, at stride s ≥ 2 the taps phase by phase.
+    fn backward_weights(&self, g: &Geom, w: &[f32], c: usize) -> Vec<f32> {
+        let kk = g.k * g.k;
+        if g.s == 1 {
+            let turned: Vec<usize> = (0..kk).rev().collect();
+            weight_table(w, c, kk, &turned)
+        } else {
+            weight_table(w, c, kk, &self.phase_order)
+        }
+    }
+
+    fn new(g: &Geom) -> Plan {
+        let wp = padded_width(g);
+        let offs = (0..g.k)
+            .flat_map(|ky| (0..g.k).map(move |kx| ky * wp + kx))
+            .collect();
+        let (mut phases, mut phase_offs, mut phase_order) = (Vec::new(), Vec::new(), Vec::new());
+        if g.s >= 2 {
+            let (p, s) = (g.pad(), g.s);
+            let (_, wd) = dy_extent(g);
+            // The cells of phase (ρ, γ) see the taps ky ≡ ρ, kx ≡ γ (mod s), each at a fixed
+            // offset in dL/dy: the plane path's `strided_dx`, with the same order of taps.
+            for rho in 0..s {
+                let (m0, m1) = g.phase_span(rho, g.h);
+                for gamma in 0..s {
+                    let (j0, j1) = g.phase_span(gamma, g.w);
+                    // Every phase's taps go into the order, so that the weight table keeps
+                    // all k² taps per block (the phases partition them).
+                    let first = phase_offs.len();
+                    for (t, off) in g.phase_taps((rho, gamma), wd) {
+                        phase_offs.push(off);
+                        phase_order.push(t);
+                    }
+                    if m1 <= m0 || j1 <= j0 {
+                        continue;
+                    }
+                    phases.push(PhaseSweep {
+                        sweep: Sweep {
+                            rows: m1 - m0,
+                            cols: j1 - j0,
+                            in_step: wd,
+                            in_col: 1,
+                            out_step: s * g.w,
+                            out_col: s,
+                        },
+                        from: m0 * wd + j0,
+                        // Phase row m, column j is the interior cell (m·s + ρ − p, j·s + γ − p).
+                        at: (m0 * s + rho - p) * g.w + j0 * s + gamma - p,
+                        taps: first..phase_offs.len(),
+                    });
+                }
+            }
+        }
+        Plan {
+            offs,
+            phases,
+            phase_offs,
+            phase_order,
+        }
+    }
 }
 
 impl Scratch {
     /// Transposes the block `xb` into `xin`, the padded input of `g` ((h + 2p) × (w + 2p)
     /// pixels), zeroed only when the geometry changes (every block writes the same interior
-    /// pixels), and sets `offs` to the k² taps' offsets in it, in (ky, kx) order.
+    /// pixels).
     #[target_feature(enable = "avx2,fma")]
     fn load_input(&mut self, g: &Geom, xb: &[f32]) {
         let (p, wp) = (g.pad(), padded_width(g));
@@ -63,9 +150,6 @@ impl Scratch {
             self.xshape = Some(key);
         }
         to_channels(xb, g.w, &mut self.xin, wp, p);
-        self.offs.clear();
-        self.offs
-            .extend((0..g.k).flat_map(|ky| (0..g.k).map(move |kx| ky * wp + kx)));
     }
 
     /// Lays `dpad` out as dL/dy with p zero rows and columns before it and enough after for
@@ -82,12 +166,11 @@ impl Scratch {
 }
 
 /// The weights of `c` channels (k² each) as blocks of eight channels, block-major, then
-/// tap-major with the eight channels innermost; `flip` turns each kernel by 180°.
-fn weight_table(w: &[f32], c: usize, kk: usize, flip: bool) -> Vec<f32> {
-    let mut table = Vec::with_capacity(c * kk);
+/// tap-major with the eight channels innermost, the taps in `order` (k² indices ky·k + kx).
+fn weight_table(w: &[f32], c: usize, kk: usize, order: &[usize]) -> Vec<f32> {
+    let mut table = Vec::with_capacity(c / CB * order.len() * CB);
     for c0 in (0..c).step_by(CB) {
-        for t in 0..kk {
-            let t = if flip { kk - 1 - t } else { t };
+        for &t in order {
             table.extend((0..CB).map(|j| w[(c0 + j) * kk + t]));
         }
     }
@@ -113,7 +196,9 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     // The blocks below run AVX2 and FMA code on that check alone.
     assert!(takes(g, c), "channel blocks for {c} channels of {g:?}");
     let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
-    let table = weight_table(w, c, kk, false);
+    let order: Vec<usize> = (0..kk).collect();
+    let table = weight_table(w, c, kk, &order);
+    let plan = Plan::new(g);
     let blocks = c / CB;
     y.par_chunks_mut(CB * howo)
         .enumerate()
@@ -122,7 +207,7 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
             let xb = &x[b * CB * hw..][..CB * hw];
             let wv = &table[(b % blocks) * kk * CB..][..kk * CB];
             // SAFETY: `takes` checked AVX2 and FMA on this CPU.
-            unsafe { forward_block(g, xb, wv, sc, out) };
+            unsafe { forward_block(g, &plan, xb, wv, sc, out) };
         });
 }
 
@@ -138,7 +223,8 @@ pub(super) fn backward(
 ) {
     assert!(takes(g, c), "channel blocks for {c} channels of {g:?}");
     let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
-    let table = weight_table(w, c, kk, g.s == 1);
+    let plan = Plan::new(g);
+    let table = plan.backward_weights(g, w, c);
     let blocks = c / CB;
     dx.par_chunks_mut(CB * hw)
         .zip(dw_planes.par_chunks_mut(CB * kk))
@@ -149,14 +235,14 @@ pub(super) fn backward(
             let dyb = &dy[b * CB * howo..][..CB * howo];
             let wv = &table[(b % blocks) * kk * CB..][..kk * CB];
             // SAFETY: `takes` checked AVX2 and FMA on this CPU.
-            unsafe { backward_block(g, xb, wv, dyb, sc, dxb, dwb) };
+            unsafe { backward_block(g, &plan, xb, wv, dyb, sc, dxb, dwb) };
         });
 }
 
 /// One block's forward: `xb` eight planes of h×w, `out` eight of ho×wo, `wv` the block's
 /// weights ([`weight_table`]).
 #[target_feature(enable = "avx2,fma")]
-fn forward_block(g: &Geom, xb: &[f32], wv: &[f32], sc: &mut Scratch, out: &mut [f32]) {
+fn forward_block(g: &Geom, plan: &Plan, xb: &[f32], wv: &[f32], sc: &mut Scratch, out: &mut [f32]) {
     let (s, wp) = (g.s, padded_width(g));
     sc.load_input(g, xb);
     sc.out.resize(g.ho * g.wo * CB, 0.0);
@@ -168,16 +254,18 @@ fn forward_block(g: &Geom, xb: &[f32], wv: &[f32], sc: &mut Scratch, out: &mut [
         out_step: g.wo,
         out_col: 1,
     };
-    sweep(&sw, (&sc.xin, 0), &sc.offs, wv, (&mut sc.out, 0));
+    sweep(&sw, (&sc.xin, 0), &plan.offs, wv, (&mut sc.out, 0));
     from_channels(&sc.out, out);
 }
 
 /// One block's backward: dL/dx into `dxb` (eight planes of h×w), each plane's k² weight
 /// gradients into `dwb` (overwritten); `wv` the block's weights ([`weight_table`]), turned by
-/// 180° at stride 1.
+/// 180° at stride 1, phase by phase ([`Plan::phase_order`]) at stride s ≥ 2.
+#[allow(clippy::too_many_arguments)]
 #[target_feature(enable = "avx2,fma")]
 fn backward_block(
     g: &Geom,
+    plan: &Plan,
     xb: &[f32],
     wv: &[f32],
     dyb: &[f32],
@@ -185,14 +273,14 @@ fn backward_block(
     dxb: &mut [f32],
     dwb: &mut [f32],
 ) {
-    let (p, s, wp) = (g.pad(), g.s, padded_width(g));
+    let (p, wp) = (g.pad(), padded_width(g));
     sc.load_input(g, xb);
     sc.dy_layout(g);
     let (_, wd) = dy_extent(g);
     to_channels(dyb, g.wo, &mut sc.dpad, wd, p);
-    weight_grad(g, &sc.xin, &sc.offs, (&sc.dpad, wd), dwb);
+    weight_grad(g, &sc.xin, &plan.offs, (&sc.dpad, wd), dwb);
     sc.out.resize(g.h * g.w * CB, 0.0);
-    if s == 1 {
+    if g.s == 1 {
         // dL/dy correlated with the kernel turned by 180° on the forward's padded shape, as
         // the plane path does.
         let sw = Sweep {
@@ -203,43 +291,19 @@ fn backward_block(
             out_step: g.w,
             out_col: 1,
         };
-        sweep(&sw, (&sc.dpad, 0), &sc.offs, wv, (&mut sc.out, 0));
+        sweep(&sw, (&sc.dpad, 0), &plan.offs, wv, (&mut sc.out, 0));
         from_channels(&sc.out, dxb);
         return;
     }
-    // At stride s ≥ 2 the cells of phase (ρ, γ) see the taps ky ≡ ρ, kx ≡ γ (mod s), each at a
-    // fixed offset in dL/dy: the plane path's `strided_dx`, with the same order of taps.
-    for rho in 0..s {
-        let (m0, m1) = g.phase_span(rho, g.h);
-        for gamma in 0..s {
-            let (j0, j1) = g.phase_span(gamma, g.w);
-            if m1 <= m0 || j1 <= j0 {
-                continue;
-            }
-            sc.offs.clear();
-            sc.wv.clear();
-            for (t, off) in g.phase_taps((rho, gamma), wd) {
-                sc.offs.push(off);
-                sc.wv.extend_from_slice(&wv[t * CB..][..CB]);
-            }
-            let sw = Sweep {
-                rows: m1 - m0,
-                cols: j1 - j0,
-                in_step: wd,
-                in_col: 1,
-                out_step: s * g.w,
-                out_col: s,
-            };
-            // Phase row m, column j is the interior cell (m·s + ρ − p, j·s + γ − p).
-            let at = (m0 * s + rho - p) * g.w + j0 * s + gamma - p;
-            sweep(
-                &sw,
-                (&sc.dpad, m0 * wd + j0),
-                &sc.offs,
-                &sc.wv,
-                (&mut sc.out, at),
-            );
-        }
+    for ph in &plan.phases {
+        let t = ph.taps.clone();
+        sweep(
+            &ph.sweep,
+            (&sc.dpad, ph.from),
+            &plan.phase_offs[t.clone()],
+            &wv[t.start * CB..t.end * CB],
+            (&mut sc.out, ph.at),
+        );
     }
     from_channels(&sc.out, dxb);
 }
@@ -574,9 +638,11 @@ mod tests {
                 vec![f32::NAN; c * hw],
                 vec![f32::NAN; c * kk],
             );
+            let plan = Plan::new(&g);
+            let order: Vec<usize> = (0..kk).collect();
             let (table, turned) = (
-                weight_table(&wk, c, kk, false),
-                weight_table(&wk, c, kk, s == 1),
+                weight_table(&wk, c, kk, &order),
+                plan.backward_weights(&g, &wk, c),
             );
             for b in 0..c / CB {
                 let xb = &x[b * CB * hw..][..CB * hw];
@@ -585,9 +651,17 @@ mod tests {
                 let wt = &turned[b * kk * CB..][..kk * CB];
                 // SAFETY: has_fma() checked the CPU.
                 unsafe {
-                    forward_block(&g, xb, wv, &mut sc, &mut y[b * CB * howo..][..CB * howo]);
+                    forward_block(
+                        &g,
+                        &plan,
+                        xb,
+                        wv,
+                        &mut sc,
+                        &mut y[b * CB * howo..][..CB * howo],
+                    );
                     backward_block(
                         &g,
+                        &plan,
                         xb,
                         wt,
                         dyb,
@@ -673,12 +747,13 @@ mod tests {
         let one = run(1);
         assert_eq!(one, run(3));
         let mut sc = Scratch::default();
-        let table = weight_table(&wk, c, kk, false);
+        let order: Vec<usize> = (0..kk).collect();
+        let (table, plan) = (weight_table(&wk, c, kk, &order), Plan::new(&g));
         for b in 0..n * c / CB {
             let mut y = vec![0.0; CB * howo];
             let wv = &table[(b % (c / CB)) * kk * CB..][..kk * CB];
             // SAFETY: has_fma() checked the CPU.
-            unsafe { forward_block(&g, &x[b * CB * hw..][..CB * hw], wv, &mut sc, &mut y) };
+            unsafe { forward_block(&g, &plan, &x[b * CB * hw..][..CB * hw], wv, &mut sc, &mut y) };
             assert_eq!(y, one.0[b * CB * howo..][..CB * howo]);
         }
     }
