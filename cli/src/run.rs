@@ -667,9 +667,12 @@ pub fn run(a: RunArgs) -> Result<()> {
         // may not be how its finished stages ran.
         let written: serde_json::Value = serde_json::from_str(&text)?;
         let now = serde_json::to_value(&cfg)?;
-        if let (Some(w), Some(n)) = (written.as_object(), now.as_object())
-            && let Some(k) = n.keys().find(|k| !w.contains_key(*k))
-        {
+        // (Not a let-chain: Cargo.toml's rust-version, 1.85, predates them.)
+        let missing = match (written.as_object(), now.as_object()) {
+            (Some(w), Some(n)) => n.keys().find(|k| !w.contains_key(*k)),
+            _ => None,
+        };
+        if let Some(k) = missing {
             bail!(
                 "--out: {} was begun by an older nanoeye, without `{k}`; its stages may have \
                  run otherwise: use a new --out",

@@ -85,6 +85,7 @@ impl Plan {
         }
     }
 
+    /// The plan of every call with geometry `g`.
     fn new(g: &Geom) -> Plan {
         let wp = padded_width(g);
         let offs = (0..g.k)
