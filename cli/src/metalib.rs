@@ -175,7 +175,6 @@ fn sweep_flags(msg: &str) -> String {
     format!("--{}", flagify(msg))
 }
 
-/// Turns "invalid parameter `n_pillar`: …" into "n-pillar: …" for flag-named messages.
 /// A blueprint error with the flag that sets its parameter in front.
 fn blueprint_flag(e: nanoeye_metalib::MetalibError) -> anyhow::Error {
     let flag = match &e {
@@ -190,6 +189,7 @@ fn blueprint_flag(e: nanoeye_metalib::MetalibError) -> anyhow::Error {
     anyhow!("{flag}: {e}")
 }
 
+/// Turns "invalid parameter `n_pillar`: …" into "n-pillar: …" for flag-named messages.
 fn flagify(msg: &str) -> String {
     msg.replace("invalid parameter `", "")
         .replacen("`:", ":", 1)
@@ -349,6 +349,18 @@ pub fn run(cmd: MetalibCmd) -> Result<()> {
 /// 1e300 nm passed every check and gave t = 0 or a non-finite response.
 const MAX_HEIGHT_M: f64 = 1e-4;
 
+/// `--height-nm` in metres, finite and at most [`MAX_HEIGHT_M`].
+fn height_m(height_nm: f64) -> Result<f64> {
+    let h = nm("--height-nm", height_nm)?;
+    if h > MAX_HEIGHT_M {
+        bail!(
+            "--height-nm: must be at most {:e} nm, got {height_nm:?}",
+            MAX_HEIGHT_M * 1e9
+        );
+    }
+    Ok(h)
+}
+
 fn nm(flag: &str, v: f64) -> Result<f64> {
     if !v.is_finite() {
         bail!("{flag} must be finite, got {v}");
@@ -365,13 +377,9 @@ fn cell(a: CellArgs) -> Result<()> {
         harmonics: a.solver.harmonics,
         rule: a.solver.rule()?,
     };
-    let h = nm("--height-nm", a.height_nm)?;
-    if !(0.0..=MAX_HEIGHT_M).contains(&h) {
-        bail!(
-            "--height-nm: must lie in [0, {:e}] nm, got {:?}",
-            MAX_HEIGHT_M * 1e9,
-            a.height_nm
-        );
+    let h = height_m(a.height_nm)?;
+    if h < 0.0 {
+        bail!("--height-nm: must be >= 0, got {:?}", a.height_nm);
     }
     let r = LayerModes::new(&spec)
         .map_err(|e| anyhow!("{}", cell_flags(&e.to_string())))?
@@ -703,17 +711,10 @@ fn select_cmd(a: SelectArgs) -> Result<()> {
 }
 
 fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
-    let h = nm("--height-nm", a.height_nm)?;
+    let h = height_m(a.height_nm)?;
     let s = nm("--pitch-nm", a.pitch_nm)?;
     if !(h > 0.0 && s > 0.0) {
         bail!("--height-nm/--pitch-nm: must be > 0");
-    }
-    if h > MAX_HEIGHT_M {
-        bail!(
-            "--height-nm: must be at most {:e} nm, got {:?}",
-            MAX_HEIGHT_M * 1e9,
-            a.height_nm
-        );
     }
     let opt = BlueprintOptions {
         diameter_step_m: nm("--diameter-step-nm", a.diameter_step_nm)?,
