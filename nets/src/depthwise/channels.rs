@@ -341,28 +341,56 @@ fn sweep(
     );
     assert!((o + (sw.rows - 1) * sw.out_step + (sw.cols - 1) * sw.out_col + 1) * CB <= out.len());
     assert!(wv.len() >= offs.len() * CB);
-    for m in 0..sw.rows {
+    // Eight outputs share each weight's load and keep eight chains of fused multiply–adds
+    // in flight: eight of a row or, on rows narrower than eight, a tile of two or four rows
+    // (an 8×8 stride-2 layer's outputs and its dL/dx phases are rows of four).
+    // SAFETY (every tile): rows m .. m + R ≤ rows and columns j .. j + N ≤ cols, inside both
+    // buffers by the assertions above.
+    let mut m = 0;
+    if sw.cols < 4 {
+        while m + 4 <= sw.rows {
+            let mut j = 0;
+            while j + 2 <= sw.cols {
+                unsafe { outputs::<4, 2>(sw, src, i, offs, wv, out, o, (m, j)) };
+                j += 2;
+            }
+            if j < sw.cols {
+                unsafe { outputs::<4, 1>(sw, src, i, offs, wv, out, o, (m, j)) };
+            }
+            m += 4;
+        }
+    } else if sw.cols < 8 {
+        while m + 2 <= sw.rows {
+            let mut j = 0;
+            while j + 4 <= sw.cols {
+                unsafe { outputs::<2, 4>(sw, src, i, offs, wv, out, o, (m, j)) };
+                j += 4;
+            }
+            while j < sw.cols {
+                unsafe { outputs::<2, 1>(sw, src, i, offs, wv, out, o, (m, j)) };
+                j += 1;
+            }
+            m += 2;
+        }
+    }
+    for m in m..sw.rows {
         let mut j = 0;
-        // Eight outputs share each weight's load and keep eight chains of fused
-        // multiply–adds in flight.
-        // SAFETY (all three): columns j .. j + N ≤ cols of row m < rows, inside both buffers
-        // by the assertions above.
         while j + 8 <= sw.cols {
-            unsafe { outputs::<8>(sw, src, i, offs, wv, out, o, (m, j)) };
+            unsafe { outputs::<1, 8>(sw, src, i, offs, wv, out, o, (m, j)) };
             j += 8;
         }
         while j + 4 <= sw.cols {
-            unsafe { outputs::<4>(sw, src, i, offs, wv, out, o, (m, j)) };
+            unsafe { outputs::<1, 4>(sw, src, i, offs, wv, out, o, (m, j)) };
             j += 4;
         }
         while j < sw.cols {
-            unsafe { outputs::<1>(sw, src, i, offs, wv, out, o, (m, j)) };
+            unsafe { outputs::<1, 1>(sw, src, i, offs, wv, out, o, (m, j)) };
             j += 1;
         }
     }
 }
 
-/// Outputs (m, j .. j + N) of `sw`.
+/// Outputs (m .. m + R, j .. j + N) of `sw`, each its taps summed in `offs` order from zero.
 ///
 /// # Safety
 /// The CPU has AVX2 and FMA; every read and write is inside `src` and `out` (checked by
@@ -370,7 +398,7 @@ fn sweep(
 #[allow(clippy::too_many_arguments)]
 #[target_feature(enable = "avx2,fma")]
 #[inline]
-unsafe fn outputs<const N: usize>(
+unsafe fn outputs<const R: usize, const N: usize>(
     sw: &Sweep,
     src: &[f32],
     i: usize,
@@ -380,26 +408,31 @@ unsafe fn outputs<const N: usize>(
     o: usize,
     (m, j): (usize, usize),
 ) {
-    let mut acc = [_mm256_setzero_ps(); N];
-    let base = src
-        .as_ptr()
-        .wrapping_add((i + m * sw.in_step + j * sw.in_col) * CB);
+    let mut acc = [[_mm256_setzero_ps(); N]; R];
+    let base: [*const f32; R] = std::array::from_fn(|r| {
+        src.as_ptr()
+            .wrapping_add((i + (m + r) * sw.in_step + j * sw.in_col) * CB)
+    });
     for (t, &off) in offs.iter().enumerate() {
         // SAFETY: `wv` holds a register per tap; the reads are inside `src` (contract).
         unsafe {
             let w = _mm256_loadu_ps(wv.as_ptr().add(t * CB));
-            for (n, a) in acc.iter_mut().enumerate() {
-                let v = _mm256_loadu_ps(base.add((n * sw.in_col + off) * CB));
-                *a = _mm256_fmadd_ps(w, v, *a);
+            for (row, b) in acc.iter_mut().zip(&base) {
+                for (n, a) in row.iter_mut().enumerate() {
+                    let v = _mm256_loadu_ps(b.add((n * sw.in_col + off) * CB));
+                    *a = _mm256_fmadd_ps(w, v, *a);
+                }
             }
         }
     }
-    let dst = out
-        .as_mut_ptr()
-        .wrapping_add((o + m * sw.out_step + j * sw.out_col) * CB);
-    for (n, a) in acc.iter().enumerate() {
-        // SAFETY: inside `out` (contract).
-        unsafe { _mm256_storeu_ps(dst.add(n * sw.out_col * CB), *a) };
+    for (r, row) in acc.iter().enumerate() {
+        let dst = out
+            .as_mut_ptr()
+            .wrapping_add((o + (m + r) * sw.out_step + j * sw.out_col) * CB);
+        for (n, a) in row.iter().enumerate() {
+            // SAFETY: inside `out` (contract).
+            unsafe { _mm256_storeu_ps(dst.add(n * sw.out_col * CB), *a) };
+        }
     }
 }
 
