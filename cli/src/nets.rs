@@ -10,6 +10,7 @@ use nanoeye_nets::cost::{
 use nanoeye_nets::toy::{
     MAX_TOY_BATCH_PIXELS, MAX_TOY_LR, MAX_TOY_SIZE, ToyConfig, fit_toy_with_progress,
 };
+use nanoeye_search::train::MAX_STEPS;
 use serde::Serialize;
 use std::time::Instant;
 
@@ -146,8 +147,12 @@ struct FitReport {
 
 fn fit(a: FitToyArgs) -> Result<()> {
     // The bound `search train` has on its steps.
-    if a.steps == 0 || a.steps > 10_000_000 {
-        bail!("--steps: must be 1..=1e7, got {}", a.steps);
+    if a.steps == 0 || a.steps > MAX_STEPS {
+        bail!(
+            "--steps: must be 1..={:e}, got {}",
+            MAX_STEPS as f64,
+            a.steps
+        );
     }
     if a.batch < 2 {
         bail!(

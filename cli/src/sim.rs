@@ -8,6 +8,7 @@ use clap::{Args, Subcommand};
 use faer::Mat;
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig};
+use nanoeye_search::train::MAX_FACTOR;
 use nanoeye_search::{CameraChain, ChainConfig, LensSpec, task_loss};
 use nanoeye_sensor::NoiseMode;
 use std::path::{Path, PathBuf};
@@ -354,9 +355,9 @@ fn loss(a: LossArgs) -> Result<()> {
     let arch = parse_subnet(&a.subnet)?;
     // `search train`'s bound: far beyond it the loss's gradient overflows in the chain's
     // backward (1e300 was refused there, naming the sensor's image, not this flag).
-    if !(a.lambda_slip.is_finite() && (0.0..=1e3).contains(&a.lambda_slip)) {
+    if !(a.lambda_slip.is_finite() && (0.0..=MAX_FACTOR).contains(&a.lambda_slip)) {
         bail!(
-            "--lambda-slip: must be finite in [0, 1000], got {}",
+            "--lambda-slip: must be finite in [0, {MAX_FACTOR}], got {}",
             a.lambda_slip
         );
     }

@@ -30,6 +30,13 @@ use std::path::Path;
 /// need 18 GB at the default 270 × 169 input; 240 frames need 44 MB).
 pub const ALL_FRAMES_BYTES: usize = 512 << 20;
 
+/// Most steps a training takes (and most steps per φ step).
+pub const MAX_STEPS: usize = 10_000_000;
+
+/// Largest learning rate or loss weight a training takes: far beyond it the loss's gradient
+/// overflows in the chain's backward.
+pub const MAX_FACTOR: f64 = 1e3;
+
 /// Training hyper-parameters (every one a CLI flag).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -158,10 +165,10 @@ impl TrainConfig {
 
     /// Checks every field, naming the bad one.
     pub fn validate(&self) -> Result<()> {
-        if self.steps == 0 || self.steps > 10_000_000 {
+        if self.steps == 0 || self.steps > MAX_STEPS {
             return Err(param(
                 "steps",
-                format!("must be 1..=1e7, got {}", self.steps),
+                format!("must be 1..={:e}, got {}", MAX_STEPS as f64, self.steps),
             ));
         }
         if self.batch == 0 || self.batch > 4096 {
@@ -179,23 +186,29 @@ impl TrainConfig {
             ("lr_pitch_um", self.lr_pitch_um),
             ("lambda_slip", self.lambda_slip),
         ] {
-            if !(v.is_finite() && (0.0..=1e3).contains(&v)) {
-                return Err(param(name, format!("must be finite in [0, 1000], got {v}")));
+            if !(v.is_finite() && (0.0..=MAX_FACTOR).contains(&v)) {
+                return Err(param(
+                    name,
+                    format!("must be finite in [0, {MAX_FACTOR}], got {v}"),
+                ));
             }
         }
         self.phase_basis.validate()?;
         self.phase_schedule.validate()?;
-        if self.phase_every == 0 || self.phase_every > 10_000_000 {
+        if self.phase_every == 0 || self.phase_every > MAX_STEPS {
             return Err(param(
                 "phase_every",
-                format!("must be 1..=1e7 steps per φ step, got {}", self.phase_every),
+                format!(
+                    "must be 1..={:e} steps per φ step, got {}",
+                    MAX_STEPS as f64, self.phase_every
+                ),
             ));
         }
         for (axis, &v) in ["x", "y", "z"].iter().zip(&self.slip_axis_weights) {
-            if !(v.is_finite() && (0.0..=1e3).contains(&v)) {
+            if !(v.is_finite() && (0.0..=MAX_FACTOR).contains(&v)) {
                 return Err(param(
                     "slip_axis_weights",
-                    format!("the {axis} weight must be finite in [0, 1000], got {v}"),
+                    format!("the {axis} weight must be finite in [0, {MAX_FACTOR}], got {v}"),
                 ));
             }
         }
@@ -214,10 +227,10 @@ impl TrainConfig {
         }
         self.supernet.validate()?;
         let mu = self.embed_weight;
-        if !(mu.is_finite() && (0.0..=1e3).contains(&mu)) {
+        if !(mu.is_finite() && (0.0..=MAX_FACTOR).contains(&mu)) {
             return Err(param(
                 "embed_weight",
-                format!("must be finite in [0, 1000], got {mu}"),
+                format!("must be finite in [0, {MAX_FACTOR}], got {mu}"),
             ));
         }
         if mu > 0.0 && self.fixed_lens {
