@@ -19,6 +19,16 @@ fn refused(args: &[&str], flag: &str, cwd: &Path) -> String {
     err
 }
 
+/// `out` of a command that must have succeeded; its stderr in the failure message.
+fn succeeded(out: std::process::Output) -> std::process::Output {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
 fn entries(dir: &Path) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(dir)
         .map(|r| {
@@ -274,8 +284,7 @@ fn impossible_psf_requests_are_refused_without_writing() {
 fn a_rig_with_a_wrong_fy_or_the_camera_inside_the_eye_is_refused() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
-    let out = nanoeye(&["rig", "show", "--json"], p);
-    assert!(out.status.success());
+    let out = succeeded(nanoeye(&["rig", "show", "--json"], p));
     let rig: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let mut bad = rig.clone();
     bad["camera"]["fy_px"] = serde_json::json!(200.0);
@@ -304,12 +313,7 @@ fn gaze_solve_reports_a_non_utf8_line_and_goes_on_and_strips_a_bom() {
         b"\xEF\xBB\xBF{\"pupil_px\":[160,100]}\n{\"pupil_px\":[1\xff0,100]}\r\n{\"pupil_px\":[150,100]}\n",
     )
     .unwrap();
-    let out = nanoeye(&["gaze", "solve", "--input", "q.jsonl"], p);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = succeeded(nanoeye(&["gaze", "solve", "--input", "q.jsonl"], p));
     let text = String::from_utf8(out.stdout).unwrap();
     let lines: Vec<serde_json::Value> = text
         .lines()
@@ -355,7 +359,7 @@ fn out_at_a_symlink_is_refused_and_dead_temp_files_are_removed() {
     // A temp file left by a killed run (its process id no longer exists).
     let stale = p.join(".nanoeye-tmp-4294967295-abcdef");
     std::fs::write(&stale, b"partial").unwrap();
-    let out = nanoeye(
+    succeeded(nanoeye(
         &[
             "datagen",
             "states",
@@ -367,12 +371,7 @@ fn out_at_a_symlink_is_refused_and_dead_temp_files_are_removed() {
             "s.jsonl",
         ],
         p,
-    );
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ));
     assert!(!stale.exists());
     assert!(
         entries(p).iter().all(|n| !n.starts_with(".nanoeye-tmp-")),
@@ -475,12 +474,7 @@ fn fisher_init_resume_refuses_changed_parameters_and_keeps_one_checkpoint_file()
     ];
     let run =
         |extra: &[&'static str]| nanoeye(&base.iter().chain(extra).copied().collect::<Vec<_>>(), p);
-    let out = run(&["--iterations", "1"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    succeeded(run(&["--iterations", "1"]));
     assert_eq!(entries(&p.join("fi/checkpoint")), ["checkpoint.bin"]);
     for (extra, flag) in [
         (["--lr-rad", "0.1"], "--lr-rad"),
@@ -937,7 +931,7 @@ fn run_set_overrides_one_key_and_refuses_bad_ones_naming_it() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
     std::fs::write(p.join("c.json"), r#"{"seed": 5, "train_steps": 7}"#).unwrap();
-    let out = nanoeye(
+    let out = succeeded(nanoeye(
         &[
             "run",
             "--print-config",
@@ -953,12 +947,7 @@ fn run_set_overrides_one_key_and_refuses_bad_ones_naming_it() {
             "solver=\"sphere\"",
         ],
         p,
-    );
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ));
     let cfg: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(cfg["seed"], 3, "--set wins over the file");
     assert_eq!(cfg["train_steps"], 7, "the file's other keys stay");
@@ -1038,7 +1027,7 @@ fn datagen_export_refuses_bad_states_and_writes_a_glb() {
         p,
     );
     assert!(entries(p).is_empty(), "nothing written: {:?}", entries(p));
-    let out = nanoeye(
+    succeeded(nanoeye(
         &[
             "datagen",
             "export",
@@ -1051,12 +1040,7 @@ fn datagen_export_refuses_bad_states_and_writes_a_glb() {
             "--json",
         ],
         p,
-    );
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ));
     let bytes = std::fs::read(p.join("s.glb")).unwrap();
     assert_eq!(&bytes[0..4], b"glTF");
     assert_eq!(
