@@ -2,7 +2,7 @@
 //! dataset of variational triplets — the slippage and the gaze made visible and told apart
 //! in the sensor image — resumable, with its history and the bounds before and after.
 
-use crate::sim::ChainArgs;
+use crate::sim::{CAMERA_KEYS, ChainArgs};
 use crate::util;
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -107,7 +107,17 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
     util::remove_stale_temps_under(&a.out);
     let lens_path = a.out.join("lens.json");
     let lens_json = serde_json::json!({ "lens": a.lens }).to_string();
+    // The data and the chain's other settings, which the checkpoint does not hold.
+    let inputs_path = a.out.join("inputs.json");
+    let mut inputs = a.chain.camera.record();
+    inputs["dataset"] = serde_json::json!(util::dataset_digest("--dataset", &a.chain.dataset)?);
     if ck.exists() {
+        util::check_inputs(
+            &inputs_path,
+            &inputs,
+            &[&[("dataset", "--dataset")][..], &CAMERA_KEYS[..]].concat(),
+            "--out",
+        )?;
         // The starting lens is part of the run's parameters: a resume from another is refused.
         let had = std::fs::read_to_string(&lens_path).context("--out (resume): lens.json")?;
         if had.trim() != lens_json {
@@ -121,6 +131,7 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
         std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
         util::write_atomic(&lens_path, lens_json.as_bytes())?;
     }
+    util::write_atomic(&inputs_path, format!("{inputs}\n").as_bytes())?;
     // The bounds of the starting lens over every triplet (kept from the first invocation;
     // `e` is still at the starting lens until the checkpoint is loaded below).
     let init_path = a.out.join("init.json");

@@ -285,9 +285,18 @@ fn init(a: InitArgs) -> Result<()> {
     };
     // Temporary files of a killed run (its checkpoint/ is written by the fisher crate only).
     crate::util::remove_stale_temps_under(&a.out);
+    // The PSF window shapes every iteration's PSFs but is not in the checkpoint's config.
+    let inputs_path = a.out.join("inputs.json");
+    let inputs = serde_json::json!({ "window_px": a.optics.window_px });
     let (mut state, cfg) = if InitState::checkpoint_exists(&ckpt) {
         let (s, c) = InitState::load(&ckpt)
             .with_context(|| format!("--out: cannot resume from '{}'", ckpt.display()))?;
+        crate::util::check_inputs(
+            &inputs_path,
+            &inputs,
+            &[("window_px", "--window-px")],
+            "--out",
+        )?;
         // A resumed run must continue the same problem: refuse changed parameters by name.
         let changed = [
             ("--depths-mm", c.depths_m != requested.depths_m),
@@ -319,12 +328,12 @@ fn init(a: InitArgs) -> Result<()> {
         let phase = Hyperbolic::default().phase_map(&grid)?.phase_rad;
         (InitState::new(phase), requested)
     };
+    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+    write_atomic(&inputs_path, format!("{inputs}\n").as_bytes())?;
     let t0 = Instant::now();
     let start = state.iteration;
-    let mut first = None;
     while state.iteration < a.iterations {
         let rec = init_step(&model, &grid, &cfg, &mut state).context("initialization step")?;
-        first.get_or_insert(rec.clone());
         let done = state.iteration - start;
         let per = t0.elapsed().as_secs_f64() / done as f64;
         eprint!(
@@ -375,7 +384,8 @@ fn init(a: InitArgs) -> Result<()> {
         &serde_json::to_vec_pretty(&state.history)?,
     )?;
     let last = state.history.last().cloned();
-    let first = first.or_else(|| state.history.first().cloned());
+    // The run's first iteration, also after a resume (the history holds every iteration).
+    let first = state.history.first().cloned();
     let summary = serde_json::json!({
         "iterations": state.iteration,
         "seconds": t0.elapsed().as_secs_f64(),

@@ -52,6 +52,13 @@ impl ChainArgs {
     }
 }
 
+/// The keys of [`CameraArgs::record`] and their flags.
+pub const CAMERA_KEYS: [(&str, &str); 3] = [
+    ("aperture_step_um", "--aperture-step-um"),
+    ("exposure_ms", "--exposure-ms"),
+    ("base_pitch_um", "--base-pitch-um"),
+];
+
 /// The camera chain's settings besides p̂: the metasurface's sampling, the exposure and the
 /// sensor's base pitch (a trained run is evaluated with the settings it was trained with).
 #[derive(Debug, Args)]
@@ -68,6 +75,16 @@ pub struct CameraArgs {
 }
 
 impl CameraArgs {
+    /// These settings as a run records them to check a resume ([`util::check_inputs`] with
+    /// [`CAMERA_KEYS`]).
+    pub fn record(&self) -> serde_json::Value {
+        serde_json::json!({
+            "aperture_step_um": self.aperture_step_um,
+            "exposure_ms": self.exposure_ms,
+            "base_pitch_um": self.base_pitch_um,
+        })
+    }
+
     /// The chain for `ds`, naming the flag behind a bad value.
     pub fn chain(&self, ds: &Dataset) -> Result<CameraChain> {
         let mut cfg = ChainConfig::default();

@@ -1,7 +1,7 @@
 //! `nanoeye search train`: sandwich-rule co-design of the lens, the pixel pitch and the
 //! supernet (S22) on a rendered dataset, resumable, with loss curves and validation.
 
-use crate::sim::ChainArgs;
+use crate::sim::{CAMERA_KEYS, ChainArgs};
 use crate::util;
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -446,11 +446,29 @@ pub fn train(a: TrainArgs) -> Result<()> {
         None => lens_json,
     };
     let lens_path = a.out.join("lens.json");
+    // The data and the chain's other settings, which no checkpoint holds: a resume with
+    // others would mix two runs (docs/formats.md, "Resume records").
+    let inputs_path = a.out.join("inputs.json");
+    let mut inputs = a.chain.camera.record();
+    inputs["dataset"] = serde_json::json!(util::dataset_digest("--dataset", &a.chain.dataset)?);
+    inputs["val"] = match &a.val {
+        Some(p) => serde_json::json!(util::dataset_digest("--val", p)?),
+        None => serde_json::Value::Null,
+    };
     // Rank 0 reads the checkpoint and sends it (empty: none), so --out need not be shared.
     let resume = if w.is_root() {
         util::check_output_target(&ck)?;
         // Temporary files of a killed run (a checkpoint cut off before its rename).
         util::remove_stale_temps_under(&a.out);
+        if ck.exists() {
+            let keys = [("dataset", "--dataset"), ("val", "--val")];
+            util::check_inputs(
+                &inputs_path,
+                &inputs,
+                &[&keys[..], &CAMERA_KEYS[..]].concat(),
+                "--out",
+            )?;
+        }
         if ck.exists() && lens_path.exists() {
             let had = std::fs::read_to_string(&lens_path).context("--out (resume): lens.json")?;
             if had.trim() != lens_json {
@@ -545,6 +563,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
     if w.is_root() {
         std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
         util::write_atomic(&lens_path, format!("{lens_json}\n").as_bytes())?;
+        util::write_atomic(&inputs_path, format!("{inputs}\n").as_bytes())?;
         if let Some(p) = &fisher_new {
             util::write_atomic(&fisher_path, &crate::sim::npy_mat64(p)?)?;
         }
@@ -796,6 +815,38 @@ pub fn rea(a: ReaArgs) -> Result<()> {
     let state_path = a.run.join("rea_state.json");
     util::check_output_target(&state_path)?;
     util::remove_stale_temps_under(&a.run);
+    // What the candidates are trained and scored on besides the search's settings: the
+    // trained run, the data and the chain. A resume with others would mix two searches.
+    let inputs_path = a.run.join("rea_inputs.json");
+    let mut inputs = a.chain.camera.record();
+    inputs["pitch_um"] = serde_json::json!(a.chain.pitch_um);
+    inputs["dataset"] = serde_json::json!(util::dataset_digest("--dataset", &a.chain.dataset)?);
+    inputs["val"] = match &a.val {
+        Some(p) => serde_json::json!(util::dataset_digest("--val", p)?),
+        None => serde_json::Value::Null,
+    };
+    let mut d = util::Digest::default();
+    d.file(&ck)
+        .with_context(|| format!("--run {}", a.run.display()))?;
+    inputs["run_checkpoint"] = serde_json::json!(d.hex());
+    if state_path.exists() {
+        let keys = [
+            (
+                "run_checkpoint",
+                "--run (its checkpoint.bin changed since the search began)",
+            ),
+            ("dataset", "--dataset"),
+            ("val", "--val"),
+            ("pitch_um", "--pitch-um"),
+        ];
+        util::check_inputs(
+            &inputs_path,
+            &inputs,
+            &[&keys[..], &CAMERA_KEYS[..]].concat(),
+            "--run",
+        )?;
+    }
+    util::write_atomic(&inputs_path, format!("{inputs}\n").as_bytes())?;
     if state_path.exists() {
         r.resume(&state_path).context("--run (resume)")?;
         eprintln!(

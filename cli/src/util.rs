@@ -162,6 +162,47 @@ impl Digest {
     }
 }
 
+/// The identity of a rendered dataset for a resume check: the digest of its records
+/// (dataset.json and frames.jsonl), not its path, so that a copy of it resumes and other
+/// frames do not.
+pub fn dataset_digest(flag: &str, dir: &Path) -> Result<String> {
+    let mut d = Digest::default();
+    for f in ["dataset.json", "frames.jsonl"] {
+        d.file(&dir.join(f))
+            .with_context(|| format!("{flag} {}", dir.display()))?;
+    }
+    Ok(d.hex())
+}
+
+/// Refuses to resume a run whose inputs `now` (a JSON object) differ from those recorded in
+/// `path` when it started, naming the flag of the first key of `keys` (key, flag) that
+/// differs; keys the record lacks (a run begun before they were recorded) are not compared.
+/// Without a record there is nothing to compare. `out` is the flag naming the run directory.
+pub fn check_inputs(
+    path: &Path,
+    now: &serde_json::Value,
+    keys: &[(&str, &str)],
+    out: &str,
+) -> Result<()> {
+    let Ok(text) = std::fs::read_to_string(path) else {
+        return Ok(());
+    };
+    let had: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("{out} (resume): {} is not JSON", path.display()))?;
+    for &(key, flag) in keys {
+        if let Some(old) = had.get(key) {
+            let new = &now[key];
+            if old != new {
+                bail!(
+                    "{flag}: differs from the run being resumed ({} records {key} = {old},                      this command gives {new}); use the original value or another {out}",
+                    path.display()
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
 /// One line of JSONL input as text: `raw` without its line ending; line 1 loses a leading
 /// UTF-8 byte-order mark. Fails (naming the byte offset) when the line is not UTF-8, so the
 /// caller can report that one line and go on.

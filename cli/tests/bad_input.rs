@@ -490,6 +490,23 @@ fn fisher_init_resume_refuses_changed_parameters_and_keeps_one_checkpoint_file()
             .collect();
         refused(&args, flag, p);
     }
+    // The PSF window is not in the checkpoint's config: inputs.json holds it.
+    let mut args = base.to_vec();
+    args[7] = "5";
+    args.extend(["--iterations", "2"]);
+    let e = refused(&args, "--window-px", p);
+    assert!(e.contains("differs from the run being resumed"), "{e}");
+    // A resumed run reports the run's first iteration, not the resuming process's: the same
+    // as a run that stops there.
+    let first = |out: std::process::Output| {
+        let v: serde_json::Value = serde_json::from_slice(&succeeded(out).stdout).unwrap();
+        v["l_init_first"].as_f64().unwrap()
+    };
+    let mut fresh = base.to_vec();
+    fresh[3] = "fj";
+    fresh.extend(["--iterations", "1", "--json"]);
+    let a = first(nanoeye(&fresh, p));
+    assert_eq!(first(run(&["--iterations", "2", "--json"])), a);
     // A corrupted checkpoint is refused, not resumed.
     let ck = p.join("fi/checkpoint/checkpoint.bin");
     let mut bytes = std::fs::read(&ck).unwrap();
@@ -1293,6 +1310,7 @@ fn search_embed_runs_resumes_and_names_its_bad_flags() {
         "metrics.json",
         "init.json",
         "lens.json",
+        "inputs.json",
     ] {
         assert!(p.join("e").join(f).is_file(), "{f} missing");
     }
@@ -1308,6 +1326,9 @@ fn search_embed_runs_resumes_and_names_its_bad_flags() {
     // Another rate or another starting lens is refused, naming it; nothing is changed.
     refused(&args(&run(&["--lr-phase-rad", "0.01"])), "lr_rad", p);
     refused(&args(&run(&["--lens", "double-helix"])), "--lens", p);
+    // So is a chain setting the checkpoint does not hold (inputs.json).
+    let e = refused(&args(&run(&["--base-pitch-um", "1"])), "--base-pitch-um", p);
+    assert!(e.contains("differs from the run being resumed"), "{e}");
     assert_eq!(std::fs::read(p.join("e/phase.npy")).unwrap(), phase);
 }
 
@@ -1420,6 +1441,14 @@ fn search_train_embedding_term_runs_resumes_and_names_its_bad_flags() {
     );
     // Without the term: the run's triplet set is part of its lens.
     refused(&args(&run(&[])), "--embed-triplets", p);
+    // The data and the chain's settings no checkpoint holds are the run's too (inputs.json).
+    for (more, flag) in [
+        (["--base-pitch-um", "1"], "--base-pitch-um"),
+        (["--val", "tv"], "--val"),
+    ] {
+        let e = refused(&args(&run(&[&with[..], &more[..]].concat())), flag, p);
+        assert!(e.contains("differs from the run being resumed"), "{e}");
+    }
     assert_eq!(std::fs::read(p.join("o/phase.npy")).unwrap(), phase);
 }
 

@@ -403,6 +403,25 @@ fn search_train_and_rea_resume_to_the_same_bytes() {
         },
         root.path(),
     );
+    // A resume with a chain setting or data other than the search began with is refused
+    // (rea_inputs.json), and changes nothing.
+    let before = tree(&searched);
+    for (more, flag) in [
+        (&["--base-pitch-um", "1"][..], "--base-pitch-um"),
+        (&["--val", "ds"][..], "--val"),
+    ] {
+        let args: Vec<&str> = rea.iter().copied().chain(more.iter().copied()).collect();
+        let out = common::nanoeye(&args, &searched);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(flag) && err.contains("differs from the run"),
+            "{more:?}: {err}"
+        );
+    }
+    assert!(
+        tree(&searched) == before,
+        "a refused resume changed the run"
+    );
     // The Pareto points of the search's subnets and uniform draws; the run given twice, so
     // that a kill can leave one lens finished and the next one partial in the state.
     let pareto: Vec<&str> = [&["search", "pareto"][..], &TINY_CHAIN[4..]]
