@@ -681,8 +681,10 @@ pub fn run(a: RunArgs) -> Result<()> {
         }
         if old != cfg {
             bail!(
-                "--out: {} holds a run with another configuration; use a new --out or the same --config",
-                out.display()
+                "--out: {} holds a run with another configuration ({}); use a new --out or the \
+                 same --config and --set",
+                out.display(),
+                differing_keys(&serde_json::to_value(&old)?, &now)
             );
         }
     } else {
@@ -1478,4 +1480,30 @@ fn print_result(result: &serde_json::Value, json: bool) -> Result<()> {
         result["v_deg"].as_f64().unwrap_or(0.0)
     );
     Ok(())
+}
+
+/// The top-level keys whose values differ between a run's configuration `was` and `now`, each
+/// with both values (shortened), for the refusal of a resume.
+fn differing_keys(was: &serde_json::Value, now: &serde_json::Value) -> String {
+    let short = |v: Option<&serde_json::Value>| {
+        let t = v.map_or("(none)".to_string(), |v| v.to_string());
+        match t.char_indices().nth(40) {
+            Some((i, _)) => format!("{}…", &t[..i]),
+            None => t,
+        }
+    };
+    let (Some(w), Some(n)) = (was.as_object(), now.as_object()) else {
+        return String::new();
+    };
+    n.iter()
+        .filter(|&(k, v)| w.get(k) != Some(v))
+        .map(|(k, v)| {
+            format!(
+                "`{k}`: {} in the run, {} now",
+                short(w.get(k)),
+                short(Some(v))
+            )
+        })
+        .collect::<Vec<_>>()
+        .join("; ")
 }

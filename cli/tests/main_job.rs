@@ -360,7 +360,11 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     );
     let other = with_set("seed=1");
     assert!(!other.status.success());
-    assert!(String::from_utf8_lossy(&other.stderr).contains("another configuration"));
+    let err = String::from_utf8_lossy(&other.stderr);
+    assert!(
+        err.contains("another configuration") && err.contains("`seed`: 0 in the run, 1 now"),
+        "{err}"
+    );
     // Another configuration in the same directory is refused.
     // (a valid configuration, so it is the directory check that refuses it)
     let tiny = std::fs::read_to_string(&cfg).unwrap();

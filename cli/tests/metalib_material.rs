@@ -133,7 +133,10 @@ fn the_sweep_manifest_records_the_material_and_a_resume_with_another_is_refused(
     let out = sweep("green-2008-csi");
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
-        !out.status.success() && err.contains("different parameters"),
+        !out.status.success()
+            && err.contains("different parameters")
+            && err.contains("`materials`")
+            && err.contains("`material`"),
         "{err}"
     );
 }

@@ -539,10 +539,29 @@ pub fn open_sweep(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibE
                     reason: e.to_string(),
                 })?;
         if old.config != manifest.config || old.version != manifest.version {
+            // Name what differs: the format, or the configuration's fields.
+            let what = if old.version != manifest.version {
+                format!(
+                    "format version {} there, {} here",
+                    old.version, manifest.version
+                )
+            } else {
+                let fields = |c: &SweepConfig| match serde_json::to_value(c) {
+                    Ok(serde_json::Value::Object(m)) => m,
+                    _ => serde_json::Map::new(),
+                };
+                let (was, now) = (fields(&old.config), fields(&manifest.config));
+                now.iter()
+                    .filter(|&(k, v)| was.get(k) != Some(v))
+                    .map(|(k, _)| format!("`{k}`"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            };
             return Err(MetalibError::param(
                 "out",
                 format!(
-                    "{} holds a sweep with different parameters; use another directory",
+                    "{} holds a sweep with different parameters ({what}); use another directory \
+                     or the same parameters",
                     dir.display()
                 ),
             ));
