@@ -348,30 +348,11 @@ fn sweep(
     // buffers by the assertions above.
     let mut m = 0;
     if sw.cols < 4 {
-        while m + 4 <= sw.rows {
-            let mut j = 0;
-            while j + 2 <= sw.cols {
-                unsafe { outputs::<4, 2>(sw, src, i, offs, wv, out, o, (m, j)) };
-                j += 2;
-            }
-            if j < sw.cols {
-                unsafe { outputs::<4, 1>(sw, src, i, offs, wv, out, o, (m, j)) };
-            }
-            m += 4;
-        }
+        // SAFETY: see above.
+        unsafe { tiles::<4, 2>(sw, (src, i), offs, wv, (out, o), &mut m) };
     } else if sw.cols < 8 {
-        while m + 2 <= sw.rows {
-            let mut j = 0;
-            while j + 4 <= sw.cols {
-                unsafe { outputs::<2, 4>(sw, src, i, offs, wv, out, o, (m, j)) };
-                j += 4;
-            }
-            while j < sw.cols {
-                unsafe { outputs::<2, 1>(sw, src, i, offs, wv, out, o, (m, j)) };
-                j += 1;
-            }
-            m += 2;
-        }
+        // SAFETY: see above.
+        unsafe { tiles::<2, 4>(sw, (src, i), offs, wv, (out, o), &mut m) };
     }
     for m in m..sw.rows {
         let mut j = 0;
@@ -387,6 +368,37 @@ fn sweep(
             unsafe { outputs::<1, 1>(sw, src, i, offs, wv, out, o, (m, j)) };
             j += 1;
         }
+    }
+}
+
+/// Rows `*m ..` of `sw` in tiles of R rows while R are left (`*m` advanced past them): N
+/// outputs of each row at a time, then the row's last `cols mod N` one at a time.
+///
+/// # Safety
+/// The CPU has AVX2 and FMA; every row and column of `sw` is inside `src` and `out` (checked
+/// by [`sweep`]).
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn tiles<const R: usize, const N: usize>(
+    sw: &Sweep,
+    (src, i): (&[f32], usize),
+    offs: &[usize],
+    wv: &[f32],
+    (out, o): (&mut [f32], usize),
+    m: &mut usize,
+) {
+    while *m + R <= sw.rows {
+        let mut j = 0;
+        // SAFETY (both): rows *m .. *m + R ≤ rows, columns j .. j + N ≤ cols (contract).
+        while j + N <= sw.cols {
+            unsafe { outputs::<R, N>(sw, src, i, offs, wv, out, o, (*m, j)) };
+            j += N;
+        }
+        while j < sw.cols {
+            unsafe { outputs::<R, 1>(sw, src, i, offs, wv, out, o, (*m, j)) };
+            j += 1;
+        }
+        *m += R;
     }
 }
 
