@@ -109,8 +109,7 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
     let lens_json = serde_json::json!({ "lens": a.lens }).to_string();
     // The data and the chain's other settings, which the checkpoint does not hold.
     let inputs_path = a.out.join("inputs.json");
-    let mut inputs = a.chain.camera.record();
-    inputs["dataset"] = serde_json::json!(util::dataset_digest("--dataset", &a.chain.dataset)?);
+    let inputs = a.chain.inputs(None)?;
     if ck.exists() {
         util::check_inputs(
             &inputs_path,

@@ -614,12 +614,7 @@ impl Key {
 
     fn new(a: &ParetoArgs, runs: &[PathBuf], archs: &[Arch]) -> Result<Key> {
         let data = |flag: &str, dir: &Path| -> Result<(String, String)> {
-            let mut d = util::Digest::default();
-            for f in ["dataset.json", "frames.jsonl"] {
-                d.file(&dir.join(f))
-                    .with_context(|| format!("{flag} {}", dir.display()))?;
-            }
-            Ok((dir.display().to_string(), d.hex()))
+            Ok((dir.display().to_string(), util::dataset_digest(flag, dir)?))
         };
         Ok(Key {
             runs: runs

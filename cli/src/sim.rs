@@ -40,6 +40,21 @@ pub struct ChainArgs {
 }
 
 impl ChainArgs {
+    /// What a resumable run on this chain records to check a resume ([`util::check_inputs`]):
+    /// the camera flags ([`CAMERA_KEYS`]), the digest of `--dataset` and, given `val` (the
+    /// `--val` flag's set, or `None` for none), `"val"`: its digest or null.
+    pub fn inputs(&self, val: Option<Option<&Path>>) -> Result<serde_json::Value> {
+        let mut v = self.camera.record();
+        v["dataset"] = serde_json::json!(util::dataset_digest("--dataset", &self.dataset)?);
+        if let Some(val) = val {
+            v["val"] = match val {
+                Some(p) => serde_json::json!(util::dataset_digest("--val", p)?),
+                None => serde_json::Value::Null,
+            };
+        }
+        Ok(v)
+    }
+
     /// Opens the dataset and builds the chain, naming the flag behind a bad value.
     pub fn build(&self) -> Result<(Dataset, CameraChain)> {
         let ds = Dataset::open(&self.dataset)

@@ -449,12 +449,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
     // The data and the chain's other settings, which no checkpoint holds: a resume with
     // others would mix two runs (docs/formats.md, "Resume records").
     let inputs_path = a.out.join("inputs.json");
-    let mut inputs = a.chain.camera.record();
-    inputs["dataset"] = serde_json::json!(util::dataset_digest("--dataset", &a.chain.dataset)?);
-    inputs["val"] = match &a.val {
-        Some(p) => serde_json::json!(util::dataset_digest("--val", p)?),
-        None => serde_json::Value::Null,
-    };
+    let inputs = a.chain.inputs(Some(a.val.as_deref()))?;
     // Rank 0 reads the checkpoint and sends it (empty: none), so --out need not be shared.
     let resume = if w.is_root() {
         util::check_output_target(&ck)?;
@@ -818,13 +813,8 @@ pub fn rea(a: ReaArgs) -> Result<()> {
     // What the candidates are trained and scored on besides the search's settings: the
     // trained run, the data and the chain. A resume with others would mix two searches.
     let inputs_path = a.run.join("rea_inputs.json");
-    let mut inputs = a.chain.camera.record();
+    let mut inputs = a.chain.inputs(Some(a.val.as_deref()))?;
     inputs["pitch_um"] = serde_json::json!(a.chain.pitch_um);
-    inputs["dataset"] = serde_json::json!(util::dataset_digest("--dataset", &a.chain.dataset)?);
-    inputs["val"] = match &a.val {
-        Some(p) => serde_json::json!(util::dataset_digest("--val", p)?),
-        None => serde_json::Value::Null,
-    };
     let mut d = util::Digest::default();
     d.file(&ck)
         .with_context(|| format!("--run {}", a.run.display()))?;
