@@ -523,14 +523,20 @@ fn sweep_distributed(
 ) -> Result<Option<(sweep::Manifest, serde_json::Value)>> {
     use crate::dist::{bytes_f64, f64_bytes, frame, unframe};
     let grid = sweep::sweep_grid(config)?;
-    // Rank 0 refuses another sweep's directory before anyone computes.
-    let vouched = if w.is_root() {
-        serde_json::to_vec(&sweep::open_sweep(config, dir)?.block_fnv1a64)?
-    } else {
-        Vec::new()
-    };
-    let vouched: std::collections::BTreeMap<usize, String> =
-        serde_json::from_slice(&w.broadcast(vouched))?;
+    // A finished sweep is returned as it stands; rank 0 tells every rank so, and they stop.
+    let done = w
+        .is_root()
+        .then(|| sweep::completed_sweep(config, dir))
+        .flatten();
+    if w.broadcast(vec![u8::from(done.is_some())]) == [1] {
+        return Ok(done.map(|m| (m, serde_json::Value::Null)));
+    }
+    // Rank 0 refuses another sweep's directory before anyone computes; a refusal ends the
+    // run there (the others wait in the broadcast).
+    if w.is_root() {
+        sweep::open_sweep(config, dir)?;
+    }
+    w.broadcast(Vec::new());
     let shares = sweep::plan_shares(&grid, w.size());
     let mine = &shares[w.rank()];
     let cells = (mine.len() * grid.heights_m.len() * grid.fractions.len()) as u64;
@@ -538,7 +544,7 @@ fn sweep_distributed(
     let total = if w.is_root() { cells } else { 0 };
     let t_share = std::time::Instant::now();
     let blocks = sweep::with_progress(total, |report| {
-        sweep::solve_share(config, dir, mine, &vouched, report)
+        sweep::solve_share(config, dir, mine, report)
     })?;
     let share_s = t_share.elapsed().as_secs_f64();
     let shares_s = w.gather(share_s.to_le_bytes().to_vec());

@@ -98,8 +98,9 @@ fn sweep_on_two_ranks_is_byte_identical_and_resumes_a_killed_share() {
     assert_same_tree(&p.join("one"), &p.join("two"));
 
     // A run whose rank 1 fails (its first checkpoint target is a directory) ends with that
-    // rank's message; every block left on disk is complete (it has its side file), and the
-    // rerun resumes from them to the same bytes. The cost plan gives rank 1 pitches 1 and 2.
+    // rank's message; every block left on disk is whole (a block of 3 heights × 3 fractions
+    // is 24 + 9 × 32 bytes), and the rerun resumes from them to the same bytes. The cost plan
+    // gives rank 1 pitches 1 and 2.
     let partial = p.join("three/partial");
     std::fs::create_dir_all(partial.join("pitch_0001.bin")).unwrap();
     let o = mpirun(
@@ -111,12 +112,7 @@ fn sweep_on_two_ranks_is_byte_identical_and_resumes_a_killed_share() {
     assert!(!o.status.success());
     assert!(err.contains("error (rank 1 of 2)"), "{err}");
     assert!(err.contains("pitch_0001.bin"), "{err}");
-    for e in std::fs::read_dir(&partial).unwrap() {
-        let f = e.unwrap().path();
-        if f.extension().is_some_and(|x| x == "bin") && f.is_file() {
-            assert!(f.with_extension("fnv").exists(), "{}", f.display());
-        }
-    }
+    assert!(only_whole_blocks(&partial, 9));
     std::fs::remove_dir(partial.join("pitch_0001.bin")).unwrap();
     let o = ok(
         mpirun(
@@ -322,6 +318,33 @@ fn ranks_in(cwd: &Path) -> Vec<(u32, usize)> {
     out
 }
 
+/// The pitch block checkpoints in `partial` (their temporary files, named `.nanoeye-tmp-…`,
+/// left out).
+fn blocks_in(partial: &Path) -> usize {
+    std::fs::read_dir(partial).map_or(0, |d| {
+        d.flatten()
+            .filter(|e| {
+                let n = e.file_name().to_string_lossy().into_owned();
+                n.starts_with("pitch_") && n.ends_with(".bin") && e.path().is_file()
+            })
+            .count()
+    })
+}
+
+/// Whether every file in `partial` but the temporary ones is a whole block of `cells` cells
+/// (directories are left out):
+/// 24 bytes of header and hash around 32 per cell (metalib's sweep checkpoints).
+fn only_whole_blocks(partial: &Path, cells: u64) -> bool {
+    std::fs::read_dir(partial).unwrap().flatten().all(|e| {
+        let n = e.file_name().to_string_lossy().into_owned();
+        n.starts_with(".nanoeye-tmp-")
+            || e.path().is_dir()
+            || (n.starts_with("pitch_")
+                && n.ends_with(".bin")
+                && e.metadata().is_ok_and(|m| m.len() == 24 + 32 * cells))
+    })
+}
+
 /// `kill -9` of rank 1 while a two-rank sweep runs ends the job (mpirun names the rank) and
 /// leaves only complete blocks; the same command resumes them to one process's bytes.
 #[test]
@@ -362,14 +385,7 @@ fn a_sweep_whose_rank_is_killed_resumes_to_the_same_bytes() {
     // Once the first block is on disk, rank 1 dies.
     let partial = p.join("killed/partial");
     let t0 = std::time::Instant::now();
-    let blocks = || {
-        std::fs::read_dir(&partial).map_or(0, |d| {
-            d.flatten()
-                .filter(|e| e.path().extension().is_some_and(|x| x == "fnv"))
-                .count()
-        })
-    };
-    while blocks() == 0 {
+    while blocks_in(&partial) == 0 {
         assert!(
             job.try_wait().unwrap().is_none(),
             "the sweep ended before its first block"
@@ -392,14 +408,9 @@ fn a_sweep_whose_rank_is_killed_resumes_to_the_same_bytes() {
     assert!(!o.status.success(), "the job survived its rank: {err}");
     assert!(err.contains("rank 1"), "{err}");
     assert!(err.contains("signal 9") || err.contains("Killed"), "{err}");
-    let done = std::fs::read_dir(&partial)
-        .unwrap()
-        .flatten()
-        .map(|e| e.path())
-        .filter(|f| f.extension().is_some_and(|x| x == "bin"))
-        .inspect(|f| assert!(f.with_extension("fnv").exists(), "{}", f.display()))
-        .count();
-    assert!(done >= 1);
+    // 9 heights × 17 fractions per block.
+    assert!(blocks_in(&partial) >= 1);
+    assert!(only_whole_blocks(&partial, 153));
     assert!(
         !p.join("killed/phase.npy").exists(),
         "the killed job wrote its arrays: kill it earlier"

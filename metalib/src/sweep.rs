@@ -3,8 +3,9 @@
 //! Layout of an output directory: `manifest.json`, `phase.npy`, `transmittance.npy`, `t_re.npy`,
 //! `t_im.npy` (f64, C order, shape [n_heights, n_pitches, n_fractions]), and while running
 //! `partial/pitch_XXXX.bin` checkpoints (one per completed pitch), removed when the sweep
-//! completes. A restarted sweep with the same manifest reuses every completed pitch whose
-//! bytes match the FNV-1a 64-bit hash the manifest records for it (`block_fnv1a64`).
+//! completes. Each checkpoint is one file that vouches for itself (the configuration's hash
+//! and a hash of its own bytes inside it), so a restarted sweep, on any number of processes,
+//! reuses every completed pitch of the same configuration whose file is intact.
 
 use crate::error::MetalibError;
 use crate::material::Materials;
@@ -124,8 +125,8 @@ pub struct Manifest {
     pub failed_cells: usize,
     /// Whether every pitch is complete.
     pub complete: bool,
-    /// FNV-1a 64-bit hash (hex) of each completed `partial/pitch_XXXX.bin`, by pitch index.
-    /// A resumed sweep reuses a block only when its bytes hash to the recorded value.
+    /// FNV-1a 64-bit hash (hex) of each completed `partial/pitch_XXXX.bin`, by pitch index: a
+    /// record of the blocks on disk (each block vouches for itself; a resume reads the files).
     #[serde(default)]
     pub block_fnv1a64: std::collections::BTreeMap<usize, String>,
 }
@@ -268,20 +269,47 @@ fn checkpoint_path(dir: &Path, is: usize) -> PathBuf {
     dir.join("partial").join(format!("pitch_{is:04}.bin"))
 }
 
-/// Per-pitch block: for each fraction, for each height, (phase, τ, Re t, Im t).
-fn encode_block(block: &[[f64; 4]]) -> Vec<u8> {
-    block
-        .iter()
-        .flat_map(|c| c.iter().flat_map(|v| v.to_le_bytes()))
-        .collect()
+/// First eight bytes of a pitch block checkpoint.
+const BLOCK_MAGIC: [u8; 8] = *b"NEOSWB02";
+/// Bytes of a checkpoint around its cells: the magic and the configuration's hash before,
+/// the file's own hash after.
+const BLOCK_FRAME: usize = 24;
+
+/// A pitch block's checkpoint, one file that vouches for itself: [`BLOCK_MAGIC`], the
+/// configuration's hash ([`config_hash`], u64 LE), for each fraction for each height
+/// (phase, τ, Re t, Im t) as f64 LE, then the FNV-1a 64 of all the bytes before (u64 LE).
+fn encode_block(block: &[[f64; 4]], config_hash: u64) -> Vec<u8> {
+    let mut b = Vec::with_capacity(BLOCK_FRAME + 32 * block.len());
+    b.extend_from_slice(&BLOCK_MAGIC);
+    b.extend_from_slice(&config_hash.to_le_bytes());
+    b.extend(
+        block
+            .iter()
+            .flat_map(|c| c.iter().flat_map(|v| v.to_le_bytes())),
+    );
+    let h = fnv1a64(&b);
+    b.extend_from_slice(&h.to_le_bytes());
+    b
 }
 
-fn decode_block(bytes: &[u8], expect: usize) -> Option<Vec<[f64; 4]>> {
-    if bytes.len() != expect * 32 {
+/// The `expect` cells of a checkpoint written by [`encode_block`] for the configuration of
+/// hash `config_hash`; None for a file truncated, altered, of another configuration or in
+/// the older format (cells alone, vouched for by a side file), which is then solved again.
+fn decode_block(bytes: &[u8], expect: usize, config_hash: u64) -> Option<Vec<[f64; 4]>> {
+    if bytes.len() != BLOCK_FRAME + expect * 32 {
+        return None;
+    }
+    let le = |b: &[u8]| {
+        let mut a = [0u8; 8];
+        a.copy_from_slice(b);
+        u64::from_le_bytes(a)
+    };
+    let (body, tail) = bytes.split_at(bytes.len() - 8);
+    if body[..8] != BLOCK_MAGIC || le(&body[8..16]) != config_hash || le(tail) != fnv1a64(body) {
         return None;
     }
     Some(
-        bytes
+        body[16..]
             .chunks_exact(32)
             .map(|c| {
                 let mut v = [0.0; 4];
@@ -426,42 +454,23 @@ pub fn share_imbalance(grid: &SweepGrid, shares: &[Vec<usize>]) -> f64 {
     }
 }
 
-/// FNV-1a 64-bit (hex) of the configuration's JSON: ties a checkpoint block's side file to
-/// the sweep that wrote it.
-fn config_fnv(config: &SweepConfig) -> String {
-    format!(
-        "{:016x}",
-        fnv1a64(&serde_json::to_vec(config).unwrap_or_default())
-    )
+/// FNV-1a 64-bit of the configuration's JSON: ties a checkpoint block to the sweep that
+/// wrote it.
+fn config_hash(config: &SweepConfig) -> u64 {
+    fnv1a64(&serde_json::to_vec(config).unwrap_or_default())
 }
 
-fn sidecar_path(dir: &Path, is: usize) -> PathBuf {
-    dir.join("partial").join(format!("pitch_{is:04}.fnv"))
-}
-
-/// Reads pitch `is`'s checkpoint block back if something vouches for exactly its bytes:
-/// the manifest's record (`vouched`, a single-process run) or the block's side file written
-/// by a distributed run for the same configuration. A corrupted or unrecorded block is None.
+/// Pitch `is`'s checkpoint block read back, with the FNV-1a 64 (hex) of the file the
+/// manifest records, if the file is a whole block of this configuration ([`decode_block`]).
 fn restore_block(
     dir: &Path,
     is: usize,
     cells: usize,
-    vouched: &std::collections::BTreeMap<usize, String>,
-    config_hash: &str,
+    config_hash: u64,
 ) -> Option<(Vec<[f64; 4]>, String)> {
     let bytes = std::fs::read(checkpoint_path(dir, is)).ok()?;
-    let have = format!("{:016x}", fnv1a64(&bytes));
-    let by_manifest = vouched.get(&is).is_some_and(|w| *w == have);
-    let by_sidecar = || {
-        std::fs::read_to_string(sidecar_path(dir, is))
-            .ok()
-            .is_some_and(|t| t.trim() == format!("{config_hash} {have}"))
-    };
-    if by_manifest || by_sidecar() {
-        decode_block(&bytes, cells).map(|b| (b, have))
-    } else {
-        None
-    }
+    let block = decode_block(&bytes, cells, config_hash)?;
+    Some((block, format!("{:016x}", fnv1a64(&bytes))))
 }
 
 /// Solves one pitch's block: per fraction (rayon-parallel) the column of every height.
@@ -523,8 +532,8 @@ fn write_manifest(dir: &Path, manifest: &Manifest) -> Result<(), MetalibError> {
     write_atomic(&dir.join("manifest.json"), &json)
 }
 
-/// Opens `dir` for `config`: refuses a directory holding another sweep, keeps the block
-/// hashes an interrupted run recorded, and writes the (incomplete) manifest. The first step
+/// Opens `dir` for `config`: refuses a directory holding another sweep, keeps the record of
+/// the blocks an interrupted run left intact, and writes the (incomplete) manifest. The first step
 /// of [`run_sweep`]; a distributed run calls it on one process only.
 pub fn open_sweep(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibError> {
     let grid = sweep_grid(config)?;
@@ -570,25 +579,23 @@ pub fn open_sweep(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibE
     }
     // Keep only the records whose block is still there and intact.
     let cells = grid.heights_m.len() * grid.fractions.len();
-    let chash = config_fnv(config);
-    let vouched = manifest.block_fnv1a64.clone();
+    let chash = config_hash(config);
     manifest
         .block_fnv1a64
-        .retain(|is, _| restore_block(dir, *is, cells, &vouched, &chash).is_some());
+        .retain(|is, _| restore_block(dir, *is, cells, chash).is_some());
     write_manifest(dir, &manifest)?;
     Ok(manifest)
 }
 
 /// Solves (or restores) the pitch blocks `share` of a sweep opened by [`open_sweep`] and
 /// returns them as (pitch index, block `[fraction][height]` of (phase, τ, Re t, Im t)).
-/// Each block solved is checkpointed at once to `partial/pitch_XXXX.bin` with a side file
-/// `pitch_XXXX.fnv` (configuration hash and block hash), so an interrupted share resumes on
-/// any number of processes. `vouched` is the manifest's block record.
+/// Each block solved is checkpointed at once to `partial/pitch_XXXX.bin`, one atomic file
+/// holding the configuration's hash and its own ([`encode_block`]), so an interrupted share
+/// resumes on any number of processes.
 pub fn solve_share(
     config: &SweepConfig,
     dir: &Path,
     share: &[usize],
-    vouched: &std::collections::BTreeMap<usize, String>,
     progress: &(dyn Fn(u64, bool) + Sync),
 ) -> Result<Vec<PitchBlock>, MetalibError> {
     let grid = sweep_grid(config)?;
@@ -601,10 +608,10 @@ pub fn solve_share(
     }
     std::fs::create_dir_all(dir.join("partial")).map_err(|e| io_err(dir, e))?;
     let cells = grid.heights_m.len() * grid.fractions.len();
-    let chash = config_fnv(config);
+    let chash = config_hash(config);
     let mut out = Vec::with_capacity(share.len());
     for &is in share {
-        if let Some((b, _)) = restore_block(dir, is, cells, vouched, &chash) {
+        if let Some((b, _)) = restore_block(dir, is, cells, chash) {
             progress(cells as u64, true);
             out.push((is, b));
         }
@@ -614,10 +621,7 @@ pub fn solve_share(
             continue;
         }
         let block = solve_block(config, &grid, is, progress);
-        let bytes = encode_block(&block);
-        write_atomic(&checkpoint_path(dir, is), &bytes)?;
-        let side = format!("{chash} {:016x}\n", fnv1a64(&bytes));
-        write_atomic(&sidecar_path(dir, is), side.as_bytes())?;
+        write_atomic(&checkpoint_path(dir, is), &encode_block(&block, chash))?;
         out.push((is, block));
     }
     out.sort_by_key(|(is, _)| *is);
@@ -675,20 +679,36 @@ pub fn finish_sweep(
     Ok(manifest)
 }
 
+/// The manifest of a complete sweep of `config` in `dir` whose arrays read back (shapes and
+/// values checked by [`load_sweep`]), or None: a rerun of a finished sweep returns it instead
+/// of solving every cell again, since the checkpoints it would resume from are gone.
+pub fn completed_sweep(config: &SweepConfig, dir: &Path) -> Option<Manifest> {
+    let grid = sweep_grid(config).ok()?;
+    let old: Manifest =
+        serde_json::from_slice(&std::fs::read(dir.join("manifest.json")).ok()?).ok()?;
+    let fresh = fresh_manifest(config, &grid);
+    let same = old.complete && old.config == fresh.config && old.version == fresh.version;
+    (same && load_sweep(dir).is_ok()).then_some(old)
+}
+
 /// Runs (or resumes) a sweep into `dir`, reporting completed cells to `progress` as
-/// (cells, restored): `restored` is true for cells read back from a checkpoint.
+/// (cells, restored): `restored` is true for cells read back from a checkpoint or from the
+/// arrays of a sweep already complete.
 pub fn run_sweep(
     config: &SweepConfig,
     dir: &Path,
     progress: &(dyn Fn(u64, bool) + Sync),
 ) -> Result<Manifest, MetalibError> {
     let grid = sweep_grid(config)?;
+    if let Some(done) = completed_sweep(config, dir) {
+        progress(done.shape.iter().product::<usize>() as u64, true);
+        return Ok(done);
+    }
     let mut manifest = open_sweep(config, dir)?;
-    let vouched = manifest.block_fnv1a64.clone();
     let mut blocks = Vec::with_capacity(grid.pitches_m.len());
     for is in 0..grid.pitches_m.len() {
         // One pitch at a time, each recorded in the manifest as soon as it is on disk.
-        let mut b = solve_share(config, dir, &[is], &vouched, progress)?;
+        let mut b = solve_share(config, dir, &[is], progress)?;
         if let Ok(bytes) = std::fs::read(checkpoint_path(dir, is)) {
             manifest
                 .block_fnv1a64
@@ -745,7 +765,7 @@ pub fn with_progress<R>(total: u64, work: impl FnOnce(&(dyn Fn(u64, bool) + Sync
                     t * (total - d) as f64 / computed as f64
                 )
             } else {
-                " (restored from checkpoints)".to_string()
+                " (restored: nothing solved)".to_string()
             };
             eprintln!(
                 "sweep: {:.0} % ({d}/{total} cells), {t:.0} s elapsed{left}",
@@ -898,11 +918,9 @@ mod bad_input_tests {
         let real = load_sweep(dir.path()).unwrap();
         // Fake an interrupted run whose pitch-0 block holds marker values.
         let fake = vec![[0.5, 0.25, 0.5, 0.0]; 2];
-        let bytes = encode_block(&fake);
+        let bytes = encode_block(&fake, config_hash(&cfg));
         let mut m = done.clone();
         m.complete = false;
-        m.block_fnv1a64
-            .insert(0, format!("{:016x}", fnv1a64(&bytes)));
         let write_state = |block: &[u8]| {
             std::fs::create_dir_all(dir.path().join("partial")).unwrap();
             write_atomic(&checkpoint_path(dir.path(), 0), block).unwrap();
@@ -913,15 +931,28 @@ mod bad_input_tests {
         run_sweep(&cfg, dir.path(), &|_, _| {}).unwrap();
         let resumed = load_sweep(dir.path()).unwrap();
         assert_eq!(resumed.transmittance[0], 0.25, "intact block is reused");
-        let mut flipped = bytes.clone();
-        flipped[9] ^= 0x40;
-        write_state(&flipped);
-        run_sweep(&cfg, dir.path(), &|_, _| {}).unwrap();
-        let redone = load_sweep(dir.path()).unwrap();
-        assert_eq!(
-            redone.transmittance, real.transmittance,
-            "corrupt block is recomputed"
-        );
+        // One bit flipped in a cell, the header or the hash; the block cut short; another
+        // configuration's block; the cells alone (the older format): each is solved again.
+        let other = encode_block(&fake, config_hash(&cfg) ^ 1);
+        let n = bytes.len();
+        let mut bad: Vec<Vec<u8>> = [20, 3, 9, n - 2]
+            .iter()
+            .map(|&i| {
+                let mut b = bytes.clone();
+                b[i] ^= 0x40;
+                b
+            })
+            .collect();
+        bad.extend([bytes[..n - 1].to_vec(), other, bytes[16..n - 8].to_vec()]);
+        for b in bad {
+            write_state(&b);
+            run_sweep(&cfg, dir.path(), &|_, _| {}).unwrap();
+            let redone = load_sweep(dir.path()).unwrap();
+            assert_eq!(
+                redone.transmittance, real.transmittance,
+                "corrupt block is recomputed"
+            );
+        }
     }
 
     #[test]
@@ -959,10 +990,9 @@ mod bad_input_tests {
         let one = tempfile::tempdir().unwrap();
         run_sweep(&cfg, one.path(), &|_, _| {}).unwrap();
         let m = open_sweep(&cfg, dir.path()).unwrap();
-        let none = std::collections::BTreeMap::new();
         let solved = |share: &[usize]| {
             let restored = std::sync::atomic::AtomicU64::new(0);
-            let b = solve_share(&cfg, dir.path(), share, &none, &|n, r| {
+            let b = solve_share(&cfg, dir.path(), share, &|n, r| {
                 if r {
                     restored.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
                 }
@@ -972,16 +1002,17 @@ mod bad_input_tests {
         };
         let (b1, r1) = solved(&[1]);
         assert_eq!(r1, 0);
-        // A later run (any share holding pitch 1) restores pitch 1 from its side file.
+        // A later run (any share holding pitch 1) restores pitch 1 from its checkpoint alone.
         let (mut b0, r0) = solved(&[0, 1]);
         assert_eq!(r0, 2, "pitch 1's two cells come back from disk");
         assert_eq!(b0[1], b1[0]);
-        // A side file of another configuration vouches for nothing.
+        // Another configuration's sweep does not take it.
         let other = SweepConfig {
             harmonics: 2,
             ..cfg.clone()
         };
-        assert!(restore_block(dir.path(), 1, 2, &none, &config_fnv(&other)).is_none());
+        assert!(restore_block(dir.path(), 1, 2, config_hash(&other)).is_none());
+        assert!(restore_block(dir.path(), 1, 2, config_hash(&cfg)).is_some());
         b0.reverse();
         let done = finish_sweep(&cfg, dir.path(), b0).unwrap();
         assert!(done.complete && m.shape == done.shape);

@@ -7,6 +7,7 @@ use nanoeye_metalib::rcwa::{CellSpec, LayerModes, Rule};
 use nanoeye_metalib::select::{Criteria, select_curve, unwrap};
 use nanoeye_metalib::sweep::{self, Range, SweepConfig};
 use std::f64::consts::PI;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 
 fn linear_lib(span: f64) -> TabulatedLibrary {
     let d: Vec<f64> = (0..=40).map(|i| (100.0 + 5.0 * i as f64) * 1e-9).collect();
@@ -211,8 +212,27 @@ fn sweep_matches_direct_solves_and_round_trips_npy() {
     let r = modes.at_height(700e-9).unwrap();
     assert!((data.phase[k] - r.phase_rad).abs() < 1e-5);
     assert!((data.transmittance[k] - r.transmittance).abs() < 1e-5);
-    // Re-running on a complete directory with the same parameters is accepted; others are not.
-    assert!(sweep::run_sweep(&cfg, dir.path(), &|_, _| {}).is_ok());
+    // Re-running on a complete directory with the same parameters solves nothing: every cell
+    // comes back restored and the arrays are the same; others are refused.
+    let counts = |cfg: &SweepConfig| {
+        let (solved, restored) = (AtomicU64::new(0), AtomicU64::new(0));
+        let m = sweep::run_sweep(cfg, dir.path(), &|n, r| {
+            if r { &restored } else { &solved }.fetch_add(n, Relaxed);
+        })
+        .unwrap();
+        (m, solved.into_inner(), restored.into_inner())
+    };
+    let cells = data.phase.len() as u64;
+    let (again, solved, restored) = counts(&cfg);
+    assert_eq!((solved, restored), (0, cells));
+    assert_eq!(again.shape, m.shape);
+    let back = sweep::load_sweep(dir.path()).unwrap();
+    assert_eq!(back.phase, data.phase);
+    // A complete manifest whose arrays are gone is not trusted: the sweep is solved again.
+    std::fs::remove_file(dir.path().join("t_im.npy")).unwrap();
+    let (_, solved, restored) = counts(&cfg);
+    assert_eq!((solved, restored), (cells, 0));
+    assert_eq!(sweep::load_sweep(dir.path()).unwrap().t_im, data.t_im);
     let other = SweepConfig {
         harmonics: 3,
         ..cfg
