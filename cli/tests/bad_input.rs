@@ -768,6 +768,12 @@ fn sim_and_search_loss_name_their_bad_flags() {
         "--spp", "1", "--out", "ds2",
     ];
     assert!(nanoeye(&two, p).status.success());
+    // Another set rendered into that directory is refused naming the set, with both values,
+    // before the frame count it implies (the first differing key once named only `frames`).
+    let mut other = two;
+    other[3] = "ambiguity";
+    let err = refused(&other, "`set`: \"envelope\" there, \"ambiguity\" now; `frames`", p);
+    assert!(err.contains("--out"), "{err}");
     for flag in ["--head-refit", "--fit-pitch"] {
         let rea = ["search", "rea", "--dataset", "ds2", "--run", "nope", flag];
         refused(&rea, flag, p);

@@ -588,16 +588,9 @@ impl<'a> Embedder<'a> {
             .and_then(|j| serde_json::from_slice(j).map_err(|e| bad(e.to_string())))?;
         at += jl;
         if meta.config != self.cfg {
-            let a = serde_json::to_value(&meta.config).unwrap_or_default();
-            let c = serde_json::to_value(&self.cfg).unwrap_or_default();
-            let field = a
-                .as_object()
-                .and_then(|x| x.keys().find(|k| x.get(*k) != c.get(*k)).cloned())
-                .unwrap_or_else(|| "?".into());
             return Err(bad(format!(
-                "written with another `{field}` ({} there, {} now): use a new --out",
-                a.get(&field).cloned().unwrap_or_default(),
-                c.get(&field).cloned().unwrap_or_default()
+                "written with other parameters ({}): use a new --out",
+                crate::error::differences(&meta.config, &self.cfg)
             )));
         }
         let n = self.phase.nrows();

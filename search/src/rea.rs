@@ -134,23 +134,6 @@ impl ReaConfig {
     }
 }
 
-/// The fields in which `was` and `now` differ, as `name: was there, now now`.
-fn config_differences(was: &ReaConfig, now: &ReaConfig) -> String {
-    let (Ok(serde_json::Value::Object(a)), Ok(serde_json::Value::Object(b))) =
-        (serde_json::to_value(was), serde_json::to_value(now))
-    else {
-        return String::from("unreadable");
-    };
-    a.iter()
-        .filter(|(k, v)| b.get(*k) != Some(v))
-        .map(|(k, v)| {
-            let n = b.get(k).map_or(String::from("none"), |x| x.to_string());
-            format!("{k}: {v} there, {n} now")
-        })
-        .collect::<Vec<_>>()
-        .join("; ")
-}
-
 /// One evaluated architecture.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Individual {
@@ -383,7 +366,7 @@ impl<'a> Rea<'a> {
                     "{} holds a search with other parameters ({}); use a new --out or the same \
                      flags",
                     path.display(),
-                    config_differences(&st.config, &self.state.config)
+                    crate::error::differences(&st.config, &self.state.config)
                 ),
             ));
         }

@@ -1132,17 +1132,13 @@ impl<'a> Trainer<'a> {
             at,
         };
         if meta.config != self.cfg {
-            let a = serde_json::to_value(&meta.config).unwrap_or_default();
-            let c = serde_json::to_value(&self.cfg).unwrap_or_default();
-            let field = a
-                .as_object()
-                .and_then(|x| x.keys().find(|k| x.get(*k) != c.get(*k)).cloned())
-                .unwrap_or_else(|| "?".into());
             return Err(param(
                 "checkpoint",
                 format!(
-                    "{} was written with a different `{field}`; use a new --out or the same parameters",
-                    path.display()
+                    "{} was written with other parameters ({}); use a new --out or the same \
+                     parameters",
+                    path.display(),
+                    crate::error::differences(&meta.config, &self.cfg)
                 ),
             ));
         }

@@ -523,7 +523,7 @@ fn regularized_evolution_ages_out_the_oldest_and_resumes_exactly() {
     )
     .unwrap();
     let e = other.resume(&state_path).unwrap_err().to_string();
-    assert!(e.contains("gamma: 10.0 there, 1.0 now"), "{e}");
+    assert!(e.contains("`gamma`: 10.0 there, 1.0 now"), "{e}");
     // A count is written as the bare number states held before "all" existed: such a state
     // resumes under `Count(n)` and is refused under `All`, naming the field.
     let saved = std::fs::read_to_string(&state_path).unwrap();
@@ -536,7 +536,7 @@ fn regularized_evolution_ages_out_the_oldest_and_resumes_exactly() {
     };
     let mut other = Rea::new(&c, &ds, &ds, &run, all).unwrap();
     let e = other.resume(&state_path).unwrap_err().to_string();
-    assert!(e.contains(r#"recal_batches: 1 there, "all" now"#), "{e}");
+    assert!(e.contains(r#"`recal_batches`: 1 there, "all" now"#), "{e}");
 }
 
 #[test]

@@ -527,8 +527,37 @@ fn mesh_hash(m: &Mesh) -> u64 {
     h
 }
 
-/// Refuses to add frames to a directory rendered with other parameters: returns which field
-/// differs. A directory without dataset.json but with frames is refused too (unknown origin).
+/// Every field in which two manifests (as JSON objects) differ, the set's first (it decides
+/// the others, e.g. `frames`): `` `name`: A there, B now `` for a number or string,
+/// `` `name` `` alone for a nested value (the rig, the layers). search's refusals word theirs
+/// alike (`nanoeye_search::error::differences`; that crate sits above this one).
+fn differences(a: &serde_json::Value, b: &serde_json::Value) -> String {
+    let (Some(a), Some(b)) = (a.as_object(), b.as_object()) else {
+        return String::from("unreadable");
+    };
+    let nested = |v: Option<&serde_json::Value>| v.is_some_and(|v| v.is_object() || v.is_array());
+    let show = |v: Option<&serde_json::Value>| v.map_or_else(|| "none".into(), |v| v.to_string());
+    let mut keys: Vec<&String> = a
+        .keys()
+        .chain(b.keys().filter(|k| !a.contains_key(*k)))
+        .collect();
+    keys.sort_by_key(|k| *k != "set");
+    keys.into_iter()
+        .filter(|k| a.get(*k) != b.get(*k))
+        .map(|k| {
+            let (x, y) = (a.get(k), b.get(k));
+            if nested(x) || nested(y) {
+                format!("`{k}`")
+            } else {
+                format!("`{k}`: {} there, {} now", show(x), show(y))
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+/// Refuses to add frames to a directory rendered with other parameters, naming every field
+/// that differs. A directory without dataset.json but with frames is refused too (unknown origin).
 fn check_existing(dir: &Path, manifest: &DatasetManifest) -> Result<(), RenderError> {
     let path = dir.join("dataset.json");
     match std::fs::read_to_string(&path) {
@@ -544,20 +573,13 @@ fn check_existing(dir: &Path, manifest: &DatasetManifest) -> Result<(), RenderEr
             let a = serde_json::to_value(&old).unwrap_or_default();
             let b = serde_json::to_value(manifest).unwrap_or_default();
             if a != b {
-                let field = match (a.as_object(), b.as_object()) {
-                    (Some(x), Some(y)) => x
-                        .keys()
-                        .chain(y.keys())
-                        .find(|k| x.get(*k) != y.get(*k))
-                        .cloned()
-                        .unwrap_or_else(|| "?".into()),
-                    _ => "?".into(),
-                };
                 return Err(RenderError::Invalid {
                     what: "out",
                     reason: format!(
-                        "{} holds a dataset rendered with a different `{field}`; resuming would mix two runs: use a new --out directory",
-                        dir.display()
+                        "{} holds a dataset rendered with other parameters ({}); resuming would \
+                         mix two runs: use a new --out directory",
+                        dir.display(),
+                        differences(&a, &b)
                     ),
                 });
             }
