@@ -772,7 +772,11 @@ fn sim_and_search_loss_name_their_bad_flags() {
     // before the frame count it implies (the first differing key once named only `frames`).
     let mut other = two;
     other[3] = "ambiguity";
-    let err = refused(&other, "`set`: \"envelope\" there, \"ambiguity\" now; `frames`", p);
+    let err = refused(
+        &other,
+        "`set`: \"envelope\" there, \"ambiguity\" now; `frames`",
+        p,
+    );
     assert!(err.contains("--out"), "{err}");
     for flag in ["--head-refit", "--fit-pitch"] {
         let rea = ["search", "rea", "--dataset", "ds2", "--run", "nope", flag];
