@@ -226,7 +226,7 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     }
     let key = Key::new(&a, &runs, &archs)?;
     let mut state = match std::fs::read(&state_path) {
-        Ok(bytes) => State::resume(&bytes, &key, &state_path)?,
+        Ok(bytes) => State::resume(&bytes, key, &state_path)?,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => State {
             key,
             lenses: Vec::new(),
@@ -591,9 +591,21 @@ fn two_batches() -> Option<u64> {
 }
 
 impl Key {
-    /// The flags whose inputs differ between `self` and `other` (with `runs`, the runs too).
+    /// The key as JSON without the paths as given: the runs' checkpoints by size and digest,
+    /// the sets by digest. What the points depend on, so that the same files named otherwise
+    /// (`./ds`, an absolute path, a moved directory) resume and reuse.
+    fn content(&self) -> Result<serde_json::Value> {
+        let mut v = serde_json::to_value(self)?;
+        v["runs"] = serde_json::json!(self.runs.iter().map(|(_, n, d)| (n, d)).collect::<Vec<_>>());
+        v["dataset"] = serde_json::json!(self.dataset.1);
+        v["train"] = serde_json::json!(self.train.as_ref().map(|t| &t.1));
+        Ok(v)
+    }
+
+    /// The flags whose inputs differ between `self` and `other` (with `runs`, the runs too),
+    /// by content ([`Self::content`]).
     fn differences(&self, other: &Key, runs: bool) -> Result<Vec<&'static str>> {
-        let (old, new) = (serde_json::to_value(self)?, serde_json::to_value(other)?);
+        let (old, new) = (self.content()?, other.content()?);
         Ok([
             ("runs", "--runs (or a run's checkpoint)"),
             ("dataset", "--dataset"),
@@ -693,16 +705,17 @@ struct State {
 }
 
 impl State {
-    /// The state in `bytes` if it was scored from `key`; refused, naming what differs, if not.
-    fn resume(bytes: &[u8], key: &Key, path: &Path) -> Result<State> {
-        let st: State = serde_json::from_slice(bytes).with_context(|| {
+    /// The state in `bytes` if it was scored from the inputs of `key`, with `key` (the paths
+    /// as given now) in place of its own; refused, naming what differs, if not.
+    fn resume(bytes: &[u8], key: Key, path: &Path) -> Result<State> {
+        let mut st: State = serde_json::from_slice(bytes).with_context(|| {
             format!(
                 "--state {}: not a `search pareto` state (delete it, or give another --state)",
                 path.display()
             )
         })?;
-        if &st.key != key {
-            let differ = st.key.differences(key, true)?;
+        let differ = st.key.differences(&key, true)?;
+        if !differ.is_empty() {
             bail!(
                 "--state {} holds points scored from other inputs ({} differ); rerun with the \
                  same inputs, give another --state, or delete it",
@@ -735,6 +748,7 @@ impl State {
                 path.display()
             );
         }
+        st.key = key;
         Ok(st)
     }
 }

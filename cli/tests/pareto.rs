@@ -234,6 +234,34 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     assert_eq!(points(&pareto(p, &["--plot", "plain.svg"]), "points"), pts);
     let again: Value = serde_json::from_slice(&std::fs::read(&sp).unwrap()).unwrap();
     assert_eq!(again, whole);
+    // The same run and set named otherwise (./run, ./ds) resume that state too: they are
+    // compared by content, and the state then records the paths as given.
+    std::fs::write(&sp, serde_json::to_vec(&st).unwrap()).unwrap();
+    let args = [
+        &[
+            "search",
+            "pareto",
+            "--runs",
+            "./run",
+            "--dataset",
+            "./ds",
+            "--subnets",
+            "3",
+        ][..],
+        &RUN_CHAIN[..],
+        &["--json", "--plot", "plain.svg"],
+    ]
+    .concat();
+    let o = nanoeye(&args, p);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(points(&v, "points"), pts);
+    let moved: Value = serde_json::from_slice(&std::fs::read(&sp).unwrap()).unwrap();
+    assert_eq!(moved["lenses"], whole["lenses"]);
+    assert_eq!(moved["frame_errors"], whole["frame_errors"]);
+    assert_eq!(moved["key"]["runs"][0][0], "./run");
+    assert_eq!(moved["key"]["dataset"][0], "./ds");
+    std::fs::write(&sp, serde_json::to_vec(&whole).unwrap()).unwrap();
     // A state without the per-frame errors (an older nanoeye's): refused, not mixed.
     let mut old = whole.clone();
     old.as_object_mut().unwrap().remove("frame_errors");
