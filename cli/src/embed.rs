@@ -60,7 +60,7 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
         steps: a.steps,
         batch: a.batch,
         lr_rad: a.lr_phase_rad,
-        pitch_um: a.chain.pitch_um,
+        pitch_um: a.chain.pitch_um(),
         seed: a.seed,
         weights: EmbedWeights {
             w_sens: a.w_sens,
@@ -188,7 +188,7 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
     let out = serde_json::json!({
         "steps": e.step(),
         "triplets": fin.triplets,
-        "pitch_um": a.chain.pitch_um,
+        "pitch_um": a.chain.pitch_um(),
         "init": init,
         "final": fin,
         "seconds": t0.elapsed().as_secs_f64(),

@@ -32,14 +32,23 @@ pub struct ChainArgs {
     /// Dataset directory written by `nanoeye datagen render`.
     #[arg(long)]
     pub dataset: PathBuf,
-    /// Effective pixel pitch p̂ (µm), between the dataset's pitch and the sensor size.
-    #[arg(long, default_value_t = 9.0)]
-    pub pitch_um: f64,
+    /// Effective pixel pitch p̂ (µm), between the dataset's pitch and the sensor size
+    /// [default: 9].
+    #[arg(long)]
+    pub pitch_um: Option<f64>,
     #[command(flatten)]
     pub camera: CameraArgs,
 }
 
 impl ChainArgs {
+    /// p̂ (µm) without `--pitch-um`.
+    pub const DEFAULT_PITCH_UM: f64 = 9.0;
+
+    /// p̂ (µm): `--pitch-um` or [`Self::DEFAULT_PITCH_UM`].
+    pub fn pitch_um(&self) -> f64 {
+        self.pitch_um.unwrap_or(Self::DEFAULT_PITCH_UM)
+    }
+
     /// What a resumable run on this chain records to check a resume ([`util::check_inputs`]):
     /// the camera flags ([`CAMERA_KEYS`]), the digest of `--dataset` and, given `val` (the
     /// `--val` flag's set, or `None` for none), `"val"`: its digest or null.
@@ -59,8 +68,9 @@ impl ChainArgs {
     pub fn build(&self) -> Result<(Dataset, CameraChain)> {
         let ds = Dataset::open(&self.dataset)
             .with_context(|| format!("--dataset {}", self.dataset.display()))?;
-        if !(self.pitch_um.is_finite() && self.pitch_um > 0.0) {
-            bail!("--pitch-um: must be positive, got {}", self.pitch_um);
+        let p = self.pitch_um();
+        if !(p.is_finite() && p > 0.0) {
+            bail!("--pitch-um: must be positive, got {p}");
         }
         let chain = self.camera.chain(&ds)?;
         Ok((ds, chain))
@@ -282,7 +292,7 @@ pub fn sim(a: SimArgs) -> Result<()> {
         OnOff::On => NoiseMode::Poisson,
         OnOff::Off => NoiseMode::None,
     };
-    let p_hat = a.chain.pitch_um * 1e-6;
+    let p_hat = a.chain.pitch_um() * 1e-6;
     // Validate the pitch before any work.
     chain.native().at(p_hat).context("--pitch-um")?;
     // Created only when the results are written: a run that fails leaves no empty directory.
@@ -343,7 +353,7 @@ pub fn sim(a: SimArgs) -> Result<()> {
             summary["frames"],
             shape.0,
             shape.1,
-            a.chain.pitch_um,
+            a.chain.pitch_um(),
             summary["seconds"].as_f64().unwrap_or(0.0),
             a.out.display()
         );
@@ -401,7 +411,7 @@ fn loss(a: LossArgs) -> Result<()> {
     let map = lens
         .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)
         .context("--phase")?;
-    let p_hat = a.chain.pitch_um * 1e-6;
+    let p_hat = a.chain.pitch_um() * 1e-6;
     chain.native().at(p_hat).context("--pitch-um")?;
     let noise = match a.noise {
         OnOff::On => NoiseMode::Gaussian,

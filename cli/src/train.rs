@@ -347,7 +347,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
         lr_pitch_um: a.lr_pitch_um,
         lambda_slip: a.lambda_slip,
         slip_axis_weights: parse_axes("--slip-axis-weights", &a.slip_axis_weights)?,
-        pitch_init_um: a.chain.pitch_um,
+        pitch_init_um: a.chain.pitch_um(),
         pitch_range_um: [lo, hi],
         fixed_lens: a.fixed_lens,
         seed: a.seed,
@@ -522,7 +522,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
                 );
                 let p = crate::fisher::chain_init_phase(
                     &chain,
-                    a.chain.pitch_um,
+                    a.chain.pitch_um(),
                     a.fisher_iterations,
                     a.fisher_photons,
                 )?;
@@ -753,6 +753,14 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         );
     }
     let (ds, chain) = a.chain.build()?;
+    if let Some(p) = a.chain.pitch_um {
+        // The flag is shared with the commands that take p̂ from it; here it changes nothing,
+        // so a resume does not compare it either.
+        eprintln!(
+            "note: --pitch-um {p} is not used by search rea: each candidate starts from the \
+             p̂ in --run's checkpoint and fine-tunes it"
+        );
+    }
     if a.head_refit && ds.len() < 3 {
         bail!(
             "--head-refit needs at least 3 training frames in --dataset for its leave-one-out \
@@ -814,7 +822,6 @@ pub fn rea(a: ReaArgs) -> Result<()> {
     // trained run, the data and the chain. A resume with others would mix two searches.
     let inputs_path = a.run.join("rea_inputs.json");
     let mut inputs = a.chain.inputs(Some(a.val.as_deref()))?;
-    inputs["pitch_um"] = serde_json::json!(a.chain.pitch_um);
     let mut d = util::Digest::default();
     d.file(&ck)
         .with_context(|| format!("--run {}", a.run.display()))?;
@@ -827,7 +834,6 @@ pub fn rea(a: ReaArgs) -> Result<()> {
             ),
             ("dataset", "--dataset"),
             ("val", "--val"),
-            ("pitch_um", "--pitch-um"),
         ];
         util::check_inputs(
             &inputs_path,

@@ -194,7 +194,8 @@ pub fn check_inputs(
             let new = &now[key];
             if old != new {
                 bail!(
-                    "{flag}: differs from the run being resumed ({} records {key} = {old},                      this command gives {new}); use the original value or another {out}",
+                    "{flag}: differs from the run being resumed ({} records {key} = {old}, this \
+                     command gives {new}); use the original value or another {out}",
                     path.display()
                 );
             }

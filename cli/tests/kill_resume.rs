@@ -422,6 +422,23 @@ fn search_train_and_rea_resume_to_the_same_bytes() {
         tree(&searched) == before,
         "a refused resume changed the run"
     );
+    // --pitch-um is not rea's (each candidate starts from the run's p̂): another value resumes
+    // the finished search, with a note, to the same history.
+    let mut other = rea.clone();
+    let at = other.iter().position(|&a| a == "--pitch-um").unwrap() + 1;
+    other[at] = "61";
+    let jsonl = std::fs::read(searched.join("run/rea.jsonl")).unwrap();
+    let out = common::nanoeye(&other, &searched);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("--pitch-um 61 is not used by search rea"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read(searched.join("run/rea.jsonl")).unwrap(),
+        jsonl
+    );
     // The Pareto points of the search's subnets and uniform draws; the run given twice, so
     // that a kill can leave one lens finished and the next one partial in the state.
     let pareto: Vec<&str> = [&["search", "pareto"][..], &TINY_CHAIN[4..]]

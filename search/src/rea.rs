@@ -356,15 +356,15 @@ impl<'a> Rea<'a> {
     /// Restores the state file at `path` (refused if its configuration differs).
     pub fn resume(&mut self, path: &Path) -> Result<()> {
         let text = std::fs::read_to_string(path)
-            .map_err(|e| param("out", format!("{}: {e}", path.display())))?;
+            .map_err(|e| param("state", format!("{}: {e}", path.display())))?;
         let st: ReaState = serde_json::from_str(&text)
-            .map_err(|e| param("out", format!("{}: {e}", path.display())))?;
+            .map_err(|e| param("state", format!("{}: {e}", path.display())))?;
         if st.config != self.state.config {
             return Err(param(
-                "out",
+                "state",
                 format!(
-                    "{} holds a search with other parameters ({}); use a new --out or the same \
-                     flags",
+                    "{} holds a search with other parameters ({}); give the same ones, or \
+                     search a copy of the trained run in another directory",
                     path.display(),
                     crate::error::differences(&st.config, &self.state.config)
                 ),
