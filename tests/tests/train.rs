@@ -485,6 +485,24 @@ fn regularized_evolution_ages_out_the_oldest_and_resumes_exactly() {
         assert_eq!(rec.child.fitness, -rec.child.v - pen);
     }
     assert_eq!(st.population.len(), 3);
+    // The pick: the best within the budget, though one over it has a better S19 fitness
+    // (its V beats the others' by more than γ); the best fitness only when none fits.
+    let mut ev: Vec<_> = st.evaluated[..3].to_vec();
+    for (ind, (macs, v, fitness)) in ev.iter_mut().zip([
+        (300_000, 5.0, -15.0),
+        (150_000, 18.0, -18.0),
+        (100_000, 16.0, -16.0),
+    ]) {
+        (ind.macs, ind.v, ind.fitness) = (macs, v, fitness);
+    }
+    let pick = |ev: &[nanoeye_search::Individual], budget| {
+        nanoeye_search::rea::pick_best(ev, budget).map(|i| i.id)
+    };
+    assert_eq!(pick(&ev, 200_000), Some(ev[2].id));
+    assert_eq!(pick(&ev, 0), Some(ev[0].id));
+    assert_eq!(pick(&ev, 50_000), Some(ev[0].id));
+    assert_eq!(pick(&[], 200_000), None);
+    assert_eq!(full.best().map(|i| i.id), pick(&st.evaluated, 200_000));
     // Kill after 4 evaluations, resume from the saved state: the same search.
     let saved: std::cell::RefCell<Option<String>> = Default::default();
     let mut n = 0;
