@@ -30,31 +30,10 @@ pub enum SearchError {
     Data(nanoeye_datagen::render::RenderError),
 }
 
-/// The fields in which two configurations (serialised to JSON objects) differ, for a refused
-/// resume: `` `name`: A there, B now `` for a number, string or flag, `` `name` `` alone for a
-/// nested value, separated by "; " ("unreadable" when either is not an object).
+/// The fields in which two configurations differ, for a refused resume, worded as the
+/// dataset renderer words its own ([`nanoeye_datagen::render::dataset::field_differences`]).
 pub fn differences(was: &impl serde::Serialize, now: &impl serde::Serialize) -> String {
-    use serde_json::Value;
-    let (Ok(Value::Object(a)), Ok(Value::Object(b))) =
-        (serde_json::to_value(was), serde_json::to_value(now))
-    else {
-        return String::from("unreadable");
-    };
-    let nested = |v: Option<&Value>| v.is_some_and(|v| v.is_object() || v.is_array());
-    let show = |v: Option<&Value>| v.map_or_else(|| String::from("none"), Value::to_string);
-    a.keys()
-        .chain(b.keys().filter(|k| !a.contains_key(*k)))
-        .filter(|k| a.get(*k) != b.get(*k))
-        .map(|k| {
-            let (x, y) = (a.get(k), b.get(k));
-            if nested(x) || nested(y) {
-                format!("`{k}`")
-            } else {
-                format!("`{k}`: {} there, {} now", show(x), show(y))
-            }
-        })
-        .collect::<Vec<_>>()
-        .join("; ")
+    nanoeye_datagen::render::dataset::field_differences(was, now, None)
 }
 
 macro_rules! wrap {

@@ -527,21 +527,28 @@ fn mesh_hash(m: &Mesh) -> u64 {
     h
 }
 
-/// Every field in which two manifests (as JSON objects) differ, the set's first (it decides
-/// the others, e.g. `frames`): `` `name`: A there, B now `` for a number or string,
-/// `` `name` `` alone for a nested value (the rig, the layers). search's refusals word theirs
-/// alike (`nanoeye_search::error::differences`; that crate sits above this one).
-fn differences(a: &serde_json::Value, b: &serde_json::Value) -> String {
-    let (Some(a), Some(b)) = (a.as_object(), b.as_object()) else {
+/// Every field in which two configurations (serialised to JSON objects) differ, for a refused
+/// resume: `` `name`: A there, B now `` for a number, string or flag, `` `name` `` alone for a
+/// nested value, separated by "; ", the field `first` (when given) ahead of the others
+/// ("unreadable" when either is not an object). Also the wording of search's refusals.
+pub fn field_differences(
+    was: &impl serde::Serialize,
+    now: &impl serde::Serialize,
+    first: Option<&str>,
+) -> String {
+    use serde_json::Value;
+    let (Ok(Value::Object(a)), Ok(Value::Object(b))) =
+        (serde_json::to_value(was), serde_json::to_value(now))
+    else {
         return String::from("unreadable");
     };
-    let nested = |v: Option<&serde_json::Value>| v.is_some_and(|v| v.is_object() || v.is_array());
-    let show = |v: Option<&serde_json::Value>| v.map_or_else(|| "none".into(), |v| v.to_string());
+    let nested = |v: Option<&Value>| v.is_some_and(|v| v.is_object() || v.is_array());
+    let show = |v: Option<&Value>| v.map_or_else(|| String::from("none"), Value::to_string);
     let mut keys: Vec<&String> = a
         .keys()
         .chain(b.keys().filter(|k| !a.contains_key(*k)))
         .collect();
-    keys.sort_by_key(|k| *k != "set");
+    keys.sort_by_key(|k| Some(k.as_str()) != first);
     keys.into_iter()
         .filter(|k| a.get(*k) != b.get(*k))
         .map(|k| {
@@ -579,7 +586,8 @@ fn check_existing(dir: &Path, manifest: &DatasetManifest) -> Result<(), RenderEr
                         "{} holds a dataset rendered with other parameters ({}); resuming would \
                          mix two runs: use a new --out directory",
                         dir.display(),
-                        differences(&a, &b)
+                        // The set first: it decides the others (e.g. `frames`).
+                        field_differences(&a, &b, Some("set"))
                     ),
                 });
             }
