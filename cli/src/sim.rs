@@ -433,7 +433,7 @@ fn loss(a: LossArgs) -> Result<()> {
     let t_fwd = lap();
     let mut net = Supernet::new(SupernetConfig::default(), a.weights_seed)?;
     net.zero_grad();
-    let (l, dx) = task_loss(
+    let (l, task) = task_loss(
         &mut net,
         std::slice::from_ref(&arch),
         &fwd.input,
@@ -444,7 +444,8 @@ fn loss(a: LossArgs) -> Result<()> {
     )?;
     let t_net = lap();
     let mut acc = chain.accumulator();
-    chain.backward(&frames, &psfs, &fwd, &dx, &mut acc)?;
+    chain.backward(&frames, &psfs, &fwd, &task.input, &mut acc)?;
+    chain.target_backward(&frames, &fwd, &task.mask, &mut acc)?;
     let t_bwd = lap();
     let g = chain.finish(&map, &psfs, acc)?;
     let t_vjp = lap();

@@ -41,6 +41,35 @@ pub fn dice_loss(logits: &Tensor, target: &Tensor) -> Result<(f64, Tensor)> {
     Ok((total / logits.n as f64, grad))
 }
 
+/// ∂(S7 mean over images)/∂target for M = σ(logits): the Dice loss's gradient w.r.t. a soft
+/// target M* that itself depends on a parameter (the mask averaged onto the p̂ grid).
+pub fn dice_target_grad(logits: &Tensor, target: &Tensor) -> Result<Tensor> {
+    logits.check_same(target, "dice target")?;
+    if logits.n == 0 {
+        return Err(NetsError::Shape("dice loss of an empty batch".into()));
+    }
+    let per = logits.c * logits.plane();
+    let mut grad = Tensor::zeros(logits.n, logits.c, logits.h, logits.w);
+    for n in 0..logits.n {
+        let l = &logits.data[n * per..][..per];
+        let t = &target.data[n * per..][..per];
+        let (mut inter, mut sum) = (0.0f64, 0.0f64);
+        for (&lv, &tv) in l.iter().zip(t) {
+            let m = sigmoid(lv);
+            inter += m * tv as f64;
+            sum += m + tv as f64;
+        }
+        let den = sum + DICE_EPS;
+        // L = 1 − 2I/den with ∂I/∂t = m and ∂den/∂t = 1.
+        let g = &mut grad.data[n * per..][..per];
+        for (gv, &lv) in g.iter_mut().zip(l) {
+            let m = sigmoid(lv);
+            *gv = ((-2.0 * m / den + 2.0 * inter / (den * den)) / logits.n as f64) as f32;
+        }
+    }
+    Ok(grad)
+}
+
 /// Mean over images of S8, ‖Δt − Δt*‖²; `pred`, `target` are (N, 3, 1, 1). Returns (loss, dL/dpred).
 pub fn slip_mse(pred: &Tensor, target: &Tensor) -> Result<(f64, Tensor)> {
     pred.check_same(target, "slippage target")?;

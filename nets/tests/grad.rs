@@ -3,7 +3,7 @@
 use nanoeye_nets::Tensor;
 use nanoeye_nets::act::Act;
 use nanoeye_nets::conv::*;
-use nanoeye_nets::loss::{dice_loss, slip_mse};
+use nanoeye_nets::loss::{dice_loss, dice_target_grad, slip_mse};
 use nanoeye_nets::norm::{BatchNorm, BnMode};
 use nanoeye_nets::pool::{gap_forward, gap_vjp};
 use nanoeye_nets::resize::{bilinear_forward, bilinear_vjp};
@@ -526,6 +526,25 @@ fn losses_gradients_match_fd() {
                     ..l.clone()
                 },
                 &m,
+            )
+            .unwrap()
+            .0 as f32,
+        ]
+    });
+    // W.r.t. a soft target (the mask averaged onto the p̂ grid depends on p̂).
+    let soft = Tensor {
+        data: m.data.iter().map(|&v| 0.2 + 0.6 * v).collect(),
+        ..m.clone()
+    };
+    let gt = dice_target_grad(&l, &soft).unwrap();
+    fd_check("dice target", &soft.data, &gt.data, &one, 1e-2, 2e-3, |v| {
+        vec![
+            dice_loss(
+                &l,
+                &Tensor {
+                    data: v.to_vec(),
+                    ..l.clone()
+                },
             )
             .unwrap()
             .0 as f32,

@@ -80,6 +80,7 @@ fn main() {
         tick(2, &mut clock);
         net.zero_grad();
         let mut dx = nanoeye_nets::Tensor::zeros(fwd.input.n, 1, fwd.input.h, fwd.input.w);
+        let mut dm = dx.clone();
         for a in &archs {
             let (_, g) = task_loss(
                 &mut net,
@@ -91,7 +92,8 @@ fn main() {
                 BnMode::Train,
             )
             .expect("task loss");
-            dx.add_assign(&g);
+            dx.add_assign(&g.input);
+            dm.add_assign(&g.mask);
         }
         tick(3, &mut clock);
         // As in training: a fixed lens needs ∂L/∂p̂ only, and no PSF VJP.
@@ -103,6 +105,9 @@ fn main() {
         chain
             .backward(&frames, &psfs, &fwd, &dx, &mut acc)
             .expect("backward");
+        chain
+            .target_backward(&frames, &fwd, &dm, &mut acc)
+            .expect("target backward");
         tick(4, &mut clock);
         if learned {
             let g = chain.finish(&map, &psfs, acc).expect("finish");

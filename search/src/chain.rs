@@ -886,6 +886,50 @@ impl CameraChain {
         Ok(())
     }
 
+    /// Adds to `acc` ∂L/∂p̂ through the segmentation target for ∂L/∂mask `d_mask`
+    /// (N, 1, H, W; [`crate::task::TaskGrads::mask`]): the target is the pupil mask averaged
+    /// onto the p̂ grid, so it moves with p̂ as the network input does, and a finite difference
+    /// of the loss in p̂ sees both. Cheap: two box passes over each frame's native mask.
+    pub fn target_backward(
+        &self,
+        frames: &[ChainFrame],
+        fwd: &ChainForward,
+        d_mask: &Tensor,
+        acc: &mut PsfGradAccumulator,
+    ) -> Result<()> {
+        let (h, w) = fwd.grid.shape();
+        if d_mask.shape() != [frames.len(), 1, h, w] || fwd.mask.shape() != d_mask.shape() {
+            return Err(param(
+                "d_mask",
+                format!(
+                    "shape {:?}, expected [{}, 1, {h}, {w}] (the forward's mask)",
+                    d_mask.shape(),
+                    frames.len()
+                ),
+            ));
+        }
+        let as_mat = |t: &Tensor, b: usize| {
+            let d = &t.data[b * h * w..(b + 1) * h * w];
+            Mat::from_fn(h, w, |i, j| d[i * w + j])
+        };
+        let per: Vec<Result<f64>> = frames
+            .par_iter()
+            .enumerate()
+            .map(|(b, f)| {
+                fwd.grid.mask_pitch_vjp(
+                    &f.data.mask_visible_pupil,
+                    &as_mat(d_mask, b),
+                    &as_mat(&fwd.mask, b),
+                )
+            })
+            .collect();
+        // Added in frame order: the sum does not depend on the thread count.
+        for r in per {
+            acc.p_hat += r?;
+        }
+        Ok(())
+    }
+
     /// The one PSF VJP of a step: ∂L/∂φ from the accumulated ∂L/∂P̂, ∂L/∂η
     /// (∂P̂/∂P = (I − P̂·1ᵀ)/η, ∂η/∂P = 1): [`Self::psf_grads`] then [`Self::phase_vjp`].
     pub fn finish(

@@ -34,7 +34,7 @@ pub use radiometry::Radiometry;
 pub use rea::{CycleRecord, EvalPool, Evaluator, Individual, Rea, ReaConfig, ReaState};
 pub use schedule::PhaseSchedule;
 pub use split::{DepthSplit, OneProcess};
-pub use task::{TaskLoss, task_loss};
+pub use task::{TaskGrads, TaskLoss, task_loss};
 pub use train::{
     Budget, ChainedSet, EvalSetup, FrameEval, Metrics, SolverInput, StepRecord, TrainConfig,
     Trainer, evaluate_chained, evaluate_frames, evaluate_frames_multi, evaluate_net, load_model,

@@ -4,7 +4,7 @@
 //! λ_slip may differ per axis (x, y, z): the loss is then Σ_a λ_a·mean_n (Δt_a − Δt*_a)².
 
 use crate::error::{Result, param};
-use nanoeye_nets::loss::{dice_loss, slip_mse};
+use nanoeye_nets::loss::{dice_loss, dice_target_grad, slip_mse};
 use nanoeye_nets::{Arch, BnMode, Supernet, Tensor};
 
 /// Loss parts summed over subnets.
@@ -18,10 +18,20 @@ pub struct TaskLoss {
     pub calib: f64,
 }
 
+/// Gradients of [`task_loss`] w.r.t. the chain's outputs, summed over subnets.
+#[derive(Clone, Debug)]
+pub struct TaskGrads {
+    /// ∂L/∂input (N, 1, H, W).
+    pub input: Tensor,
+    /// ∂L/∂mask (N, 1, H, W): the segmentation target is the pupil mask averaged onto the p̂
+    /// grid, so it moves with p̂ ([`crate::CameraChain::target_backward`]).
+    pub mask: Tensor,
+}
+
 /// Forward and backward of every subnet in `archs` on `input` with targets `mask`
 /// (N, 1, H, W) and `slip_mm` (N, 3, 1, 1), λ_slip per axis (x, y, z; per mm²). Parameter
-/// gradients accumulate in `net` (the caller zeroes them); returns the loss and ∂L/∂input
-/// summed over subnets.
+/// gradients accumulate in `net` (the caller zeroes them); returns the loss and its gradients
+/// w.r.t. the input and the mask target, summed over subnets.
 pub fn task_loss(
     net: &mut Supernet,
     archs: &[Arch],
@@ -30,7 +40,7 @@ pub fn task_loss(
     slip_mm: &Tensor,
     lambda_slip: [f64; 3],
     mode: BnMode,
-) -> Result<(TaskLoss, Tensor)> {
+) -> Result<(TaskLoss, TaskGrads)> {
     if archs.is_empty() {
         return Err(param("subnets", "need at least one subnet"));
     }
@@ -49,9 +59,11 @@ pub fn task_loss(
     }
     let mut out = TaskLoss::default();
     let mut dx = Tensor::zeros(input.n, input.c, input.h, input.w);
+    let mut dm = Tensor::zeros(mask.n, mask.c, mask.h, mask.w);
     for a in archs {
         let o = net.forward(a, input, mode)?;
         let (seg, d_logits) = dice_loss(&o.mask_logits, mask)?;
+        dm.add_assign(&dice_target_grad(&o.mask_logits, mask)?);
         let (calib, mut d_slip) = slip_mse(&o.slip, slip_mm)?;
         // (N, 3, 1, 1): element i is axis i mod 3.
         for (i, v) in d_slip.data.iter_mut().enumerate() {
@@ -63,7 +75,13 @@ pub fn task_loss(
         out.calib += calib;
         out.total += seg + weighted_calib(&o.slip, slip_mm, calib, lambda_slip);
     }
-    Ok((out, dx))
+    Ok((
+        out,
+        TaskGrads {
+            input: dx,
+            mask: dm,
+        },
+    ))
 }
 
 /// Σ_a λ_a·mean_n (Δt_a − Δt*_a)²; with one λ for all axes, λ·`calib` (the same value in the
@@ -140,7 +158,7 @@ mod tests {
         .unwrap();
         let mut grads = Vec::new();
         net.visit(&mut |_, p| grads.extend_from_slice(&p.grad));
-        (l, dx, grads)
+        (l, dx.input, grads)
     }
 
     /// An axis weighted 0 drops out of the loss: moving its target changes neither the loss nor

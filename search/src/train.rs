@@ -12,7 +12,7 @@ use crate::chain::{CameraChain, ChainFrame};
 use crate::embed::EmbedWeights;
 use crate::error::{Result, param};
 use crate::schedule::PhaseSchedule;
-use crate::task::task_loss;
+use crate::task::{TaskGrads, task_loss};
 use faer::Mat;
 use nanoeye_datagen::render::{Batcher, Dataset};
 use nanoeye_gaze::{PupilCentre, Rig, SolverKind, angular_error, solver_for};
@@ -675,7 +675,7 @@ impl<'a> Trainer<'a> {
     fn update_optics(
         &mut self,
         s: StepData,
-        dx: &Tensor,
+        task: &TaskGrads,
         extra_dp_um: f64,
         extra_psf: Option<&[Mat<f64>]>,
         lr_phase: f64,
@@ -690,7 +690,9 @@ impl<'a> Trainer<'a> {
             self.chain.pitch_accumulator()
         };
         self.chain
-            .backward(&s.frames, &s.psfs, &s.fwd, dx, &mut acc)?;
+            .backward(&s.frames, &s.psfs, &s.fwd, &task.input, &mut acc)?;
+        self.chain
+            .target_backward(&s.frames, &s.fwd, &task.mask, &mut acc)?;
         let dp_um = acc.p_hat() * 1e-6 + extra_dp_um;
         let mut phase_step = 0.0;
         let grads = if moves_phase {
@@ -765,14 +767,16 @@ impl<'a> Trainer<'a> {
     }
 
     /// The sandwich loss of step `t`'s subnets on its chain output, per subnet, and its
-    /// gradient in the network input; the network's gradients accumulated from zero.
+    /// gradients in the network input and the mask target; the network's gradients
+    /// accumulated from zero.
     fn sandwich_loss(
         &mut self,
         t: usize,
         fwd: &crate::chain::ChainForward,
-    ) -> Result<(Vec<f64>, Tensor)> {
+    ) -> Result<(Vec<f64>, TaskGrads)> {
         self.net.zero_grad();
         let mut dx = Tensor::zeros(fwd.input.n, 1, fwd.input.h, fwd.input.w);
+        let mut dm = Tensor::zeros(fwd.mask.n, 1, fwd.mask.h, fwd.mask.w);
         let mut losses = Vec::new();
         for a in self.subnets(t) {
             let (l, g) = task_loss(
@@ -784,7 +788,8 @@ impl<'a> Trainer<'a> {
                 self.cfg.lambda_slip_axes(),
                 BnMode::Train,
             )?;
-            dx.add_assign(&g);
+            dx.add_assign(&g.input);
+            dm.add_assign(&g.mask);
             losses.push(l.total);
         }
         if losses.iter().any(|l| !l.is_finite()) {
@@ -793,7 +798,13 @@ impl<'a> Trainer<'a> {
                 format!("step {t}: the loss is not finite ({losses:?}); lower the learning rates"),
             ));
         }
-        Ok((losses, dx))
+        Ok((
+            losses,
+            TaskGrads {
+                input: dx,
+                mask: dm,
+            },
+        ))
     }
 
     /// ∂L/∂φ (rad⁻¹, on the aperture grid) of step `t`'s sandwich loss (its batch, subnets
@@ -802,10 +813,10 @@ impl<'a> Trainer<'a> {
     /// them). For measuring how consistent φ's gradient is from batch to batch.
     pub fn phase_gradient(&mut self, t: usize) -> Result<(f64, Mat<f64>)> {
         let s = self.chain_step_with(t, true)?;
-        let (losses, dx) = self.sandwich_loss(t, &s.fwd)?;
+        let (losses, task) = self.sandwich_loss(t, &s.fwd)?;
         let mut acc = self.chain.accumulator();
         self.chain
-            .backward(&s.frames, &s.psfs, &s.fwd, &dx, &mut acc)?;
+            .backward(&s.frames, &s.psfs, &s.fwd, &task.input, &mut acc)?;
         let g = self.chain.finish(&s.map, &s.psfs, acc)?;
         Ok((losses.iter().sum(), g.phase_rad))
     }
@@ -815,7 +826,7 @@ impl<'a> Trainer<'a> {
         let t = self.step;
         let (lr_phase, ends) = self.phase_window(t);
         let s = self.chain_step_with(t, lr_phase > 0.0)?;
-        let (losses, dx) = self.sandwich_loss(t, &s.fwd)?;
+        let (losses, task) = self.sandwich_loss(t, &s.fwd)?;
         self.opt.step(
             &mut self.net,
             cosine_lr(self.cfg.lr_net, 0.0, t, self.cfg.steps),
@@ -833,7 +844,7 @@ impl<'a> Trainer<'a> {
             None
         };
         let extra = embed.as_ref().map(|(_, g)| g.as_slice());
-        let phase_step = self.update_optics(s, &dx, 0.0, extra, lr_phase, 1.0, window)?;
+        let phase_step = self.update_optics(s, &task, 0.0, extra, lr_phase, 1.0, window)?;
         let rec = StepRecord {
             step: t,
             loss_max: losses[0],
@@ -1002,7 +1013,7 @@ impl<'a> Trainer<'a> {
         let lr_phase = self.phase_rate(lr_scale);
         let s = self.chain_step_with(self.step, lr_phase > 0.0)?;
         self.net.zero_grad();
-        let (l, dx) = task_loss(
+        let (l, task) = task_loss(
             &mut self.net,
             std::slice::from_ref(arch),
             &s.fwd.input,
@@ -1026,7 +1037,7 @@ impl<'a> Trainer<'a> {
             0.0
         };
         // Per step, whatever `phase_every`: the window of sandwich training is not its.
-        self.update_optics(s, &dx, hinge, None, lr_phase, lr_scale, None)?;
+        self.update_optics(s, &task, hinge, None, lr_phase, lr_scale, None)?;
         if budget.fit_pitch {
             self.fit_pitch_to_budget(arch, budget.macs)?;
         }

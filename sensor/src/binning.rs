@@ -249,7 +249,30 @@ impl BoxIntegrator {
                 }
             }
         }
-        // dY/dw = s (A_y' X A_xᵀ + A_y X A_x'ᵀ).
+        Ok(IntegratorGrad {
+            d_image: d,
+            d_p_hat: self.p_hat_dot(img, grad),
+        })
+    }
+
+    /// ∂L/∂p̂ alone (per metre) for gradient `grad` w.r.t. the output: [`Self::vjp`]'s
+    /// `d_p_hat` without the input gradient, for an input that is data (a target).
+    pub fn pitch_vjp(&self, img: &Mat<f32>, grad: &Mat<f32>) -> Result<f64, SensorError> {
+        self.check_in("image", img)?;
+        let (mr, mc) = self.out_shape();
+        if (grad.nrows(), grad.ncols()) != (mr, mc) {
+            return Err(SensorError::Shape {
+                name: "grad",
+                expected: (mr, mc),
+                got: (grad.nrows(), grad.ncols()),
+            });
+        }
+        Ok(self.p_hat_dot(img, grad))
+    }
+
+    /// ⟨G, ∂Y/∂p̂⟩ with ∂Y/∂p̂ = s (A_y' X A_xᵀ + A_y X A_x'ᵀ) / Δ (shapes checked by the caller).
+    fn p_hat_dot(&self, img: &Mat<f32>, grad: &Mat<f32>) -> f64 {
+        let (mr, mc) = self.out_shape();
         let t = self.col_pass(img, false);
         let u = self.col_pass(img, true);
         let mut dy = vec![0.0; mr * mc];
@@ -261,10 +284,7 @@ impl BoxIntegrator {
                 dw += grad[(i, j)] as f64 * dy[j * mr + i];
             }
         }
-        Ok(IntegratorGrad {
-            d_image: d,
-            d_p_hat: self.scale * dw / self.sample_pitch,
-        })
+        self.scale * dw / self.sample_pitch
     }
 }
 
@@ -338,6 +358,7 @@ mod tests {
             "{fd} vs {}",
             gr.d_p_hat
         );
+        assert_eq!(op.pitch_vjp(&img, &g).unwrap(), gr.d_p_hat);
         // Image (linear: exact up to f32 rounding).
         for &(r, c) in &[(0, 0), (5, 7), (11, 9), (22, 18)] {
             let mut xp = img.clone();
