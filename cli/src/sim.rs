@@ -20,7 +20,8 @@ const MAX_FRAMES: usize = 100_000;
 /// Noise switch.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum OnOff {
-    /// Poisson shot noise, read noise and integer DN.
+    /// Shot and read noise (`sim`: Poisson, integer DN; `search loss`: Gaussian
+    /// reparameterised shot noise, differentiable, no rounding).
     On,
     /// Mean signal, no noise.
     Off,

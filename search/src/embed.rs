@@ -213,13 +213,15 @@ fn objective(
     let psfs = chain.psfs(map, &chain.active(frames))?;
     let fwd = chain.forward_with(frames, &psfs, p_hat_m, NoiseMode::None, 0, grad)?;
     let c = &chain.config().sensor;
-    // The input is (DN − black)/span with DN = black + gain·min(e, full well), so ∂L/∂x =
-    // ∂L/∂e·span/gain where e is below full well (the sensor's VJP zeroes the rest). The
-    // objective reads e itself rather than back from the f32 DN image, whose rounding near
-    // the black level would swamp a dim pixel's change between two frames of a triplet.
+    // The input is (DN − black)/span with DN = black + gain·min(e, full well) clipped at the
+    // ADC's top, so ∂L/∂x = ∂L/∂e·span/gain where e is below both (the sensor's VJP zeroes
+    // the rest). The objective reads e itself rather than back from the f32 DN image, whose
+    // rounding near the black level would swamp a dim pixel's change between two frames of
+    // a triplet. It saturates where the DN does: at full well or at the ADC's top, whichever
+    // comes first (the same point at the default gain, 1007 DN over 8000 e⁻).
     let to_e = (c.max_dn() - c.black_level_dn) / c.gain_dn_per_e;
     let var = c.read_noise_e * c.read_noise_e;
-    let full = c.full_well_e as f32;
+    let full = c.full_well_e.min(to_e) as f32;
     let [_, _, h, wd] = fwd.input.shape();
     let electrons = |b: usize| {
         let e = &fwd.electrons[b];

@@ -548,6 +548,9 @@ impl<'a> Trainer<'a> {
         let batch = crate::embed::triplet_batch(&e.trips, self.cfg.embed_batch, self.cfg.seed, t);
         let ids: Vec<usize> = batch.iter().flatten().copied().collect();
         let frames = self.chain.load(e.ds, &ids)?;
+        // Its ∂/∂p̂ is left out on purpose: p̂ descends the sandwich loss alone (docs/run.md,
+        // "The embedding as a term of the lens's loss"); L_embed also jumps wherever the grid
+        // gains or loses a pixel (every ~0.05 µm at 14 µm), so its smooth slope guides p̂ badly.
         let (ev, grads, _) = crate::embed::embedding_psf_grads(
             self.chain,
             map,

@@ -12,6 +12,7 @@ use nanoeye_search::{
     CameraChain, ChainConfig, EmbedConfig, EmbedWeights, Embedder, LensSpec, TrainConfig, Trainer,
     embedding_loss,
 };
+use nanoeye_sensor::NoiseMode;
 
 fn render(dir: &std::path::Path, set: RenderSet, n: usize) -> Dataset {
     nanoeye_datagen::render::write_dataset(&DatasetOptions {
@@ -144,6 +145,63 @@ fn embedding_gradient_matches_central_differences_and_scales_with_the_light() {
     let r = std::f64::consts::SQRT_2;
     assert!((a.crlb_slip_um / b.crlb_slip_um - r).abs() < 1e-6);
     assert!((a.crlb_gaze_deg / b.crlb_gaze_deg - r).abs() < 1e-6);
+}
+
+/// At twice the default gain the DN reaches the ADC's top at half the full well: the objective
+/// must saturate there too, where the sensor's VJP zeroes the gradient, or pixels between the
+/// two change the loss without a gradient. Exposure set so the brightest pixel sits at 1.5× the
+/// ADC's top (below full well); the φ gradient against central differences, as above.
+#[test]
+fn the_embedding_saturates_where_the_adc_does() {
+    let d = tempfile::tempdir().unwrap();
+    let ds = render(d.path(), RenderSet::Variational, 2);
+    let ids: Vec<usize> = triplets(&ds).unwrap().iter().flatten().copied().collect();
+    let p_hat = 103e-6;
+    let mut c = chain_cfg();
+    c.sensor.gain_dn_per_e *= 2.0;
+    let top_e = (c.sensor.max_dn() - c.sensor.black_level_dn) / c.sensor.gain_dn_per_e;
+    assert!(top_e < 0.6 * c.sensor.full_well_e);
+    let probe = CameraChain::for_dataset(&ds, c.clone()).unwrap();
+    let fr = probe.load(&ds, &ids).unwrap();
+    let map = hyperbolic(&probe);
+    let psfs = probe.psfs(&map, &probe.active(&fr)).unwrap();
+    let fwd = probe
+        .forward_with(&fr, &psfs, p_hat, NoiseMode::None, 0, false)
+        .unwrap();
+    let peak = fwd
+        .electrons
+        .iter()
+        .flat_map(|e| {
+            e.col_iter()
+                .flat_map(|c| c.iter().copied().collect::<Vec<_>>())
+        })
+        .fold(0.0f32, f32::max) as f64;
+    assert!(peak > 0.0);
+    c.radiometry.exposure_s *= 1.5 * top_e / peak;
+    let chain = CameraChain::for_dataset(&ds, c).unwrap();
+    let frames = chain.load(&ds, &ids).unwrap();
+    let w = EmbedWeights::default();
+    let loss = |m: &PhaseMap| {
+        embedding_loss(&chain, m, &frames, p_hat, &w, false)
+            .unwrap()
+            .0
+    };
+    let g = embedding_loss(&chain, &map, &frames, p_hat, &w, true)
+        .unwrap()
+        .1
+        .unwrap();
+    let n = map.grid.n;
+    let dir = Mat::from_fn(n, n, |i, j| {
+        ((i as f64 * 0.091).sin() + (j as f64 * 0.05).cos()) * 0.5
+    });
+    let an = dot(&g.phase_rad, &dir);
+    let eps = 1e-2;
+    let fd = (loss(&shifted(&map, &dir, eps)).loss - loss(&shifted(&map, &dir, -eps)).loss)
+        / (2.0 * eps);
+    assert!(
+        (fd - an).abs() < 0.02 * fd.abs().max(an.abs()),
+        "φ: FD {fd:e} vs VJP {an:e}"
+    );
 }
 
 #[test]
