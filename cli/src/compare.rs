@@ -602,10 +602,14 @@ pub fn svg(c: &Comparison) -> String {
     let (w, ht) = (ml + mr + panel * nl as f64, 320.0 + mb);
     let all = c.runs.iter().flat_map(|r| r.values.iter().copied());
     let hi = all.fold(0.0_f64, f64::max);
-    let step = [0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0]
+    // A 1-2-5 step with at most 8 of them to the top, at any magnitude (a fixed list ending
+    // at 200 drew 500,000 gridlines for values of 1e8).
+    let mag = 10f64.powf((hi / 8.0).max(0.1).log10().floor());
+    let step = [1.0, 2.0, 5.0, 10.0]
         .into_iter()
+        .map(|m| m * mag)
         .find(|s| hi / s <= 8.0)
-        .unwrap_or(200.0);
+        .unwrap_or(10.0 * mag);
     let top = ((hi / step).ceil() * step).max(step);
     let y = |d: f64| mt + (ht - mt - mb) * (1.0 - d / top);
     let x = |l: usize, g: usize| ml + panel * l as f64 + 20.0 + col_w * (g as f64 + 0.5);
@@ -841,6 +845,30 @@ mod tests {
         let svg = svg(&c);
         assert_eq!(svg.matches("<circle").count(), 6 * 3 + 2);
         assert!(!serde_json::to_string(&c).unwrap().contains("null"));
+    }
+
+    /// The plot's gridlines stay few at any magnitude (an audit: values of 1e8 drew 500,000
+    /// of them, a 58 MB SVG); at degrees the steps are the 1-2-5 ones they were.
+    #[test]
+    fn the_plots_gridlines_stay_few_at_any_magnitude() {
+        let t = tempfile::tempdir().unwrap();
+        for (hi, step) in [
+            (1e8, "20000000"),
+            (1e9, "200000000"),
+            (10.0, "2"),
+            (0.9, "0.2"),
+        ] {
+            let dir = fake_run(t.path(), &format!("r{hi}"), &[], [hi, hi / 2.0, 1.0], hi);
+            let c = compare(&[dir], Metric::MeanDeg).unwrap();
+            let s = svg(&c);
+            let lines = s.matches("stroke=\"#eee\"").count();
+            assert!((2..=10).contains(&lines), "{hi}: {lines} gridlines");
+            assert!(
+                s.contains(&format!(">{step}</text>")),
+                "{hi}: no tick {step}"
+            );
+            assert!(s.len() < 100_000, "{hi}: {} bytes", s.len());
+        }
     }
 
     #[test]

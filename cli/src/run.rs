@@ -318,6 +318,12 @@ fn load_config(p: Option<&Path>) -> Result<RunConfig> {
     let is_toml = p.extension().is_some_and(|e| e == "toml");
     let cfg: RunConfig = if is_toml {
         toml::from_str(text).with_context(|| format!("--config {}", p.display()))?
+    } else if !text.trim_start().starts_with('{') {
+        // serde would read an array into the configuration's keys by position.
+        bail!(
+            "--config {}: a run configuration is a JSON object ({{\"key\": value, …}})",
+            p.display()
+        );
     } else {
         serde_json::from_str(text).map_err(|e| match bad_json_key(text) {
             Some(k) => anyhow::anyhow!("--config {}: key \"{k}\": {e}", p.display()),
@@ -380,6 +386,20 @@ fn bad_json_key(text: &str) -> Option<String> {
 }
 
 fn check(cfg: &RunConfig) -> Result<()> {
+    // Any key, used by this configuration or not: a NaN or an infinity would be written to
+    // config.json as null, which no resume can read back.
+    let optional: &[&str] = if cfg.rig.is_none() { &["rig"] } else { &[] };
+    if let Some(k) = util::first_null(&serde_json::to_value(cfg)?, optional) {
+        bail!("--config: `{k}` is not a finite number");
+    }
+    // The validation, protocol, sequence and triplet sets take seed + 1 … seed + 4.
+    if cfg.seed > u64::MAX - 4 {
+        bail!(
+            "--config: seed must be at most {} (the other sets take seed + 1 to seed + 4), got {}",
+            u64::MAX - 4,
+            cfg.seed
+        );
+    }
     if cfg.train_items == 0 || cfg.val_items == 0 || cfg.protocol_subjects == 0 {
         bail!("--config: train_items, val_items and protocol_subjects must be at least 1");
     }
@@ -400,6 +420,13 @@ fn check(cfg: &RunConfig) -> Result<()> {
     if b > 0.0 && cfg.train_set != TrainSet::Envelope {
         bail!(
             "--config: train_blink_fraction needs train_set \"envelope\" (the ambiguity set's pairs are open-eyed by definition)"
+        );
+    }
+    let max_w = nanoeye_nets::arch::MAX_WIDTH;
+    if cfg.head_widths.iter().any(|&w| w == 0 || w > max_w) {
+        bail!(
+            "--config: head_widths must each be 1..={max_w}, got {:?}",
+            cfg.head_widths
         );
     }
     if cfg.spp == 0 || cfg.spp > 1024 {
@@ -439,6 +466,15 @@ fn check(cfg: &RunConfig) -> Result<()> {
     if !(cfg.aperture_step_um.is_finite() && cfg.aperture_step_um > 0.0) {
         bail!("--config: aperture_step_um must be positive");
     }
+    // As `sim`'s --aperture-step-um: coarser than an eighth of the aperture samples no lens.
+    let coarsest = nanoeye_search::Radiometry::default().aperture_m * 1e6 / 8.0;
+    if cfg.aperture_step_um > coarsest {
+        bail!(
+            "--config: aperture_step_um must be at most {coarsest} µm (an eighth of the \
+             aperture), got {}",
+            cfg.aperture_step_um
+        );
+    }
     if cfg.sequence_frames == 0 || cfg.sequence_frames > 100_000 {
         bail!("--config: sequence_frames must be 1..=100000");
     }
@@ -468,17 +504,76 @@ fn check(cfg: &RunConfig) -> Result<()> {
             cfg.height_px
         );
     }
+    // The three lenses train and are evaluated at once, each with `batch` frames through its
+    // chain: about 270 bytes per native pixel and frame in a training step (its first step
+    // faulted in 4.4 GB for 16 frames of 1280×800, docs/bench/chain.md).
+    let need = 3.0 * cfg.batch as f64 * cfg.width_px as f64 * cfg.height_px as f64 * 270.0;
+    if need > MAX_BATCH_BYTES {
+        bail!(
+            "--config: batch {} of {}×{} frames needs about {:.0} GiB through the three lenses' \
+             chains, above the {:.0} GiB allowed; give a smaller batch or frame",
+            cfg.batch,
+            cfg.width_px,
+            cfg.height_px,
+            need / (1u64 << 30) as f64,
+            MAX_BATCH_BYTES / (1u64 << 30) as f64
+        );
+    }
     train_config(cfg, false, learned_embed_weight(cfg))
         .validate()
+        .map_err(|e| {
+            config_key(
+                e,
+                &[("steps", "train_steps"), ("n_random", "random_subnets")],
+            )
+        })
         .context("--config (training)")?;
     // The REA's network inputs are largest at the finest p̂ a candidate may reach.
     let grid = nanoeye_search::NativeGrid::new(camera)?;
+    // p̂ may reach the range's top: the sensor must hold at least a pixel of it.
+    grid.at(cfg.pitch_range_um[1] * 1e-6).with_context(|| {
+        format!(
+            "--config: pitch_range_um ends at {} µm, beyond what a {}×{} render holds",
+            cfg.pitch_range_um[1], cfg.width_px, cfg.height_px
+        )
+    })?;
     cfg.rea_bn_batches
         .check_fits_from(cfg.batch, &grid, cfg.pitch_range_um[0] * 1e-6)
         .context("--config: rea_bn_batches")?;
-    rea_config(cfg).validate().context("--config (search)")?;
+    rea_config(cfg)
+        .validate()
+        .map_err(|e| {
+            config_key(
+                e,
+                &[
+                    ("cycles", "rea_cycles"),
+                    ("epochs", "rea_epochs"),
+                    ("population", "rea_population"),
+                    ("tournament", "rea_tournament"),
+                ],
+            )
+        })
+        .context("--config (search)")?;
     Ok(())
 }
+
+/// A stage's refusal of its parameter `name` as the configuration key the user wrote (`keys`:
+/// (stage's name, key) pairs; other names are the keys already).
+fn config_key(e: nanoeye_search::SearchError, keys: &[(&str, &str)]) -> anyhow::Error {
+    let key = match &e {
+        nanoeye_search::SearchError::Param { name, .. } => {
+            keys.iter().find(|(n, _)| n == name).map(|(_, k)| *k)
+        }
+        _ => None,
+    };
+    match key {
+        Some(k) => anyhow::anyhow!("{k}: {e}"),
+        None => e.into(),
+    }
+}
+
+/// Memory the three lenses' batches may take together (estimated, bytes).
+const MAX_BATCH_BYTES: f64 = 48.0 * (1u64 << 30) as f64;
 
 /// Triplets per step of the learned lens's embedding objective.
 const EMBED_BATCH: usize = 4;
@@ -688,6 +783,19 @@ pub fn run(a: RunArgs) -> Result<()> {
             );
         }
     } else {
+        // Without its configuration a run's results and checkpoints cannot be told apart from
+        // another configuration's: resuming over them would mix the two. (Rendered sets
+        // vouch for themselves: a copied `data` is reused only where its manifest matches.)
+        if let Some(f) = ["result.json", "runs"]
+            .iter()
+            .find(|f| out.join(f).exists())
+        {
+            bail!(
+                "--out: {} holds a run's `{f}` but no config.json, so which configuration made \
+                 it is unknown; use a new --out",
+                out.display()
+            );
+        }
         util::write_atomic(&cpath, serde_json::to_string_pretty(&cfg)?.as_bytes())?;
     }
     // Temporary files of a killed run, anywhere in its tree (frames, checkpoints).
@@ -1069,6 +1177,7 @@ pub fn run(a: RunArgs) -> Result<()> {
         )?;
         // Frame by frame, what the chain estimated, so its errors can be traced to a head.
         let e = &evals[0];
+        diverged(name, e)?;
         let mut lines = String::new();
         for (k, rec) in proto.records.iter().enumerate() {
             lines += &serde_json::json!({
@@ -1127,6 +1236,7 @@ pub fn run(a: RunArgs) -> Result<()> {
                 cfg.solver,
                 cfg.pupil_centre,
             )?;
+            diverged(name, &e)?;
             let mut lines = String::new();
             for (k, rec) in seq.records.iter().enumerate() {
                 let (ta, te) = nanoeye_gaze::eye::angles_from_gaze(rec.gaze);
@@ -1191,15 +1301,42 @@ pub fn run(a: RunArgs) -> Result<()> {
         }
         result["learned_lens_embedding"] = e;
     }
-    util::write_atomic(
-        &out.join("result.json"),
-        serde_json::to_string_pretty(&result)?.as_bytes(),
-    )?;
+    // A NaN would be written as null; nothing non-finite is reported as a result.
+    if let Some(k) = util::first_null(&result, &[]) {
+        bail!(
+            "the result's `{k}` is not a finite number (a diverged training?): lower lr_net, \
+             lr_pitch_um or lr_phase_rad"
+        );
+    }
+    // result.json last: it marks the run complete (a rerun reports it and redoes nothing),
+    // so the report must exist before it does.
     util::write_atomic(
         &out.join("report.html"),
         crate::report::html(&out, &result)?.as_bytes(),
     )?;
+    util::write_atomic(
+        &out.join("result.json"),
+        serde_json::to_string_pretty(&result)?.as_bytes(),
+    )?;
     print_result(&result, a.json)
+}
+
+/// Refuses an evaluation whose network predicted a non-finite slippage: its weights diverged
+/// (a learning rate too high), and the tracked slippage would be written as null.
+fn diverged(lens: &str, e: &nanoeye_search::FrameEval) -> Result<()> {
+    if let Some(k) = e
+        .slip_mm
+        .iter()
+        .position(|s| s.iter().any(|v| !v.is_finite()))
+    {
+        bail!(
+            "the {lens} lens's network predicts a non-finite slippage (frame {k} of {}): its \
+             training diverged; lower lr_net, lr_pitch_um or lr_phase_rad (or rea_epochs, \
+             final_steps) and use a new --out",
+            e.slip_mm.len()
+        );
+    }
+    Ok(())
 }
 
 /// One lens's share of the protocol stage's result.

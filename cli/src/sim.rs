@@ -14,6 +14,10 @@ use nanoeye_sensor::NoiseMode;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+/// Finest base pitch (µm) `--base-pitch-um` takes: finer than any sensor's pixel; far finer, the
+/// box integrator's (sample/base)² factor overflows.
+const MIN_BASE_PITCH_UM: f64 = 0.1;
+
 /// Largest number of frames one `sim` or `search loss` call processes (memory bound).
 const MAX_FRAMES: usize = 100_000;
 
@@ -120,6 +124,16 @@ impl CameraArgs {
                 self.aperture_step_um
             );
         }
+        // Coarser than an eighth of the aperture samples no lens (a step beyond the aperture
+        // leaves one sample whose weight can be 0, and every gain NaN).
+        let coarsest = cfg.radiometry.aperture_m * 1e6 / 8.0;
+        if self.aperture_step_um > coarsest {
+            bail!(
+                "--aperture-step-um: at most {coarsest} µm (an eighth of the {} mm aperture), got {}",
+                cfg.radiometry.aperture_m * 1e3,
+                self.aperture_step_um
+            );
+        }
         cfg.aperture_step_m = self.aperture_step_um * 1e-6;
         if !(self.exposure_ms.is_finite() && self.exposure_ms > 0.0 && self.exposure_ms <= 1000.0) {
             bail!(
@@ -130,8 +144,10 @@ impl CameraArgs {
         cfg.radiometry.exposure_s = self.exposure_ms * 1e-3;
         let native = ds.manifest.rig.camera.pixel_pitch_m;
         cfg.sensor.base_pitch = match self.base_pitch_um {
-            Some(b) if b.is_finite() && b > 0.0 => b * 1e-6,
-            Some(b) => bail!("--base-pitch-um: must be positive, got {b}"),
+            Some(b) if b.is_finite() && b >= MIN_BASE_PITCH_UM => b * 1e-6,
+            Some(b) => bail!(
+                "--base-pitch-um: must be at least {MIN_BASE_PITCH_UM} µm (a sensor pixel), got {b}"
+            ),
             // The physical sensor's 3 µm, unless the dataset was rendered finer.
             None => cfg.sensor.base_pitch.min(native),
         };
@@ -331,6 +347,22 @@ pub fn sim(a: SimArgs) -> Result<()> {
             lines.push('\n');
         }
     }
+    if let Some(k) = sensor
+        .iter()
+        .position(|m| m.col_iter().any(|c| c.iter().any(|v| !v.is_finite())))
+    {
+        bail!(
+            "frame {k}'s sensor image holds a non-finite value: check --base-pitch-um, \
+             --exposure-ms and --lens"
+        );
+    }
+    // sim.json last and removed first: it is what readers (`track --frames`) trust, so a run
+    // that fails between the four files leaves none that vouches for a mixture.
+    let summary_path = a.out.join("sim.json");
+    if summary_path.exists() {
+        std::fs::remove_file(&summary_path)
+            .with_context(|| format!("--out: cannot replace {}", summary_path.display()))?;
+    }
     util::write_atomic(&a.out.join("sensor.npy"), &npy_stack(&sensor)?)?;
     util::write_atomic(&a.out.join("mask.npy"), &npy_stack(&masks)?)?;
     util::write_atomic(&a.out.join("targets.jsonl"), lines.as_bytes())?;
@@ -343,7 +375,7 @@ pub fn sim(a: SimArgs) -> Result<()> {
         "seconds": t0.elapsed().as_secs_f64(),
     });
     util::write_atomic(
-        &a.out.join("sim.json"),
+        &summary_path,
         serde_json::to_string_pretty(&summary)?.as_bytes(),
     )?;
     if a.json {

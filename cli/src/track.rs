@@ -105,7 +105,7 @@ fn load(a: &TrackArgs) -> Result<Model> {
             let t = std::fs::read_to_string(&tuned_arch)?;
             serde_json::from_str(&t).with_context(|| format!("--model {}", tuned_arch.display()))?
         }
-        "best" => best_arch(&a.model).unwrap_or_else(Arch::min),
+        "best" => best_arch(&a.model)?.unwrap_or_else(Arch::min),
         s => {
             let p = s
                 .strip_prefix("file:")
@@ -143,13 +143,22 @@ fn load(a: &TrackArgs) -> Result<Model> {
     })
 }
 
-fn best_arch(run: &Path) -> Option<Arch> {
-    let text = std::fs::read_to_string(run.join("rea_state.json")).ok()?;
-    let st: nanoeye_search::ReaState = serde_json::from_str(&text).ok()?;
-    st.evaluated
-        .iter()
-        .reduce(|a, b| if b.fitness > a.fitness { b } else { a })
-        .map(|i| i.arch.clone())
+/// The subnet `search rea` deploys from RUN/rea_state.json (`search::rea::pick_best`: the best
+/// fitness within the budget), `None` without a search; a state that cannot be read is an
+/// error, not the min subnet in its place.
+fn best_arch(run: &Path) -> Result<Option<Arch>> {
+    let p = run.join("rea_state.json");
+    let text = match std::fs::read_to_string(&p) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(e).with_context(|| format!("--model: {}", p.display())),
+    };
+    let st: nanoeye_search::ReaState = serde_json::from_str(&text)
+        .with_context(|| format!("--model: {} is not a search state", p.display()))?;
+    Ok(
+        nanoeye_search::rea::pick_best(&st.evaluated, st.config.budget_macs)
+            .map(|i| i.arch.clone()),
+    )
 }
 
 /// A frame source: (name, DN image) or a per-frame error.

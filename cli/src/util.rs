@@ -221,6 +221,39 @@ pub fn jsonl_line(raw: &[u8], line_no: usize) -> Result<&str> {
     })
 }
 
+/// The path (`key.sub[2]`) of the first null in `v`, depth first, skipping the top-level keys in
+/// `optional`: serde_json writes a non-finite f64 as null, so a null where a number belongs is a
+/// NaN or an infinity that reached an output.
+pub fn first_null(v: &serde_json::Value, optional: &[&str]) -> Option<String> {
+    fn walk(v: &serde_json::Value, path: String) -> Option<String> {
+        match v {
+            serde_json::Value::Null => Some(path),
+            serde_json::Value::Array(a) => a
+                .iter()
+                .enumerate()
+                .find_map(|(i, x)| walk(x, format!("{path}[{i}]"))),
+            serde_json::Value::Object(o) => o.iter().find_map(|(k, x)| {
+                walk(
+                    x,
+                    if path.is_empty() {
+                        k.clone()
+                    } else {
+                        format!("{path}.{k}")
+                    },
+                )
+            }),
+            _ => None,
+        }
+    }
+    match v.as_object() {
+        Some(o) => o
+            .iter()
+            .filter(|(k, _)| !optional.contains(&k.as_str()))
+            .find_map(|(k, x)| walk(x, k.clone())),
+        None => walk(v, String::new()),
+    }
+}
+
 /// Prints a serializable value as one line of JSON on stdout.
 pub fn print_json<T: serde::Serialize>(value: &T) -> Result<()> {
     println!("{}", serde_json::to_string(value)?);
@@ -291,6 +324,18 @@ pub fn parse_list(flag: &str, text: &str) -> Result<Vec<f64>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn first_null_names_the_path_of_a_non_finite_number() {
+        let v = serde_json::json!({"a": 1.0, "rig": null, "b": {"c": [0.5, f64::NAN]}});
+        assert_eq!(first_null(&v, &["rig"]).as_deref(), Some("b.c[1]"));
+        let v = serde_json::json!({"a": 1.0, "rig": null});
+        assert_eq!(first_null(&v, &[]).as_deref(), Some("rig"));
+        assert_eq!(first_null(&v, &["rig"]), None);
+        let v = serde_json::json!({"a": [1, {"x": f64::INFINITY}]});
+        assert_eq!(first_null(&v, &[]).as_deref(), Some("a[1].x"));
+        assert_eq!(first_null(&serde_json::json!({"a": [1.0]}), &[]), None);
+    }
 
     #[test]
     fn range_includes_end_on_grid() {

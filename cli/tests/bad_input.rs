@@ -610,6 +610,32 @@ fn sim_and_search_loss_name_their_bad_flags() {
             vec!["sim", "--dataset", "ds", "--frames", "2:1", "--out", "o"],
             "--frames",
         ),
+        // An audit: 1e-300 µm passed as positive and wrote NaN frames with exit 0; 1e9 µm
+        // failed naming `frames` (every layer's gain NaN).
+        (
+            vec![
+                "sim",
+                "--dataset",
+                "ds",
+                "--base-pitch-um",
+                "1e-300",
+                "--out",
+                "o",
+            ],
+            "--base-pitch-um",
+        ),
+        (
+            vec![
+                "sim",
+                "--dataset",
+                "ds",
+                "--aperture-step-um",
+                "1e9",
+                "--out",
+                "o",
+            ],
+            "--aperture-step-um",
+        ),
         (
             vec!["search", "loss", "--dataset", "ds", "--frames", "0:99"],
             "--frames",
@@ -939,6 +965,18 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
             r#"{"train_set": "ambiguity", "train_blink_fraction": 0.1}"#,
             "train_blink_fraction",
         ),
+        // A mistyped width: refused, not a failed 64 GB allocation (an audit saw SIGABRT).
+        (r#"{"head_widths": [100000000, 100000000]}"#, "head_widths"),
+        (r#"{"head_widths": [0, 16]}"#, "head_widths"),
+        // 4096 frames a batch through three chains: refused with the GiB it needs.
+        (r#"{"batch": 4096}"#, "batch"),
+        (r#"{"aperture_step_um": 1e4}"#, "aperture_step_um"),
+        (r#"{"pitch_range_um": [12, 1e9]}"#, "pitch_range_um"),
+        // The other sets' seeds are seed + 1 … seed + 4 (this overflowed).
+        (r#"{"seed": 18446744073709551615}"#, "seed"),
+        // An array would be read into the keys by position (`[7]` was seed 7).
+        ("[7]", "JSON object"),
+        ("[]", "JSON object"),
     ] {
         std::fs::write(p.join("c.json"), cfg).unwrap();
         let err = refused(&["run", "--config", "c.json", "--out", "r"], "--config", p);
@@ -947,6 +985,48 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
             !p.join("r").exists(),
             "{cfg}: a refused run must write nothing"
         );
+    }
+    // TOML can write NaN and infinities: refused for every key, used by this configuration or
+    // not (an audit: `embed_weight = nan` was written to config.json as null, which no resume
+    // could read back).
+    for (cfg, key) in [
+        ("embed_weight = nan", "embed_weight"),
+        ("embed_lr_rad = inf", "embed_lr_rad"),
+        (
+            "slip_axis_weights = [1.0, nan, 1.0]",
+            "slip_axis_weights[1]",
+        ),
+    ] {
+        std::fs::write(p.join("c.toml"), cfg).unwrap();
+        let err = refused(&["run", "--config", "c.toml", "--out", "r"], "--config", p);
+        assert!(
+            err.contains(key) && err.contains("not a finite"),
+            "{cfg}: {err}"
+        );
+        assert!(!p.join("r").exists());
+        refused(&["run", "--config", "c.toml", "--print-config"], key, p);
+    }
+}
+
+/// A directory holding a run's results or checkpoints but no config.json is not resumed: which
+/// configuration made them is unknown, and a resume would report them under another's (an
+/// audit: a copied run without config.json was "complete" under seed 7 with seed 0's numbers).
+#[test]
+fn run_refuses_a_run_directory_without_its_configuration() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    for f in ["result.json", "runs"] {
+        let r = p.join(format!("r_{}", f.replace('.', "_")));
+        std::fs::create_dir_all(&r).unwrap();
+        if f == "runs" {
+            std::fs::create_dir_all(r.join("runs/learned")).unwrap();
+        } else {
+            std::fs::write(r.join(f), "{}").unwrap();
+        }
+        let out = r.to_str().unwrap();
+        let err = refused(&["run", "--set", "seed=7", "--out", out], "--out", p);
+        assert!(err.contains("config.json") && err.contains(f), "{err}");
+        assert!(!r.join("config.json").exists(), "nothing written");
     }
 }
 

@@ -31,6 +31,45 @@ fn tiny_job(dir: &std::path::Path, name: &str, extra: &str) -> (serde_json::Valu
     (serde_json::from_slice(&o.stdout).unwrap(), out)
 }
 
+/// A training driven to divergence (every learning rate at the accepted maximum) stops at
+/// the protocol stage naming the learning rates, exit non-zero, and writes no result with
+/// nulls in it (an audit: exit 0, `slip_rmse_mm` null in result.json, protocol.jsonl and
+/// demo.jsonl tracking slippage [null, null, null]).
+#[test]
+fn a_diverged_training_is_an_error_not_a_result_with_nulls() {
+    let d = tempfile::tempdir().unwrap();
+    let cfg = d.path().join("div.json");
+    let text = TINY.replacen(
+        '{',
+        "{\"fisher_iterations\": 0, \"lr_net\": 1000, \"lr_pitch_um\": 1000, \
+         \"lr_phase_rad\": 1000, \"slip_head_refit\": false, \"rea_head_refit\": false, ",
+        1,
+    );
+    std::fs::write(&cfg, text).unwrap();
+    let out = d.path().join("run");
+    let o = Command::new(env!("CARGO_BIN_EXE_nanoeye"))
+        .args(["run", "--json", "--config"])
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(err.contains("finite") && err.contains("lr_net"), "{err}");
+    assert!(o.stdout.is_empty());
+    for f in ["result.json", "report.html", "demo.jsonl"] {
+        assert!(!out.join(f).exists(), "{f} written");
+    }
+    for lens in ["learned", "hyperbolic", "double_helix"] {
+        let p = out.join(format!("runs/{lens}/protocol.jsonl"));
+        if let Ok(t) = std::fs::read_to_string(&p) {
+            assert!(!t.contains("null,null,null"), "{lens}: {t}");
+        }
+    }
+}
+
 #[test]
 fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     let d = tempfile::tempdir().unwrap();
@@ -316,6 +355,27 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
             .all(|l| l.contains("outside the sensor's range")),
         "{out_lines}"
     );
+    // `--subnet best` without the run's tracker files takes the search's pick from
+    // rea_state.json; one that cannot be read is an error naming it, not the min subnet.
+    let bare = d.path().join("bare");
+    std::fs::create_dir_all(&bare).unwrap();
+    for f in ["selected.bin", "rig.json"] {
+        std::fs::copy(out.join("runs/learned").join(f), bare.join(f)).unwrap();
+    }
+    std::fs::write(bare.join("rea_state.json"), "{\"evaluated\": [").unwrap();
+    let o = Command::new(bin)
+        .args(["track", "--subnet", "best", "--model"])
+        .arg(&bare)
+        .arg("--frames")
+        .arg(&frames)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("rea_state.json"),
+        "{err}"
+    );
+    assert!(o.stdout.is_empty());
     // A bad stdin header gives an error line, not a crash.
     let mut child = Command::new(bin)
         .args(["track", "--stdin", "--model"])

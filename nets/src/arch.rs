@@ -117,8 +117,13 @@ impl Default for SupernetConfig {
     }
 }
 
+/// Largest width of the supernet's configurable layers: the head's hidden weights alone are
+/// `head_expand × head_hidden` f32 (256 MiB at this bound), so a mistyped width is refused
+/// rather than aborting the process on a failed allocation.
+pub const MAX_WIDTH: usize = 8192;
+
 impl SupernetConfig {
-    /// Fails on a zero width.
+    /// Fails on a zero width or one above [`MAX_WIDTH`].
     pub fn validate(&self) -> Result<()> {
         if self.in_channels == 0
             || self.head_expand == 0
@@ -126,6 +131,20 @@ impl SupernetConfig {
             || self.decoder_width == 0
         {
             return Err(NetsError::Arch(format!("zero width in {self:?}")));
+        }
+        let widest = [
+            self.in_channels,
+            self.head_expand,
+            self.head_hidden,
+            self.decoder_width,
+        ]
+        .into_iter()
+        .max()
+        .unwrap_or(0);
+        if widest > MAX_WIDTH {
+            return Err(NetsError::Arch(format!(
+                "a width of {widest} in {self:?}, above the {MAX_WIDTH} allowed"
+            )));
         }
         Ok(())
     }
