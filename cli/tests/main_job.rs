@@ -20,15 +20,20 @@ fn tiny_job(dir: &std::path::Path, name: &str, extra: &str) -> (serde_json::Valu
     let text = TINY.replacen('{', &format!("{{\"fisher_iterations\": 3, {extra}"), 1);
     std::fs::write(&cfg, text).unwrap();
     let out = dir.join(name);
-    let o = Command::new(env!("CARGO_BIN_EXE_nanoeye"))
-        .args(["run", "--json", "--config"])
-        .arg(&cfg)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
+    let o = run_json(&cfg, &out);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     (serde_json::from_slice(&o.stdout).unwrap(), out)
+}
+
+/// `nanoeye run --json --config CFG --out OUT`.
+fn run_json(cfg: &std::path::Path, out: &std::path::Path) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_nanoeye"))
+        .args(["run", "--json", "--config"])
+        .arg(cfg)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap()
 }
 
 /// A training driven to divergence (every learning rate at the accepted maximum) stops at
@@ -47,13 +52,7 @@ fn a_diverged_training_is_an_error_not_a_result_with_nulls() {
     );
     std::fs::write(&cfg, text).unwrap();
     let out = d.path().join("run");
-    let o = Command::new(env!("CARGO_BIN_EXE_nanoeye"))
-        .args(["run", "--json", "--config"])
-        .arg(&cfg)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
+    let o = run_json(&cfg, &out);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success(), "{err}");
     assert!(!err.contains("panicked"), "{err}");

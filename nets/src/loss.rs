@@ -11,16 +11,18 @@ fn sigmoid(x: f32) -> f64 {
     1.0 / (1.0 + (-(x as f64)).exp())
 }
 
-/// Mean over images of S7 with M = σ(logits); returns (loss, dL/dlogits).
-pub fn dice_loss(logits: &Tensor, target: &Tensor) -> Result<(f64, Tensor)> {
+/// Per image of a Dice batch: its logits, its target, I = Σ M·M* and den = Σ (M + M*) + ε
+/// (f64), after the shape checks S7's loss and its target gradient share.
+fn dice_images<'a>(
+    logits: &'a Tensor,
+    target: &'a Tensor,
+) -> Result<impl Iterator<Item = (&'a [f32], &'a [f32], f64, f64)>> {
     logits.check_same(target, "dice target")?;
     if logits.n == 0 {
         return Err(NetsError::Shape("dice loss of an empty batch".into()));
     }
     let per = logits.c * logits.plane();
-    let mut grad = Tensor::zeros(logits.n, logits.c, logits.h, logits.w);
-    let mut total = 0.0f64;
-    for n in 0..logits.n {
+    Ok((0..logits.n).map(move |n| {
         let l = &logits.data[n * per..][..per];
         let t = &target.data[n * per..][..per];
         let (mut inter, mut sum) = (0.0f64, 0.0f64);
@@ -29,7 +31,16 @@ pub fn dice_loss(logits: &Tensor, target: &Tensor) -> Result<(f64, Tensor)> {
             inter += m * tv as f64;
             sum += m + tv as f64;
         }
-        let den = sum + DICE_EPS;
+        (l, t, inter, sum + DICE_EPS)
+    }))
+}
+
+/// Mean over images of S7 with M = σ(logits); returns (loss, dL/dlogits).
+pub fn dice_loss(logits: &Tensor, target: &Tensor) -> Result<(f64, Tensor)> {
+    let mut grad = Tensor::zeros(logits.n, logits.c, logits.h, logits.w);
+    let per = logits.c * logits.plane();
+    let mut total = 0.0f64;
+    for (n, (l, t, inter, den)) in dice_images(logits, target)?.enumerate() {
         total += 1.0 - 2.0 * inter / den;
         let g = &mut grad.data[n * per..][..per];
         for ((gv, &lv), &tv) in g.iter_mut().zip(l).zip(t) {
@@ -44,22 +55,9 @@ pub fn dice_loss(logits: &Tensor, target: &Tensor) -> Result<(f64, Tensor)> {
 /// ∂(S7 mean over images)/∂target for M = σ(logits): the Dice loss's gradient w.r.t. a soft
 /// target M* that itself depends on a parameter (the mask averaged onto the p̂ grid).
 pub fn dice_target_grad(logits: &Tensor, target: &Tensor) -> Result<Tensor> {
-    logits.check_same(target, "dice target")?;
-    if logits.n == 0 {
-        return Err(NetsError::Shape("dice loss of an empty batch".into()));
-    }
-    let per = logits.c * logits.plane();
     let mut grad = Tensor::zeros(logits.n, logits.c, logits.h, logits.w);
-    for n in 0..logits.n {
-        let l = &logits.data[n * per..][..per];
-        let t = &target.data[n * per..][..per];
-        let (mut inter, mut sum) = (0.0f64, 0.0f64);
-        for (&lv, &tv) in l.iter().zip(t) {
-            let m = sigmoid(lv);
-            inter += m * tv as f64;
-            sum += m + tv as f64;
-        }
-        let den = sum + DICE_EPS;
+    let per = logits.c * logits.plane();
+    for (n, (l, _, inter, den)) in dice_images(logits, target)?.enumerate() {
         // L = 1 − 2I/den with ∂I/∂t = m and ∂den/∂t = 1.
         let g = &mut grad.data[n * per..][..per];
         for (gv, &lv) in g.iter_mut().zip(l) {

@@ -157,6 +157,18 @@ impl BoxIntegrator {
         Ok(())
     }
 
+    fn check_grad(&self, grad: &Mat<f32>) -> Result<(), SensorError> {
+        let (mr, mc) = self.out_shape();
+        if (grad.nrows(), grad.ncols()) != (mr, mc) {
+            return Err(SensorError::Shape {
+                name: "grad",
+                expected: (mr, mc),
+                got: (grad.nrows(), grad.ncols()),
+            });
+        }
+        Ok(())
+    }
+
     /// Column pass: T[r, j] = Σ_k band[j][k] X[r, k] (f64 accumulation).
     fn col_pass(&self, img: &Mat<f32>, deriv: bool) -> Vec<f64> {
         let (nr, _) = self.in_shape;
@@ -218,13 +230,7 @@ impl BoxIntegrator {
     pub fn vjp(&self, img: &Mat<f32>, grad: &Mat<f32>) -> Result<IntegratorGrad, SensorError> {
         self.check_in("image", img)?;
         let (mr, mc) = self.out_shape();
-        if (grad.nrows(), grad.ncols()) != (mr, mc) {
-            return Err(SensorError::Shape {
-                name: "grad",
-                expected: (mr, mc),
-                got: (grad.nrows(), grad.ncols()),
-            });
-        }
+        self.check_grad(grad)?;
         let (nr, nc) = self.in_shape;
         // d_image = s A_yᵀ G A_x.
         let mut d = Mat::<f32>::zeros(nr, nc);
@@ -259,14 +265,7 @@ impl BoxIntegrator {
     /// `d_p_hat` without the input gradient, for an input that is data (a target).
     pub fn pitch_vjp(&self, img: &Mat<f32>, grad: &Mat<f32>) -> Result<f64, SensorError> {
         self.check_in("image", img)?;
-        let (mr, mc) = self.out_shape();
-        if (grad.nrows(), grad.ncols()) != (mr, mc) {
-            return Err(SensorError::Shape {
-                name: "grad",
-                expected: (mr, mc),
-                got: (grad.nrows(), grad.ncols()),
-            });
-        }
+        self.check_grad(grad)?;
         Ok(self.p_hat_dot(img, grad))
     }
 
