@@ -132,11 +132,18 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
     }
     util::write_atomic(&inputs_path, format!("{inputs}\n").as_bytes())?;
     // The bounds of the starting lens over every triplet (kept from the first invocation;
-    // `e` is still at the starting lens until the checkpoint is loaded below).
+    // `e` is still at the starting lens until the checkpoint is loaded below). Read back only
+    // beside a checkpoint, whose lens and inputs were compared above: before the first one
+    // nothing vouches for it (an audit: a rerun with another --lens reported the old bounds).
     let init_path = a.out.join("init.json");
-    let init = match std::fs::read_to_string(&init_path) {
-        Ok(t) => serde_json::from_str(&t).context("--out (resume): init.json")?,
-        Err(_) => {
+    let kept = if ck.exists() {
+        std::fs::read_to_string(&init_path).ok()
+    } else {
+        None
+    };
+    let init = match kept {
+        Some(t) => serde_json::from_str(&t).context("--out (resume): init.json")?,
+        None => {
             let ev = e.evaluate(a.eval_chunk)?;
             util::write_atomic(&init_path, serde_json::to_string_pretty(&ev)?.as_bytes())?;
             ev

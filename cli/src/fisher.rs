@@ -110,6 +110,27 @@ fn depths(flag: &str, text: &str) -> Result<Vec<f64>> {
     Ok(m)
 }
 
+/// Most PSF values a command holds per lens and pitch: depth planes × window² (each plane
+/// has its PSF and ∂PSF/∂z in f64, so 1 GiB at this bound); beyond it a run would fail an
+/// allocation, panic and hang rather than refuse (9001 planes of 1024² did).
+const MAX_PLANE_VALUES: u128 = 1 << 26;
+
+/// Most lenses or pitches `fisher compare` takes (each multiplies the work and the montage).
+const MAX_LIST: usize = 64;
+
+/// Refuses a depth stack whose PSFs and derivatives would not fit [`MAX_PLANE_VALUES`].
+fn check_stack(planes: usize, window_px: usize) -> Result<()> {
+    let values = planes as u128 * window_px as u128 * window_px as u128;
+    if values > MAX_PLANE_VALUES {
+        bail!(
+            "--depths-mm/--window-px: {planes} planes of {window_px}×{window_px} pixels is \
+             {values} values, more than {MAX_PLANE_VALUES} (1 GiB of PSFs and derivatives); \
+             give fewer planes or a smaller window"
+        );
+    }
+    Ok(())
+}
+
 /// Largest photon budget: Fisher information scales with it, and far beyond any exposure
 /// (10^20 photons) the sums overflow to inf (1e308 gave a null fisher_z).
 const MAX_PHOTONS: f64 = 1e20;
@@ -274,6 +295,17 @@ fn init(a: InitArgs) -> Result<()> {
         bail!("--lr-rad: must be positive, got {}", a.lr_rad);
     }
     let depths_m = depths("--depths-mm", &a.depths_mm)?;
+    check_optics(&a.optics)?;
+    check_stack(depths_m.len(), a.optics.window_px)?;
+    // The PSF window (on the 3 µm native grid) must hold at least one effective pixel.
+    let widest = a.optics.window_px as f64 * 3.0;
+    if a.pitch_um > widest {
+        bail!(
+            "--pitch-um: at most {widest} µm (the {}-pixel PSF window at 3 µm), got {}",
+            a.optics.window_px,
+            a.pitch_um
+        );
+    }
     let (grid, model) = model(&a.optics, 3e-6)?;
     let ckpt = a.out.join("checkpoint");
     let requested = InitConfig {
@@ -285,16 +317,23 @@ fn init(a: InitArgs) -> Result<()> {
     };
     // Temporary files of a killed run (its checkpoint/ is written by the fisher crate only).
     crate::util::remove_stale_temps_under(&a.out);
-    // The PSF window shapes every iteration's PSFs but is not in the checkpoint's config.
+    // The PSF window and the aperture sampling shape every iteration's PSFs but are not in
+    // the checkpoint's config (its grid size alone let another step of the same size resume).
     let inputs_path = a.out.join("inputs.json");
-    let inputs = serde_json::json!({ "window_px": a.optics.window_px });
+    let inputs = serde_json::json!({
+        "window_px": a.optics.window_px,
+        "aperture_step_um": a.optics.aperture_step_um,
+    });
     let (mut state, cfg) = if InitState::checkpoint_exists(&ckpt) {
         let (s, c) = InitState::load(&ckpt)
             .with_context(|| format!("--out: cannot resume from '{}'", ckpt.display()))?;
         crate::util::check_inputs(
             &inputs_path,
             &inputs,
-            &[("window_px", "--window-px")],
+            &[
+                ("window_px", "--window-px"),
+                ("aperture_step_um", "--aperture-step-um"),
+            ],
             "--out",
         )?;
         // A resumed run must continue the same problem: refuse changed parameters by name.
@@ -445,9 +484,16 @@ fn compare(a: CompareArgs) -> Result<()> {
     if pitches_um.is_empty() || pitches_um.iter().any(|&p| p <= 0.0) {
         bail!("--pitch-um: need positive pitches");
     }
+    if pitches_um.len() > MAX_LIST {
+        bail!(
+            "--pitch-um: at most {MAX_LIST} pitches, got {}",
+            pitches_um.len()
+        );
+    }
     let native = pitches_um.iter().copied().fold(f64::INFINITY, f64::min);
     // The optics flags first, so that the context below only ever wraps the pitch's errors.
     check_optics(&a.optics)?;
+    check_stack(depths_m.len(), a.optics.window_px)?;
     let (grid, model) = model(&a.optics, native * 1e-6)
         .context("--pitch-um: the smallest pitch is the PSF model's native pitch")?;
     let specs: Vec<&str> = a
@@ -458,6 +504,9 @@ fn compare(a: CompareArgs) -> Result<()> {
         .collect();
     if specs.is_empty() {
         bail!("--lenses: no lens given");
+    }
+    if specs.len() > MAX_LIST {
+        bail!("--lenses: at most {MAX_LIST} lenses, got {}", specs.len());
     }
     let lenses = specs
         .iter()

@@ -105,8 +105,11 @@ fn macs(a: MacsArgs) -> Result<()> {
             let Some(path) = other.strip_prefix("file:") else {
                 bail!("--arch: '{other}' is not large, small, max, min or file:PATH");
             };
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("--arch: cannot read '{path}'"))?;
+            let text = crate::util::read_small_text(
+                std::path::Path::new(path),
+                crate::util::MAX_ARCH_BYTES,
+            )
+            .context("--arch")?;
             let arch: Arch = serde_json::from_str(&text)
                 .with_context(|| format!("--arch: '{path}' is not an Arch JSON"))?;
             subnet_cost(&cfg, &arch, a.resolution, a.resolution)

@@ -202,6 +202,9 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
             train.len()
         );
     }
+    for run in &runs {
+        crate::sim::check_trained_with(run, &a.camera, "--runs")?;
+    }
     let chain = a.camera.chain(&ds)?;
     let tchain = a.camera.chain(&train)?;
     // Subnets: REA selections of the first run by fitness, then uniform draws.

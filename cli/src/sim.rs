@@ -82,6 +82,32 @@ impl ChainArgs {
     }
 }
 
+/// Refuses camera flags other than those `run` (a `search train` output) was trained with, as
+/// its inputs.json records them (a run without the record, begun before it existed, is not
+/// checked); `flag` names the run's flag (`--run`, `--runs`).
+pub fn check_trained_with(run: &Path, camera: &CameraArgs, flag: &str) -> Result<()> {
+    let path = run.join("inputs.json");
+    let Ok(text) = std::fs::read_to_string(&path) else {
+        return Ok(());
+    };
+    let had: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("{flag}: {} is not JSON", path.display()))?;
+    let now = camera.record();
+    for (key, f) in CAMERA_KEYS {
+        if let Some(old) = had.get(key) {
+            if *old != now[key] {
+                bail!(
+                    "{f}: differs from the run's training ({} records {key} = {old}, this \
+                     command gives {}); the chain must be the one the run was trained with",
+                    path.display(),
+                    now[key]
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
 /// The keys of [`CameraArgs::record`] and their flags.
 pub const CAMERA_KEYS: [(&str, &str); 3] = [
     ("aperture_step_um", "--aperture-step-um"),
@@ -402,8 +428,8 @@ fn parse_subnet(text: &str) -> Result<Arch> {
             let Some(p) = text.strip_prefix("file:") else {
                 bail!("--subnet: '{text}' is not min, max or file:ARCH.json");
             };
-            let s =
-                std::fs::read_to_string(Path::new(p)).with_context(|| format!("--subnet {p}"))?;
+            let s = util::read_small_text(Path::new(p), util::MAX_ARCH_BYTES)
+                .with_context(|| format!("--subnet {p}"))?;
             let a: Arch = serde_json::from_str(s.trim_start_matches('\u{feff}'))
                 .with_context(|| format!("--subnet {p}"))?;
             a.validate().with_context(|| format!("--subnet {p}"))?;

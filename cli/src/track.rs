@@ -110,7 +110,8 @@ fn load(a: &TrackArgs) -> Result<Model> {
             let p = s
                 .strip_prefix("file:")
                 .with_context(|| format!("--subnet: '{s}' is not best, min, max or file:A.json"))?;
-            let t = std::fs::read_to_string(p).with_context(|| format!("--subnet {p}"))?;
+            let t = crate::util::read_small_text(Path::new(p), crate::util::MAX_ARCH_BYTES)
+                .with_context(|| format!("--subnet {p}"))?;
             let a: Arch = serde_json::from_str(&t).with_context(|| format!("--subnet {p}"))?;
             a.validate().with_context(|| format!("--subnet {p}"))?;
             a

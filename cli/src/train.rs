@@ -335,6 +335,14 @@ pub fn train(a: TrainArgs) -> Result<()> {
             a.pitch_range_um
         );
     };
+    // p̂ may reach the range's top: the sensor must hold at least a pixel of it (else the
+    // training failed at that step, naming the rig's pixel pitch).
+    // (A top finer than the native grid is refused with the range's other checks.)
+    if hi.is_finite() && hi * 1e-6 >= chain.native().pitch_m() {
+        chain.native().at(hi * 1e-6).with_context(|| {
+            format!("--pitch-range-um: ends at {hi} µm, beyond what --dataset's frames hold")
+        })?;
+    }
     let cfg = TrainConfig {
         steps: a.steps,
         batch: a.batch,
@@ -449,14 +457,23 @@ pub fn train(a: TrainArgs) -> Result<()> {
     // The data and the chain's other settings, which no checkpoint holds: a resume with
     // others would mix two runs (docs/formats.md, "Resume records").
     let inputs_path = a.out.join("inputs.json");
-    let inputs = a.chain.inputs(Some(a.val.as_deref()))?;
+    let mut inputs = a.chain.inputs(Some(a.val.as_deref()))?;
+    // The triplet set by content too (lens.json names its path): re-rendered in place, it is
+    // another set (an audit resumed over one).
+    if let Some(p) = &a.embed_triplets {
+        inputs["embed_triplets"] = serde_json::json!(util::dataset_digest("--embed-triplets", p)?);
+    }
     // Rank 0 reads the checkpoint and sends it (empty: none), so --out need not be shared.
     let resume = if w.is_root() {
         util::check_output_target(&ck)?;
         // Temporary files of a killed run (a checkpoint cut off before its rename).
         util::remove_stale_temps_under(&a.out);
         if ck.exists() {
-            let keys = [("dataset", "--dataset"), ("val", "--val")];
+            let keys = [
+                ("dataset", "--dataset"),
+                ("val", "--val"),
+                ("embed_triplets", "--embed-triplets"),
+            ];
             util::check_inputs(
                 &inputs_path,
                 &inputs,
@@ -506,16 +523,16 @@ pub fn train(a: TrainArgs) -> Result<()> {
         .context("--lens")?
         .phase_rad;
     // A checkpoint holds φ itself; before the first one, `--lens init` starts from the Fisher
-    // phase, computed once (by rank 0, sent to the others) and kept beside the checkpoint.
+    // phase, computed by rank 0 (sent to the others) and written beside the checkpoint. It is
+    // computed again rather than read back after a kill before the first checkpoint: nothing
+    // there vouches for the flags it was computed with (an audit: a rerun with other
+    // --fisher-iterations started from the old phase).
     let fisher_path = a.out.join("fisher_phase.npy");
     let mut fisher_new = None;
     if init && resume.is_empty() {
         let mut bytes = Vec::new();
         if w.is_root() {
-            let phase = if fisher_path.exists() {
-                nanoeye_fisher::nanoeye_optics::io::read_phase_npy(&fisher_path)
-                    .context("--out (resume): fisher_phase.npy")?
-            } else {
+            let phase = {
                 eprintln!(
                     "Fisher initialization of the lens ({} iterations)",
                     a.fisher_iterations
@@ -633,10 +650,9 @@ pub fn train(a: TrainArgs) -> Result<()> {
         // Wall time of the steps this invocation ran (checkpoints included), per step.
         "seconds_per_step": train_s / (t.step - step0).max(1) as f64,
     });
-    for k in ["v_deg", "dice", "slip_mse", "pitch_um"] {
-        if !out[k].as_f64().is_some_and(f64::is_finite) {
-            bail!("{k} is not finite: training diverged; lower the learning rates");
-        }
+    // Every number (max_subnet's and median_deg too): a NaN would print as null.
+    if let Some(k) = util::first_null(&out, &[]) {
+        bail!("{k} is not finite: training diverged; lower the learning rates");
     }
     if !w.is_root() {
         return Ok(());
@@ -752,6 +768,7 @@ pub fn rea(a: ReaArgs) -> Result<()> {
             "--fit-pitch fits p̂ to --budget-macs, which is 0 (none): give a budget or drop the flag"
         );
     }
+    crate::sim::check_trained_with(&a.run, &a.chain.camera, "--run")?;
     let (ds, chain) = a.chain.build()?;
     if let Some(p) = a.chain.pitch_um {
         // The flag is shared with the commands that take p̂ from it; here it changes nothing,

@@ -254,6 +254,27 @@ pub fn first_null(v: &serde_json::Value, optional: &[&str]) -> Option<String> {
     }
 }
 
+/// Largest subnet (arch) JSON read: a few hundred bytes in practice.
+pub const MAX_ARCH_BYTES: u64 = 1 << 20;
+
+/// The text of a small regular file at `path`, at most `max` bytes: a device or a FIFO
+/// (`/dev/zero` read until memory ran out) or a file past `max` is refused before reading.
+pub fn read_small_text(path: &Path, max: u64) -> Result<String> {
+    let meta =
+        std::fs::metadata(path).with_context(|| format!("cannot read '{}'", path.display()))?;
+    if !meta.is_file() {
+        bail!("'{}' is not a regular file", path.display());
+    }
+    if meta.len() > max {
+        bail!(
+            "'{}' is {} bytes, more than the {max} expected",
+            path.display(),
+            meta.len()
+        );
+    }
+    std::fs::read_to_string(path).with_context(|| format!("cannot read '{}'", path.display()))
+}
+
 /// Prints a serializable value as one line of JSON on stdout.
 pub fn print_json<T: serde::Serialize>(value: &T) -> Result<()> {
     println!("{}", serde_json::to_string(value)?);

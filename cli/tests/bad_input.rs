@@ -212,6 +212,50 @@ fn huge_counts_are_refused_naming_the_flag() {
             "--photons",
         ),
         (vec!["fisher", "compare", "--montage", "m.jpg"], "--montage"),
+        // Not a regular file: `/dev/zero` was read until memory ran out.
+        (vec!["nets", "macs", "--arch", "file:/dev/zero"], "--arch"),
+        (
+            vec![
+                "optics",
+                "psf",
+                "--lens",
+                "file:/dev/zero",
+                "--out",
+                "x.npy",
+            ],
+            "--lens",
+        ),
+        // 9001 planes of 1024²: an audit saw a failed allocation's panic, then a hang.
+        (
+            vec![
+                "fisher",
+                "compare",
+                "--window-px",
+                "1024",
+                "--depths-mm",
+                "17:26:0.001",
+                "--montage",
+                "m.png",
+            ],
+            "--depths-mm/--window-px",
+        ),
+        (
+            vec![
+                "fisher",
+                "init",
+                "--window-px",
+                "1024",
+                "--depths-mm",
+                "17:26:0.001",
+                "--out",
+                "fi",
+            ],
+            "--depths-mm/--window-px",
+        ),
+        (
+            vec!["fisher", "init", "--pitch-um", "1e9", "--out", "fi"],
+            "--pitch-um",
+        ),
     ] {
         refused(&args, flag, p);
     }
@@ -496,6 +540,13 @@ fn fisher_init_resume_refuses_changed_parameters_and_keeps_one_checkpoint_file()
     args.extend(["--iterations", "2"]);
     let e = refused(&args, "--window-px", p);
     assert!(e.contains("differs from the run being resumed"), "{e}");
+    // Nor is the aperture step: 51 µm gives the same 20-sample grid as 50 µm (an audit: it
+    // resumed), so inputs.json holds the step itself.
+    let mut args = base.to_vec();
+    args[5] = "51";
+    args.extend(["--iterations", "2"]);
+    let e = refused(&args, "--aperture-step-um", p);
+    assert!(e.contains("differs from the run being resumed"), "{e}");
     // A resumed run reports the run's first iteration, not the resuming process's: the same
     // as a run that stops there.
     let first = |out: std::process::Output| {
@@ -609,6 +660,20 @@ fn sim_and_search_loss_name_their_bad_flags() {
         (
             vec!["sim", "--dataset", "ds", "--frames", "2:1", "--out", "o"],
             "--frames",
+        ),
+        // It trained a step, then failed naming the rig's pixel pitch (an audit).
+        (
+            vec![
+                "search",
+                "train",
+                "--dataset",
+                "ds",
+                "--pitch-range-um",
+                "48:1e9",
+                "--out",
+                "o",
+            ],
+            "--pitch-range-um",
         ),
         // An audit: 1e-300 µm passed as positive and wrote NaN frames with exit 0; 1e9 µm
         // failed naming `frames` (every layer's gain NaN).
@@ -1420,6 +1485,19 @@ fn search_embed_runs_resumes_and_names_its_bad_flags() {
     let e = refused(&args(&run(&["--base-pitch-um", "1"])), "--base-pitch-um", p);
     assert!(e.contains("differs from the run being resumed"), "{e}");
     assert_eq!(std::fs::read(p.join("e/phase.npy")).unwrap(), phase);
+    // A run killed before its first checkpoint leaves init.json alone: another lens started
+    // there computes its own bounds (an audit: it reported the killed run's).
+    std::fs::create_dir_all(p.join("k")).unwrap();
+    std::fs::copy(p.join("e/init.json"), p.join("k/init.json")).unwrap();
+    let mut v = run(&["--lens", "double-helix"]);
+    let k = v.iter().position(|a| a == "e").unwrap();
+    v[k] = "k".into();
+    let dh = nanoeye(&args(&v), p);
+    let dh: serde_json::Value = serde_json::from_slice(&succeeded(dh).stdout).unwrap();
+    assert_ne!(
+        dh["init"], out["init"],
+        "the hyperbolic run's bounds reported"
+    );
 }
 
 #[test]

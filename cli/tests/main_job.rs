@@ -481,6 +481,22 @@ fn search_train_lens_init_is_the_main_jobs_fisher_phase() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--lens"), "{err}");
+    // A run killed before its first checkpoint leaves fisher_phase.npy without one: a rerun
+    // with other flags computes its own (an audit: it started from the killed run's phase).
+    let killed = d.path().join("killed");
+    std::fs::create_dir_all(&killed).unwrap();
+    std::fs::copy(
+        run.join("fisher_phase.npy"),
+        killed.join("fisher_phase.npy"),
+    )
+    .unwrap();
+    let o = train(&["init", "--fisher-iterations", "1"], &killed);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let one = std::fs::read(killed.join("fisher_phase.npy")).unwrap();
+    assert!(
+        one != mine,
+        "the 3-iteration phase was reused for a 1-iteration run"
+    );
 }
 
 /// `learned_lens: "embedding"`: the learned lens is `search embed`'s, to the byte, from the

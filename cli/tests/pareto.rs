@@ -321,6 +321,26 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     let err = pareto_refused(p, "3", &huge);
     assert!(err.contains("--bn-batches") && err.contains("MiB"), "{err}");
     assert!(!p.join("huge.state.json").exists());
+    // A chain other than the one the run was trained with (its inputs.json): refused naming
+    // the flag (an audit: --exposure-ms 0.4 scored the run through another camera, exit 0).
+    let o = pareto_run(
+        p,
+        "3",
+        &[
+            "--aperture-step-um",
+            "10",
+            "--exposure-ms",
+            "0.4",
+            "--plot",
+            "exp.svg",
+        ],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("--exposure-ms"),
+        "{err}"
+    );
+    assert!(!p.join("exp.state.json").exists());
 
     // The refit scores the same subnets (same MACs): the same
     // numbers on a second run, and other V than the trained head's.

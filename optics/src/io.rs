@@ -23,6 +23,19 @@ fn fmt_err(path: &Path, reason: impl Into<String>) -> OpticsError {
 
 /// Reads a 2-D square float32/float64 NPY array (C or Fortran order) as a phase map (rad).
 pub fn read_phase_npy(path: &Path) -> Result<Mat<f64>> {
+    // A device or a FIFO (`/dev/zero`) would be read until memory ran out; a phase map is at
+    // most 20000² f64 (the aperture grid's bound) plus its header.
+    let meta = std::fs::metadata(path).map_err(|e| io_err(path, e))?;
+    if !meta.is_file() {
+        return Err(fmt_err(path, "not a regular file"));
+    }
+    const MAX_BYTES: u64 = 20_000 * 20_000 * 8 + (1 << 16);
+    if meta.len() > MAX_BYTES {
+        return Err(fmt_err(
+            path,
+            format!("{} bytes, more than a phase map's {MAX_BYTES}", meta.len()),
+        ));
+    }
     let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
     let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| fmt_err(path, e.to_string()))?;
     let shape = npy.shape().to_vec();
