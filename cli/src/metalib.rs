@@ -939,7 +939,7 @@ fn study_cmd(a: StudyArgs) -> Result<()> {
         );
     });
     faer::set_global_parallelism(saved);
-    let points = out.map_err(|e| anyhow!("--{}", flagify(&e.to_string())))?;
+    let points = out.map_err(|e| anyhow!("{}", cell_flags(&e.to_string())))?;
     let secs = t0.elapsed().as_secs_f64();
     let variants: Vec<serde_json::Value> = nanoeye_metalib::study::criteria_variants()
         .iter()

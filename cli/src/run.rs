@@ -504,21 +504,8 @@ fn check(cfg: &RunConfig) -> Result<()> {
             cfg.height_px
         );
     }
-    // The three lenses train and are evaluated at once, each with `batch` frames through its
-    // chain: about 270 bytes per native pixel and frame in a training step (its first step
-    // faulted in 4.4 GB for 16 frames of 1280×800, docs/bench/chain.md).
-    let need = 3.0 * cfg.batch as f64 * cfg.width_px as f64 * cfg.height_px as f64 * 270.0;
-    if need > MAX_BATCH_BYTES {
-        bail!(
-            "--config: batch {} of {}×{} frames needs about {:.0} GiB through the three lenses' \
-             chains, above the {:.0} GiB allowed; give a smaller batch or frame",
-            cfg.batch,
-            cfg.width_px,
-            cfg.height_px,
-            need / (1u64 << 30) as f64,
-            MAX_BATCH_BYTES / (1u64 << 30) as f64
-        );
-    }
+    // The three lenses train and are evaluated at once, each with `batch` frames.
+    util::check_batch_memory("--config", cfg.batch, 3, cfg.width_px, cfg.height_px)?;
     train_config(cfg, false, learned_embed_weight(cfg))
         .validate()
         .map_err(|e| {
@@ -571,9 +558,6 @@ fn config_key(e: nanoeye_search::SearchError, keys: &[(&str, &str)]) -> anyhow::
         None => e.into(),
     }
 }
-
-/// Memory the three lenses' batches may take together (estimated, bytes).
-const MAX_BATCH_BYTES: f64 = 48.0 * (1u64 << 30) as f64;
 
 /// Triplets per step of the learned lens's embedding objective.
 const EMBED_BATCH: usize = 4;

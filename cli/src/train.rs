@@ -335,6 +335,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
             a.pitch_range_um
         );
     };
+    let (nh, nw) = chain.native().shape();
+    util::check_batch_memory("--batch", a.batch, 1, nw, nh)?;
     // p̂ may reach the range's top: the sensor must hold at least a pixel of it (else the
     // training failed at that step, naming the rig's pixel pitch).
     // (A top finer than the native grid is refused with the range's other checks.)

@@ -254,6 +254,33 @@ pub fn first_null(v: &serde_json::Value, optional: &[&str]) -> Option<String> {
     }
 }
 
+/// Memory the batches of a training may take together (estimated, bytes).
+const MAX_BATCH_BYTES: f64 = 48.0 * (1u64 << 30) as f64;
+
+/// Refuses `chains` trainings at once of `batch` frames of `w`×`h` native pixels each whose
+/// batches would need more than 48 GiB: about 270 bytes per native pixel and frame in a
+/// training step (its first step faulted in 4.4 GB for 16 frames of 1280×800,
+/// docs/bench/chain.md). `what` names the setting in the message.
+pub fn check_batch_memory(
+    what: &str,
+    batch: usize,
+    chains: usize,
+    w: usize,
+    h: usize,
+) -> Result<()> {
+    let need = chains as f64 * batch as f64 * w as f64 * h as f64 * 270.0;
+    if need > MAX_BATCH_BYTES {
+        let gib = (1u64 << 30) as f64;
+        bail!(
+            "{what}: batch {batch} of {w}×{h} frames needs about {:.0} GiB through {chains} \
+             chain(s), above the {:.0} GiB allowed; give a smaller batch or frame",
+            need / gib,
+            MAX_BATCH_BYTES / gib
+        );
+    }
+    Ok(())
+}
+
 /// Largest subnet (arch) JSON read: a few hundred bytes in practice.
 pub const MAX_ARCH_BYTES: u64 = 1 << 20;
 
@@ -345,6 +372,15 @@ pub fn parse_list(flag: &str, text: &str) -> Result<Vec<f64>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn batch_memory_is_estimated_from_the_measured_step() {
+        // The measured case: 16 frames of 1280×800, 4.4 GB (one chain); three at once too.
+        assert!(check_batch_memory("--batch", 16, 1, 1280, 800).is_ok());
+        assert!(check_batch_memory("--batch", 16, 3, 1280, 800).is_ok());
+        let e = check_batch_memory("--batch", 4096, 1, 1280, 800).unwrap_err();
+        assert!(e.to_string().starts_with("--batch: batch 4096") && e.to_string().contains("GiB"));
+    }
 
     #[test]
     fn first_null_names_the_path_of_a_non_finite_number() {

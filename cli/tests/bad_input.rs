@@ -212,6 +212,11 @@ fn huge_counts_are_refused_naming_the_flag() {
             "--photons",
         ),
         (vec!["fisher", "compare", "--montage", "m.jpg"], "--montage"),
+        // Named `--pitch` (no such flag) before.
+        (
+            vec!["metalib", "material-study", "--pitch-nm", "1e300", "--json"],
+            "--pitch-nm",
+        ),
         // Not a regular file: `/dev/zero` was read until memory ran out.
         (vec!["nets", "macs", "--arch", "file:/dev/zero"], "--arch"),
         (
