@@ -463,18 +463,7 @@ fn check(cfg: &RunConfig) -> Result<()> {
     if !(cfg.exposure_ms.is_finite() && cfg.exposure_ms > 0.0 && cfg.exposure_ms <= 1000.0) {
         bail!("--config: exposure_ms must lie in (0, 1000]");
     }
-    if !(cfg.aperture_step_um.is_finite() && cfg.aperture_step_um > 0.0) {
-        bail!("--config: aperture_step_um must be positive");
-    }
-    // As `sim`'s --aperture-step-um: coarser than an eighth of the aperture samples no lens.
-    let coarsest = nanoeye_search::Radiometry::default().aperture_m * 1e6 / 8.0;
-    if cfg.aperture_step_um > coarsest {
-        bail!(
-            "--config: aperture_step_um must be at most {coarsest} µm (an eighth of the \
-             aperture), got {}",
-            cfg.aperture_step_um
-        );
-    }
+    crate::sim::check_aperture_step("--config: aperture_step_um", cfg.aperture_step_um)?;
     if cfg.sequence_frames == 0 || cfg.sequence_frames > 100_000 {
         bail!("--config: sequence_frames must be 1..=100000");
     }

@@ -82,28 +82,36 @@ impl ChainArgs {
     }
 }
 
+/// Refuses an aperture step (µm) that is not positive or is coarser than an eighth of the
+/// aperture, which samples no lens (a step beyond the aperture leaves one sample whose weight
+/// can be 0, and every gain NaN); `what` names the setting.
+pub fn check_aperture_step(what: &str, step_um: f64) -> Result<()> {
+    if !(step_um.is_finite() && step_um > 0.0) {
+        bail!("{what}: must be positive, got {step_um}");
+    }
+    let aperture_um = nanoeye_search::Radiometry::default().aperture_m * 1e6;
+    let coarsest = aperture_um / 8.0;
+    if step_um > coarsest {
+        bail!(
+            "{what}: at most {coarsest} µm (an eighth of the {} mm aperture), got {step_um}",
+            aperture_um * 1e-3
+        );
+    }
+    Ok(())
+}
+
 /// Refuses camera flags other than those `run` (a `search train` output) was trained with, as
 /// its inputs.json records them (a run without the record, begun before it existed, is not
 /// checked); `flag` names the run's flag (`--run`, `--runs`).
 pub fn check_trained_with(run: &Path, camera: &CameraArgs, flag: &str) -> Result<()> {
     let path = run.join("inputs.json");
-    let Ok(text) = std::fs::read_to_string(&path) else {
-        return Ok(());
-    };
-    let had: serde_json::Value = serde_json::from_str(&text)
-        .with_context(|| format!("{flag}: {} is not JSON", path.display()))?;
     let now = camera.record();
-    for (key, f) in CAMERA_KEYS {
-        if let Some(old) = had.get(key) {
-            if *old != now[key] {
-                bail!(
-                    "{f}: differs from the run's training ({} records {key} = {old}, this \
-                     command gives {}); the chain must be the one the run was trained with",
-                    path.display(),
-                    now[key]
-                );
-            }
-        }
+    if let Some((f, key, old, new)) = util::recorded_difference(&path, &now, &CAMERA_KEYS, flag)? {
+        bail!(
+            "{f}: differs from the run's training ({} records {key} = {old}, this command \
+             gives {new}); the chain must be the one the run was trained with",
+            path.display()
+        );
     }
     Ok(())
 }
@@ -144,22 +152,7 @@ impl CameraArgs {
     /// The chain for `ds`, naming the flag behind a bad value.
     pub fn chain(&self, ds: &Dataset) -> Result<CameraChain> {
         let mut cfg = ChainConfig::default();
-        if !(self.aperture_step_um.is_finite() && self.aperture_step_um > 0.0) {
-            bail!(
-                "--aperture-step-um: must be positive, got {}",
-                self.aperture_step_um
-            );
-        }
-        // Coarser than an eighth of the aperture samples no lens (a step beyond the aperture
-        // leaves one sample whose weight can be 0, and every gain NaN).
-        let coarsest = cfg.radiometry.aperture_m * 1e6 / 8.0;
-        if self.aperture_step_um > coarsest {
-            bail!(
-                "--aperture-step-um: at most {coarsest} µm (an eighth of the {} mm aperture), got {}",
-                cfg.radiometry.aperture_m * 1e3,
-                self.aperture_step_um
-            );
-        }
+        check_aperture_step("--aperture-step-um", self.aperture_step_um)?;
         cfg.aperture_step_m = self.aperture_step_um * 1e-6;
         if !(self.exposure_ms.is_finite() && self.exposure_ms > 0.0 && self.exposure_ms <= 1000.0) {
             bail!(

@@ -184,24 +184,36 @@ pub fn check_inputs(
     keys: &[(&str, &str)],
     out: &str,
 ) -> Result<()> {
-    let Ok(text) = std::fs::read_to_string(path) else {
-        return Ok(());
-    };
-    let had: serde_json::Value = serde_json::from_str(&text)
-        .with_context(|| format!("{out} (resume): {} is not JSON", path.display()))?;
-    for &(key, flag) in keys {
-        if let Some(old) = had.get(key) {
-            let new = &now[key];
-            if old != new {
-                bail!(
-                    "{flag}: differs from the run being resumed ({} records {key} = {old}, this \
-                     command gives {new}); use the original value or another {out}",
-                    path.display()
-                );
-            }
-        }
+    if let Some((flag, key, old, new)) =
+        recorded_difference(path, now, keys, &format!("{out} (resume)"))?
+    {
+        bail!(
+            "{flag}: differs from the run being resumed ({} records {key} = {old}, this \
+             command gives {new}); use the original value or another {out}",
+            path.display()
+        );
     }
     Ok(())
+}
+
+/// The first of `keys` (key, flag) whose value in the record at `path` differs from `now`'s,
+/// as (flag, key, recorded, now); keys the record lacks and a missing record are not compared.
+/// `what` names the flag behind `path` in the error of a record that is not JSON.
+pub fn recorded_difference<'k>(
+    path: &Path,
+    now: &serde_json::Value,
+    keys: &[(&'k str, &'k str)],
+    what: &str,
+) -> Result<Option<(&'k str, &'k str, serde_json::Value, serde_json::Value)>> {
+    let Ok(text) = std::fs::read_to_string(path) else {
+        return Ok(None);
+    };
+    let had: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("{what}: {} is not JSON", path.display()))?;
+    Ok(keys.iter().find_map(|&(key, flag)| {
+        let old = had.get(key)?;
+        (*old != now[key]).then(|| (flag, key, old.clone(), now[key].clone()))
+    }))
 }
 
 /// One line of JSONL input as text: `raw` without its line ending; line 1 loses a leading
