@@ -27,7 +27,7 @@ fn bench(c: &mut Criterion) {
         w,
         |r, c| if (r / 40 + c / 40) % 3 == 0 { 0.0 } else { 1.0 },
     );
-    let layers = [SpectralLayer::new(&rad, &alpha, 0)];
+    let layers = [SpectralLayer::new(rad.as_ref(), alpha.as_ref(), 0)];
     let grad = Mat::from_fn(h, w, |r, c| ((r * 5 + c * 3) % 7) as f64 - 3.0);
     let mut g = c.benchmark_group("layered");
     g.sample_size(10);

@@ -10,7 +10,7 @@
 
 use crate::error::{OpticsError, Result};
 use crate::psf::fast_fft_size;
-use faer::{Mat, c32, c64};
+use faer::{Mat, MatRef, c32, c64};
 use rustfft::{Fft, FftNum, FftPlanner};
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
@@ -71,16 +71,43 @@ impl<T> Pool<T> {
     }
 }
 
-/// The columns of a column-major matrix as slices (faer stores an owned `Mat` that way).
-fn columns(m: &Mat<f32>) -> Vec<&[f32]> {
-    (0..m.ncols())
-        .map(|c| {
-            m.col(c)
-                .try_as_col_major()
-                .expect("an owned Mat has contiguous columns")
-                .as_slice()
-        })
-        .collect()
+/// How a layer's planes lie in memory: S1 reads them row by row when every plane's rows are
+/// contiguous (S1's grid is row-major, so the pack is then a stream), else column by column.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Layout {
+    Rows,
+    Cols,
+}
+
+/// Whether `m`'s lines in layout `by` (its rows or its columns) are contiguous.
+fn allows(m: MatRef<'_, f32>, by: Layout) -> bool {
+    match by {
+        Layout::Rows => m.col_stride() == 1,
+        Layout::Cols => m.row_stride() == 1,
+    }
+}
+
+/// The contiguous lines of `m` in layout `by` (its rows or its columns) as slices; `m` must
+/// [`allows`] `by`.
+fn lines<'a>(m: MatRef<'a, f32>, by: Layout) -> Vec<&'a [f32]> {
+    match by {
+        Layout::Rows => (0..m.nrows())
+            .map(|r| {
+                m.row(r)
+                    .try_as_row_major()
+                    .expect("rows checked contiguous")
+                    .as_slice()
+            })
+            .collect(),
+        Layout::Cols => (0..m.ncols())
+            .map(|c| {
+                m.col(c)
+                    .try_as_col_major()
+                    .expect("columns checked contiguous")
+                    .as_slice()
+            })
+            .collect(),
+    }
 }
 
 /// One pixel of the PSF adjoint's pass over a layer, for ∂L/∂I⁽ᵏ⁾ = `gv`, I⁽ᵏ⁻¹⁾ = `p`,
@@ -478,13 +505,16 @@ pub struct KernelSpectra {
 }
 
 /// One layer for the spectral path: radiance, alpha, the index of its kernel, and the factors
-/// S1 applies to the radiance.
+/// S1 applies to the radiance. The planes may be column-major (an owned `Mat`) or row-major
+/// (the transpose of one), all three the same: row-major planes are packed into S1's
+/// row-major grid as a stream, column-major ones through a transposition (2.9–3.4 ms against
+/// 0.6–1.0 ms per 800×1280 layer on the AMD EPYC VM, docs/bench/chain.md).
 #[derive(Clone, Copy, Debug)]
 pub struct SpectralLayer<'a> {
     /// Radiance L_k, before `gain` and `weight`.
-    pub radiance: &'a Mat<f32>,
+    pub radiance: MatRef<'a, f32>,
     /// Coverage α_k.
-    pub alpha: &'a Mat<f32>,
+    pub alpha: MatRef<'a, f32>,
     /// Index into the [`KernelSpectra`].
     pub kernel: usize,
     /// Factor on the whole radiance (1: none), applied to its convolution (in f64) rather
@@ -494,12 +524,12 @@ pub struct SpectralLayer<'a> {
     pub gain: f32,
     /// Factor per pixel on the radiance, H×W (`None`: none). S1 packs `weight(i, j) · L(i, j)`,
     /// rounded to f32, so a caller need not store the scaled radiance of every layer.
-    pub weight: Option<&'a Mat<f32>>,
+    pub weight: Option<MatRef<'a, f32>>,
 }
 
 impl<'a> SpectralLayer<'a> {
     /// A layer whose radiance is used as it is.
-    pub fn new(radiance: &'a Mat<f32>, alpha: &'a Mat<f32>, kernel: usize) -> Self {
+    pub fn new(radiance: MatRef<'a, f32>, alpha: MatRef<'a, f32>, kernel: usize) -> Self {
         Self {
             radiance,
             alpha,
@@ -509,10 +539,39 @@ impl<'a> SpectralLayer<'a> {
         }
     }
 
+    /// The layout its planes share (rows first), `None` when they share none.
+    fn layout(&self) -> Option<Layout> {
+        [Layout::Rows, Layout::Cols].into_iter().find(|&by| {
+            [Some(self.radiance), Some(self.alpha), self.weight]
+                .into_iter()
+                .flatten()
+                .all(|m| allows(m, by))
+        })
+    }
+
+    /// Its planes' lines (rows or columns) in their shared layout: α, L and the weight's.
+    #[allow(clippy::type_complexity)]
+    fn lines(
+        &self,
+    ) -> (
+        Layout,
+        Vec<&'a [f32]>,
+        Vec<&'a [f32]>,
+        Option<Vec<&'a [f32]>>,
+    ) {
+        let by = self.layout().expect("layouts checked by check_layers");
+        (
+            by,
+            lines(self.alpha, by),
+            lines(self.radiance, by),
+            self.weight.map(|m| lines(m, by)),
+        )
+    }
+
     /// Whether the radiance S1 packs (after `weight`) is finite everywhere.
     fn radiance_finite(&self) -> bool {
-        let rad = columns(self.radiance);
-        match self.weight.map(columns) {
+        let (_, _, rad, wt) = self.lines();
+        match wt {
             Some(wt) => rad.iter().zip(&wt).all(|(r, s)| {
                 r.iter()
                     .zip(s.iter())
@@ -526,7 +585,8 @@ impl<'a> SpectralLayer<'a> {
 
     /// Whether the layer has no coverage (α ≡ 0): it is skipped, and has no spectrum.
     fn uncovered(&self) -> bool {
-        self.alpha.col_iter().all(|c| c.iter().all(|&v| v == 0.0))
+        let (_, al, _, _) = self.lines();
+        al.iter().all(|c| c.iter().all(|&v| v == 0.0))
     }
 
     /// The power of two s ≥ max |α·w·L| (1 when that is 0 or not finite) that S1 divides the
@@ -535,8 +595,7 @@ impl<'a> SpectralLayer<'a> {
     /// thousands into α∗P, the occlusion every layer behind is multiplied by. A power of two,
     /// so the division and the product with s after the transform round nothing.
     fn radiance_scale(&self) -> f32 {
-        let (al, rad) = (columns(self.alpha), columns(self.radiance));
-        let wt = self.weight.map(columns);
+        let (_, al, rad, wt) = self.lines();
         let mut m = 0.0f32;
         for (c, (al, rad)) in al.iter().zip(&rad).enumerate() {
             m = match &wt {
@@ -741,6 +800,13 @@ impl LayeredImager {
                     )));
                 }
             }
+            if l.layout().is_none() {
+                return Err(OpticsError::Shape(format!(
+                    "layer {k}: radiance, alpha and weight must share one memory layout, all \
+                     with contiguous rows (transposes of owned matrices) or all with contiguous \
+                     columns (owned matrices)"
+                )));
+            }
             if !l.gain.is_finite() {
                 return Err(OpticsError::param(
                     "gain",
@@ -837,7 +903,8 @@ impl LayeredImager {
     /// data, and s: a row with α ≡ 0 is zero (αL = 0 too) and so is its transform, which is
     /// skipped, and the caller's column pass need not read the rows outside. `None` when a
     /// packed value is not finite (a non-finite α or weighted L, or 0 · ∞): the inputs are
-    /// checked here, in the pass that reads them anyway.
+    /// checked here, in the pass that reads them anyway. Row-major planes are read row by
+    /// row, column-major ones in bands of [`PACK_ROWS`]; both pack the same values.
     fn layer_rows(
         &self,
         l: &SpectralLayer,
@@ -847,44 +914,73 @@ impl LayeredImager {
         let (h, w, nx) = (self.h, self.w, self.nx);
         let scale = l.radiance_scale();
         let inv = 1.0 / scale;
-        let (al, rad) = (columns(l.alpha), columns(l.radiance));
-        let wt = l.weight.map(columns);
+        let (by, al, rad, wt) = l.lines();
+        let pack = |o: &mut c32, x: f32, y: f32| *o = c32::new(x * y * inv, x);
         let (mut first, mut end) = (h, 0);
-        for r0 in (0..h).step_by(PACK_ROWS) {
-            let r1 = (r0 + PACK_ROWS).min(h);
-            let band = &mut a[r0 * nx..r1 * nx];
-            for (c, (al, rad)) in al.iter().zip(&rad).enumerate() {
-                let (al, rad) = (&al[r0..r1], &rad[r0..r1]);
-                let mut put =
-                    |i: usize, x: f32, y: f32| band[i * nx + c] = c32::new(x * y * inv, x);
-                match &wt {
-                    Some(wt) => {
-                        for (i, ((&x, &y), &s)) in
-                            al.iter().zip(rad).zip(&wt[c][r0..r1]).enumerate()
-                        {
-                            put(i, x, s * y);
+        // One packed row: its tail cleared, checked finite, transformed when it holds data.
+        let mut finish = |r: usize, row: &mut [c32]| -> bool {
+            row[w..].fill(c32::new(0.0, 0.0));
+            // Both folds without early exit, so that they vectorise.
+            let (data, finite) = row[..w].iter().fold((false, true), |(d, f), v| {
+                (d | (v.im != 0.0), f & v.re.is_finite() & v.im.is_finite())
+            });
+            if data && finite {
+                first = first.min(r);
+                end = r + 1;
+                self.p32.fx.process_with_scratch(row, scratch);
+            }
+            finite
+        };
+        match by {
+            Layout::Rows => {
+                for (r, row) in a[..h * nx].chunks_exact_mut(nx).enumerate() {
+                    let (al, rad, out) = (al[r], rad[r], &mut row[..w]);
+                    match &wt {
+                        Some(wt) => {
+                            for (o, ((&x, &y), &s)) in
+                                out.iter_mut().zip(al.iter().zip(rad).zip(wt[r]))
+                            {
+                                pack(o, x, s * y);
+                            }
+                        }
+                        None => {
+                            for (o, (&x, &y)) in out.iter_mut().zip(al.iter().zip(rad)) {
+                                pack(o, x, y);
+                            }
                         }
                     }
-                    None => {
-                        for (i, (&x, &y)) in al.iter().zip(rad).enumerate() {
-                            put(i, x, y);
-                        }
+                    if !finish(r, row) {
+                        return None;
                     }
                 }
             }
-            for (i, row) in band.chunks_exact_mut(nx).enumerate() {
-                row[w..].fill(c32::new(0.0, 0.0));
-                // Both folds without early exit, so that they vectorise.
-                let (data, finite) = row[..w].iter().fold((false, true), |(d, f), v| {
-                    (d | (v.im != 0.0), f & v.re.is_finite() & v.im.is_finite())
-                });
-                if !finite {
-                    return None;
-                }
-                if data {
-                    first = first.min(r0 + i);
-                    end = r0 + i + 1;
-                    self.p32.fx.process_with_scratch(row, scratch);
+            Layout::Cols => {
+                for r0 in (0..h).step_by(PACK_ROWS) {
+                    let r1 = (r0 + PACK_ROWS).min(h);
+                    let band = &mut a[r0 * nx..r1 * nx];
+                    for (c, (al, rad)) in al.iter().zip(&rad).enumerate() {
+                        let (al, rad) = (&al[r0..r1], &rad[r0..r1]);
+                        let mut put = |i: usize, x: f32, y: f32| pack(&mut band[i * nx + c], x, y);
+                        match &wt {
+                            Some(wt) => {
+                                for (i, ((&x, &y), &s)) in
+                                    al.iter().zip(rad).zip(&wt[c][r0..r1]).enumerate()
+                                {
+                                    put(i, x, s * y);
+                                }
+                            }
+                            None => {
+                                for (i, (&x, &y)) in al.iter().zip(rad).enumerate() {
+                                    put(i, x, y);
+                                }
+                            }
+                        }
+                    }
+                    for (i, row) in band.chunks_exact_mut(nx).enumerate() {
+                        if !finish(r0 + i, row) {
+                            return None;
+                        }
+                    }
                 }
             }
         }
@@ -1129,6 +1225,7 @@ impl LayeredImager {
                 tape.saved.len()
             )));
         }
+        self.check_layers(layers)?;
         let spectra = spectra.or(tape.spectra.as_ref());
         self.check_spectra(layers, spectra)?;
         let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);

@@ -42,8 +42,16 @@ fn spectral_path_matches_the_reference_forward_and_psf_gradient() {
         .iter()
         .map(|&(l, k)| {
             SpectralLayer::new(
-                if l == 9 { &empty } else { &rad[l] },
-                if l == 9 { &empty } else { &al[l] },
+                if l == 9 {
+                    empty.as_ref()
+                } else {
+                    rad[l].as_ref()
+                },
+                if l == 9 {
+                    empty.as_ref()
+                } else {
+                    al[l].as_ref()
+                },
                 k,
             )
         })
@@ -227,7 +235,7 @@ fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
     let kernel = [0usize, 1, 0];
     let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
     let spectral: Vec<SpectralLayer> = (0..3)
-        .map(|l| SpectralLayer::new(&rad[l], &al[l], kernel[l]))
+        .map(|l| SpectralLayer::new(rad[l].as_ref(), al[l].as_ref(), kernel[l]))
         .collect();
     let reference: Vec<Layer> = (0..3)
         .map(|l| Layer {
@@ -239,7 +247,7 @@ fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
     // Dense layers first, so that the sparse run below gets work spaces full of their data.
     let dense_al: Vec<Mat<f32>> = (0..3).map(|s| alpha(h, w, s)).collect();
     let dense: Vec<SpectralLayer> = (0..3)
-        .map(|l| SpectralLayer::new(&rad[l], &dense_al[l], kernel[l]))
+        .map(|l| SpectralLayer::new(rad[l].as_ref(), dense_al[l].as_ref(), kernel[l]))
         .collect();
     spectral_run(&im, &dense, &psfs, &g);
     let (got, kg, scale) = spectral_run(&im, &spectral, &psfs, &g);
@@ -284,6 +292,81 @@ fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
     assert_eq!(kg, kg3);
 }
 
+/// Row-major planes (transposes of owned matrices, as `search` keeps a dataset's layers) give
+/// the column-major path's bits: the image, the radiance scales and the PSF gradient, with the
+/// VJP packing the layers again; planes of two layouts in one layer are refused.
+#[test]
+fn row_major_layers_give_the_column_major_bits() {
+    let (h, w, wp) = (131, 37, 5);
+    let im = LayeredImager::new(h, w, wp).unwrap();
+    let psfs: Vec<Mat<f32>> = (0..2)
+        .map(|k| Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i * j + k) as f32)))
+        .collect();
+    let ks = im
+        .kernel_spectra(&[Some(&psfs[0]), Some(&psfs[1])])
+        .unwrap();
+    let rad: Vec<Mat<f32>> = (0..2).map(|s| img(h, w, s)).collect();
+    let al: Vec<Mat<f32>> = (0..2).map(|s| alpha(h, w, s + 3)).collect();
+    let weight = Mat::from_fn(h, w, |i, j| 0.5 + ((i * 3 + j) % 7) as f32 / 3.0);
+    // W×H matrices whose transposes are the planes: rows contiguous.
+    let t = |m: &Mat<f32>| m.transpose().to_owned();
+    let (rad_t, al_t, weight_t): (Vec<_>, Vec<_>, _) = (
+        rad.iter().map(t).collect(),
+        al.iter().map(t).collect(),
+        t(&weight),
+    );
+    let layers = |rows: bool| -> Vec<SpectralLayer> {
+        (0..2)
+            .map(|l| match rows {
+                true => SpectralLayer {
+                    gain: 1.5,
+                    weight: Some(weight_t.transpose()),
+                    ..SpectralLayer::new(rad_t[l].transpose(), al_t[l].transpose(), l)
+                },
+                false => SpectralLayer {
+                    gain: 1.5,
+                    weight: Some(weight.as_ref()),
+                    ..SpectralLayer::new(rad[l].as_ref(), al[l].as_ref(), l)
+                },
+            })
+            .collect()
+    };
+    let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
+    let run = |layers: &[SpectralLayer]| {
+        let (image, mut tape) = im.forward_spectral(layers, &ks, None).unwrap();
+        assert!(tape.take_spectra().is_some());
+        let mut acc = im.kernel_grad_accumulator(2);
+        im.vjp_kernels(layers, &tape, &g, &mut acc, None).unwrap();
+        let scale = acc.radiance_scale.clone();
+        (image, scale, im.kernel_grads(acc))
+    };
+    let (cols, rows) = (layers(false), layers(true));
+    assert_eq!(rows[0].alpha.col_stride(), 1);
+    let (a, b) = (run(&cols), run(&rows));
+    assert!(a.0 == b.0, "images differ");
+    assert_eq!(a.1, b.1);
+    assert!(a.2 == b.2, "PSF gradients differ");
+    assert!(im.image_spectral(&rows, &ks, None).unwrap() == a.0);
+    let mixed = SpectralLayer {
+        weight: Some(weight.as_ref()),
+        ..rows[0]
+    };
+    let err = im
+        .forward_spectral(&[mixed], &ks, None)
+        .err()
+        .expect("refused");
+    assert!(err.to_string().contains("memory layout"), "{err}");
+    // The VJP packs the layers again: the same refusal, not a panic.
+    let (_, mut tape) = im.forward_spectral(&rows[..1], &ks, None).unwrap();
+    tape.take_spectra();
+    let mut acc = im.kernel_grad_accumulator(2);
+    let err = im
+        .vjp_kernels(&[mixed], &tape, &g, &mut acc, None)
+        .err()
+        .expect("refused");
+    assert!(err.to_string().contains("memory layout"), "{err}");
+}
+
 /// A layer's gain and weight are the caller's pre-scaled radiance, bit for bit (image, tape
 /// and PSF gradient), and what they make non-finite is refused like a non-finite radiance.
 #[test]
@@ -302,14 +385,14 @@ fn gain_scales_the_convolution_weight_is_the_prescaled_radiance_and_overflow_is_
     let pre: Vec<SpectralLayer> = (0..2)
         .map(|l| SpectralLayer {
             gain: gain[l],
-            ..SpectralLayer::new(&weighted[l], &al[l], 0)
+            ..SpectralLayer::new(weighted[l].as_ref(), al[l].as_ref(), 0)
         })
         .collect();
     let on_the_fly: Vec<SpectralLayer> = (0..2)
         .map(|l| SpectralLayer {
             gain: gain[l],
-            weight: Some(&weight),
-            ..SpectralLayer::new(&rad[l], &al[l], 0)
+            weight: Some(weight.as_ref()),
+            ..SpectralLayer::new(rad[l].as_ref(), al[l].as_ref(), 0)
         })
         .collect();
     let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
@@ -332,7 +415,7 @@ fn gain_scales_the_convolution_weight_is_the_prescaled_radiance_and_overflow_is_
         .map(|l| Mat::from_fn(h, w, |i, j| gain[l] * weighted[l][(i, j)]))
         .collect();
     let plain: Vec<SpectralLayer> = (0..2)
-        .map(|l| SpectralLayer::new(&scaled[l], &al[l], 0))
+        .map(|l| SpectralLayer::new(scaled[l].as_ref(), al[l].as_ref(), 0))
         .collect();
     let c = run(&plain);
     // S1's spectral path transforms in f32, whose round-off is relative to the grid's norm,
@@ -358,8 +441,8 @@ fn gain_scales_the_convolution_weight_is_the_prescaled_radiance_and_overflow_is_
     let big = Mat::from_fn(h, w, |_, _| f32::MAX);
     let four = Mat::from_fn(h, w, |_, _| 4.0f32);
     let overflow = SpectralLayer {
-        weight: Some(&four),
-        ..SpectralLayer::new(&big, &al[0], 0)
+        weight: Some(four.as_ref()),
+        ..SpectralLayer::new(big.as_ref(), al[0].as_ref(), 0)
     };
     let err = im
         .forward_spectral(&[overflow], &ks, None)
@@ -369,7 +452,7 @@ fn gain_scales_the_convolution_weight_is_the_prescaled_radiance_and_overflow_is_
     // A gain of 4 on it overflows the image, which is refused too.
     let loud = SpectralLayer {
         gain: 4.0,
-        ..SpectralLayer::new(&big, &al[0], 0)
+        ..SpectralLayer::new(big.as_ref(), al[0].as_ref(), 0)
     };
     let err = im
         .forward_spectral(&[loud], &ks, None)
@@ -380,7 +463,7 @@ fn gain_scales_the_convolution_weight_is_the_prescaled_radiance_and_overflow_is_
     // A layer without coverage is skipped, but a NaN in it is still refused.
     let empty = Mat::<f32>::zeros(h, w);
     let nan = Mat::from_fn(h, w, |i, j| if i == 3 && j == 4 { f32::NAN } else { 1.0 });
-    let uncovered = SpectralLayer::new(&nan, &empty, 0);
+    let uncovered = SpectralLayer::new(nan.as_ref(), empty.as_ref(), 0);
     assert!(
         im.forward_spectral(&[pre[0], uncovered], &ks, None)
             .is_err()
@@ -393,7 +476,7 @@ fn gain_scales_the_convolution_weight_is_the_prescaled_radiance_and_overflow_is_
     assert!(im.forward_spectral(&[inf_gain], &ks, None).is_err());
     let small = Mat::<f32>::zeros(h - 1, w);
     let bad_weight = SpectralLayer {
-        weight: Some(&small),
+        weight: Some(small.as_ref()),
         ..pre[0]
     };
     let err = im
@@ -437,8 +520,8 @@ fn bright_layers_keep_the_occlusion_at_f32_precision() {
         },
     ];
     let spectral = [
-        SpectralLayer::new(&far_l, &ones, 0),
-        SpectralLayer::new(&near_l, &near_a, 0),
+        SpectralLayer::new(far_l.as_ref(), ones.as_ref(), 0),
+        SpectralLayer::new(near_l.as_ref(), near_a.as_ref(), 0),
     ];
     let want = im.forward_f64_image(&reference).unwrap();
     let (got, tape) = im.forward_spectral(&spectral, &ks, None).unwrap();

@@ -102,8 +102,9 @@ pub struct CameraChain {
     depths_m: Vec<f64>,
     psf: AsmPsf,
     imager: LayeredImager,
-    /// Photons per base-pixel area per unit rendered radiance, per native pixel.
-    scale: Mat<f32>,
+    /// Photons per base-pixel area per unit rendered radiance, per native pixel, stored as its
+    /// transpose (W×H): row-major like the stored layers it weights, for S1's streamed pack.
+    scale_t: Mat<f32>,
     /// Who computes which depth of a PSF stack or PSF VJP ([`OneProcess`] unless set).
     split: Arc<dyn DepthSplit>,
     /// The last stack [`CameraChain::psfs`] computed and what it was computed for.
@@ -358,7 +359,7 @@ impl CameraChain {
             depths_m,
             psf,
             imager,
-            scale,
+            scale_t: scale.transpose().to_owned(),
             split: Arc::new(OneProcess),
             memo: Mutex::new(None),
             s1_cache: Mutex::new(S1Cache::default()),
@@ -681,11 +682,11 @@ impl CameraChain {
             .map(|l| {
                 let k = l.info.index;
                 SpectralLayer {
-                    radiance: &l.radiance,
-                    alpha: &l.alpha,
+                    radiance: l.radiance(),
+                    alpha: l.alpha(),
                     kernel: k,
                     gain: psfs.eta[k] as f32,
-                    weight: Some(&self.scale),
+                    weight: Some(self.scale_t.transpose()),
                 }
             })
             .collect()

@@ -155,7 +155,9 @@ mod tests {
             Mat::from_fn(6, 5, |i, j| (i + j) as f32),
             Mat::full(6, 5, 1.0f32),
         );
-        let s = im.layer_spectra(&[SpectralLayer::new(&l, &a, 0)]).unwrap();
+        let s = im
+            .layer_spectra(&[SpectralLayer::new(l.as_ref(), a.as_ref(), 0)])
+            .unwrap();
         let b = s.bytes();
         (s, b)
     }

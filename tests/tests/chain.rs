@@ -86,15 +86,12 @@ fn frame_with(ds: &Dataset, layers: Vec<StoredLayer>) -> ChainFrame {
 fn layer(k: usize, radiance: Mat<f32>, alpha: Mat<f32>) -> StoredLayer {
     let s = LayerSpec::default();
     let dz = (s.far_m - s.near_m) / s.count as f64;
-    StoredLayer {
-        info: LayerInfo {
-            index: k,
-            near_m: s.near_m + dz * k as f64,
-            far_m: s.near_m + dz * (k + 1) as f64,
-        },
-        radiance,
-        alpha,
-    }
+    let info = LayerInfo {
+        index: k,
+        near_m: s.near_m + dz * k as f64,
+        far_m: s.near_m + dz * (k + 1) as f64,
+    };
+    StoredLayer::new(info, radiance.as_ref(), alpha.as_ref())
 }
 
 fn sum(m: &Mat<f32>) -> f64 {
@@ -117,8 +114,8 @@ fn datasets_round_trip_exactly() {
         let kept: Vec<_> = frame.layers.layers.iter().filter(|l| !l.empty).collect();
         assert_eq!(kept.len(), back.layers.len());
         for (a, b) in kept.iter().zip(&back.layers) {
-            assert_eq!(a.radiance, b.radiance);
-            assert_eq!(a.alpha, b.alpha);
+            assert_eq!(a.radiance.as_ref(), b.radiance());
+            assert_eq!(a.alpha.as_ref(), b.alpha());
             assert_eq!((a.near_m, a.far_m), (b.info.near_m, b.info.far_m));
         }
         assert_eq!(frame.mask_visible_pupil, back.mask_visible_pupil);

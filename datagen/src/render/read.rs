@@ -5,7 +5,7 @@
 use super::RenderError;
 use super::dataset::{DATASET_FORMAT, DatasetManifest, FrameRecord, LayerInfo};
 use super::trace::LayerSpec;
-use faer::Mat;
+use faer::{Mat, MatRef};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
@@ -36,15 +36,38 @@ pub struct StoredFrame {
     pub mask_pupil: Mat<f32>,
 }
 
-/// One stored depth layer.
+/// One stored depth layer. Its planes are kept row by row, as the file holds them: S1 packs a
+/// layer into its row-major grid, which from row-major planes is a stream and from column-major
+/// ones a transposition (docs/bench/chain.md).
 #[derive(Debug, Clone)]
 pub struct StoredLayer {
     /// Slab index and bounds.
     pub info: LayerInfo,
-    /// Premultiplied radiance L_k (W/(m²·sr)), H×W.
-    pub radiance: Mat<f32>,
-    /// Coverage α_k, H×W.
-    pub alpha: Mat<f32>,
+    /// The radiance plane's transpose (W×H), so that its rows are contiguous.
+    radiance_t: Mat<f32>,
+    /// The coverage plane's transpose (W×H).
+    alpha_t: Mat<f32>,
+}
+
+impl StoredLayer {
+    /// A layer from its H×W radiance and coverage planes (copied into row-major storage).
+    pub fn new(info: LayerInfo, radiance: MatRef<'_, f32>, alpha: MatRef<'_, f32>) -> Self {
+        Self {
+            info,
+            radiance_t: radiance.transpose().to_owned(),
+            alpha_t: alpha.transpose().to_owned(),
+        }
+    }
+
+    /// Premultiplied radiance L_k (W/(m²·sr)), H×W, rows contiguous.
+    pub fn radiance(&self) -> MatRef<'_, f32> {
+        self.radiance_t.transpose()
+    }
+
+    /// Coverage α_k, H×W, rows contiguous.
+    pub fn alpha(&self) -> MatRef<'_, f32> {
+        self.alpha_t.transpose()
+    }
 }
 
 fn invalid(path: &Path, reason: impl std::fmt::Display) -> RenderError {
@@ -96,6 +119,21 @@ const READ_ROWS: usize = 32;
 /// copy of the whole file (64 MB per frame at 1280×800 with 8 layers) is made, and no
 /// element-by-element transposition of one runs down its columns.
 pub fn read_npy_planes(path: &Path, expect: &[u64]) -> Result<Vec<Mat<f32>>, RenderError> {
+    read_planes(path, expect, false)
+}
+
+/// [`read_npy_planes`] without the transposition: each plane comes back as its transpose, a
+/// W×H matrix whose columns are the plane's rows (the file's order, a copy per row).
+pub fn read_npy_plane_rows(path: &Path, expect: &[u64]) -> Result<Vec<Mat<f32>>, RenderError> {
+    read_planes(path, expect, true)
+}
+
+/// The planes of [`read_npy_planes`], or their transposes with `transposed`.
+fn read_planes(
+    path: &Path,
+    expect: &[u64],
+    transposed: bool,
+) -> Result<Vec<Mat<f32>>, RenderError> {
     use std::io::Read;
     let io = |e: std::io::Error| RenderError::Io {
         path: path.display().to_string(),
@@ -130,7 +168,10 @@ pub fn read_npy_planes(path: &Path, expect: &[u64]) -> Result<Vec<Mat<f32>>, Ren
     let mut buf = vec![0u8; READ_ROWS * w * 4];
     let mut planes = Vec::with_capacity(count);
     for _ in 0..count {
-        let mut m = Mat::<f32>::zeros(h, w);
+        let mut m = match transposed {
+            true => Mat::<f32>::zeros(w, h),
+            false => Mat::<f32>::zeros(h, w),
+        };
         for r0 in (0..h).step_by(READ_ROWS) {
             let nr = READ_ROWS.min(h - r0);
             let bytes = &mut buf[..nr * w * 4];
@@ -141,17 +182,25 @@ pub fn read_npy_planes(path: &Path, expect: &[u64]) -> Result<Vec<Mat<f32>>, Ren
                     io(e)
                 }
             })?;
-            for j in 0..w {
-                let col = &mut m.col_as_slice_mut(j)[r0..r0 + nr];
-                for (r, v) in col.iter_mut().enumerate() {
-                    let b: [u8; 4] = bytes[(r * w + j) * 4..][..4]
-                        .try_into()
-                        .expect("four bytes");
-                    *v = if little {
-                        f32::from_le_bytes(b)
-                    } else {
-                        f32::from_be_bytes(b)
-                    };
+            let value = |at: usize| {
+                let b: [u8; 4] = bytes[at * 4..][..4].try_into().expect("four bytes");
+                match little {
+                    true => f32::from_le_bytes(b),
+                    false => f32::from_be_bytes(b),
+                }
+            };
+            if transposed {
+                for r in 0..nr {
+                    for (j, v) in m.col_as_slice_mut(r0 + r).iter_mut().enumerate() {
+                        *v = value(r * w + j);
+                    }
+                }
+            } else {
+                for j in 0..w {
+                    let col = &mut m.col_as_slice_mut(j)[r0..r0 + nr];
+                    for (r, v) in col.iter_mut().enumerate() {
+                        *v = value(r * w + j);
+                    }
                 }
             }
         }
@@ -260,18 +309,18 @@ impl Dataset {
         };
         let lpath = self.dir.join(lp);
         let k = rec.layers.len();
-        let planes = read_npy_planes(&lpath, &[k as u64, 2, h as u64, w as u64])?;
+        let planes = read_npy_plane_rows(&lpath, &[k as u64, 2, h as u64, w as u64])?;
         let mut planes = planes.into_iter();
         let layers = rec
             .layers
             .iter()
             .map(|info| {
-                let radiance = planes.next().expect("2k planes checked");
-                let alpha = planes.next().expect("2k planes checked");
+                let radiance_t = planes.next().expect("2k planes checked");
+                let alpha_t = planes.next().expect("2k planes checked");
                 StoredLayer {
                     info: *info,
-                    radiance,
-                    alpha,
+                    radiance_t,
+                    alpha_t,
                 }
             })
             .collect();
@@ -387,17 +436,17 @@ mod tests {
             let p = dir.path().join(format!("x{}.npy", &descr[..1] == "<"));
             std::fs::write(&p, npy(&shape, &data, descr)).unwrap();
             let planes = read_npy_planes(&p, &shape).unwrap();
+            let rows = read_npy_plane_rows(&p, &shape).unwrap();
             let (s, whole) = read_npy_f32(&p).unwrap();
             assert_eq!(s, shape);
-            assert_eq!(planes.len(), 6);
-            for (k, m) in planes.iter().enumerate() {
+            assert_eq!((planes.len(), rows.len()), (6, 6));
+            for (k, (m, t)) in planes.iter().zip(&rows).enumerate() {
+                assert_eq!((t.nrows(), t.ncols()), (w, h));
                 for i in 0..h {
                     for j in 0..w {
-                        assert_eq!(
-                            m[(i, j)].to_bits(),
-                            whole[k * h * w + i * w + j].to_bits(),
-                            "{descr} plane {k} ({i}, {j})"
-                        );
+                        let at = whole[k * h * w + i * w + j].to_bits();
+                        assert_eq!(m[(i, j)].to_bits(), at, "{descr} plane {k} ({i}, {j})");
+                        assert_eq!(t[(j, i)].to_bits(), at, "{descr} rows {k} ({i}, {j})");
                     }
                 }
             }
@@ -407,6 +456,8 @@ mod tests {
         let short = dir.path().join("short.npy");
         std::fs::write(&short, &bytes[..bytes.len() - 4]).unwrap();
         let e = read_npy_planes(&short, &shape).unwrap_err().to_string();
+        assert!(e.contains("short.npy") && e.contains("data length"), "{e}");
+        let e = read_npy_plane_rows(&short, &shape).unwrap_err().to_string();
         assert!(e.contains("short.npy") && e.contains("data length"), "{e}");
         let e = read_npy_planes(&p, &[3, 2, h as u64, w as u64 + 1])
             .unwrap_err()
