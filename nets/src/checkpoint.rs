@@ -146,11 +146,28 @@ pub fn from_bytes(net: &mut Supernet, bytes: &[u8]) -> Result<()> {
             len.checked_mul(4)
                 .ok_or_else(|| NetsError::Checkpoint("length overflow".into()))?,
         )?;
-        loaded.push(
-            raw.chunks_exact(4)
-                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect::<Vec<f32>>(),
-        );
+        let v: Vec<f32> = raw
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        // A checksum vouches for the bytes, not for the training that wrote them: a diverged
+        // one leaves NaN weights, which would answer every frame with NaN.
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            return Err(NetsError::Checkpoint(format!(
+                "tensor '{name}' holds a non-finite value ({}) at index {i}: the training that \
+                 wrote it diverged; train again with lower learning rates",
+                v[i]
+            )));
+        }
+        if name.ends_with(".running_var") {
+            if let Some(i) = v.iter().position(|&x| x < 0.0) {
+                return Err(NetsError::Checkpoint(format!(
+                    "tensor '{name}' holds the negative variance {} at index {i}",
+                    v[i]
+                )));
+            }
+        }
+        loaded.push(v);
     }
     let mut it = loaded.into_iter();
     net.visit(&mut |_, p| {

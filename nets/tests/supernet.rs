@@ -460,6 +460,34 @@ fn checkpoint_round_trip_and_refusals() {
     assert!(e.to_string().contains("config"), "{e}");
     assert!(from_bytes(&mut b, &bytes[..100]).is_err());
     assert!(from_bytes(&mut b, b"not a checkpoint at all, definitely").is_err());
+    // A valid file of a diverged training (a NaN weight) or a negative BN variance: refused,
+    // naming the tensor, and the network keeps its weights.
+    let before = to_bytes(&mut b).unwrap();
+    for (what, bad) in [("weight", f32::NAN), ("variance", -1.0f32)] {
+        let mut c = Supernet::new(tiny(), 1).unwrap();
+        let mut done = false;
+        match what {
+            "weight" => c.visit(&mut |_, p| {
+                if !done {
+                    p.value[0] = bad;
+                    done = true;
+                }
+            }),
+            _ => c.visit_bn(&mut |_, bn| {
+                if !done {
+                    bn.running_var[0] = bad;
+                    done = true;
+                }
+            }),
+        }
+        let e = from_bytes(&mut b, &to_bytes(&mut c).unwrap()).unwrap_err();
+        let want = match what {
+            "weight" => "non-finite value (NaN) at index 0",
+            _ => "negative variance -1",
+        };
+        assert!(e.to_string().contains(want), "{e}");
+        assert_eq!(to_bytes(&mut b).unwrap(), before);
+    }
 }
 
 #[test]
