@@ -8,9 +8,11 @@ use clap::{Args, Subcommand};
 use faer::Mat;
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig};
+use nanoeye_optics::PhaseMap;
 use nanoeye_search::train::MAX_FACTOR;
 use nanoeye_search::{CameraChain, ChainConfig, LensSpec, task_loss};
 use nanoeye_sensor::NoiseMode;
+use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -269,26 +271,101 @@ fn parse_frames(flag: &str, text: &str, n: usize) -> Result<Vec<usize>> {
     Ok((a..b).collect())
 }
 
-fn npy_stack(planes: &[Mat<f32>]) -> Result<Vec<u8>> {
+/// An NPY writer of `n` f32 planes of `shape` (C order) into `w`.
+fn npy_planes<W: std::io::Write>(
+    w: W,
+    n: usize,
+    shape: (usize, usize),
+) -> Result<npyz::NpyWriter<f32, W>> {
     use npyz::WriterBuilder;
-    let (h, w) = planes
-        .first()
-        .map_or((0, 0), |m| (m.nrows() as u64, m.ncols() as u64));
-    let mut buf = Vec::new();
-    let mut wr = npyz::WriteOptions::<f32>::new()
+    Ok(npyz::WriteOptions::<f32>::new()
         .default_dtype()
-        .shape(&[planes.len() as u64, h, w])
-        .writer(&mut buf)
-        .begin_nd()?;
-    for m in planes {
-        for i in 0..m.nrows() {
-            for j in 0..m.ncols() {
-                wr.push(&m[(i, j)])?;
+        .shape(&[n as u64, shape.0 as u64, shape.1 as u64])
+        .writer(w)
+        .begin_nd()?)
+}
+
+/// Images `ids` through the chain in chunks of 16 frames, streaming the sensor images and the
+/// masks into OUT/sensor.npy and OUT/mask.npy (each moved into place once complete: memory
+/// stays one chunk's, whatever the number of frames); returns targets.jsonl's lines.
+#[allow(clippy::too_many_arguments)]
+fn write_frames(
+    a: &SimArgs,
+    ds: &Dataset,
+    chain: &CameraChain,
+    map: &PhaseMap,
+    ids: &[usize],
+    shape: (usize, usize),
+    p_hat: f64,
+    noise: NoiseMode,
+) -> Result<String> {
+    let create = |name: &str| {
+        util::AtomicFile::create(&a.out.join(name)).with_context(|| format!("--out {name}"))
+    };
+    let (mut sensor_f, mut mask_f) = (create("sensor.npy")?, create("mask.npy")?);
+    let mut lines = String::new();
+    {
+        let mut sensor = npy_planes(sensor_f.writer(), ids.len(), shape)?;
+        let mut masks = npy_planes(mask_f.writer(), ids.len(), shape)?;
+        let bar = match std::io::stderr().is_terminal() && !a.json {
+            true => indicatif::ProgressBar::new(ids.len() as u64),
+            false => indicatif::ProgressBar::hidden(),
+        };
+        // The stack covers every slab used so far, so a chunk with fewer slabs asks for the
+        // same stack, which the chain keeps, instead of a new one.
+        let mut need = vec![false; chain.depths_m().len()];
+        let mut done = 0;
+        for chunk in ids.chunks(16) {
+            let frames = chain.load(ds, chunk)?;
+            need.iter_mut()
+                .zip(chain.active(&frames))
+                .for_each(|(n, a)| *n |= a);
+            let psfs = chain.psfs(map, &need).context("--lens")?;
+            // Nothing differentiates a simulation: no S1 tape (and no S1 image cache).
+            let fwd = chain.forward_with(&frames, &psfs, p_hat, noise, a.seed, false)?;
+            let (h, w) = fwd.grid.shape();
+            if (h, w) != shape {
+                bail!("the p̂ grid is {h}×{w}, expected {}×{}", shape.0, shape.1);
             }
+            for (b, f) in frames.iter().enumerate() {
+                let img = match noise {
+                    NoiseMode::None => &fwd.electrons[b],
+                    _ => &fwd.dn[b],
+                };
+                if img.col_iter().any(|c| c.iter().any(|v| !v.is_finite())) {
+                    bail!(
+                        "frame {}'s sensor image holds a non-finite value: check \
+                         --base-pitch-um, --exposure-ms and --lens",
+                        done + b
+                    );
+                }
+                for i in 0..h {
+                    for j in 0..w {
+                        sensor.push(&img[(i, j)])?;
+                    }
+                }
+                for &v in fwd.mask.image(b) {
+                    masks.push(&v)?;
+                }
+                let line = serde_json::json!({
+                    "frame": f.record.frame,
+                    "slip_m": f.record.state.slip_m,
+                    "gaze": f.record.gaze,
+                    "pupil_center_px": fwd.pupil_center_px[b],
+                });
+                lines.push_str(&line.to_string());
+                lines.push('\n');
+            }
+            done += frames.len();
+            bar.set_position(done as u64);
         }
+        bar.finish_and_clear();
+        sensor.finish()?;
+        masks.finish()?;
     }
-    wr.finish()?;
-    Ok(buf)
+    sensor_f.commit()?;
+    mask_f.commit()?;
+    Ok(lines)
 }
 
 /// NPY bytes of an f64 matrix (C order).
@@ -330,67 +407,40 @@ pub fn sim(a: SimArgs) -> Result<()> {
     };
     let p_hat = a.chain.pitch_um() * 1e-6;
     // Validate the pitch before any work.
-    chain.native().at(p_hat).context("--pitch-um")?;
-    // Created only when the results are written: a run that fails leaves no empty directory.
+    let shape = chain.native().at(p_hat).context("--pitch-um")?.shape();
     if a.out.exists() && !a.out.is_dir() {
         bail!("--out {}: exists and is not a directory", a.out.display());
     }
-    let (mut sensor, mut masks, mut lines) = (Vec::new(), Vec::new(), String::new());
-    let mut shape = (0, 0);
-    // Chunks bound memory. The stack covers every slab used so far, so a chunk with fewer
-    // slabs asks for the same stack, which the chain keeps, instead of a new one.
-    let mut need = vec![false; chain.depths_m().len()];
-    for chunk in ids.chunks(16) {
-        let frames = chain.load(&ds, chunk)?;
-        need.iter_mut()
-            .zip(chain.active(&frames))
-            .for_each(|(n, a)| *n |= a);
-        let psfs = chain.psfs(&map, &need).context("--lens")?;
-        // Nothing differentiates a simulation: no S1 tape (and no S1 image cache, below).
-        let fwd = chain.forward_with(&frames, &psfs, p_hat, noise, a.seed, false)?;
-        shape = fwd.grid.shape();
-        for (b, f) in frames.iter().enumerate() {
-            sensor.push(match noise {
-                NoiseMode::None => fwd.electrons[b].clone(),
-                _ => fwd.dn[b].clone(),
-            });
-            let (h, w) = shape;
-            masks.push(Mat::from_fn(h, w, |i, j| fwd.mask.image(b)[i * w + j]));
-            let line = serde_json::json!({
-                "frame": f.record.frame,
-                "slip_m": f.record.state.slip_m,
-                "gaze": f.record.gaze,
-                "pupil_center_px": fwd.pupil_center_px[b],
-            });
-            lines.push_str(&line.to_string());
-            lines.push('\n');
-        }
-    }
-    if let Some(k) = sensor
-        .iter()
-        .position(|m| m.col_iter().any(|c| c.iter().any(|v| !v.is_finite())))
-    {
-        bail!(
-            "frame {k}'s sensor image holds a non-finite value: check --base-pitch-um, \
-             --exposure-ms and --lens"
-        );
-    }
-    // sim.json last and removed first: it is what readers (`track --frames`) trust, so a run
-    // that fails between the four files leaves none that vouches for a mixture.
+    // sim.json removed first and written last: it is what readers (`track --frames`) trust, so
+    // a run that fails between the four files leaves none that vouches for a mixture.
     let summary_path = a.out.join("sim.json");
     if summary_path.exists() {
         std::fs::remove_file(&summary_path)
             .with_context(|| format!("--out: cannot replace {}", summary_path.display()))?;
     }
-    util::write_atomic(&a.out.join("sensor.npy"), &npy_stack(&sensor)?)?;
-    util::write_atomic(&a.out.join("mask.npy"), &npy_stack(&masks)?)?;
+    // A run that fails leaves no directory it created (its temporary files go first).
+    let created = !a.out.exists();
+    let written = write_frames(&a, &ds, &chain, &map, &ids, shape, p_hat, noise);
+    if written.is_err() && created {
+        let _ = std::fs::remove_dir(&a.out);
+    }
+    let lines = written?;
     util::write_atomic(&a.out.join("targets.jsonl"), lines.as_bytes())?;
+    let (first, end) = (ids.first().copied(), ids.last().map(|l| l + 1));
     let summary = serde_json::json!({
-        "frames": sensor.len(),
+        "frames": ids.len(),
         "height": shape.0,
         "width": shape.1,
         "pitch_m": p_hat,
         "unit": if matches!(noise, NoiseMode::None) { "mean photo-electrons" } else { "DN" },
+        "dataset": a.chain.dataset.display().to_string(),
+        "frame_range": [first.unwrap_or(0), end.unwrap_or(0)],
+        "lens": a.lens.to_string(),
+        "noise": if matches!(noise, NoiseMode::None) { "off" } else { "on" },
+        "seed": a.seed,
+        "exposure_ms": a.chain.camera.exposure_ms,
+        "aperture_step_um": a.chain.camera.aperture_step_um,
+        "base_pitch_um": chain.native().pitch_m() * 1e6,
         "seconds": t0.elapsed().as_secs_f64(),
     });
     util::write_atomic(

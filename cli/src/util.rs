@@ -2,7 +2,7 @@
 
 use anyhow::{Context, Result, bail};
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Prefix of every temporary file the atomic writers create: `.nanoeye-tmp-<pid>-XXXXXX`.
 /// A run killed between create and rename leaves one behind; the next write into the same
@@ -96,26 +96,58 @@ pub fn write_atomic_with(
     path: &Path,
     f: impl FnOnce(&mut std::io::BufWriter<&mut std::fs::File>) -> Result<()>,
 ) -> Result<()> {
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    check_output_target(path)?;
-    std::fs::create_dir_all(dir)
-        .with_context(|| format!("cannot create directory '{}'", dir.display()))?;
-    remove_stale_temps(dir);
-    let mut tmp = tempfile::Builder::new()
-        .prefix(&format!("{TMP_PREFIX}{}-", std::process::id()))
-        .tempfile_in(dir)
-        .with_context(|| format!("cannot create a temporary file in '{}'", dir.display()))?;
+    let mut file = AtomicFile::create(path)?;
     {
-        let mut w = std::io::BufWriter::new(tmp.as_file_mut());
+        let mut w = std::io::BufWriter::new(file.tmp.as_file_mut());
         f(&mut w)?;
         w.flush()?;
     }
-    tmp.persist(path)
-        .with_context(|| format!("cannot write '{}'", path.display()))?;
-    Ok(())
+    file.commit()
+}
+
+/// A file written in several steps that appears at its path only once [`Self::commit`]ted:
+/// until then the path is untouched, and a file dropped uncommitted (an error on the way)
+/// leaves no trace.
+pub struct AtomicFile {
+    tmp: tempfile::NamedTempFile,
+    path: PathBuf,
+}
+
+impl AtomicFile {
+    /// A temporary file beside `path` (its directory created), after the checks of
+    /// [`write_atomic`].
+    pub fn create(path: &Path) -> Result<Self> {
+        let dir = match path.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p,
+            _ => Path::new("."),
+        };
+        check_output_target(path)?;
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("cannot create directory '{}'", dir.display()))?;
+        remove_stale_temps(dir);
+        let tmp = tempfile::Builder::new()
+            .prefix(&format!("{TMP_PREFIX}{}-", std::process::id()))
+            .tempfile_in(dir)
+            .with_context(|| format!("cannot create a temporary file in '{}'", dir.display()))?;
+        Ok(Self {
+            tmp,
+            path: path.to_path_buf(),
+        })
+    }
+
+    /// A buffered writer appending to the temporary file (flush it before [`Self::commit`]).
+    pub fn writer(&mut self) -> std::io::BufWriter<&mut std::fs::File> {
+        std::io::BufWriter::with_capacity(1 << 20, self.tmp.as_file_mut())
+    }
+
+    /// Moves the finished file into place.
+    pub fn commit(self) -> Result<()> {
+        let path = self.path;
+        self.tmp
+            .persist(&path)
+            .with_context(|| format!("cannot write '{}'", path.display()))?;
+        Ok(())
+    }
 }
 
 /// FNV-1a (64-bit) digest of bytes and files: tells whether an input changed between a run

@@ -36,6 +36,18 @@ impl std::str::FromStr for LensSpec {
     }
 }
 
+/// The name [`LensSpec`]'s parser reads back (a file as `file:PATH`).
+impl std::fmt::Display for LensSpec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            LensSpec::Hyperbolic => f.write_str("hyperbolic"),
+            LensSpec::DoubleHelix => f.write_str("double-helix"),
+            LensSpec::Flat => f.write_str("flat"),
+            LensSpec::File(p) => write!(f, "file:{}", p.display()),
+        }
+    }
+}
+
 impl LensSpec {
     /// The phase map on `grid` (λ and s from the caller for the built-in lenses).
     pub fn phase_map(
@@ -103,8 +115,14 @@ mod tests {
             (0..grid.n).all(|i| (0..grid.n).all(|j| m.phase_rad[(i, j)] == 0.0)),
             "a flat lens bends nothing"
         );
-        for s in ["hyperbolic", "double-helix", "flat", "file:x.npy"] {
-            assert!(s.parse::<LensSpec>().is_ok(), "{s}");
+        for s in [
+            "hyperbolic",
+            "double-helix",
+            "flat",
+            "file:x.npy",
+            "file:d/e f.npy",
+        ] {
+            assert_eq!(s.parse::<LensSpec>().unwrap().to_string(), s);
         }
         let e = "fresnel".parse::<LensSpec>().unwrap_err();
         assert!(e.contains("flat"), "{e}");
