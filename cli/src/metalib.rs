@@ -773,7 +773,15 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
             material: a.solver.material.clone(),
         };
         let dir = a.out.join("library_sweep");
-        sweep::run_sweep_with_progress(&cfg, &dir)?;
+        // A slice of other settings there is refused naming --out, the flag that chose it
+        // (its sweep's fields are this command's --height-nm, --pitch-nm and solver flags).
+        sweep::run_sweep_with_progress(&cfg, &dir).map_err(|e| match e {
+            nanoeye_metalib::MetalibError::InvalidParameter {
+                name: "out",
+                reason,
+            } => anyhow!("--out: {reason} (another --height-nm, --pitch-nm or solver setting)"),
+            e => e.into(),
+        })?;
         let data = sweep::load_sweep(&dir)?;
         TabulatedLibrary::from_sweep(
             &data,

@@ -483,6 +483,31 @@ fn blueprint_validates_everything_before_writing() {
     let mut inf = base.to_vec();
     inf[3] = "inf.npy";
     refused(&inf, "--phase", p);
+    // Without a library the slice is swept into OUT/library_sweep; one of other settings there
+    // is refused naming --out (it named `out`, an audit's finding).
+    succeeded(nanoeye(
+        &[
+            "metalib",
+            "sweep",
+            "--harmonics",
+            "2",
+            "--out",
+            "bq/library_sweep",
+            "--heights-nm",
+            "700:700:10",
+            "--pitches-nm",
+            "530:530:10",
+            "--fractions",
+            "0.1:0.9:0.4",
+        ],
+        p,
+    ));
+    let mut swept: Vec<&str> = base[..10].to_vec();
+    swept[9] = "bq";
+    swept.extend(["--square-aperture", "--harmonics", "2"]);
+    let err = refused(&swept, "--out", p);
+    assert!(err.contains("--height-nm"), "{err}");
+    assert_eq!(entries(&p.join("bq")), ["library_sweep"]);
     let ok = nanoeye(&base, p);
     assert!(
         ok.status.success(),
