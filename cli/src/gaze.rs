@@ -74,6 +74,22 @@ pub fn read_mask_png(path: &Path) -> Result<Mat<f32>> {
     }))
 }
 
+/// Whether a line's error is a valid query's lack of a gaze (no pupil in the mask, a ray that
+/// misses the eye, a camera slipped into it) rather than a line that is no valid query.
+fn no_solution(e: &anyhow::Error) -> bool {
+    use nanoeye_gaze::GazeError as G;
+    matches!(
+        e.downcast_ref::<G>(),
+        Some(
+            G::EmptyMask { .. }
+                | G::RayMissesSphere { .. }
+                | G::RayMissesCornea { .. }
+                | G::CameraInsideSphere { .. }
+                | G::BehindCamera { .. }
+        )
+    )
+}
+
 fn solve_line(
     solver: &dyn GazeSolver,
     centre: PupilCentre,
@@ -132,6 +148,8 @@ pub fn run(cmd: Cmd) -> Result<()> {
             let mut reader = std::io::BufReader::new(file);
             let mut raw = Vec::new();
             let mut n = 0usize;
+            // Lines that are not valid queries, and the first one's error.
+            let (mut n_invalid, mut invalid) = (0usize, None::<String>);
             loop {
                 raw.clear();
                 let read = reader
@@ -147,8 +165,24 @@ pub fn run(cmd: Cmd) -> Result<()> {
                     Ok(line) => solve_line(solver.as_ref(), centre, line, &base),
                     Err(e) => Err(e),
                 }
-                .unwrap_or_else(|e| json!({"error": format!("line {n}: {e:#}")}));
+                .unwrap_or_else(|e| {
+                    let msg = format!("line {n}: {e:#}");
+                    if !no_solution(&e) {
+                        invalid.get_or_insert_with(|| msg.clone());
+                        n_invalid += 1;
+                    }
+                    json!({ "error": msg })
+                });
                 lines.push(serde_json::to_string(&v)?);
+            }
+            // A file none of whose lines is a query is refused, not answered line by line
+            // with exit 0; a line whose ray misses the eye is a query without a gaze.
+            if let Some(first) = invalid.filter(|_| n_invalid == lines.len()) {
+                bail!(
+                    "--input {}: none of its {} query lines is a valid query ({first})",
+                    input.display(),
+                    lines.len()
+                );
             }
             let mut text = lines.join("\n");
             text.push('\n');

@@ -354,6 +354,39 @@ fn a_rig_with_a_wrong_fy_or_the_camera_inside_the_eye_is_refused() {
 }
 
 #[test]
+fn gaze_solve_refuses_a_file_without_a_query_and_answers_misses() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    // No line is a query: refused naming --input and the first line, nothing written.
+    std::fs::write(p.join("q.jsonl"), "{\"pupil\":[1,2]}\n\nnot json\n").unwrap();
+    let err = refused(
+        &["gaze", "solve", "--input", "q.jsonl", "--out", "r.jsonl"],
+        "--input",
+        p,
+    );
+    assert!(
+        err.contains("line 1") && err.contains("none of its 2"),
+        "{err}"
+    );
+    assert!(!p.join("r.jsonl").exists());
+    // Queries whose rays all miss the eye (the camera slipped 1 m away) are answered, one
+    // error line each, with exit 0: a query without a gaze is not bad input.
+    std::fs::write(
+        p.join("q.jsonl"),
+        "{\"pupil_px\":[160,100],\"slip_m\":[1,0,0]}\n{\"pupil_px\":[0,0],\"slip_m\":[1,0,0]}\n",
+    )
+    .unwrap();
+    let out = succeeded(nanoeye(&["gaze", "solve", "--input", "q.jsonl"], p));
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert_eq!(text.lines().count(), 2, "{text}");
+    assert!(
+        text.lines()
+            .all(|l| l.contains("\"error\"") && l.contains("misses")),
+        "{text}"
+    );
+}
+
+#[test]
 fn gaze_solve_reports_a_non_utf8_line_and_goes_on_and_strips_a_bom() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
