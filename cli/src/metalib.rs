@@ -779,7 +779,13 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
             nanoeye_metalib::MetalibError::InvalidParameter {
                 name: "out",
                 reason,
-            } => anyhow!("--out: {reason} (another --height-nm, --pitch-nm or solver setting)"),
+            } if !reason.contains("format version") => {
+                anyhow!("--out: {reason} (another --height-nm, --pitch-nm or solver setting)")
+            }
+            nanoeye_metalib::MetalibError::InvalidParameter {
+                name: "out",
+                reason,
+            } => anyhow!("--out: {reason}"),
             e => e.into(),
         })?;
         let data = sweep::load_sweep(&dir)?;

@@ -334,8 +334,9 @@ fn write_frames(
                 };
                 if img.col_iter().any(|c| c.iter().any(|v| !v.is_finite())) {
                     bail!(
-                        "frame {}'s sensor image holds a non-finite value: check \
-                         --base-pitch-um, --exposure-ms and --lens",
+                        "frame {} (plane {} of sensor.npy): its sensor image holds a \
+                         non-finite value: check --base-pitch-um, --exposure-ms and --lens",
+                        ids[done + b],
                         done + b
                     );
                 }
@@ -362,6 +363,14 @@ fn write_frames(
         bar.finish_and_clear();
         sensor.finish()?;
         masks.finish()?;
+    }
+    // sim.json removed before the first file is replaced and written last: it is what readers
+    // (`track --frames`) trust, so a run that fails between the four files leaves none that
+    // vouches for a mixture, and one that fails before leaves the old set whole.
+    let summary = a.out.join("sim.json");
+    if summary.exists() {
+        std::fs::remove_file(&summary)
+            .with_context(|| format!("--out: cannot replace {}", summary.display()))?;
     }
     sensor_f.commit()?;
     mask_f.commit()?;
@@ -411,14 +420,8 @@ pub fn sim(a: SimArgs) -> Result<()> {
     if a.out.exists() && !a.out.is_dir() {
         bail!("--out {}: exists and is not a directory", a.out.display());
     }
-    // sim.json removed first and written last: it is what readers (`track --frames`) trust, so
-    // a run that fails between the four files leaves none that vouches for a mixture.
-    let summary_path = a.out.join("sim.json");
-    if summary_path.exists() {
-        std::fs::remove_file(&summary_path)
-            .with_context(|| format!("--out: cannot replace {}", summary_path.display()))?;
-    }
-    // A run that fails leaves no directory it created (its temporary files go first).
+    // A run that fails while imaging leaves no directory it created (its temporary files go
+    // first; `remove_dir` takes only an empty one).
     let created = !a.out.exists();
     let written = write_frames(&a, &ds, &chain, &map, &ids, shape, p_hat, noise);
     if written.is_err() && created {
@@ -426,6 +429,7 @@ pub fn sim(a: SimArgs) -> Result<()> {
     }
     let lines = written?;
     util::write_atomic(&a.out.join("targets.jsonl"), lines.as_bytes())?;
+    let summary_path = a.out.join("sim.json");
     let (first, end) = (ids.first().copied(), ids.last().map(|l| l + 1));
     let summary = serde_json::json!({
         "frames": ids.len(),
@@ -440,7 +444,7 @@ pub fn sim(a: SimArgs) -> Result<()> {
         "seed": a.seed,
         "exposure_ms": a.chain.camera.exposure_ms,
         "aperture_step_um": a.chain.camera.aperture_step_um,
-        "base_pitch_um": chain.native().pitch_m() * 1e6,
+        "base_pitch_um": chain.config().sensor.base_pitch * 1e6,
         "seconds": t0.elapsed().as_secs_f64(),
     });
     util::write_atomic(

@@ -16,10 +16,11 @@ fn read_npy(p: &Path) -> (Vec<u64>, Vec<f32>) {
     (shape, npy.into_vec().unwrap())
 }
 
-fn sim(frames: &str, out: &str, cwd: &Path) -> Value {
+fn sim(frames: &str, out: &str, cwd: &Path, extra: &[&str]) -> Value {
     let mut args = TINY_CHAIN.to_vec();
     args.splice(0..0, ["sim"]);
     args.extend(["--seed", "3", "--frames", frames, "--out", out, "--json"]);
+    args.extend(extra);
     let o = nanoeye(&args, cwd);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
@@ -37,7 +38,7 @@ fn sim_streams_every_frame_in_order_and_records_its_settings() {
     let p = d.path();
     // Nine ambiguity items: 18 frames, two chunks of the chain's 16.
     assert!(nanoeye(&tiny_dataset_of("ds", "9"), p).status.success());
-    let all = sim("0:18", "all", p);
+    let all = sim("0:18", "all", p, &[]);
     for (k, v) in [
         ("frames", Value::from(18)),
         ("lens", Value::from("hyperbolic")),
@@ -51,7 +52,8 @@ fn sim_streams_every_frame_in_order_and_records_its_settings() {
     ] {
         assert_eq!(all[k], v, "{k} in {all}");
     }
-    assert!(all["base_pitch_um"].as_f64().unwrap() > 0.0, "{all}");
+    // The sensor's default base pitch (3 µm), not the dataset's 48 µm pixels.
+    assert_eq!(all["base_pitch_um"], Value::from(3.0), "{all}");
     let (h, w) = (
         all["height"].as_u64().unwrap(),
         all["width"].as_u64().unwrap(),
@@ -71,7 +73,7 @@ fn sim_streams_every_frame_in_order_and_records_its_settings() {
     let plane = (h * w) as usize;
     for k in [0usize, 17] {
         let one = format!("one{k}");
-        let r = sim(&format!("{k}:{}", k + 1), &one, p);
+        let r = sim(&format!("{k}:{}", k + 1), &one, p, &[]);
         assert_eq!(r["frame_range"], serde_json::json!([k, k + 1]));
         let (s1, v1) = read_npy(&p.join(&one).join("sensor.npy"));
         let (_, m1) = read_npy(&p.join(&one).join("mask.npy"));
@@ -82,4 +84,28 @@ fn sim_streams_every_frame_in_order_and_records_its_settings() {
         let line = std::fs::read_to_string(p.join(&one).join("targets.jsonl")).unwrap();
         assert_eq!(line.trim(), targets.lines().nth(k).unwrap());
     }
+    // A re-run that fails while imaging (frame 17's layers cut short, in the second chunk)
+    // leaves the directory's set whole: sim.json and the files it vouches for unchanged.
+    let before = common::tree(&p.join("all"));
+    let lp = p.join("ds/frames/000017_layers.npy");
+    let bytes = std::fs::read(&lp).unwrap();
+    std::fs::write(&lp, &bytes[..bytes.len() / 2]).unwrap();
+    let mut args = TINY_CHAIN.to_vec();
+    args.splice(0..0, ["sim"]);
+    args.extend(["--frames", "0:18", "--out", "all"]);
+    let o = nanoeye(&args, p);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("000017_layers.npy"),
+        "{err}"
+    );
+    assert!(
+        common::tree(&p.join("all")) == before,
+        "the old set changed"
+    );
+    std::fs::write(&lp, bytes).unwrap();
+    // Another base pitch is recorded as given, and replaces the directory's set.
+    let six = sim("0:2", "all", p, &["--base-pitch-um", "6"]);
+    assert_eq!(six["base_pitch_um"], Value::from(6.0), "{six}");
+    assert_eq!(read_npy(&p.join("all/sensor.npy")).0, [2, h, w]);
 }
