@@ -362,8 +362,7 @@ fn row_major_layers_give_the_column_major_bits() {
     let mut acc = im.kernel_grad_accumulator(2);
     let err = im
         .vjp_kernels(&[mixed], &tape, &g, &mut acc, None)
-        .err()
-        .expect("refused");
+        .expect_err("refused");
     assert!(err.to_string().contains("memory layout"), "{err}");
 }
 
