@@ -1680,6 +1680,15 @@ fn search_train_embedding_term_runs_resumes_and_names_its_bad_flags() {
         let e = refused(&args(&run(&[&with[..], &more[..]].concat())), flag, p);
         assert!(e.contains("differs from the run being resumed"), "{e}");
     }
+    // The same path holding another triplet set (tw's, rendered with another seed): refused by
+    // its digest, not accepted by its name.
+    std::fs::rename(p.join("tv"), p.join("tv_orig")).unwrap();
+    std::fs::rename(p.join("tw"), p.join("tv")).unwrap();
+    let e = refused(&args(&run(&with)), "--embed-triplets", p);
+    assert!(e.contains("differs from the run being resumed"), "{e}");
+    std::fs::rename(p.join("tv"), p.join("tw")).unwrap();
+    std::fs::rename(p.join("tv_orig"), p.join("tv")).unwrap();
+    assert!(nanoeye(&args(&run(&with)), p).status.success());
     assert_eq!(std::fs::read(p.join("o/phase.npy")).unwrap(), phase);
 }
 
