@@ -6,6 +6,7 @@
 
 use faer::Mat;
 use nanoeye_optics::{Layer, LayerSpectra, LayeredImager, SpectralLayer};
+use proptest::prelude::*;
 
 fn img(h: usize, w: usize, s: usize) -> Mat<f32> {
     Mat::from_fn(h, w, |i, j| (((i * 7 + j * 13 + s * 5) % 17) as f32) / 17.0)
@@ -549,4 +550,54 @@ fn bright_layers_keep_the_occlusion_at_f32_precision() {
         .map(|(i, j)| (kg[0][(i, j)] - want_kg[(i, j)]).abs() / kpeak)
         .fold(0.0, f64::max);
     assert!(kworst < 1e-5, "∂L/∂P: {kworst:e} of the peak {kpeak}");
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(48))]
+
+    /// Any plane size (one row or one column included), kernel width and radiance magnitude:
+    /// row-major planes give the column-major path's result bit for bit, or the same refusal
+    /// (an image beyond f32's range).
+    #[test]
+    fn row_and_column_major_layers_agree(
+        h in 1usize..24,
+        w in 1usize..24,
+        half in 0usize..3,
+        seed in 0usize..1000,
+        mag in -30i32..30,
+    ) {
+        let wp = 2 * half + 1;
+        let im = LayeredImager::new(h, w, wp).unwrap();
+        let psf = Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i + 2 * j + seed % 3) as f32));
+        let ks = im.kernel_spectra(&[Some(&psf)]).unwrap();
+        let big = 10f32.powi(mag);
+        let rad: Vec<Mat<f32>> = (0..2)
+            .map(|s| Mat::from_fn(h, w, |i, j| big * img(h, w, seed + s)[(i, j)]))
+            .collect();
+        let al: Vec<Mat<f32>> = (0..2).map(|s| alpha(h, w, seed + s + 1)).collect();
+        let weight = Mat::from_fn(h, w, |i, j| 0.25 + ((i + 3 * j + seed) % 5) as f32);
+        let t = |m: &Mat<f32>| m.transpose().to_owned();
+        let (rad_t, al_t, weight_t): (Vec<_>, Vec<_>, _) =
+            (rad.iter().map(t).collect(), al.iter().map(t).collect(), t(&weight));
+        let cols: Vec<SpectralLayer> = (0..2)
+            .map(|l| SpectralLayer {
+                weight: Some(weight.as_ref()),
+                ..SpectralLayer::new(rad[l].as_ref(), al[l].as_ref(), 0)
+            })
+            .collect();
+        let rows: Vec<SpectralLayer> = (0..2)
+            .map(|l| SpectralLayer {
+                weight: Some(weight_t.transpose()),
+                ..SpectralLayer::new(rad_t[l].transpose(), al_t[l].transpose(), 0)
+            })
+            .collect();
+        match (im.image_spectral(&cols, &ks, None), im.image_spectral(&rows, &ks, None)) {
+            (Ok(a), Ok(b)) => {
+                prop_assert!(a == b, "images differ");
+                prop_assert!(a.col_iter().all(|c| c.iter().all(|v| v.is_finite())));
+            }
+            (Err(a), Err(b)) => prop_assert_eq!(a.to_string(), b.to_string()),
+            (a, b) => prop_assert!(false, "{:?} against {:?}", a.is_ok(), b.is_ok()),
+        }
+    }
 }
