@@ -190,9 +190,15 @@ fn read_planes(
                 }
             };
             if transposed {
-                for r in 0..nr {
-                    for (j, v) in m.col_as_slice_mut(r0 + r).iter_mut().enumerate() {
-                        *v = value(r * w + j);
+                // A file row is a column here: a straight copy, four bytes to a value, which
+                // vectorises (indexing the buffer per value did not).
+                let rows = bytes.chunks_exact((w * 4).max(1));
+                for (r, src) in rows.enumerate() {
+                    let col = m.col_as_slice_mut(r0 + r).iter_mut();
+                    let src = src.chunks_exact(4).map(|b| [b[0], b[1], b[2], b[3]]);
+                    match little {
+                        true => col.zip(src).for_each(|(v, b)| *v = f32::from_le_bytes(b)),
+                        false => col.zip(src).for_each(|(v, b)| *v = f32::from_be_bytes(b)),
                     }
                 }
             } else {
