@@ -6,7 +6,7 @@ use clap::{Subcommand, ValueEnum};
 use nanoeye_datagen::states::{self, Protocol};
 use nanoeye_gaze::eye;
 use serde_json::json;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Which state set to generate.
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -198,8 +198,7 @@ fn export(
             let body = if text.trim_start().starts_with('{') {
                 text.to_string()
             } else {
-                std::fs::read_to_string(text)
-                    .map_err(|e| anyhow::anyhow!("--state: cannot read '{text}': {e}"))?
+                util::read_small_text(Path::new(text), 1 << 20).context("--state")?
             };
             serde_json::from_str(&body).map_err(|e| anyhow::anyhow!("--state: {e}"))?
         }

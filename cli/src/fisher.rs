@@ -135,6 +135,10 @@ fn check_stack(planes: usize, window_px: usize) -> Result<()> {
 /// (10^20 photons) the sums overflow to inf (1e308 gave a null fisher_z).
 const MAX_PHOTONS: f64 = 1e20;
 
+/// Smallest photon budget: far below it QE · photons underflows (5e-324 failed naming
+/// --pitch-um), and a millionth of a photon carries no information worth a Fisher study.
+const MIN_PHOTONS: f64 = 1e-6;
+
 fn model(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, AsmPsf)> {
     check_optics(o)?;
     let grid = ApertureGrid::new(1e-3, o.aperture_step_um * 1e-6).context("--aperture-step-um")?;
@@ -149,18 +153,14 @@ fn model(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, AsmPsf)> 
 
 /// The optics flags' own ranges, each error naming its flag.
 fn check_optics(o: &OpticsArgs) -> Result<()> {
-    if !(o.aperture_step_um.is_finite() && o.aperture_step_um > 0.0) {
-        bail!(
-            "--aperture-step-um: must be positive, got {}",
-            o.aperture_step_um
-        );
-    }
+    // At most an eighth of the aperture: 1000 µm left one sample and failed naming no flag.
+    crate::sim::check_aperture_step("--aperture-step-um", o.aperture_step_um)?;
     if o.window_px < 3 || o.window_px > 1024 {
         bail!("--window-px: must lie in 3..=1024, got {}", o.window_px);
     }
-    if !(o.photons.is_finite() && o.photons > 0.0 && o.photons <= MAX_PHOTONS) {
+    if !(o.photons.is_finite() && o.photons >= MIN_PHOTONS && o.photons <= MAX_PHOTONS) {
         bail!(
-            "--photons: must lie in (0, {MAX_PHOTONS:e}], got {:e}",
+            "--photons: must lie in [{MIN_PHOTONS:e}, {MAX_PHOTONS:e}], got {:e}",
             o.photons
         );
     }
@@ -291,8 +291,11 @@ fn init(a: InitArgs) -> Result<()> {
             a.pitch_um
         );
     }
-    if !(a.lr_rad.is_finite() && a.lr_rad > 0.0) {
-        bail!("--lr-rad: must be positive, got {}", a.lr_rad);
+    // The training's bound on a learning rate (search::train::MAX_FACTOR): Adam moves φ by at
+    // most about this per iteration, so φ stays finite (1e308 overflowed it).
+    let max_lr = nanoeye_search::train::MAX_FACTOR;
+    if !(a.lr_rad.is_finite() && a.lr_rad > 0.0 && a.lr_rad <= max_lr) {
+        bail!("--lr-rad: must lie in (0, {max_lr}], got {}", a.lr_rad);
     }
     let depths_m = depths("--depths-mm", &a.depths_mm)?;
     check_optics(&a.optics)?;

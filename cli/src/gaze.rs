@@ -54,6 +54,9 @@ pub enum Cmd {
     },
 }
 
+/// Most solver radii one `gaze bias` call sweeps.
+const MAX_RADII: usize = 64;
+
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Query {
@@ -208,6 +211,13 @@ pub fn run(cmd: Cmd) -> Result<()> {
                 bail!("--steps: at most {MAX_GRID_STEPS} samples per axis, got {steps}");
             }
             let mut radii = util::parse_list("--solver-radii-mm", &solver_radii_mm)?;
+            // Each radius is a sweep of steps² solves: 1000 radii at 4096 steps ran for hours.
+            if radii.len() > MAX_RADII {
+                bail!(
+                    "--solver-radii-mm: at most {MAX_RADII} radii, got {}",
+                    radii.len()
+                );
+            }
             // The rig's true pupil radius is always a row: the zero-bias reference.
             let true_mm = rig.pupil_sphere_radius_m * 1e3;
             if !radii.iter().any(|r| (r - true_mm).abs() < 1e-9) {

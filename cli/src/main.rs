@@ -131,6 +131,21 @@ fn cpu_has_avx2_fma() -> bool {
     }
 }
 
+/// Restores SIGPIPE's default action (ending the process), which Rust's runtime sets to ignore.
+#[cfg(unix)]
+fn restore_sigpipe() {
+    unsafe extern "C" {
+        fn signal(signum: i32, handler: usize) -> usize;
+    }
+    // SIGPIPE is 13 and SIG_DFL 0 on Linux, macOS and the BSDs.
+    const SIGPIPE: i32 = 13;
+    const SIG_DFL: usize = 0;
+    // SAFETY: one signal's disposition reset to its default, before any other thread exists.
+    unsafe {
+        signal(SIGPIPE, SIG_DFL);
+    }
+}
+
 fn main() -> ExitCode {
     // .cargo/config.toml builds for x86-64-v3: say so instead of dying on an illegal
     // instruction somewhere later.
@@ -142,6 +157,10 @@ fn main() -> ExitCode {
         );
         return ExitCode::FAILURE;
     }
+    // `nanoeye … | head` closes stdout early: end as other Unix tools do, by SIGPIPE, rather
+    // than panic in println! on the EPIPE that Rust's ignored SIGPIPE leaves to every write.
+    #[cfg(unix)]
+    restore_sigpipe();
     nanoeye_alloc::like_cli();
     let _session = dist::init();
     let w = dist::world();

@@ -25,8 +25,8 @@ pub fn load(path: Option<&Path>) -> Result<Rig> {
     match path {
         None => Ok(Rig::default()),
         Some(p) => {
-            let text = std::fs::read_to_string(p)
-                .with_context(|| format!("--rig: cannot read '{}'", p.display()))?;
+            // A FIFO or device would block or be read without end: a rig is a small file.
+            let text = crate::util::read_small_text(p, 1 << 20).context("--rig")?;
             Rig::from_json(&text)
                 .with_context(|| format!("--rig: '{}' is not a valid rig", p.display()))
         }

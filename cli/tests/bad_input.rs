@@ -353,6 +353,94 @@ fn a_rig_with_a_wrong_fy_or_the_camera_inside_the_eye_is_refused() {
     refused(&["rig", "show", "--rig", "tiny.json"], "eye_radius_m", p);
 }
 
+/// An audit's findings (fifty-first session): a crafted NPY header (2³²×2³², which overflowed
+/// inside the NPY parser), FIFOs given as a rig or a state (which blocked), and numbers that
+/// failed later naming another flag or none.
+#[test]
+fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let head = "{'descr': '<f8', 'fortran_order': False, 'shape': (4294967296, 4294967296), }";
+    let pad = 16 - (10 + head.len() + 1) % 16;
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    npy.extend(((head.len() + pad + 1) as u16).to_le_bytes());
+    npy.extend(
+        head.bytes()
+            .chain(std::iter::repeat_n(b' ', pad))
+            .chain([b'\n']),
+    );
+    npy.extend([0u8; 16]);
+    std::fs::write(p.join("huge.npy"), npy).unwrap();
+    let e = refused(
+        &["optics", "psf", "--lens", "file:huge.npy", "--out", "ps"],
+        "--lens",
+        p,
+    );
+    assert!(e.contains("20000"), "{e}");
+    #[cfg(unix)]
+    {
+        let made = std::process::Command::new("mkfifo")
+            .arg(p.join("fifo"))
+            .status()
+            .unwrap();
+        assert!(made.success());
+        refused(&["rig", "show", "--rig", "fifo"], "--rig", p);
+        refused(&["gaze", "bias", "--rig", "fifo"], "--rig", p);
+        refused(
+            &["datagen", "export", "--state", "fifo", "--out", "e.glb"],
+            "--state",
+            p,
+        );
+    }
+    let radii: Vec<String> = (0..65)
+        .map(|i| format!("{}", 9.0 + 0.01 * i as f64))
+        .collect();
+    let radii = radii.join(",");
+    refused(
+        &["gaze", "bias", "--steps", "3", "--solver-radii-mm", &radii],
+        "--solver-radii-mm",
+        p,
+    );
+    refused(
+        &["fisher", "compare", "--photons", "5e-324"],
+        "--photons",
+        p,
+    );
+    refused(
+        &["fisher", "compare", "--aperture-step-um", "1000"],
+        "--aperture-step-um",
+        p,
+    );
+    refused(
+        &["fisher", "init", "--lr-rad", "1e308", "--out", "fl"],
+        "--lr-rad",
+        p,
+    );
+    assert!(!p.join("fl").exists() && !p.join("ps").exists() && !p.join("e.glb").exists());
+}
+
+/// Output into a pipe whose reader has gone (`nanoeye … | head`): the process ends by SIGPIPE,
+/// as other Unix tools do; it panicked on the write's EPIPE (an audit).
+#[cfg(unix)]
+#[test]
+fn a_closed_stdout_ends_the_process_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    let d = tempfile::tempdir().unwrap();
+    let mut child = std::process::Command::new(common::BIN)
+        .args(["gaze", "bias", "--steps", "3", "--json"])
+        .current_dir(d.path())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The reader goes before the first write.
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(out.status.signal(), Some(13), "{:?}: {err}", out.status);
+}
+
 #[test]
 fn gaze_solve_refuses_a_file_without_a_query_and_answers_misses() {
     let d = tempfile::tempdir().unwrap();
