@@ -125,7 +125,12 @@ impl AtomicFile {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create directory '{}'", dir.display()))?;
         remove_stale_temps(dir);
-        let tmp = tempfile::Builder::new()
+        let mut b = tempfile::Builder::new();
+        // A temporary file is created owner-only (0600); an output is an ordinary file, so
+        // ask for 0666 and let the umask take its share, as `File::create` would.
+        #[cfg(unix)]
+        b.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+        let tmp = b
             .prefix(&format!("{TMP_PREFIX}{}-", std::process::id()))
             .tempfile_in(dir)
             .with_context(|| format!("cannot create a temporary file in '{}'", dir.display()))?;
@@ -494,6 +499,12 @@ mod tests {
         std::fs::write(&dead, b"partial").unwrap();
         write_atomic(&dir.path().join("out.txt"), b"ok").unwrap();
         assert!(!dead.exists());
+        // An output's mode is what `File::create` gives under this umask, not 0600.
+        use std::os::unix::fs::PermissionsExt;
+        let plain = dir.path().join("plain.txt");
+        std::fs::write(&plain, b"ok").unwrap();
+        let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode(&dir.path().join("out.txt")), mode(&plain));
     }
 
     #[cfg(unix)]
