@@ -198,7 +198,7 @@ fn export(
             let body = if text.trim_start().starts_with('{') {
                 text.to_string()
             } else {
-                util::read_small_text(Path::new(text), 1 << 20).context("--state")?
+                util::read_small_text(Path::new(text), util::MAX_ARCH_BYTES).context("--state")?
             };
             serde_json::from_str(&body).map_err(|e| anyhow::anyhow!("--state: {e}"))?
         }

@@ -115,8 +115,8 @@ fn depths(flag: &str, text: &str) -> Result<Vec<f64>> {
 /// allocation, panic and hang rather than refuse (9001 planes of 1024² did).
 const MAX_PLANE_VALUES: u128 = 1 << 26;
 
-/// Most lenses or pitches `fisher compare` takes (each multiplies the work and the montage).
-const MAX_LIST: usize = 64;
+// Most lenses or pitches `fisher compare` takes (each multiplies the work and the montage).
+use crate::util::MAX_LIST;
 
 /// Refuses a depth stack whose PSFs and derivatives would not fit [`MAX_PLANE_VALUES`].
 fn check_stack(planes: usize, window_px: usize) -> Result<()> {

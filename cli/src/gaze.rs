@@ -54,9 +54,6 @@ pub enum Cmd {
     },
 }
 
-/// Most solver radii one `gaze bias` call sweeps.
-const MAX_RADII: usize = 64;
-
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Query {
@@ -212,9 +209,10 @@ pub fn run(cmd: Cmd) -> Result<()> {
             }
             let mut radii = util::parse_list("--solver-radii-mm", &solver_radii_mm)?;
             // Each radius is a sweep of steps² solves: 1000 radii at 4096 steps ran for hours.
-            if radii.len() > MAX_RADII {
+            if radii.len() > util::MAX_LIST {
                 bail!(
-                    "--solver-radii-mm: at most {MAX_RADII} radii, got {}",
+                    "--solver-radii-mm: at most {} radii, got {}",
+                    util::MAX_LIST,
                     radii.len()
                 );
             }

@@ -26,7 +26,8 @@ pub fn load(path: Option<&Path>) -> Result<Rig> {
         None => Ok(Rig::default()),
         Some(p) => {
             // A FIFO or device would block or be read without end: a rig is a small file.
-            let text = crate::util::read_small_text(p, 1 << 20).context("--rig")?;
+            let text =
+                crate::util::read_small_text(p, crate::util::MAX_ARCH_BYTES).context("--rig")?;
             Rig::from_json(&text)
                 .with_context(|| format!("--rig: '{}' is not a valid rig", p.display()))
         }

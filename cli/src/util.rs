@@ -330,8 +330,13 @@ pub fn check_batch_memory(
     Ok(())
 }
 
-/// Largest subnet (arch) JSON read: a few hundred bytes in practice.
+/// Largest small JSON input read (a subnet's arch, a rig, a state): a few hundred bytes in
+/// practice.
 pub const MAX_ARCH_BYTES: u64 = 1 << 20;
+
+/// Most values of a list flag whose every value multiplies the work (fisher's lenses and
+/// pitches, gaze bias's solver radii).
+pub const MAX_LIST: usize = 64;
 
 /// The text of a small regular file at `path`, at most `max` bytes: a device or a FIFO
 /// (`/dev/zero` read until memory ran out) or a file past `max` is refused before reading.
