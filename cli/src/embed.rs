@@ -55,7 +55,7 @@ pub struct EmbedArgs {
 /// Runs (or resumes) the embedding optimisation.
 pub fn embed(a: EmbedArgs) -> Result<()> {
     let t0 = Instant::now();
-    let (ds, chain) = a.chain.build()?;
+    let (ds, chain) = a.chain.build(nanoeye_optics::PsfUsage::Training)?;
     let cfg = EmbedConfig {
         steps: a.steps,
         batch: a.batch,

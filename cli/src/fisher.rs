@@ -6,7 +6,7 @@ use clap::{Args, Subcommand};
 use faer::Mat;
 use nanoeye_fisher::nanoeye_optics::{
     ApertureGrid, AsmPsf, DoubleHelix, Hyperbolic, PhaseMap, PhaseProfile, PsfConfig, PsfModel,
-    io::read_phase_npy,
+    PsfUsage, io::read_phase_npy,
 };
 use nanoeye_fisher::{FisherNoise, InitConfig, InitState, compare_lenses, init_step, write_npy};
 use nanoeye_sensor::SensorConfig;
@@ -139,7 +139,8 @@ const MAX_PHOTONS: f64 = 1e20;
 /// --pitch-um), and a millionth of a photon carries no information worth a Fisher study.
 const MIN_PHOTONS: f64 = 1e-6;
 
-fn model(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, AsmPsf)> {
+/// The aperture grid and PSF configuration of the optics flags.
+fn optics_of(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, PsfConfig)> {
     check_optics(o)?;
     let grid = ApertureGrid::new(1e-3, o.aperture_step_um * 1e-6).context("--aperture-step-um")?;
     let cfg = PsfConfig {
@@ -147,6 +148,36 @@ fn model(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, AsmPsf)> 
         window_px: o.window_px,
         ..PsfConfig::default()
     };
+    Ok((grid, cfg))
+}
+
+/// Refuses optics whose work would not fit in memory, before anything is built: `maps` phase
+/// maps held at once, stacks of `depths` depths used as `usage` says (a size the model itself
+/// refuses is left to [`model`]).
+fn check_model_memory(
+    o: &OpticsArgs,
+    native_pitch_m: f64,
+    depths: usize,
+    maps: usize,
+    usage: PsfUsage,
+) -> Result<()> {
+    let (grid, cfg) = optics_of(o, native_pitch_m)?;
+    let threads = rayon::current_num_threads();
+    let map_bytes = 16 * (grid.n as u64).pow(2);
+    // A configuration the model refuses is left to `model`, whose caller names the flag.
+    let Ok(one) = AsmPsf::memory_bytes(&cfg, &grid, depths, threads, usage) else {
+        return Ok(());
+    };
+    let need = one.saturating_add((maps.saturating_sub(1) as u64).saturating_mul(map_bytes));
+    crate::util::check_memory(
+        "--aperture-step-um",
+        need,
+        "give a coarser --aperture-step-um",
+    )
+}
+
+fn model(o: &OpticsArgs, native_pitch_m: f64) -> Result<(ApertureGrid, AsmPsf)> {
+    let (grid, cfg) = optics_of(o, native_pitch_m)?;
     let m = AsmPsf::new(cfg, grid).context("--window-px / --aperture-step-um")?;
     Ok((grid, m))
 }
@@ -309,6 +340,7 @@ fn init(a: InitArgs) -> Result<()> {
             a.pitch_um
         );
     }
+    check_model_memory(&a.optics, 3e-6, depths_m.len(), 1, PsfUsage::Training)?;
     let (grid, model) = model(&a.optics, 3e-6)?;
     let ckpt = a.out.join("checkpoint");
     let requested = InitConfig {
@@ -497,8 +529,6 @@ fn compare(a: CompareArgs) -> Result<()> {
     // The optics flags first, so that the context below only ever wraps the pitch's errors.
     check_optics(&a.optics)?;
     check_stack(depths_m.len(), a.optics.window_px)?;
-    let (grid, model) = model(&a.optics, native * 1e-6)
-        .context("--pitch-um: the smallest pitch is the PSF model's native pitch")?;
     let specs: Vec<&str> = a
         .lenses
         .split(',')
@@ -511,6 +541,14 @@ fn compare(a: CompareArgs) -> Result<()> {
     if specs.len() > MAX_LIST {
         bail!("--lenses: at most {MAX_LIST} lenses, got {}", specs.len());
     }
+    let usage = if specs.len() > 1 {
+        PsfUsage::Repeated
+    } else {
+        PsfUsage::Once
+    };
+    check_model_memory(&a.optics, native * 1e-6, depths_m.len(), specs.len(), usage)?;
+    let (grid, model) = model(&a.optics, native * 1e-6)
+        .context("--pitch-um: the smallest pitch is the PSF model's native pitch")?;
     let lenses = specs
         .iter()
         .map(|s| Ok((s.to_string(), lens_map(s, &grid)?)))

@@ -7,7 +7,7 @@ use faer::Mat;
 use nanoeye_optics::stats::plane_stats;
 use nanoeye_optics::{
     ApertureGrid, AsmPsf, DoubleHelix, FreeForm, Hyperbolic, PhaseMap, PhaseProfile, PsfConfig,
-    PsfModel,
+    PsfModel, PsfUsage,
 };
 use std::path::PathBuf;
 
@@ -196,6 +196,28 @@ fn psf(a: PsfArgs) -> Result<()> {
         );
     }
     let grid = ApertureGrid::new(d, dx).context("--aperture-mm/--sample-um")?;
+    let cfg = PsfConfig {
+        wavelength_m: lam,
+        sensor_distance_m: s,
+        pitch_m: pitch,
+        window_px: a.window_px,
+        period_m: period,
+        ..PsfConfig::default()
+    };
+    // Weighed before the phase map is built: the finest legal sampling needs tens of GiB.
+    let need = AsmPsf::memory_bytes(
+        &cfg,
+        &grid,
+        depths.len(),
+        rayon::current_num_threads(),
+        PsfUsage::Once,
+    )
+    .context("--pitch-um/--window-px/--period-mm")?;
+    crate::util::check_memory(
+        "--aperture-mm/--sample-um",
+        need,
+        "give a coarser --sample-um or a smaller --aperture-mm",
+    )?;
     let lens = Hyperbolic {
         wavelength_m: lam,
         object_distance_m: zf,
@@ -238,14 +260,6 @@ fn psf(a: PsfArgs) -> Result<()> {
                 bail!("--lens: expected hyperbolic, double-helix or file:PATH.npy, got '{other}'")
             }
         },
-    };
-    let cfg = PsfConfig {
-        wavelength_m: lam,
-        sensor_distance_m: s,
-        pitch_m: pitch,
-        window_px: a.window_px,
-        period_m: period,
-        ..PsfConfig::default()
     };
     let model = AsmPsf::new(cfg, grid).context("--pitch-um/--window-px/--period-mm")?;
     let w = crate::dist::world();

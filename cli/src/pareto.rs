@@ -205,8 +205,8 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     for run in &runs {
         crate::sim::check_trained_with(run, &a.camera, "--runs")?;
     }
-    let chain = a.camera.chain(&ds)?;
-    let tchain = a.camera.chain(&train)?;
+    let chain = a.camera.chain(&ds, nanoeye_optics::PsfUsage::Training)?;
+    let tchain = a.camera.chain(&train, nanoeye_optics::PsfUsage::Training)?;
     // Subnets: REA selections of the first run by fitness, then uniform draws.
     // A run without a search has no state; a state that does not parse is refused, not
     // silently replaced by uniform draws.

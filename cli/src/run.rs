@@ -495,6 +495,24 @@ fn check(cfg: &RunConfig) -> Result<()> {
     }
     // The three lenses train and are evaluated at once, each with `batch` frames.
     util::check_batch_memory("--config", cfg.batch, 3, cfg.width_px, cfg.height_px)?;
+    // And each with its chain's PSF model: weighed at the job's layers and aperture sampling.
+    let psf_cfg = ChainConfig {
+        aperture_step_m: cfg.aperture_step_um * 1e-6,
+        ..ChainConfig::default()
+    };
+    let need = CameraChain::psf_memory_bytes(
+        camera.pixel_pitch_m,
+        LayerSpec::default().count,
+        &psf_cfg,
+        rayon::current_num_threads(),
+        nanoeye_optics::PsfUsage::Training,
+    )
+    .context("--config: aperture_step_um")?;
+    util::check_memory(
+        "--config: aperture_step_um",
+        need.saturating_mul(3),
+        "give a coarser aperture_step_um",
+    )?;
     train_config(cfg, false, learned_embed_weight(cfg))
         .validate()
         .map_err(|e| {

@@ -8,7 +8,7 @@ use clap::{Args, Subcommand};
 use faer::Mat;
 use nanoeye_datagen::render::Dataset;
 use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig};
-use nanoeye_optics::PhaseMap;
+use nanoeye_optics::{PhaseMap, PsfUsage};
 use nanoeye_search::train::MAX_FACTOR;
 use nanoeye_search::{CameraChain, ChainConfig, LensSpec, task_loss};
 use nanoeye_sensor::NoiseMode;
@@ -71,15 +71,15 @@ impl ChainArgs {
         Ok(v)
     }
 
-    /// Opens the dataset and builds the chain, naming the flag behind a bad value.
-    pub fn build(&self) -> Result<(Dataset, CameraChain)> {
+    /// Opens the dataset and builds the chain for `usage`, naming the flag behind a bad value.
+    pub fn build(&self, usage: PsfUsage) -> Result<(Dataset, CameraChain)> {
         let ds = Dataset::open(&self.dataset)
             .with_context(|| format!("--dataset {}", self.dataset.display()))?;
         let p = self.pitch_um();
         if !(p.is_finite() && p > 0.0) {
             bail!("--pitch-um: must be positive, got {p}");
         }
-        let chain = self.camera.chain(&ds)?;
+        let chain = self.camera.chain(&ds, usage)?;
         Ok((ds, chain))
     }
 }
@@ -151,8 +151,9 @@ impl CameraArgs {
         })
     }
 
-    /// The chain for `ds`, naming the flag behind a bad value.
-    pub fn chain(&self, ds: &Dataset) -> Result<CameraChain> {
+    /// The chain for `ds` used as `usage` says (its PSF model weighed against the memory
+    /// there is first), naming the flag behind a bad value.
+    pub fn chain(&self, ds: &Dataset, usage: PsfUsage) -> Result<CameraChain> {
         let mut cfg = ChainConfig::default();
         check_aperture_step("--aperture-step-um", self.aperture_step_um)?;
         cfg.aperture_step_m = self.aperture_step_um * 1e-6;
@@ -172,8 +173,32 @@ impl CameraArgs {
             // The physical sensor's 3 µm, unless the dataset was rendered finer.
             None => cfg.sensor.base_pitch.min(native),
         };
+        check_psf_memory(&cfg, ds, usage, 1)?;
         CameraChain::for_dataset(ds, cfg).context("--dataset / chain parameters")
     }
+}
+
+/// Refuses `copies` chains for `ds` with `cfg` whose PSF models, used as `usage` says, would
+/// need more memory than there is ([`util::check_memory`]), before any is built.
+pub fn check_psf_memory(
+    cfg: &ChainConfig,
+    ds: &Dataset,
+    usage: PsfUsage,
+    copies: usize,
+) -> Result<()> {
+    let one = CameraChain::psf_memory_bytes(
+        ds.manifest.rig.camera.pixel_pitch_m,
+        ds.layer_spec().count,
+        cfg,
+        rayon::current_num_threads(),
+        usage,
+    )
+    .context("--dataset / chain parameters")?;
+    util::check_memory(
+        "--aperture-step-um",
+        one.saturating_mul(copies as u64),
+        "give a coarser --aperture-step-um",
+    )
 }
 
 /// `nanoeye sim` options.
@@ -398,7 +423,7 @@ pub fn npy_mat64(m: &Mat<f64>) -> Result<Vec<u8>> {
 /// Runs `nanoeye sim`.
 pub fn sim(a: SimArgs) -> Result<()> {
     let t0 = Instant::now();
-    let (ds, mut chain) = a.chain.build()?;
+    let (ds, mut chain) = a.chain.build(PsfUsage::Once)?;
     // Each frame is imaged once: S1 images kept for a next forward would only take memory.
     chain.set_s1_cache(false);
     let ids = match &a.frames {
@@ -498,7 +523,7 @@ pub fn search(cmd: SearchCmd) -> Result<()> {
 
 fn loss(a: LossArgs) -> Result<()> {
     let t0 = Instant::now();
-    let (ds, chain) = a.chain.build()?;
+    let (ds, chain) = a.chain.build(PsfUsage::Training)?;
     let ids = parse_frames("--frames", &a.frames, ds.len())?;
     let arch = parse_subnet(&a.subnet)?;
     // `search train`'s bound: far beyond it the loss's gradient overflows in the chain's

@@ -323,7 +323,7 @@ fn write_outputs(t: &mut Trainer, out: &std::path::Path) -> Result<()> {
 pub fn train(a: TrainArgs) -> Result<()> {
     let t0 = Instant::now();
     let w = crate::dist::world();
-    let (ds, mut chain) = a.chain.build()?;
+    let (ds, mut chain) = a.chain.build(nanoeye_optics::PsfUsage::Training)?;
     let split = std::sync::Arc::new(crate::dist::RankSplit::new(w));
     if w.is_distributed() {
         chain.set_split(split.clone());
@@ -771,7 +771,7 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         );
     }
     crate::sim::check_trained_with(&a.run, &a.chain.camera, "--run")?;
-    let (ds, chain) = a.chain.build()?;
+    let (ds, chain) = a.chain.build(nanoeye_optics::PsfUsage::Training)?;
     if let Some(p) = a.chain.pitch_um {
         // The flag is shared with the commands that take p̂ from it; here it changes nothing,
         // so a resume does not compare it either.
@@ -913,6 +913,13 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         done?;
     } else {
         // A chain per thread: each keeps the last PSF stack it computed.
+        crate::sim::check_psf_memory(
+            chain.config(),
+            &ds,
+            nanoeye_optics::PsfUsage::Training,
+            a.parallel,
+        )
+        .context("--parallel")?;
         let extra = (1..a.parallel)
             .map(|_| CameraChain::for_dataset(&ds, chain.config().clone()))
             .collect::<nanoeye_search::Result<Vec<_>>>()?;

@@ -330,6 +330,75 @@ pub fn check_batch_memory(
     Ok(())
 }
 
+/// Environment variable that caps the memory a command plans for (bytes), below what the
+/// system reports available: to leave room on a shared machine (and for the tests).
+pub const MEMORY_ENV: &str = "NANOEYE_MEMORY_BYTES";
+
+/// Memory (bytes) a command may plan to use: the smallest of [`MEMORY_ENV`], Linux's
+/// `MemAvailable` and what the address-space limit (`ulimit -v`) leaves this process; None
+/// where none of them is known.
+pub fn memory_budget() -> Result<Option<u64>> {
+    let cap = match std::env::var(MEMORY_ENV) {
+        Ok(v) => Some(
+            v.trim()
+                .parse::<f64>()
+                .ok()
+                .filter(|b| b.is_finite() && *b >= 1.0)
+                .with_context(|| {
+                    format!("{MEMORY_ENV}: expected a number of bytes ≥ 1, got '{v}'")
+                })? as u64,
+        ),
+        Err(_) => None,
+    };
+    let have = nanoeye_datagen::render::dataset::available_memory().map(|b| b as u64);
+    Ok([cap, have, address_space_left()]
+        .into_iter()
+        .flatten()
+        .min())
+}
+
+/// Bytes of address space the soft `RLIMIT_AS` still leaves this process (its limit less its
+/// `VmSize`), read from /proc; None without a limit or where /proc cannot be read. Under
+/// `ulimit -v` an allocation past it aborts the process, whatever memory the system has.
+fn address_space_left() -> Option<u64> {
+    let limits = std::fs::read_to_string("/proc/self/limits").ok()?;
+    let soft: u64 = limits
+        .lines()
+        .find_map(|l| l.strip_prefix("Max address space"))?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()?;
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let used_kb: u64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmSize:"))?
+        .trim()
+        .strip_suffix("kB")?
+        .trim()
+        .parse()
+        .ok()?;
+    Some(soft.saturating_sub(used_kb.saturating_mul(1024)))
+}
+
+/// Refuses a plan estimated at `need` bytes when it exceeds [`memory_budget`] (the kernel's
+/// out-of-memory kill would end it instead of an error): `what` names the settings that set
+/// the size, `fix` says which way to move them.
+pub fn check_memory(what: &str, need: u64, fix: &str) -> Result<()> {
+    if let Some(have) = memory_budget()? {
+        if need > have {
+            let gib = (1u64 << 30) as f64;
+            bail!(
+                "{what}: needs about {:.2} GiB, more than the {:.2} GiB this process may use \
+                 (the least of {MEMORY_ENV}, MemAvailable and ulimit -v); {fix}",
+                need as f64 / gib,
+                have as f64 / gib
+            );
+        }
+    }
+    Ok(())
+}
+
 /// Largest small JSON input read (a subnet's arch, a rig, a state): a few hundred bytes in
 /// practice.
 pub const MAX_ARCH_BYTES: u64 = 1 << 20;

@@ -1889,3 +1889,99 @@ fn select_marks_a_pair_of_the_sweep_and_writes_no_null() {
         assert!(!text.contains("null"), "{text}");
     }
 }
+
+/// `nanoeye args` in `cwd` with the memory budget capped at `bytes`.
+fn with_memory(args: &[&str], bytes: &str, cwd: &Path) -> std::process::Output {
+    std::process::Command::new(common::BIN)
+        .args(args)
+        .current_dir(cwd)
+        .env("NANOEYE_MEMORY_BYTES", bytes)
+        .output()
+        .expect("run nanoeye")
+}
+
+#[test]
+fn aperture_sampling_beyond_the_memory_is_refused_before_any_work() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    assert!(nanoeye(&tiny_dataset("ds"), p).status.success());
+    // 0.25 µm samples a 1 mm aperture 4000 × 4000 times: gigabytes, against a 200 MB cap.
+    let cases: [(&[&str], &str); 6] = [
+        (
+            &["run", "--set", "aperture_step_um=0.25", "--out", "ro"],
+            "aperture_step_um",
+        ),
+        (
+            &["optics", "psf", "--sample-um", "0.25", "--out", "ps"],
+            "--sample-um",
+        ),
+        (
+            &[
+                "fisher",
+                "compare",
+                "--aperture-step-um",
+                "0.25",
+                "--montage",
+                "m.png",
+            ],
+            "--aperture-step-um",
+        ),
+        (
+            &[
+                "fisher",
+                "init",
+                "--aperture-step-um",
+                "0.25",
+                "--out",
+                "fi",
+            ],
+            "--aperture-step-um",
+        ),
+        (
+            &[
+                "sim",
+                "--dataset",
+                "ds",
+                "--pitch-um",
+                "12",
+                "--aperture-step-um",
+                "0.25",
+                "--out",
+                "so",
+            ],
+            "--aperture-step-um",
+        ),
+        (
+            &[
+                "search",
+                "train",
+                "--dataset",
+                "ds",
+                "--aperture-step-um",
+                "0.25",
+                "--steps",
+                "1",
+                "--out",
+                "st",
+            ],
+            "--aperture-step-um",
+        ),
+    ];
+    for (args, flag) in cases {
+        let out = with_memory(args, "2e8", p);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} ran under a 200 MB cap");
+        assert!(err.contains(flag) && err.contains("GiB"), "{args:?}: {err}");
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+    }
+    assert_eq!(entries(p), ["ds"], "a refused command wrote something");
+    // The default sampling fits the same cap, and a cap that is no number is named.
+    succeeded(with_memory(
+        &["optics", "psf", "--depths-mm", "20", "--out", "ps"],
+        "2e8",
+        p,
+    ));
+    let out = with_memory(&["optics", "psf", "--out", "ps2"], "lots", p);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("NANOEYE_MEMORY_BYTES"));
+}

@@ -18,4 +18,4 @@ pub use layered::{
     SpectralLayer,
 };
 pub use profile::{DoubleHelix, FreeForm, Hyperbolic, PhaseMap, PhaseProfile, PillarQuantized};
-pub use psf::{AsmPsf, PhaseMapGrad, PsfConfig, PsfModel, PsfStack};
+pub use psf::{AsmPsf, PhaseMapGrad, PsfConfig, PsfModel, PsfStack, PsfUsage};

@@ -62,6 +62,18 @@ impl Default for PsfConfig {
     }
 }
 
+/// How a caller uses an [`AsmPsf`], for its memory estimate [`AsmPsf::memory_bytes`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PsfUsage {
+    /// One stack of one map.
+    Once,
+    /// Stacks of several maps in turn: the memo keeps the last map's aperture samples while
+    /// the next map's are built.
+    Repeated,
+    /// Repeated stacks and their VJPs (a lens training).
+    Training,
+}
+
 /// PSFs of one lens over a set of depths, with their finite-difference depth derivative.
 #[derive(Clone, Debug)]
 pub struct PsfStack {
@@ -278,6 +290,29 @@ impl Samples {
     }
 }
 
+/// What [`AsmPsf::new`] sizes from a configuration and a grid (SI units).
+struct Sizing {
+    lam: f64,
+    s: f64,
+    /// Aperture sampling step Δ.
+    delta: f64,
+    half_win: f64,
+    n_fold: usize,
+    /// Band frequencies per axis N_b = 2 m_max + 1.
+    nb: usize,
+    df: f64,
+    f_1: f64,
+    f_b: f64,
+    m_max: i64,
+    f_band: f64,
+    q: usize,
+    sub: f64,
+    cw: Vec<f64>,
+    quad_err: f64,
+    taps: usize,
+    n_ext: usize,
+}
+
 struct Workspace {
     /// Spherical-wave factor e^{ik(r−z)} per distinct radius.
     wave: Vec<c64>,
@@ -398,9 +433,9 @@ fn subcell_quadrature(xb: f64) -> (Vec<f64>, f64) {
 }
 
 impl AsmPsf {
-    /// Builds the model for `grid` and `cfg`: validates, sizes the folded FFT and the band,
-    /// and precomputes the transfer function and window DFT matrices.
-    pub fn new(cfg: PsfConfig, grid: ApertureGrid) -> Result<Self> {
+    /// The sizes `new` builds with, validated: computed alone by [`AsmPsf::memory_bytes`] so a
+    /// caller can weigh a configuration before anything is allocated.
+    fn sizing(cfg: &PsfConfig, grid: &ApertureGrid) -> Result<Sizing> {
         let lam = positive("wavelength_m", cfg.wavelength_m)?;
         let s = positive("sensor_distance_m", cfg.sensor_distance_m)?;
         let p = positive("pitch_m", cfg.pitch_m)?;
@@ -469,8 +504,7 @@ impl AsmPsf {
             .min(1.0 / lam);
         let f_1 = f_reach.min(f_b);
         let m_max = (f_b / df).floor() as i64;
-        let band: Vec<i64> = (-m_max..=m_max).collect();
-        let nb = band.len();
+        let nb = (2 * m_max + 1) as usize;
         let f_band = m_max as f64 * df;
         // |V|² is band-limited to 2 f_b per axis: sample it at δ ≤ 0.8/(4 f_b), and integrate
         // each sub-cell exactly (to QUAD_TOL) from the 2T+1 nearest samples.
@@ -494,6 +528,50 @@ impl AsmPsf {
                 format!("{w}×{q} (+{taps} margin) points per side is too many (max 8192)"),
             ));
         }
+        Ok(Sizing {
+            lam,
+            s,
+            delta,
+            half_win,
+            n_fold,
+            nb,
+            df,
+            f_1,
+            f_b,
+            m_max,
+            f_band,
+            q,
+            sub,
+            cw,
+            quad_err,
+            taps,
+            n_ext,
+        })
+    }
+
+    /// Builds the model for `grid` and `cfg`: validates, sizes the folded FFT and the band,
+    /// and precomputes the transfer function and window DFT matrices.
+    pub fn new(cfg: PsfConfig, grid: ApertureGrid) -> Result<Self> {
+        let Sizing {
+            lam,
+            s,
+            delta,
+            half_win,
+            n_fold,
+            nb,
+            df,
+            f_1,
+            f_b,
+            m_max,
+            f_band,
+            q,
+            sub,
+            cw,
+            quad_err,
+            taps,
+            n_ext,
+        } = Self::sizing(&cfg, &grid)?;
+        let band: Vec<i64> = (-m_max..=m_max).collect();
         // Pixel weights: the q sub-cells of a pixel, each with the 2T+1 weights around it.
         let mut kern = vec![0.0; q + 2 * taps];
         for j in 0..q {
@@ -574,6 +652,51 @@ impl AsmPsf {
             ifft,
             memo: Mutex::new(None),
         })
+    }
+
+    /// Bytes the model needs (about) for `depths` depths used as `usage` says, estimated before
+    /// anything is built: the phase map and its aperture samples (84 B per aperture sample;
+    /// 60 more where the memo keeps another map's), the transfer function, one workspace per
+    /// thread that works (`threads` and `depths` bound them), the planes, and for a training
+    /// the gradients (16 B per aperture sample per depth and per thread). Errors as
+    /// [`AsmPsf::new`] would, naming the setting.
+    pub fn memory_bytes(
+        cfg: &PsfConfig,
+        grid: &ApertureGrid,
+        depths: usize,
+        threads: usize,
+        usage: PsfUsage,
+    ) -> Result<u64> {
+        let z = Self::sizing(cfg, grid)?;
+        let c = std::mem::size_of::<c64>() as u128;
+        let (n2, nl, nb, ne) = (
+            (grid.n as u128).pow(2),
+            z.n_fold as u128,
+            z.nb as u128,
+            z.n_ext as u128,
+        );
+        let w = cfg.window_px as u128;
+        let (d, workers) = (depths as u128, threads.clamp(1, depths.max(1)) as u128);
+        // Phase and amplitude (the map), the pupil weights, and per sample in `Samples`: four
+        // u32 indices (with the lookup table), two c64 and an f64.
+        let samples = 4 * 4 + 2 * c + 8;
+        let memo_samples = if usage == PsfUsage::Once { 0 } else { samples };
+        let aperture = n2 * (16 + 8 + samples + memo_samples);
+        // H and, while it is built, its raw samples; the four chirp operators.
+        let model = 2 * nb * nb * c + 8 * (nb + ne) * c;
+        let workspace = c * (ROW_BLOCK as u128 * nl + nb * nl + ne * nb + ne * ne + 2 * nl)
+            + 8 * (ne * ne + ne * w);
+        let memo = (d * ne * ne * c).min(FIELD_MEMO_BYTES as u128);
+        let planes = 2 * d * w * w * 8;
+        let grads = if usage == PsfUsage::Training {
+            // Per depth a phase and an amplitude gradient, their sum, and per worker the
+            // per-sample scratch.
+            (d + 1 + workers) * n2 * 16
+        } else {
+            0
+        };
+        let total = aperture + model + workers * workspace + memo + planes + grads;
+        Ok(total.min(u64::MAX as u128) as u64)
     }
 
     /// The configuration.

@@ -6,7 +6,7 @@ use nanoeye_metalib::{MetalibError, PillarLibrary};
 use nanoeye_optics::stats::plane_stats;
 use nanoeye_optics::{
     ApertureGrid, AsmPsf, DoubleHelix, FreeForm, Hyperbolic, PhaseMap, PhaseProfile,
-    PillarQuantized, PsfConfig, PsfModel,
+    PillarQuantized, PsfConfig, PsfModel, PsfUsage,
 };
 use num_complex::Complex64;
 use std::f64::consts::{PI, TAU};
@@ -623,5 +623,45 @@ fn off_axis_source_images_along_the_chief_ray() {
                 "pixel ({i}, {j})"
             );
         }
+    }
+}
+
+/// The memory estimate refuses what the model refuses, grows as the aperture samples (n²)
+/// where they dominate, and ranks the uses by what they keep.
+#[test]
+fn memory_estimate_tracks_the_aperture_samples_and_the_models_limits() {
+    let cfg = PsfConfig::default();
+    let est = |dx: f64, usage| {
+        let grid = ApertureGrid::new(1e-3, dx).unwrap();
+        AsmPsf::memory_bytes(&cfg, &grid, 7, 2, usage).unwrap() as f64
+    };
+    // At 0.25 µm the 4000² samples dominate: halving the step quadruples the estimate.
+    let ratio = est(0.125e-6, PsfUsage::Once) / est(0.25e-6, PsfUsage::Once);
+    assert!((3.6..4.4).contains(&ratio), "{ratio}");
+    let n2 = 4000.0f64 * 4000.0;
+    let once = est(0.25e-6, PsfUsage::Once);
+    assert!(once >= 84.0 * n2 && once < 1.5 * 84.0 * n2, "{once}");
+    let (rep, train) = (
+        est(0.25e-6, PsfUsage::Repeated),
+        est(0.25e-6, PsfUsage::Training),
+    );
+    assert!(once < rep && rep < train, "{once} {rep} {train}");
+    // A configuration the model refuses is refused by the estimate, with the same message.
+    let grid = ApertureGrid::new(1e-3, 1.5e-6).unwrap();
+    for bad in [
+        PsfConfig {
+            window_px: 0,
+            ..cfg
+        },
+        PsfConfig {
+            period_m: Some(1.0),
+            ..cfg
+        },
+    ] {
+        let e1 = AsmPsf::new(bad, grid).err().expect("refused").to_string();
+        let e2 = AsmPsf::memory_bytes(&bad, &grid, 7, 2, PsfUsage::Once)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(e1, e2);
     }
 }

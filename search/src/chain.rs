@@ -29,7 +29,7 @@ use nanoeye_nets::Tensor;
 use nanoeye_optics::psf::{add_cells, depths_with_gradient};
 use nanoeye_optics::{
     ApertureGrid, AsmPsf, KernelGradAccumulator, KernelSpectra, LayerSpectra, LayeredImager,
-    PhaseMap, PsfConfig, PsfStack, S1Tape, SpectralLayer,
+    PhaseMap, PsfConfig, PsfStack, PsfUsage, S1Tape, SpectralLayer,
 };
 use nanoeye_sensor::{CmosSensor, NoiseMode, Sensor, SensorConfig, SensorTape};
 use rayon::prelude::*;
@@ -284,6 +284,22 @@ impl PsfGradAccumulator {
     }
 }
 
+/// The PSF model's configuration and aperture grid for native pixels of `p` (m): a square
+/// window of an odd number of pixels spanning about `cfg.psf_window_m`.
+fn psf_setup(p: f64, cfg: &ChainConfig) -> Result<(PsfConfig, ApertureGrid)> {
+    let half = (0.5 * cfg.psf_window_m / p).round().max(1.0) as usize;
+    let r = &cfg.radiometry;
+    let grid = ApertureGrid::new(r.aperture_m, cfg.aperture_step_m)?;
+    let psf_cfg = PsfConfig {
+        wavelength_m: r.wavelength_m,
+        sensor_distance_m: r.sensor_distance_m,
+        pitch_m: p,
+        window_px: 2 * half + 1,
+        ..PsfConfig::default()
+    };
+    Ok((psf_cfg, grid))
+}
+
 impl CameraChain {
     /// A chain for `native` (the dataset's camera) with depth slabs `spec`, for radiance
     /// rendered with an illuminator of `render_w_per_sr` at `render_distance_m` from the cornea.
@@ -316,20 +332,9 @@ impl CameraChain {
                 ),
             ));
         }
-        let half = (0.5 * cfg.psf_window_m / p).round().max(1.0) as usize;
-        let wp = 2 * half + 1;
-        let r = &cfg.radiometry;
-        let grid = ApertureGrid::new(r.aperture_m, cfg.aperture_step_m)?;
-        let psf = AsmPsf::new(
-            PsfConfig {
-                wavelength_m: r.wavelength_m,
-                sensor_distance_m: r.sensor_distance_m,
-                pitch_m: p,
-                window_px: wp,
-                ..PsfConfig::default()
-            },
-            grid,
-        )?;
+        let (psf_cfg, grid) = psf_setup(p, &cfg)?;
+        let wp = psf_cfg.window_px;
+        let psf = AsmPsf::new(psf_cfg, grid)?;
         let (h, w) = native.shape();
         let imager = LayeredImager::new(h, w, wp)?;
         let dz = (spec.far_m - spec.near_m) / spec.count as f64;
@@ -403,6 +408,33 @@ impl CameraChain {
             d,
             cfg,
         )
+    }
+
+    /// Bytes the PSF model of a chain on `native_pitch_m` pixels with `layers` depth slabs
+    /// needs when used as `usage` says, over `threads` threads ([`AsmPsf::memory_bytes`], and
+    /// for a training the chain's own copies of the phase gradient): weighed before
+    /// [`CameraChain::new`] builds anything.
+    pub fn psf_memory_bytes(
+        native_pitch_m: f64,
+        layers: usize,
+        cfg: &ChainConfig,
+        threads: usize,
+        usage: PsfUsage,
+    ) -> Result<u64> {
+        positive("aperture_step_m", cfg.aperture_step_m)?;
+        positive("psf_window_m", cfg.psf_window_m)?;
+        let (psf_cfg, grid) = psf_setup(native_pitch_m, cfg)?;
+        let model = AsmPsf::memory_bytes(&psf_cfg, &grid, layers, threads, usage)?;
+        // A training's own per-sample arrays: in `phase_vjp` each depth's term copied column
+        // by column and gathered (two f64 per depth), and the sum, φ and its Adam moments.
+        let own = if usage == PsfUsage::Training {
+            (grid.n as u64)
+                .pow(2)
+                .saturating_mul(8 * (2 * layers as u64 + 4))
+        } else {
+            0
+        };
+        Ok(model.saturating_add(own))
     }
 
     /// The configuration.

@@ -823,7 +823,7 @@ fn frames_in_flight(threads: usize, camera: &nanoeye_gaze::Camera, layers: usize
 
 /// Memory the system can still give this process (bytes): Linux's `MemAvailable`; None
 /// where it cannot be read.
-fn available_memory() -> Option<usize> {
+pub fn available_memory() -> Option<usize> {
     let text = std::fs::read_to_string("/proc/meminfo").ok()?;
     let kb: usize = text
         .lines()
