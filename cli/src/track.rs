@@ -196,6 +196,12 @@ fn npy_frames(path: &Path) -> Vec<Frame> {
 
 fn read_npy(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
     let bytes = std::fs::read(path)?;
+    // Before the NPY parser multiplies the dimensions unchecked.
+    if let Some(d) = nanoeye_metalib::sweep::npy_header_dims(&bytes) {
+        if d.len() > 3 || d.iter().any(|&v| v == 0 || v > 1 << 16) {
+            bail!("implausible shape {d:?}");
+        }
+    }
     let npy = npyz::NpyFile::new(&bytes[..])?;
     let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
     if shape.iter().any(|&d| d == 0 || d > 1 << 16) || shape.len() > 3 {

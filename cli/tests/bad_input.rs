@@ -377,6 +377,43 @@ fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
         p,
     );
     assert!(e.contains("20000"), "{e}");
+    // The blueprint's reader too: the wrapped count read as an empty 2³²×2³² map, which
+    // panicked indexing it after a sweep.
+    let e = refused(
+        &[
+            "metalib",
+            "blueprint",
+            "--phase",
+            "huge.npy",
+            "--height-nm",
+            "600",
+            "--pitch-nm",
+            "450",
+            "--out",
+            "bp",
+        ],
+        "--phase",
+        p,
+    );
+    assert!(e.contains("values"), "{e}");
+    #[cfg(unix)]
+    refused(
+        &[
+            "metalib",
+            "blueprint",
+            "--phase",
+            "/dev/zero",
+            "--height-nm",
+            "600",
+            "--pitch-nm",
+            "450",
+            "--out",
+            "bp",
+        ],
+        "--phase",
+        p,
+    );
+    assert!(!p.join("bp").exists());
     #[cfg(unix)]
     {
         let made = std::process::Command::new("mkfifo")

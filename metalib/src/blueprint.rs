@@ -96,7 +96,7 @@ pub fn invert_phase_map(
     cols: usize,
     opt: &BlueprintOptions,
 ) -> Result<Blueprint, MetalibError> {
-    if rows == 0 || cols == 0 || phase.len() != rows * cols {
+    if rows == 0 || cols == 0 || rows.checked_mul(cols) != Some(phase.len()) {
         return Err(MetalibError::param(
             "phase",
             format!("map of {} values is not {rows}×{cols}", phase.len()),

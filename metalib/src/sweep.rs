@@ -238,13 +238,51 @@ pub fn npy_bytes(shape: &[u64], data: &[f64]) -> Result<Vec<u8>, MetalibError> {
     Ok(buf)
 }
 
-/// Reads an NPY file of f64 or f32 into (shape, data as f64).
+/// The dimensions an NPY header's `'shape'` tuple claims, read before the NPY parser, which
+/// multiplies them in u64 unchecked (2³²×2³² overflowed there: a panic, or a wrapped count of
+/// 0); `None` when the header has none to read (the parser then reports the malformed header).
+pub fn npy_header_dims(bytes: &[u8]) -> Option<Vec<u128>> {
+    let head = &bytes[..bytes.len().min(1 << 16)];
+    let text = String::from_utf8_lossy(head);
+    let at = text.find("'shape'")?;
+    let rest = &text[at..];
+    let rest = &rest[rest.find('(')? + 1..];
+    let tuple = &rest[..rest.find(')')?];
+    tuple
+        .split(',')
+        .map(str::trim)
+        .filter(|t| !t.is_empty())
+        .map(|t| t.trim_end_matches('L').parse::<u128>().ok())
+        .collect()
+}
+
+/// Most values [`read_npy`] reads: 2 GiB of f64, far beyond any phase map or sweep.
+pub const MAX_NPY_VALUES: u128 = 1 << 28;
+
+/// Reads an NPY file of f64 or f32 into (shape, data as f64): a regular file of at most
+/// [`MAX_NPY_VALUES`] values whose data fills its shape.
 pub fn read_npy(path: &Path) -> Result<(Vec<u64>, Vec<f64>), MetalibError> {
-    let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
     let fmt = |r: String| MetalibError::Format {
         path: path.display().to_string(),
         reason: r,
     };
+    // A FIFO or a device (`/dev/zero`) would be read until memory ran out.
+    let meta = std::fs::metadata(path).map_err(|e| io_err(path, e))?;
+    let max_bytes = MAX_NPY_VALUES * 8 + (1 << 16);
+    if !meta.is_file() || u128::from(meta.len()) > max_bytes {
+        return Err(fmt(format!(
+            "not a regular file of at most {max_bytes} bytes"
+        )));
+    }
+    let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
+    if let Some(d) = npy_header_dims(&bytes) {
+        let n = d.iter().try_fold(1u128, |a, &v| a.checked_mul(v));
+        if n.is_none_or(|n| n > MAX_NPY_VALUES) {
+            return Err(fmt(format!(
+                "shape {d:?} claims more than {MAX_NPY_VALUES} values"
+            )));
+        }
+    }
     let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| fmt(e.to_string()))?;
     let shape = npy.shape().to_vec();
     if npy.order() != npyz::Order::C {
@@ -262,6 +300,13 @@ pub fn read_npy(path: &Path) -> Result<(Vec<u64>, Vec<f64>), MetalibError> {
     } else {
         return Err(fmt(format!("unsupported dtype {descr} (need f4 or f8)")));
     };
+    let n: u128 = shape.iter().map(|&d| u128::from(d)).product();
+    if n != data.len() as u128 {
+        return Err(fmt(format!(
+            "shape {shape:?} holds {n} values, the file {}",
+            data.len()
+        )));
+    }
     Ok((shape, data))
 }
 

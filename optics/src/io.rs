@@ -21,23 +21,6 @@ fn fmt_err(path: &Path, reason: impl Into<String>) -> OpticsError {
     }
 }
 
-/// The dimensions an NPY header's `'shape'` tuple claims (`None` when it has none to read; the
-/// NPY parser then reports the malformed header).
-fn header_dims(bytes: &[u8]) -> Option<Vec<u128>> {
-    let head = &bytes[..bytes.len().min(1 << 16)];
-    let text = String::from_utf8_lossy(head);
-    let at = text.find("'shape'")?;
-    let rest = &text[at..];
-    let rest = &rest[rest.find('(')? + 1..];
-    let tuple = &rest[..rest.find(')')?];
-    tuple
-        .split(',')
-        .map(str::trim)
-        .filter(|t| !t.is_empty())
-        .map(|t| t.trim_end_matches('L').parse::<u128>().ok())
-        .collect()
-}
-
 /// Reads a 2-D square float32/float64 NPY array (C or Fortran order) as a phase map (rad).
 pub fn read_phase_npy(path: &Path) -> Result<Mat<f64>> {
     // A device or a FIFO (`/dev/zero`) would be read until memory ran out; a phase map is at
@@ -55,7 +38,9 @@ pub fn read_phase_npy(path: &Path) -> Result<Mat<f64>> {
     }
     let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
     // npyz multiplies the header's dimensions unchecked: 2³²×2³² overflowed inside it.
-    if let Some(d) = header_dims(&bytes).filter(|d| d.iter().any(|&v| v > 20_000)) {
+    if let Some(d) =
+        nanoeye_metalib::sweep::npy_header_dims(&bytes).filter(|d| d.iter().any(|&v| v > 20_000))
+    {
         return Err(fmt_err(
             path,
             format!("shape {d:?}: larger than the aperture grid's 20000²"),

@@ -103,8 +103,9 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<u64>, Vec<f32>), RenderError> {
     let data: Vec<f32> = npy
         .into_vec()
         .map_err(|e| invalid(path, format!("not a little-endian f32 array ({e})")))?;
-    let n: u64 = shape.iter().product();
-    if data.len() as u64 != n {
+    // In u128: a crafted header's dimensions multiply past u64 (and wrap in the NPY parser).
+    let n: u128 = shape.iter().map(|&d| u128::from(d)).product();
+    if data.len() as u128 != n {
         return Err(invalid(path, "data length does not match the shape"));
     }
     Ok((shape, data))
