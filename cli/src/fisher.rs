@@ -402,6 +402,16 @@ fn init(a: InitArgs) -> Result<()> {
         let phase = Hyperbolic::default().phase_map(&grid)?.phase_rad;
         (InitState::new(phase), requested)
     };
+    // Every output's place checked before the first is written: a directory at
+    // OUT/history.json was found only after the checkpoint, phase and montage were written.
+    for name in [
+        "inputs.json",
+        "phase.npy",
+        "psf_montage.png",
+        "history.json",
+    ] {
+        crate::util::check_output_target(&a.out.join(name)).context("--out")?;
+    }
     std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     write_atomic(&inputs_path, format!("{inputs}\n").as_bytes())?;
     let t0 = Instant::now();

@@ -2022,3 +2022,28 @@ fn aperture_sampling_beyond_the_memory_is_refused_before_any_work() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("NANOEYE_MEMORY_BYTES"));
 }
+
+#[test]
+fn fisher_init_checks_every_output_before_writing_any() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    std::fs::create_dir_all(p.join("fi/history.json")).unwrap();
+    let e = refused(
+        &[
+            "fisher",
+            "init",
+            "--out",
+            "fi",
+            "--aperture-step-um",
+            "50",
+            "--window-px",
+            "3",
+            "--iterations",
+            "1",
+        ],
+        "--out",
+        p,
+    );
+    assert!(e.contains("history.json"), "{e}");
+    assert_eq!(entries(&p.join("fi")), ["history.json"], "{e}");
+}
