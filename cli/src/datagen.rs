@@ -79,27 +79,18 @@ pub enum Cmd {
     },
 }
 
-/// Serializes the items of a set as JSONL text.
-pub fn set_jsonl(rig: &nanoeye_gaze::Rig, set: Set, n: usize, seed: u64) -> Result<String> {
-    let lines: Vec<String> = match set {
-        Set::Ambiguity => states::ambiguity(rig, n, seed)?
-            .iter()
-            .map(serde_json::to_string)
-            .collect::<Result<_, _>>()?,
-        Set::Variational => states::variational(rig, n, seed)?
-            .iter()
-            .map(serde_json::to_string)
-            .collect::<Result<_, _>>()?,
-        Set::Protocol => states::protocol(rig, &Protocol::default(), n, seed)?
-            .iter()
-            .map(serde_json::to_string)
-            .collect::<Result<_, _>>()?,
-    };
-    let mut text = lines.join("\n");
-    if !text.is_empty() {
-        text.push('\n');
-    }
-    Ok(text)
+/// Writes `items` to `out` as JSON lines, atomically, one item serialized at a time (the text
+/// of 2 million items is 2 GB); returns the number of lines.
+fn write_jsonl<T: serde::Serialize>(items: &[T], out: &std::path::Path) -> Result<usize> {
+    use std::io::Write;
+    util::write_atomic_with(out, |w| {
+        for item in items {
+            serde_json::to_writer(&mut *w, item)?;
+            w.write_all(b"\n")?;
+        }
+        Ok(())
+    })?;
+    Ok(items.len())
 }
 
 pub fn run(cmd: Cmd) -> Result<()> {
@@ -134,12 +125,22 @@ pub fn run(cmd: Cmd) -> Result<()> {
             let rig = rig::load(rig_path.as_deref())?;
             // The built-in rig always admits the sets; a rig file whose camera never sees the
             // pupil does not, and the error must say which input is at fault.
-            let text = set_jsonl(&rig, set, n, seed).with_context(|| match &rig_path {
+            let why = || match &rig_path {
                 Some(p) => format!("--rig '{}': no {set:?} state fits this rig", p.display()),
                 None => format!("--set {set:?}: sampling failed"),
-            })?;
-            util::write_atomic(&out, text.as_bytes())?;
-            let lines = text.lines().count();
+            };
+            let lines = match set {
+                Set::Ambiguity => {
+                    write_jsonl(&states::ambiguity(&rig, n, seed).with_context(why)?, &out)?
+                }
+                Set::Variational => {
+                    write_jsonl(&states::variational(&rig, n, seed).with_context(why)?, &out)?
+                }
+                Set::Protocol => write_jsonl(
+                    &states::protocol(&rig, &Protocol::default(), n, seed).with_context(why)?,
+                    &out,
+                )?,
+            };
             if json {
                 util::print_json(&json!({"out": out, "lines": lines, "seed": seed}))
             } else {
