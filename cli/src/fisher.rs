@@ -526,8 +526,13 @@ fn compare(a: CompareArgs) -> Result<()> {
     crate::util::check_output_target(&a.montage).context("--montage")?;
     let depths_m = depths("--depths-mm", &a.depths_mm)?;
     let pitches_um = parse_list("--pitch-um", &a.pitch_um)?;
-    if pitches_um.is_empty() || pitches_um.iter().any(|&p| p <= 0.0) {
+    if pitches_um.is_empty() {
         bail!("--pitch-um: need positive pitches");
+    }
+    // Far below a sensor pixel the window holds no PSF (1e-308 µm gave fisher_z 0, exit 0).
+    let min = crate::sim::MIN_BASE_PITCH_UM;
+    if let Some(p) = pitches_um.iter().find(|&&p| p.is_nan() || p < min) {
+        bail!("--pitch-um: pitches must be at least {min} µm (a sensor pixel), got {p:e}");
     }
     if pitches_um.len() > MAX_LIST {
         bail!(

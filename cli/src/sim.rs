@@ -16,9 +16,9 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-/// Finest base pitch (µm) `--base-pitch-um` takes: finer than any sensor's pixel; far finer, the
-/// box integrator's (sample/base)² factor overflows.
-const MIN_BASE_PITCH_UM: f64 = 0.1;
+/// Finest base pitch (µm) `--base-pitch-um` takes (and `fisher compare --pitch-um`): finer than
+/// any sensor's pixel; far finer, the box integrator's (sample/base)² factor overflows.
+pub const MIN_BASE_PITCH_UM: f64 = 0.1;
 
 /// Largest number of frames one `sim` or `search loss` call processes (memory bound).
 const MAX_FRAMES: usize = 100_000;

@@ -448,6 +448,20 @@ fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
         "--aperture-step-um",
         p,
     );
+    // A pitch far below a pixel leaves no PSF in the window: fisher_z 0 with exit 0 before.
+    refused(
+        &[
+            "fisher",
+            "compare",
+            "--pitch-um",
+            "3,1e-308",
+            "--montage",
+            "fm.png",
+        ],
+        "--pitch-um",
+        p,
+    );
+    assert!(!p.join("fm.png").exists());
     refused(
         &["fisher", "init", "--lr-rad", "1e308", "--out", "fl"],
         "--lr-rad",
