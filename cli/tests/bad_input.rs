@@ -347,6 +347,26 @@ fn a_rig_with_a_wrong_fy_or_the_camera_inside_the_eye_is_refused() {
     bad["camera"]["position_m"] = serde_json::json!([0.0, 0.0, 0.001]);
     std::fs::write(p.join("in.json"), bad.to_string()).unwrap();
     refused(&["run", "--rig", "in.json"], "position_m", p);
+    // A metre and beyond is a unit mistake (1e308 printed as inf), as is a principal point
+    // far off the image.
+    for (key, v, field) in [
+        (
+            "position_m",
+            serde_json::json!([0.0, 0.0, 1e308]),
+            "position_m",
+        ),
+        (
+            "position_m",
+            serde_json::json!([0.0, 0.0, 2.0]),
+            "position_m",
+        ),
+        ("cx_px", serde_json::json!(1e300), "cx_px"),
+    ] {
+        let mut bad = rig.clone();
+        bad["camera"][key] = v;
+        std::fs::write(p.join("far.json"), bad.to_string()).unwrap();
+        refused(&["rig", "show", "--rig", "far.json"], field, p);
+    }
     let mut bad = rig;
     bad["eye_radius_m"] = serde_json::json!(1e-300);
     std::fs::write(p.join("tiny.json"), bad.to_string()).unwrap();

@@ -22,6 +22,9 @@ pub const EYE_RADIUS_RANGE_M: (f64, f64) = (1e-3, 0.1);
 pub const FOCAL_LENGTH_RANGE_M: (f64, f64) = (1e-5, 1.0);
 /// Plausible range (m) of the effective pixel pitch.
 pub const PIXEL_PITCH_RANGE_M: (f64, f64) = (1e-7, 1e-3);
+/// Largest distance (m) of the camera from the world origin (the eye): a glasses camera sits a
+/// few centimetres away; beyond a metre is a unit mistake (1e308 m printed as inf).
+pub const MAX_CAMERA_DISTANCE_M: f64 = 1.0;
 /// Largest image side (px) a rig may declare.
 pub const MAX_IMAGE_SIDE_PX: usize = 1 << 16;
 /// Largest slippage pitch rate (rad per m of slip): 1 rad per mm.
@@ -297,11 +300,15 @@ impl Camera {
                 });
             }
         }
-        if !(self.cx_px.is_finite() && self.cy_px.is_finite()) {
-            return Err(GazeError::InvalidRig {
-                field: "camera.cx_px",
-                reason: "principal point must be finite".into(),
-            });
+        // Within a few image sides of the image: further out no pixel sees near the axis.
+        let reach = 4.0 * MAX_IMAGE_SIDE_PX as f64;
+        for (field, v) in [("camera.cx_px", self.cx_px), ("camera.cy_px", self.cy_px)] {
+            if !(v.is_finite() && v.abs() <= reach) {
+                return Err(GazeError::InvalidRig {
+                    field,
+                    reason: format!("principal point must lie within ±{reach} px, got {v:e}"),
+                });
+            }
         }
         if self.width_px == 0 || self.height_px == 0 {
             return Err(GazeError::InvalidRig {
@@ -318,10 +325,13 @@ impl Camera {
                 ),
             });
         }
-        if !geom::is_finite(self.position_m) {
+        let d = geom::norm(self.position_m);
+        if !(geom::is_finite(self.position_m) && d <= MAX_CAMERA_DISTANCE_M) {
             return Err(GazeError::InvalidRig {
                 field: "camera.position_m",
-                reason: "must be finite".into(),
+                reason: format!(
+                    "must lie within {MAX_CAMERA_DISTANCE_M} m of the eye, is {d:e} m away"
+                ),
             });
         }
         let (dev, det) = geom::orthonormality(&self.rotation_cam_to_world);
