@@ -201,7 +201,25 @@ fn export(
             } else {
                 util::read_small_text(Path::new(text), util::MAX_ARCH_BYTES).context("--state")?
             };
-            serde_json::from_str(&body).map_err(|e| anyhow::anyhow!("--state: {e}"))?
+            let state: State =
+                serde_json::from_str(&body).map_err(|e| anyhow::anyhow!("--state: {e}"))?;
+            // An unknown key (a misspelt `lid_closure`) would be ignored silently. Checked
+            // here rather than by the type: stored records keep their states readable.
+            let given: serde_json::Value = serde_json::from_str(&body)?;
+            let known = serde_json::to_value(State {
+                lid_closure: 1.0,
+                ..state
+            })?;
+            if let (Some(given), Some(known)) = (given.as_object(), known.as_object()) {
+                if let Some(k) = given.keys().find(|k| !known.contains_key(*k)) {
+                    let keys: Vec<&str> = known.keys().map(String::as_str).collect();
+                    bail!(
+                        "--state: unknown key '{k}'; a state has {}",
+                        keys.join(", ")
+                    );
+                }
+            }
+            state
         }
     };
     let finite = [state.azimuth_rad, state.elevation_rad, state.torsion_rad]

@@ -1408,6 +1408,11 @@ fn datagen_export_refuses_bad_states_and_writes_a_glb() {
             "lid_closure",
         ),
         ("missing.json", "--state"),
+        // A misspelt key was ignored (an audit).
+        (
+            r#"{"azimuth_rad":0,"elevation_rad":0,"torsion_rad":0,"slip_m":[0,0,0],"lid_closur":0.5}"#,
+            "lid_closur",
+        ),
     ] {
         refused(
             &["datagen", "export", "--state", state, "--out", "s.glb"],
@@ -1441,6 +1446,12 @@ fn datagen_export_refuses_bad_states_and_writes_a_glb() {
         u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize,
         bytes.len()
     );
+    // Every key a state has, the optional ones included, is known.
+    let full = r#"{"azimuth_rad":0,"elevation_rad":0,"torsion_rad":0,"slip_m":[0,0,0],"cam_rot_rad":[0,0,0],"lid_closure":0}"#;
+    succeeded(nanoeye(
+        &["datagen", "export", "--state", full, "--out", "f.glb"],
+        p,
+    ));
 }
 
 /// Defects the input property test (cli/tests/input_proptest.rs) found: each was a panic, a
