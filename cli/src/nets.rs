@@ -33,9 +33,10 @@ pub struct MacsArgs {
     /// Input image side in pixels (a subnet sees it scaled by its resolution scale).
     #[arg(long, default_value_t = 224)]
     resolution: usize,
-    /// Image channels of the supernet stem (1 = NIR eye images).
-    #[arg(long, default_value_t = 1)]
-    in_channels: usize,
+    /// Image channels of the supernet stem (1 = NIR eye images), for max, min and file: only
+    /// [default: 1].
+    #[arg(long)]
+    in_channels: Option<usize>,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -82,14 +83,20 @@ fn macs(a: MacsArgs) -> Result<()> {
             a.resolution
         );
     }
-    if a.in_channels == 0 || a.in_channels > MAX_IN_CHANNELS {
+    // A flag the chosen network does not take would be ignored: refuse it.
+    if a.in_channels.is_some() && matches!(a.arch.as_str(), "large" | "small") {
         bail!(
-            "--in-channels: must lie in 1..={MAX_IN_CHANNELS}, got {}",
-            a.in_channels
+            "--in-channels: shapes the supernet's stem (max, min, file:) only; MobileNetV3 {} is \
+             counted as torchvision builds it, for 3-channel images",
+            a.arch
         );
     }
+    let in_channels = a.in_channels.unwrap_or(1);
+    if in_channels == 0 || in_channels > MAX_IN_CHANNELS {
+        bail!("--in-channels: must lie in 1..={MAX_IN_CHANNELS}, got {in_channels}");
+    }
     let cfg = SupernetConfig {
-        in_channels: a.in_channels,
+        in_channels,
         ..SupernetConfig::default()
     };
     let cost: Cost = match a.arch.as_str() {

@@ -87,6 +87,11 @@ fn huge_counts_are_refused_naming_the_flag() {
             vec!["nets", "macs", "--arch", "max", "--in-channels", max],
             "--in-channels",
         ),
+        // Ignored before: MobileNetV3 is counted for 3-channel images.
+        (
+            vec!["nets", "macs", "--arch", "large", "--in-channels", "1"],
+            "--in-channels",
+        ),
         (
             vec!["sensor", "ptc", "--levels", max, "--side-px", "8"],
             "--levels",
