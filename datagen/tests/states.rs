@@ -170,6 +170,25 @@ fn protocol_layout() {
     assert!((geom::norm(slips[1]) - 2.5e-3).abs() < 1e-15);
 }
 
+/// A camera turned to face away from the eye (180° about its y axis) sees no pupil: every set
+/// refuses the rig instead of writing states no frame can use (protocol accepted it).
+#[test]
+fn a_camera_facing_away_has_no_set() {
+    let mut rig = Rig::default();
+    for row in rig.camera.rotation_cam_to_world.iter_mut() {
+        row[0] = -row[0];
+        row[2] = -row[2];
+    }
+    rig.validate().unwrap();
+    let p = Protocol::default();
+    assert!(states::protocol(&rig, &p, 1, 0).is_err());
+    assert!(states::ambiguity(&rig, 1, 0).is_err());
+    assert!(states::variational(&rig, 1, 0).is_err());
+    // The default rig sees the pupil in every protocol capture.
+    let ok = Rig::default();
+    assert!(states::protocol(&ok, &p, 1, 0).is_ok());
+}
+
 #[test]
 fn same_seed_same_items_on_any_thread_count() {
     let rig = Rig::default();

@@ -423,6 +423,15 @@ pub fn protocol(
                     }
                 }
             }
+            // A capture may miss the pupil (the frame is then invalid), but a rig whose camera
+            // sees it in none (one facing away) has no protocol, as the other sets refuse it.
+            if !out.iter().any(|c| visible(rig, &c.state).is_some()) {
+                return Err(StatesError::Exhausted {
+                    index: subject,
+                    attempts: out.len(),
+                    why: "the pupil is visible in none of the subject's captures",
+                });
+            }
             Ok(out)
         })
         .collect();
