@@ -165,44 +165,79 @@ fn best_arch(run: &Path) -> Result<Option<Arch>> {
 /// A frame source: (name, DN image) or a per-frame error.
 type Frame = std::result::Result<(String, Mat<f32>), String>;
 
-fn npy_frames(path: &Path) -> Vec<Frame> {
+/// Passes each frame of an [H, W] or [N, H, W] f32/f64 NPY at `path` to `f`, read one frame
+/// at a time: a `nanoeye sim` of 100,000 frames is gigabytes (all of it was read at once, and
+/// copied twice). A file that cannot be read gives one error frame; a file cut short, an error
+/// frame where its data ends.
+fn npy_frames(path: &Path, mut f: impl FnMut(Frame) -> Result<()>) -> Result<()> {
     let name = path.display().to_string();
-    let (shape, data) = match read_npy(path) {
+    let mut rd = match open_npy(path) {
         Ok(v) => v,
-        Err(e) => return vec![Err(format!("{name}: {e}"))],
+        Err(e) => return f(Err(format!("{name}: {e}"))),
     };
-    let (n, h, w) = match shape[..] {
+    let (n, h, w) = match rd.shape[..] {
         [h, w] => (1, h, w),
         [n, h, w] => (n, h, w),
         _ => {
-            return vec![Err(format!(
-                "{name}: shape {shape:?} is not [H, W] or [N, H, W]"
-            ))];
+            return f(Err(format!(
+                "{name}: shape {:?} is not [H, W] or [N, H, W]",
+                rd.shape
+            )));
         }
     };
-    (0..n)
-        .map(|k| {
-            Ok((
-                if n == 1 {
-                    name.clone()
-                } else {
-                    format!("{name}[{k}]")
-                },
-                Mat::from_fn(h, w, |i, j| data[k * h * w + i * w + j]),
-            ))
-        })
-        .collect()
+    let mut plane = vec![0f32; h * w];
+    for k in 0..n {
+        let label = if n == 1 {
+            name.clone()
+        } else {
+            format!("{name}[{k}]")
+        };
+        if let Err(e) = rd.read_into(&mut plane) {
+            return f(Err(format!("{label}: {e}")));
+        }
+        f(Ok((label, Mat::from_fn(h, w, |i, j| plane[i * w + j]))))?;
+    }
+    Ok(())
 }
 
-fn read_npy(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
-    let bytes = std::fs::read(path)?;
+/// An NPY file's shape and a reader of its values as f32, in C order.
+struct NpyStream {
+    shape: Vec<usize>,
+    values: Box<dyn Iterator<Item = std::io::Result<f32>>>,
+}
+
+impl NpyStream {
+    /// Fills `out` with the next `out.len()` values.
+    fn read_into(&mut self, out: &mut [f32]) -> Result<()> {
+        const CUT: &str = "the file ends before its shape's last value";
+        for v in out.iter_mut() {
+            *v = match self.values.next() {
+                Some(Ok(v)) => v,
+                Some(Err(e)) if e.kind() == std::io::ErrorKind::UnexpectedEof => bail!(CUT),
+                Some(Err(e)) => return Err(e.into()),
+                None => bail!(CUT),
+            };
+        }
+        Ok(())
+    }
+}
+
+/// Opens an NPY file of frames: a regular file whose shape has at most three dimensions of at
+/// most 65536, in C order, f32 or f64.
+fn open_npy(path: &Path) -> Result<NpyStream> {
+    use std::io::BufRead;
+    // A FIFO or a device named *.npy would be read without end.
+    if !std::fs::metadata(path)?.is_file() {
+        bail!("not a regular file");
+    }
+    let mut rd = std::io::BufReader::with_capacity(1 << 16, std::fs::File::open(path)?);
     // Before the NPY parser multiplies the dimensions unchecked.
-    if let Some(d) = nanoeye_metalib::sweep::npy_header_dims(&bytes) {
+    if let Some(d) = nanoeye_metalib::sweep::npy_header_dims(rd.fill_buf()?) {
         if d.len() > 3 || d.iter().any(|&v| v == 0 || v > 1 << 16) {
             bail!("implausible shape {d:?}");
         }
     }
-    let npy = npyz::NpyFile::new(&bytes[..])?;
+    let npy = npyz::NpyFile::new(rd)?;
     let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
     if shape.iter().any(|&d| d == 0 || d > 1 << 16) || shape.len() > 3 {
         bail!("implausible shape {shape:?}");
@@ -211,15 +246,12 @@ fn read_npy(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
         bail!("Fortran-ordered arrays are not supported");
     }
     let descr = npy.dtype().descr();
-    let data: Vec<f32> = if descr.contains("f8") {
-        npy.into_vec::<f64>()?
-            .into_iter()
-            .map(|v| v as f32)
-            .collect()
+    let values: Box<dyn Iterator<Item = std::io::Result<f32>>> = if descr.contains("f8") {
+        Box::new(npy.data::<f64>()?.map(|v| v.map(|v| v as f32)))
     } else {
-        npy.into_vec::<f32>()?
+        Box::new(npy.data::<f32>()?)
     };
-    Ok((shape, data))
+    Ok(NpyStream { shape, values })
 }
 
 fn png_frame(path: &Path, max_dn: f32) -> Frame {
@@ -413,17 +445,18 @@ pub fn track(a: TrackArgs) -> Result<()> {
             bail!("--frames {}: no .npy or .png files", dir.display());
         }
         for p in files {
-            let frames = if p.extension().is_some_and(|e| e == "png") {
-                vec![png_frame(&p, max_dn)]
-            } else {
-                npy_frames(&p)
-            };
-            for f in frames {
+            let mut one = |f: Frame| -> Result<()> {
                 match f {
                     Ok((name, img)) => emit(i, &name, Ok(img))?,
                     Err(e) => emit(i, &p.display().to_string(), Err(e))?,
                 }
                 i += 1;
+                Ok(())
+            };
+            if p.extension().is_some_and(|e| e == "png") {
+                one(png_frame(&p, max_dn))?;
+            } else {
+                npy_frames(&p, one)?;
             }
         }
     } else {
@@ -501,5 +534,70 @@ mod tests {
         }
         let e = frames(&raw(3, 2, 7, 1.0)).remove(0).unwrap_err();
         assert!(e.contains("fourth field is 7, must be 0"), "{e}");
+    }
+
+    /// An NPY v1 file of `descr` ('<f4' or '<f8') with `shape` and `values` (as written: the
+    /// data may be cut short of the shape).
+    fn npy(descr: &str, shape: &[usize], values: &[f64]) -> Vec<u8> {
+        let dims: Vec<String> = shape.iter().map(|d| format!("{d}, ")).collect();
+        let mut head = format!(
+            "{{'descr': '{descr}', 'fortran_order': False, 'shape': ({}), }}",
+            dims.concat()
+        );
+        while (10 + head.len() + 1) % 16 != 0 {
+            head.push(' ');
+        }
+        head.push('\n');
+        let mut b = b"\x93NUMPY\x01\x00".to_vec();
+        b.extend((head.len() as u16).to_le_bytes());
+        b.extend(head.as_bytes());
+        for &v in values {
+            if descr == "<f4" {
+                b.extend((v as f32).to_le_bytes());
+            } else {
+                b.extend(v.to_le_bytes());
+            }
+        }
+        b
+    }
+
+    fn npy_file_frames(bytes: &[u8]) -> Vec<Frame> {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("f.npy");
+        std::fs::write(&p, bytes).unwrap();
+        let mut out = Vec::new();
+        npy_frames(&p, |f| {
+            out.push(f);
+            Ok(())
+        })
+        .unwrap();
+        out
+    }
+
+    #[test]
+    fn npy_frames_stream_one_frame_at_a_time_and_name_a_cut_file() {
+        let values: Vec<f64> = (0..12).map(f64::from).collect();
+        for descr in ["<f4", "<f8"] {
+            // Three 2×2 frames, row-major: frame k's (i, j) is 4k + 2i + j.
+            let f = npy_file_frames(&npy(descr, &[3, 2, 2], &values));
+            assert_eq!(f.len(), 3);
+            for (k, fr) in f.iter().enumerate() {
+                let (name, m) = fr.as_ref().unwrap();
+                assert!(name.ends_with(&format!("f.npy[{k}]")), "{name}");
+                assert_eq!(m[(1, 0)], (4 * k + 2) as f32);
+            }
+            // Cut in the third frame: two frames, then an error naming the third.
+            let f = npy_file_frames(&npy(descr, &[3, 2, 2], &values[..10]));
+            assert_eq!(f.len(), 3);
+            assert!(f[1].is_ok());
+            let e = f[2].as_ref().unwrap_err();
+            assert!(e.contains("f.npy[2]") && e.contains("ends before"), "{e}");
+        }
+        // One [H, W] frame keeps the file's name; a 4-D shape is one error.
+        let f = npy_file_frames(&npy("<f4", &[2, 2], &values[..4]));
+        assert!(f[0].as_ref().unwrap().0.ends_with("f.npy"));
+        let f = npy_file_frames(&npy("<f4", &[1, 1, 2, 2], &values[..4]));
+        assert_eq!(f.len(), 1);
+        assert!(f[0].is_err());
     }
 }
