@@ -445,12 +445,20 @@ pub fn sim(a: SimArgs) -> Result<()> {
     if a.out.exists() && !a.out.is_dir() {
         bail!("--out {}: exists and is not a directory", a.out.display());
     }
-    // A run that fails while imaging leaves no directory it created (its temporary files go
-    // first; `remove_dir` takes only an empty one).
-    let created = !a.out.exists();
+    // A run that fails while imaging leaves no directory it created, --out's missing parents
+    // included, innermost first (its temporary files go first; `remove_dir` takes only an
+    // empty one).
+    let created: Vec<PathBuf> = a
+        .out
+        .ancestors()
+        .take_while(|d| !d.as_os_str().is_empty() && !d.exists())
+        .map(Path::to_path_buf)
+        .collect();
     let written = write_frames(&a, &ds, &chain, &map, &ids, shape, p_hat, noise);
-    if written.is_err() && created {
-        let _ = std::fs::remove_dir(&a.out);
+    if written.is_err() {
+        for d in &created {
+            let _ = std::fs::remove_dir(d);
+        }
     }
     let lines = written?;
     util::write_atomic(&a.out.join("targets.jsonl"), lines.as_bytes())?;

@@ -1079,6 +1079,18 @@ fn sim_and_search_loss_name_their_bad_flags() {
         !p.join("o").exists(),
         "a failed sim must leave no directory"
     );
+    // Nor the missing parents of its --out (the first of two new levels was left).
+    let sim = [
+        "sim",
+        "--dataset",
+        "bad",
+        "--pitch-um",
+        "48",
+        "--out",
+        "n1/n2",
+    ];
+    refused(&sim, "frame 0", p);
+    assert!(!p.join("n1").exists(), "a failed sim left --out's parent");
     // Refused before the run is read: --head-refit on a set too small for its leave-one-out
     // error, --fit-pitch without a budget (it would do nothing).
     let two = [
