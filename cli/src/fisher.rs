@@ -170,9 +170,9 @@ fn check_model_memory(
     };
     let need = one.saturating_add((maps.saturating_sub(1) as u64).saturating_mul(map_bytes));
     crate::util::check_memory(
-        "--aperture-step-um",
+        "--aperture-step-um/--window-px",
         need,
-        "give a coarser --aperture-step-um",
+        "give a coarser --aperture-step-um or a smaller --window-px",
     )
 }
 
@@ -412,6 +412,15 @@ fn init(a: InitArgs) -> Result<()> {
     ] {
         crate::util::check_output_target(&a.out.join(name)).context("--out")?;
     }
+    if ckpt.exists() && !ckpt.is_dir() {
+        bail!(
+            "--out: '{}' exists and is not a directory (the checkpoint's); remove it or give \
+             another --out",
+            ckpt.display()
+        );
+    }
+    crate::util::check_output_target(&ckpt.join(nanoeye_fisher::CHECKPOINT_FILE))
+        .context("--out")?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     write_atomic(&inputs_path, format!("{inputs}\n").as_bytes())?;
     let t0 = Instant::now();

@@ -214,9 +214,9 @@ fn psf(a: PsfArgs) -> Result<()> {
     )
     .context("--pitch-um/--window-px/--period-mm")?;
     crate::util::check_memory(
-        "--aperture-mm/--sample-um",
+        "--sample-um/--aperture-mm/--window-px/--period-mm",
         need,
-        "give a coarser --sample-um or a smaller --aperture-mm",
+        "give a coarser --sample-um, or a smaller --aperture-mm, --window-px or --period-mm",
     )?;
     let lens = Hyperbolic {
         wavelength_m: lam,

@@ -772,6 +772,17 @@ pub fn rea(a: ReaArgs) -> Result<()> {
     }
     crate::sim::check_trained_with(&a.run, &a.chain.camera, "--run")?;
     let (ds, chain) = a.chain.build(nanoeye_optics::PsfUsage::Training)?;
+    // One process's --parallel chains, each with its PSF model, weighed before any output:
+    // the first is built (and so in the memory left), the others are not yet.
+    if !crate::dist::world().is_distributed() && a.parallel > 1 {
+        crate::sim::check_psf_memory(
+            chain.config(),
+            &ds,
+            nanoeye_optics::PsfUsage::Training,
+            a.parallel - 1,
+        )
+        .context("--parallel")?;
+    }
     if let Some(p) = a.chain.pitch_um {
         // The flag is shared with the commands that take p̂ from it; here it changes nothing,
         // so a resume does not compare it either.
@@ -913,13 +924,6 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         done?;
     } else {
         // A chain per thread: each keeps the last PSF stack it computed.
-        crate::sim::check_psf_memory(
-            chain.config(),
-            &ds,
-            nanoeye_optics::PsfUsage::Training,
-            a.parallel,
-        )
-        .context("--parallel")?;
         let extra = (1..a.parallel)
             .map(|_| CameraChain::for_dataset(&ds, chain.config().clone()))
             .collect::<nanoeye_search::Result<Vec<_>>>()?;

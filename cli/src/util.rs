@@ -357,9 +357,12 @@ pub fn memory_budget() -> Result<Option<u64>> {
         .min())
 }
 
-/// Bytes of address space the soft `RLIMIT_AS` still leaves this process (its limit less its
-/// `VmSize`), read from /proc; None without a limit or where /proc cannot be read. Under
-/// `ulimit -v` an allocation past it aborts the process, whatever memory the system has.
+/// Bytes of address space the soft `RLIMIT_AS` still leaves this process, read from /proc;
+/// None without a limit or where /proc cannot be read. Under `ulimit -v` an allocation past
+/// it aborts the process, whatever memory the system has. The limit less the resident set
+/// (`VmRSS`), not less `VmSize`: the allocator reserves about 1 GiB of address space it has
+/// not used and hands out again, which refused the default `optics psf` under a limit it
+/// fits in.
 fn address_space_left() -> Option<u64> {
     let limits = std::fs::read_to_string("/proc/self/limits").ok()?;
     let soft: u64 = limits
@@ -372,7 +375,7 @@ fn address_space_left() -> Option<u64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let used_kb: u64 = status
         .lines()
-        .find_map(|l| l.strip_prefix("VmSize:"))?
+        .find_map(|l| l.strip_prefix("VmRSS:"))?
         .trim()
         .strip_suffix("kB")?
         .trim()

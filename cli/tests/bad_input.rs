@@ -2108,4 +2108,25 @@ fn fisher_init_checks_every_output_before_writing_any() {
     );
     assert!(e.contains("history.json"), "{e}");
     assert_eq!(entries(&p.join("fi")), ["history.json"], "{e}");
+    // The checkpoint's place too, which is written first (a file there failed after the work).
+    std::fs::create_dir_all(p.join("fc")).unwrap();
+    std::fs::write(p.join("fc/checkpoint"), b"").unwrap();
+    let e = refused(
+        &[
+            "fisher",
+            "init",
+            "--out",
+            "fc",
+            "--aperture-step-um",
+            "50",
+            "--window-px",
+            "3",
+            "--iterations",
+            "1",
+        ],
+        "--out",
+        p,
+    );
+    assert!(e.contains("checkpoint"), "{e}");
+    assert_eq!(entries(&p.join("fc")), ["checkpoint"], "{e}");
 }

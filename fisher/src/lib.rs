@@ -24,7 +24,9 @@ pub use composite::{InitEval, InitLoss, PREC_UNIT_M2};
 pub use distinct::Distinctness;
 pub use embedding::{EmbeddingGrad, EmbeddingTerms, optical_embedding};
 pub use error::FisherError;
-pub use init::{InitConfig, InitRecord, InitState, bin_planes, init_step, write_npy};
+pub use init::{
+    CHECKPOINT_FILE, InitConfig, InitRecord, InitState, bin_planes, init_step, write_npy,
+};
 pub use precision::{
     DepthFisher, FisherNoise, Precision, depth_fisher, fisher_matrix, log_trace_inverse,
 };

@@ -655,8 +655,9 @@ impl AsmPsf {
     }
 
     /// Bytes the model needs (about) for `depths` depths used as `usage` says, estimated before
-    /// anything is built: the phase map and its aperture samples (84 B per aperture sample;
-    /// 60 more where the memo keeps another map's), the transfer function, one workspace per
+    /// anything is built: the phase map, the pupil weights and the aperture samples (80 B per
+    /// aperture sample; 56 more where the memo keeps another map's), the transfer function,
+    /// one workspace per
     /// thread that works (`threads` and `depths` bound them), the planes, and for a training
     /// the gradients (16 B per aperture sample per depth and per thread). Errors as
     /// [`AsmPsf::new`] would, naming the setting.

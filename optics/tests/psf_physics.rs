@@ -640,7 +640,7 @@ fn memory_estimate_tracks_the_aperture_samples_and_the_models_limits() {
     assert!((3.6..4.4).contains(&ratio), "{ratio}");
     let n2 = 4000.0f64 * 4000.0;
     let once = est(0.25e-6, PsfUsage::Once);
-    assert!(once >= 84.0 * n2 && once < 1.5 * 84.0 * n2, "{once}");
+    assert!(once >= 80.0 * n2 && once < 1.5 * 80.0 * n2, "{once}");
     let (rep, train) = (
         est(0.25e-6, PsfUsage::Repeated),
         est(0.25e-6, PsfUsage::Training),
