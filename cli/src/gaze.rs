@@ -75,7 +75,8 @@ pub fn read_mask_png(path: &Path) -> Result<Mat<f32>> {
 }
 
 /// Whether a line's error is a valid query's lack of a gaze (no pupil in the mask, a ray that
-/// misses the eye, a camera slipped into it) rather than a line that is no valid query.
+/// misses the eye, a camera slipped into it, a gaze that with κ points straight back) rather
+/// than a line that is no valid query.
 fn no_solution(e: &anyhow::Error) -> bool {
     use nanoeye_gaze::GazeError as G;
     matches!(
@@ -86,6 +87,7 @@ fn no_solution(e: &anyhow::Error) -> bool {
                 | G::RayMissesCornea { .. }
                 | G::CameraInsideSphere { .. }
                 | G::BehindCamera { .. }
+                | G::OppositeGaze { .. }
         )
     )
 }

@@ -184,17 +184,85 @@ fn main() -> ExitCode {
             // One write of the whole message: stderr is unbuffered, and `eprintln!` writes each
             // formatted piece separately, so another rank's progress line could land inside it.
             let msg = format!(
-                "error (rank {} of {}): {e:#}\nthe run is aborted; finished shares stay on disk \
+                "error (rank {} of {}): {}\nthe run is aborted; finished shares stay on disk \
                  and a rerun of the same command resumes them\n",
                 w.rank(),
-                w.size()
+                w.size(),
+                short_numbers(&format!("{e:#}"))
             );
             let _ = std::io::Write::write_all(&mut std::io::stderr().lock(), msg.as_bytes());
             w.abort(1)
         }
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", short_numbers(&format!("{e:#}")));
             ExitCode::FAILURE
+        }
+    }
+}
+
+/// `msg` with each decimal number Rust printed in full beyond reason (an f64 of 1e308 is 309
+/// digits, 1e-300 has 300 zeros) written in scientific notation: a fraction of more than 21
+/// characters or an integer of more than 39 digits (more than any u128), so that counts,
+/// seeds and hashes stay as printed.
+fn short_numbers(msg: &str) -> String {
+    let b = msg.as_bytes();
+    let mut out = String::with_capacity(msg.len());
+    let (mut i, mut last) = (0, 0);
+    while i < b.len() {
+        if !b[i].is_ascii_digit()
+            || (i > 0 && (b[i - 1].is_ascii_alphanumeric() || b[i - 1] == b'.'))
+        {
+            i += 1;
+            continue;
+        }
+        let start = i;
+        while i < b.len() && b[i].is_ascii_digit() {
+            i += 1;
+        }
+        let mut frac = false;
+        if i + 1 < b.len() && b[i] == b'.' && b[i + 1].is_ascii_digit() {
+            frac = true;
+            i += 1;
+            while i < b.len() && b[i].is_ascii_digit() {
+                i += 1;
+            }
+        }
+        let long = if frac { i - start > 21 } else { i - start > 39 };
+        let next_is_word = i < b.len() && (b[i].is_ascii_alphabetic() || b[i] == b'_');
+        if long && !next_is_word {
+            if let Ok(v) = msg[start..i].parse::<f64>() {
+                out.push_str(&msg[last..start]);
+                out.push_str(&format!("{v:e}"));
+                last = i;
+            }
+        }
+    }
+    out.push_str(&msg[last..]);
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::short_numbers;
+
+    #[test]
+    fn numbers_printed_in_full_beyond_reason_are_shortened_and_no_others() {
+        let huge = format!("--pitch-um: at most 189 µm, got {}", 1e308);
+        assert!(huge.len() > 300);
+        assert_eq!(
+            short_numbers(&huge),
+            "--pitch-um: at most 189 µm, got 1e308"
+        );
+        let tiny = format!("got {} m", -1e-300);
+        assert_eq!(short_numbers(&tiny), "got -1e-300 m");
+        // Counts, seeds, u128 values, hashes and version strings stay as printed.
+        for keep in [
+            "seed 18446744073709551615, 0.25 µm, 1.5:2:0.5",
+            "digest 1234567890123456789012345678901234567890abcdef",
+            "x340282366920938463463374607431768211455 and 340282366920938463463374607431768211455",
+            "ratio 0.333333333333333",
+        ] {
+            assert_eq!(short_numbers(keep), keep);
         }
     }
 }

@@ -473,6 +473,13 @@ fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
         "--aperture-step-um",
         p,
     );
+    // A value Rust prints in full (1e308 is 309 digits) is written in scientific notation.
+    let e = refused(
+        &["fisher", "init", "--pitch-um", "1e308", "--out", "fl"],
+        "--pitch-um",
+        p,
+    );
+    assert!(e.contains("got 1e308") && e.len() < 200, "{e}");
     // A pitch far below a pixel leaves no PSF in the window: fisher_z 0 with exit 0 before.
     refused(
         &[
@@ -502,14 +509,18 @@ fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
 fn a_closed_stdout_ends_the_process_quietly() {
     use std::os::unix::process::ExitStatusExt;
     let d = tempfile::tempdir().unwrap();
+    // Far more output than a pipe buffers (64 KiB on Linux): the writes fail once the reader
+    // has gone, whenever it goes (a short output could all be buffered before the reader
+    // closed, and the process end with 0: a flaky test).
+    let q = "{\"pupil_px\":[160,100],\"slip_m\":[0,0,0]}\n".repeat(5000);
+    std::fs::write(d.path().join("q.jsonl"), q).unwrap();
     let mut child = std::process::Command::new(common::BIN)
-        .args(["gaze", "bias", "--steps", "3", "--json"])
+        .args(["gaze", "solve", "--input", "q.jsonl"])
         .current_dir(d.path())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    // The reader goes before the first write.
     drop(child.stdout.take());
     let out = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
