@@ -670,7 +670,7 @@ fn blueprint_validates_everything_before_writing() {
     refused(&with(&["--circle-vertices", "4"]), "--circle-vertices", p);
     assert!(!p.join("bp").exists());
     // The diameter step is named by its own flag (not by --phase, where it failed before).
-    for step in ["1e300", "-1", "nan"] {
+    for step in ["1e300", "-1", "nan", "1e-308"] {
         let arg = format!("--diameter-step-nm={step}");
         let args: Vec<&str> = base.iter().copied().chain([arg.as_str()]).collect();
         refused(&args, "--diameter-step-nm", p);

@@ -65,21 +65,24 @@ impl BlueprintOptions {
                 format!("must be in 8..=8190, got {}", self.circle_vertices),
             ));
         }
-        // A step of 1e300 m passed and failed later, in the inversion, as a phase error.
-        if !(self.diameter_step_m.is_finite()
-            && (0.0..=MAX_DIAMETER_STEP_M).contains(&self.diameter_step_m))
-        {
+        // A step of 1e300 m passed and failed later, in the inversion, as a phase error; one
+        // of 1e-317 m overflowed d / step to inf and the stepping back inside never ended.
+        let s = self.diameter_step_m;
+        if !(s == 0.0 || (MIN_DIAMETER_STEP_M..=MAX_DIAMETER_STEP_M).contains(&s)) {
             return Err(MetalibError::param(
                 "diameter_step",
                 format!(
-                    "must lie in [0, {:e}] m, got {:e}",
-                    MAX_DIAMETER_STEP_M, self.diameter_step_m
+                    "must be 0 (continuous) or lie in [{:e}, {:e}] m, got {:e}",
+                    MIN_DIAMETER_STEP_M, MAX_DIAMETER_STEP_M, s
                 ),
             ));
         }
         Ok(())
     }
 }
+
+/// Smallest non-zero diameter quantisation step (m): 1 pm, far below any fabrication grid.
+pub const MIN_DIAMETER_STEP_M: f64 = 1e-12;
 
 /// Largest diameter quantisation step (m): 1 µm, beyond any lattice pitch at 940 nm.
 pub const MAX_DIAMETER_STEP_M: f64 = 1e-6;

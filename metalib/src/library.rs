@@ -37,6 +37,9 @@ pub struct TabulatedLibrary {
     tau_per_t2: f64,
 }
 
+/// Largest |phase| (rad) a library row may hold: a cell's phase spans a few 2π.
+pub const MAX_LIBRARY_PHASE_RAD: f64 = 1e3;
+
 impl TabulatedLibrary {
     /// Builds a library from (diameter m, phase rad, |t|) samples; the phase is unwrapped
     /// along d and must then be strictly monotonic; diameters strictly ascending.
@@ -123,17 +126,28 @@ impl TabulatedLibrary {
             let parsed: Result<Vec<f64>, _> = f.iter().map(|x| x.parse::<f64>()).collect();
             match parsed {
                 Ok(v) if v.len() == 3 => {
-                    if v[2] < 0.0 {
-                        return Err(MetalibError::InvalidData(format!(
-                            "line {}: negative transmittance",
-                            ln + 1
-                        )));
+                    // Physical ranges: 1e308 rad gave a coverage of 1e308 rad, diameters of
+                    // 1e-308 nm a blueprint of empty pillars, and τ = 2 a cell with gain.
+                    let bad = if v[2].is_nan() || v[2] < 0.0 || v[2] > 1.0 + 1e-9 {
+                        Some("transmittance must lie in [0, 1] (a passive cell)")
+                    } else if v[1].is_nan() || v[1].abs() > MAX_LIBRARY_PHASE_RAD {
+                        Some("|phase_rad| must be at most 1000 rad")
+                    } else if !(v[0] == 0.0 || (1.0..=1e6).contains(&v[0])) {
+                        Some("diameter_nm must be 0 (no pillar) or lie in [1, 1e6] nm")
+                    } else {
+                        None
+                    };
+                    if let Some(why) = bad {
+                        return Err(MetalibError::InvalidData(format!("line {}: {why}", ln + 1)));
                     }
                     d.push(v[0] * 1e-9);
                     p.push(v[1]);
                     a.push((v[2] / tau_per_t2).sqrt());
                 }
-                _ if ln == 0 => continue, // header
+                // The header, as documented: another first line (`a,b,c`) is not skipped.
+                _ if ln == 0 && f.len() == 3 && f[0].to_ascii_lowercase().contains("diameter") => {
+                    continue;
+                }
                 _ => {
                     return Err(MetalibError::InvalidData(format!(
                         "line {}: expected `diameter_nm,phase_rad,transmittance`",

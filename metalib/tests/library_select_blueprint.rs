@@ -86,6 +86,20 @@ fn non_monotonic_or_bad_data_is_rejected() {
     assert!((lib.diameter_for_phase(1.5).unwrap() - 175e-9).abs() < 1e-15);
     assert!((lib.transmittance(150e-9).unwrap() - 0.95).abs() < 1e-12);
     assert!(TabulatedLibrary::from_csv("100,0,0.9\n150,x,0.9\n", 7e-7, 5e-7, 9.4e-7, 1.0).is_err());
+    // Rows outside physical ranges (an audit: each was accepted and reached the blueprint),
+    // and a first line that is no header, are refused naming the line.
+    for (bad, line) in [
+        ("100,0,0.9\n150,1,2.0\n", "line 2"),
+        ("100,0,0.9\n150,1e308,0.9\n", "line 2"),
+        ("1e-308,0,0.9\n150,1,0.9\n", "line 1"),
+        ("a,b,c\n100,0,0.9\n150,1,0.9\n", "line 1"),
+    ] {
+        let e = TabulatedLibrary::from_csv(bad, 7e-7, 5e-7, 9.4e-7, 1.0)
+            .err()
+            .unwrap_or_else(|| panic!("{bad:?} accepted"))
+            .to_string();
+        assert!(e.contains(line), "{bad:?}: {e}");
+    }
 }
 
 #[test]
