@@ -103,9 +103,10 @@ fn depths(flag: &str, text: &str) -> Result<Vec<f64>> {
         bail!("{flag}: need at least 2 depth planes for ∂PSF/∂z");
     }
     let m: Vec<f64> = d.into_iter().map(|z| z * 1e-3).collect();
-    // Checked in metres: 4.9e-324 mm is positive but 0 m.
-    if m.iter().any(|&z| z <= 0.0) {
-        bail!("{flag}: depths must be positive");
+    // Checked in metres: 4.9e-324 mm is positive but 0 m; 1e-308 mm gave planes of zeros.
+    let min = crate::optics::MIN_DISTANCE_M;
+    if m.iter().any(|&z| z.is_nan() || z < min) {
+        bail!("{flag}: depths must be at least {} mm", min * 1e3);
     }
     Ok(m)
 }

@@ -73,6 +73,15 @@ pub fn run(cmd: Cmd) -> Result<()> {
 const MAX_SENSOR_DISTANCE_M: f64 = 1.0;
 /// Largest object distance (m).
 const MAX_DISTANCE_M: f64 = 1e3;
+/// Nearest object distance (m), for `fisher` too: a hundred wavelengths; a point source at
+/// 1e-311 m gave a PSF of zeros with exit 0.
+pub const MIN_DISTANCE_M: f64 = 1e-4;
+/// Smallest metasurface-to-sensor distance (m): ten wavelengths.
+const MIN_SENSOR_DISTANCE_M: f64 = 1e-5;
+/// Smallest sensor pixel pitch (m), `--base-pitch-um`'s floor: 1e-30 µm gave a PSF of zeros.
+const MIN_PITCH_M: f64 = crate::sim::MIN_BASE_PITCH_UM * 1e-6;
+/// Largest aperture (m): a 10 cm metasurface (1e308 mm failed naming --pitch-um).
+const MAX_APERTURE_M: f64 = 0.1;
 /// Fewest aperture samples across the diameter.
 const MIN_APERTURE_SAMPLES: usize = 4;
 /// Largest folded grid (samples per period) the PSF model accepts.
@@ -140,6 +149,33 @@ fn psf(a: PsfArgs) -> Result<()> {
         .period_mm
         .map(|p| positive("--period-mm", p, 1e-3))
         .transpose()?;
+    if pitch < MIN_PITCH_M {
+        bail!(
+            "--pitch-um: at least {} µm (a sensor pixel), got {:e}",
+            crate::sim::MIN_BASE_PITCH_UM,
+            a.pitch_um
+        );
+    }
+    if d > MAX_APERTURE_M {
+        bail!(
+            "--aperture-mm: at most {} mm, got {:e}",
+            MAX_APERTURE_M * 1e3,
+            a.aperture_mm
+        );
+    }
+    if s < MIN_SENSOR_DISTANCE_M {
+        bail!(
+            "--sensor-mm: at least {} mm, got {:e}",
+            MIN_SENSOR_DISTANCE_M * 1e3,
+            a.sensor_mm
+        );
+    }
+    if zf < MIN_DISTANCE_M || depths.iter().any(|&z| z < MIN_DISTANCE_M) {
+        bail!(
+            "--focus-mm/--depths-mm: object distances must be at least {} mm",
+            MIN_DISTANCE_M * 1e3
+        );
+    }
     if s > MAX_SENSOR_DISTANCE_M {
         bail!(
             "--sensor-mm: at most {} mm, got {:e}",

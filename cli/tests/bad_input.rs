@@ -473,6 +473,42 @@ fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
         "--aperture-step-um",
         p,
     );
+    // Lengths far below any optics (a fourth audit): each gave planes of zeros with exit 0,
+    // or failed naming another flag.
+    for (args, flag) in [
+        (
+            &["optics", "psf", "--pitch-um=1e-30", "--out", "ps"][..],
+            "--pitch-um",
+        ),
+        (
+            &["optics", "psf", "--depths-mm=1e-308", "--out", "ps"],
+            "--depths-mm",
+        ),
+        (
+            &["optics", "psf", "--focus-mm=1e-300", "--out", "ps"],
+            "--focus-mm",
+        ),
+        (
+            &["optics", "psf", "--sensor-mm=1e-9", "--out", "ps"],
+            "--sensor-mm",
+        ),
+        (
+            &["optics", "psf", "--aperture-mm=1e308", "--out", "ps"],
+            "--aperture-mm",
+        ),
+        (
+            &[
+                "fisher",
+                "compare",
+                "--depths-mm=1e-308:1:0.5",
+                "--montage",
+                "fm.png",
+            ],
+            "--depths-mm",
+        ),
+    ] {
+        refused(args, flag, p);
+    }
     // A value Rust prints in full (1e308 is 309 digits) is written in scientific notation.
     let e = refused(
         &["fisher", "init", "--pitch-um", "1e308", "--out", "fl"],
