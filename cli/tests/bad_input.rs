@@ -352,6 +352,23 @@ fn a_rig_with_a_wrong_fy_or_the_camera_inside_the_eye_is_refused() {
     bad["camera"]["position_m"] = serde_json::json!([0.0, 0.0, 0.001]);
     std::fs::write(p.join("in.json"), bad.to_string()).unwrap();
     refused(&["run", "--rig", "in.json"], "position_m", p);
+    // A camera facing away from the eye (the identity rotation: optical axis +z, the eye
+    // behind): `run` rendered its training set before finding no pupil (a fourth audit).
+    let mut away = rig.clone();
+    away["camera"]["rotation_cam_to_world"] =
+        serde_json::json!([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]);
+    std::fs::write(p.join("away.json"), away.to_string()).unwrap();
+    refused(
+        &["rig", "show", "--rig", "away.json"],
+        "rotation_cam_to_world",
+        p,
+    );
+    refused(
+        &["run", "--rig", "away.json", "--out", "ra"],
+        "rotation_cam_to_world",
+        p,
+    );
+    assert!(!p.join("ra").exists());
     // A metre and beyond is a unit mistake (1e308 printed as inf), as is a principal point
     // far off the image.
     for (key, v, field) in [

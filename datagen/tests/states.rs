@@ -170,8 +170,8 @@ fn protocol_layout() {
     assert!((geom::norm(slips[1]) - 2.5e-3).abs() < 1e-15);
 }
 
-/// A camera turned to face away from the eye (180° about its y axis) sees no pupil: every set
-/// refuses the rig instead of writing states no frame can use (protocol accepted it).
+/// A camera turned to face away from the eye (180° about its y axis) sees no pupil: the rig is
+/// refused, and so every set (protocol accepted it, and `run` rendered its training set first).
 #[test]
 fn a_camera_facing_away_has_no_set() {
     let mut rig = Rig::default();
@@ -179,11 +179,28 @@ fn a_camera_facing_away_has_no_set() {
         row[0] = -row[0];
         row[2] = -row[2];
     }
-    rig.validate().unwrap();
+    let e = rig.validate().unwrap_err().to_string();
+    assert!(e.contains("faces away"), "{e}");
     let p = Protocol::default();
     assert!(states::protocol(&rig, &p, 1, 0).is_err());
     assert!(states::ambiguity(&rig, 1, 0).is_err());
     assert!(states::variational(&rig, 1, 0).is_err());
+    // A camera behind the eye, facing its centre: a valid rig, but the pupil is turned away
+    // in every capture.
+    let mut behind = Rig::default();
+    let c = &behind.camera;
+    behind.camera = nanoeye_gaze::Camera::look_at(
+        c.focal_length_m,
+        c.pixel_pitch_m,
+        c.width_px,
+        c.height_px,
+        [0.0, 0.01, -0.05],
+        [0.0, 0.0, 0.0],
+    )
+    .unwrap();
+    behind.validate().unwrap();
+    let e = states::protocol(&behind, &p, 1, 0).unwrap_err().to_string();
+    assert!(e.contains("visible in none"), "{e}");
     // The default rig sees the pupil in every protocol capture.
     let ok = Rig::default();
     assert!(states::protocol(&ok, &p, 1, 0).is_ok());

@@ -496,6 +496,21 @@ impl Rig {
                 ),
             });
         }
+        // A camera facing away sees no eye: every set it renders is empty of pupils (`run`
+        // rendered its training set before the protocol found none).
+        let r_cw = &self.camera.rotation_cam_to_world;
+        let to_eye = geom::scale(self.camera.position_m, -1.0);
+        let depth: f64 = (0..3).map(|i| r_cw[i][2] * to_eye[i]).sum();
+        if depth <= 0.0 {
+            return Err(GazeError::InvalidRig {
+                field: "camera.rotation_cam_to_world",
+                reason: format!(
+                    "the camera faces away from the eye: the eye centre lies {:e} m behind its \
+                     image plane (the third column is the optical axis, towards the eye)",
+                    -depth
+                ),
+            });
+        }
         Ok(())
     }
 
