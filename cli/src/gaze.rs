@@ -142,6 +142,13 @@ pub fn run(cmd: Cmd) -> Result<()> {
                         Box::new(if kappa { s.with_kappa(&rig) } else { s })
                     }
                 };
+            // The answers replace --out whole: given the query file, they would replace it.
+            if let Some(o) = &out {
+                let same = |a: &Path, b: &Path| matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y);
+                if same(o, &input) {
+                    bail!("--out: '{}' is --input; give another path", o.display());
+                }
+            }
             let file = std::fs::File::open(&input)
                 .with_context(|| format!("--input: cannot open '{}'", input.display()))?;
             // Mask paths are relative to the query file's directory.
@@ -176,6 +183,13 @@ pub fn run(cmd: Cmd) -> Result<()> {
                     json!({ "error": msg })
                 });
                 lines.push(serde_json::to_string(&v)?);
+            }
+            // An empty or blank file printed one blank line with exit 0.
+            if lines.is_empty() {
+                bail!(
+                    "--input {}: no query lines (the file is empty or blank)",
+                    input.display()
+                );
             }
             // A file none of whose lines is a query is refused, not answered line by line
             // with exit 0; a line whose ray misses the eye is a query without a gaze.

@@ -373,6 +373,11 @@ fn a_rig_with_a_wrong_fy_or_the_camera_inside_the_eye_is_refused() {
     // far off the image.
     for (key, v, field) in [
         (
+            "height_px",
+            serde_json::json!(4_000_000_000u64),
+            "height_px",
+        ),
+        (
             "position_m",
             serde_json::json!([0.0, 0.0, 1e308]),
             "position_m",
@@ -389,6 +394,14 @@ fn a_rig_with_a_wrong_fy_or_the_camera_inside_the_eye_is_refused() {
         std::fs::write(p.join("far.json"), bad.to_string()).unwrap();
         refused(&["rig", "show", "--rig", "far.json"], field, p);
     }
+    let mut bad = rig.clone();
+    bad["slip"]["mount_rotation_sigma_rad"] = serde_json::json!(-0.1);
+    std::fs::write(p.join("sig.json"), bad.to_string()).unwrap();
+    refused(
+        &["rig", "show", "--rig", "sig.json"],
+        "mount_rotation_sigma_rad",
+        p,
+    );
     let mut bad = rig;
     bad["eye_radius_m"] = serde_json::json!(1e-300);
     std::fs::write(p.join("tiny.json"), bad.to_string()).unwrap();
@@ -597,6 +610,32 @@ fn gaze_solve_refuses_a_file_without_a_query_and_answers_misses() {
         "{err}"
     );
     assert!(!p.join("r.jsonl").exists());
+    // An empty or blank file (one blank line, exit 0, before) and --out naming the query
+    // file (it was replaced by the answers) are refused.
+    std::fs::write(p.join("blank.jsonl"), "\n  \n").unwrap();
+    refused(
+        &[
+            "gaze",
+            "solve",
+            "--input",
+            "blank.jsonl",
+            "--out",
+            "r.jsonl",
+        ],
+        "--input",
+        p,
+    );
+    assert!(!p.join("r.jsonl").exists());
+    refused(
+        &["gaze", "solve", "--input", "q.jsonl", "--out", "q.jsonl"],
+        "--out",
+        p,
+    );
+    assert!(
+        std::fs::read_to_string(p.join("q.jsonl"))
+            .unwrap()
+            .contains("not json")
+    );
     // Queries whose rays all miss the eye (the camera slipped 1 m away) are answered, one
     // error line each, with exit 0: a query without a gaze is not bad input.
     std::fs::write(

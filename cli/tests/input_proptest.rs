@@ -1245,24 +1245,27 @@ proptest! {
                 valid_solve(docs, &lines)
             }
         };
-        if to_file {
+        if lines.is_empty() {
+            // Nothing to answer: refused naming --input, nothing printed or written.
+            let o = run(&args, d.path());
+            prop_assert!(!o.stderr.contains("panicked"), "{}", o.stderr);
+            prop_assert_eq!(o.code, 1, "{}", o.stderr);
+            prop_assert!(o.stderr.contains("--input"), "{}", o.stderr);
+            prop_assert!(o.stdout.trim().is_empty(), "{}", o.stdout);
+            prop_assert!(!d.path().join("r.jsonl").exists());
+        } else if to_file {
             // The answer goes to the file; stdout stays empty, so check by hand. A file with
             // no valid query is refused naming --input, and nothing is written.
             let o = run(&args, d.path());
             prop_assert!(!o.stderr.contains("panicked"), "{}", o.stderr);
             prop_assert!(o.stdout.is_empty());
-            if o.code == 1 && !lines.is_empty() {
+            if o.code == 1 {
                 prop_assert!(o.stderr.contains("--input"), "{}", o.stderr);
                 prop_assert!(!d.path().join("r.jsonl").exists());
             } else {
                 prop_assert_eq!(o.code, 0, "{}", o.stderr);
                 valid(&[], d.path()).unwrap();
             }
-        } else if lines.is_empty() {
-            // Nothing to answer: exit 0 with (at most) an empty line.
-            let o = run(&args, d.path());
-            prop_assert_eq!(o.code, 0, "{}", o.stderr);
-            prop_assert!(o.stdout.trim().is_empty(), "{}", o.stdout);
         } else {
             check(&args, d.path(), &Expect { names: &["--input"], nullable: &[], valid: &valid });
         }

@@ -312,13 +312,21 @@ impl Camera {
         }
         if self.width_px == 0 || self.height_px == 0 {
             return Err(GazeError::InvalidRig {
-                field: "camera.width_px",
+                field: if self.width_px == 0 {
+                    "camera.width_px"
+                } else {
+                    "camera.height_px"
+                },
                 reason: "image size must be at least 1×1 px".into(),
             });
         }
         if self.width_px > MAX_IMAGE_SIDE_PX || self.height_px > MAX_IMAGE_SIDE_PX {
             return Err(GazeError::InvalidRig {
-                field: "camera.width_px",
+                field: if self.width_px > MAX_IMAGE_SIDE_PX {
+                    "camera.width_px"
+                } else {
+                    "camera.height_px"
+                },
                 reason: format!(
                     "image size {}×{} px exceeds the maximum side of {MAX_IMAGE_SIDE_PX} px",
                     self.width_px, self.height_px
@@ -387,11 +395,22 @@ impl SlipModel {
                 });
             }
         }
-        if self.mount_translation_sigma_m < 0.0 || self.mount_rotation_sigma_rad < 0.0 {
-            return Err(GazeError::InvalidRig {
-                field: "slip.mount_translation_sigma_m",
-                reason: "standard deviations must be ≥ 0".into(),
-            });
+        for (field, v) in [
+            (
+                "slip.mount_translation_sigma_m",
+                self.mount_translation_sigma_m,
+            ),
+            (
+                "slip.mount_rotation_sigma_rad",
+                self.mount_rotation_sigma_rad,
+            ),
+        ] {
+            if v < 0.0 {
+                return Err(GazeError::InvalidRig {
+                    field,
+                    reason: format!("a standard deviation must be ≥ 0, got {v}"),
+                });
+            }
         }
         for (field, v, max) in [
             (
