@@ -114,20 +114,22 @@ pub fn run(cmd: Cmd) -> Result<()> {
             if n == 0 {
                 bail!("--n: must be at least 1");
             }
+            // As the flag takes it (`ambiguity`), not the variant's Debug name.
+            let name = format!("{set:?}").to_lowercase();
             let max = match set {
                 Set::Protocol => states::MAX_PROTOCOL_SUBJECTS,
                 Set::Ambiguity | Set::Variational => states::MAX_SET_ITEMS,
             };
             if n > max {
-                bail!("--n: at most {max} for --set {set:?} (the set is held in memory), got {n}");
+                bail!("--n: at most {max} for --set {name} (the set is held in memory), got {n}");
             }
             let rig_path = rig;
             let rig = rig::load(rig_path.as_deref())?;
             // The built-in rig always admits the sets; a rig file whose camera never sees the
             // pupil does not, and the error must say which input is at fault.
             let why = || match &rig_path {
-                Some(p) => format!("--rig '{}': no {set:?} state fits this rig", p.display()),
-                None => format!("--set {set:?}: sampling failed"),
+                Some(p) => format!("--rig '{}': no {name} state fits this rig", p.display()),
+                None => format!("--set {name}: sampling failed"),
             };
             let lines = match set {
                 Set::Ambiguity => {

@@ -141,6 +141,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
             "--spp"
         } else if msg.contains("invalid blink_fraction") {
             "--blink-fraction"
+        } else if msg.contains("camera.pixel_pitch_m") {
+            // The rig's sensor spread over so few pixels that each is beyond any pitch.
+            "--width/--height"
         } else {
             "--out"
         };

@@ -80,6 +80,8 @@ pub const MIN_DISTANCE_M: f64 = 1e-4;
 const MIN_SENSOR_DISTANCE_M: f64 = 1e-5;
 /// Smallest sensor pixel pitch (m), `--base-pitch-um`'s floor: 1e-30 µm gave a PSF of zeros.
 const MIN_PITCH_M: f64 = crate::sim::MIN_BASE_PITCH_UM * 1e-6;
+/// Largest sensor pixel pitch (m), a rig's bound (1e308 µm printed "inf sub-pixel points").
+const MAX_PITCH_M: f64 = nanoeye_gaze::rig::PIXEL_PITCH_RANGE_M.1;
 /// Largest aperture (m): a 10 cm metasurface (1e308 mm failed naming --pitch-um).
 const MAX_APERTURE_M: f64 = 0.1;
 /// Fewest aperture samples across the diameter.
@@ -149,10 +151,11 @@ fn psf(a: PsfArgs) -> Result<()> {
         .period_mm
         .map(|p| positive("--period-mm", p, 1e-3))
         .transpose()?;
-    if pitch < MIN_PITCH_M {
+    if !(MIN_PITCH_M..=MAX_PITCH_M).contains(&pitch) {
         bail!(
-            "--pitch-um: at least {} µm (a sensor pixel), got {:e}",
+            "--pitch-um: must lie in [{}, {}] µm (a sensor pixel), got {:e}",
             crate::sim::MIN_BASE_PITCH_UM,
+            MAX_PITCH_M * 1e6,
             a.pitch_um
         );
     }

@@ -99,6 +99,15 @@ pub fn check_aperture_step(what: &str, step_um: f64) -> Result<()> {
             aperture_um * 1e-3
         );
     }
+    // The aperture grid's bound (20000 samples across), named here rather than as a chain
+    // parameter.
+    let finest = aperture_um / 20000.0;
+    if step_um < finest {
+        bail!(
+            "{what}: at least {finest} µm (20000 samples across the {} mm aperture), got {step_um:e}",
+            aperture_um * 1e-3
+        );
+    }
     Ok(())
 }
 
@@ -166,7 +175,18 @@ impl CameraArgs {
         cfg.radiometry.exposure_s = self.exposure_ms * 1e-3;
         let native = ds.manifest.rig.camera.pixel_pitch_m;
         cfg.sensor.base_pitch = match self.base_pitch_um {
-            Some(b) if b.is_finite() && b >= MIN_BASE_PITCH_UM => b * 1e-6,
+            // The dataset's pixels must be at least as fine as the sensor's (the chain refused
+            // a coarser base naming only its parameters).
+            Some(b)
+                if b.is_finite() && b >= MIN_BASE_PITCH_UM && b * 1e-6 <= native * (1.0 + 1e-9) =>
+            {
+                b * 1e-6
+            }
+            Some(b) if b.is_finite() && b >= MIN_BASE_PITCH_UM => bail!(
+                "--base-pitch-um: at most the dataset's {} µm pixels (it was rendered at that \
+                 pitch), got {b}",
+                native * 1e6
+            ),
             Some(b) => bail!(
                 "--base-pitch-um: must be at least {MIN_BASE_PITCH_UM} µm (a sensor pixel), got {b}"
             ),

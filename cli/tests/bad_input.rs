@@ -527,6 +527,29 @@ fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
             "--aperture-mm",
         ),
         (
+            &["optics", "psf", "--pitch-um=1e308", "--out", "ps"],
+            "--pitch-um",
+        ),
+        (
+            &[
+                "datagen",
+                "render",
+                "--set",
+                "ambiguity",
+                "--n",
+                "1",
+                "--width",
+                "1",
+                "--height",
+                "50",
+                "--spp",
+                "1",
+                "--out",
+                "dw",
+            ],
+            "--width",
+        ),
+        (
             &[
                 "fisher",
                 "compare",
@@ -1004,6 +1027,31 @@ fn sim_and_search_loss_name_their_bad_flags() {
                 "o",
             ],
             "--pitch-range-um",
+        ),
+        // A fourth audit: a base coarser than the dataset's pixels, and an aperture step
+        // finer than the grid allows, were named as chain parameters.
+        (
+            vec![
+                "sim",
+                "--dataset",
+                "ds",
+                "--base-pitch-um",
+                "1000",
+                "--out",
+                "o",
+            ],
+            "--base-pitch-um",
+        ),
+        (
+            vec![
+                "sim",
+                "--dataset",
+                "ds",
+                "--aperture-step-um=1e-308",
+                "--out",
+                "o",
+            ],
+            "--aperture-step-um",
         ),
         // An audit: 1e-300 µm passed as positive and wrote NaN frames with exit 0; 1e9 µm
         // failed naming `frames` (every layer's gain NaN).
