@@ -539,6 +539,14 @@ fn compare(a: CompareArgs) -> Result<()> {
     if pitches_um.is_empty() {
         bail!("--pitch-um: need positive pitches");
     }
+    // A value given twice would be computed and reported twice.
+    if let Some(p) = pitches_um
+        .iter()
+        .enumerate()
+        .find_map(|(i, p)| pitches_um[..i].contains(p).then_some(p))
+    {
+        bail!("--pitch-um: {p} is given twice");
+    }
     // Far below a sensor pixel the window holds no PSF (1e-308 µm gave fisher_z 0, exit 0).
     let min = crate::sim::MIN_BASE_PITCH_UM;
     if let Some(p) = pitches_um.iter().find(|&&p| p.is_nan() || p < min) {
@@ -565,6 +573,13 @@ fn compare(a: CompareArgs) -> Result<()> {
     }
     if specs.len() > MAX_LIST {
         bail!("--lenses: at most {MAX_LIST} lenses, got {}", specs.len());
+    }
+    if let Some(l) = specs
+        .iter()
+        .enumerate()
+        .find_map(|(i, l)| specs[..i].contains(l).then_some(l))
+    {
+        bail!("--lenses: {l} is given twice");
     }
     let usage = if specs.len() > 1 {
         PsfUsage::Repeated

@@ -572,6 +572,10 @@ fn loss(a: LossArgs) -> Result<()> {
         .context("--phase")?;
     let p_hat = a.chain.pitch_um() * 1e-6;
     chain.native().at(p_hat).context("--pitch-um")?;
+    // Where the gradient goes, checked before the work (a directory there was found after).
+    if let Some(p) = &a.grad_out {
+        util::check_output_target(p).with_context(|| format!("--grad-out {}", p.display()))?;
+    }
     let noise = match a.noise {
         OnOff::On => NoiseMode::Gaussian,
         OnOff::Off => NoiseMode::None,

@@ -562,6 +562,31 @@ fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
     ] {
         refused(args, flag, p);
     }
+    // A value given twice was computed and reported twice.
+    refused(
+        &[
+            "fisher",
+            "compare",
+            "--pitch-um",
+            "3,9,9",
+            "--montage",
+            "fm.png",
+        ],
+        "--pitch-um",
+        p,
+    );
+    refused(
+        &[
+            "fisher",
+            "compare",
+            "--lenses",
+            "hyperbolic,hyperbolic",
+            "--montage",
+            "fm.png",
+        ],
+        "--lenses",
+        p,
+    );
     // A value Rust prints in full (1e308 is 309 digits) is written in scientific notation.
     let e = refused(
         &["fisher", "init", "--pitch-um", "1e308", "--out", "fl"],
