@@ -62,9 +62,9 @@ pub struct RenderArgs {
     /// Mesh file (.obj, .gltf, .glb) replacing the procedural eye region.
     #[arg(long)]
     pub mesh: Option<PathBuf>,
-    /// Unit of the mesh coordinates.
-    #[arg(long, value_enum, default_value = "mm")]
-    pub mesh_units: UnitsArg,
+    /// Unit of the mesh coordinates, with --mesh only [default: mm].
+    #[arg(long, value_enum)]
+    pub mesh_units: Option<UnitsArg>,
     /// Share (0–1) of envelope frames caught in a blink or partial closure (lid closure
     /// uniform in 0.2–1); 0 keeps every lid open.
     #[arg(long, default_value_t = 0.0)]
@@ -79,17 +79,22 @@ pub fn run(args: RenderArgs) -> Result<()> {
     if args.spp == 0 {
         bail!("--spp must be at least 1");
     }
+    // A flag the procedural scene does not take would be ignored: refuse it.
+    if args.mesh_units.is_some() && args.mesh.is_none() {
+        bail!("--mesh-units: gives the unit of a --mesh file; no --mesh is given");
+    }
     let rig = match &args.rig {
         Some(p) => {
-            let text =
-                std::fs::read_to_string(p).with_context(|| format!("--rig {}", p.display()))?;
+            // A small regular file: a FIFO would block, /dev/zero be read without end.
+            let text = crate::util::read_small_text(p, crate::util::MAX_ARCH_BYTES)
+                .with_context(|| format!("--rig {}", p.display()))?;
             Rig::from_json(&text).with_context(|| format!("--rig {}", p.display()))?
         }
         None => Rig::default(),
     };
     let source = match &args.mesh {
         Some(p) => {
-            let units = match args.mesh_units {
+            let units = match args.mesh_units.unwrap_or(UnitsArg::Mm) {
                 UnitsArg::Mm => MeshUnits::Millimetres,
                 UnitsArg::M => MeshUnits::Metres,
             };

@@ -739,7 +739,9 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
     let materials = a.solver.materials()?;
     let tau_per_t2 = materials.n_substrate / materials.n_superstrate;
     let lib: TabulatedLibrary = if let Some(csv) = &a.library_csv {
-        let text = std::fs::read_to_string(csv)
+        // A regular file of at most 64 MiB (a library has hundreds of rows): a FIFO would
+        // block, /dev/zero be read without end.
+        let text = crate::util::read_small_text(csv, 64 << 20)
             .with_context(|| format!("--library-csv {}", csv.display()))?;
         TabulatedLibrary::from_csv(&text, h, s, a.solver.wavelength_m()?, tau_per_t2)
             .map_err(|e| anyhow!("--library-csv: {e}"))?

@@ -313,7 +313,9 @@ fn load_config(p: Option<&Path>) -> Result<RunConfig> {
     let Some(p) = p else {
         return Ok(RunConfig::default());
     };
-    let text = std::fs::read_to_string(p).with_context(|| format!("--config {}", p.display()))?;
+    // A small regular file: a FIFO would block, /dev/zero be read without end.
+    let text = util::read_small_text(p, util::MAX_ARCH_BYTES)
+        .with_context(|| format!("--config {}", p.display()))?;
     let text = text.trim_start_matches('\u{feff}');
     let is_toml = p.extension().is_some_and(|e| e == "toml");
     let cfg: RunConfig = if is_toml {

@@ -402,8 +402,8 @@ pub fn check_memory(what: &str, need: u64, fix: &str) -> Result<()> {
     Ok(())
 }
 
-/// Largest small JSON input read (a subnet's arch, a rig, a state): a few hundred bytes in
-/// practice.
+/// Largest small JSON input read (a subnet's arch, a rig, a state, a run's configuration): a
+/// few hundred bytes in practice.
 pub const MAX_ARCH_BYTES: u64 = 1 << 20;
 
 /// Most values of a list flag whose every value multiplies the work (fisher's lenses and

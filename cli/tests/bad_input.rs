@@ -483,7 +483,43 @@ fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
             "--state",
             p,
         );
+        // A fourth audit's reading: these were read to their end too.
+        refused(&["run", "--config", "fifo", "--out", "rf"], "--config", p);
+        refused(
+            &[
+                "datagen",
+                "render",
+                "--set",
+                "ambiguity",
+                "--n",
+                "1",
+                "--rig",
+                "fifo",
+                "--out",
+                "dr",
+            ],
+            "--rig",
+            p,
+        );
     }
+    // The mesh's unit without a mesh was ignored.
+    refused(
+        &[
+            "datagen",
+            "render",
+            "--set",
+            "ambiguity",
+            "--n",
+            "1",
+            "--mesh-units",
+            "m",
+            "--out",
+            "dr",
+        ],
+        "--mesh-units",
+        p,
+    );
+    assert!(!p.join("rf").exists() && !p.join("dr").exists());
     let radii: Vec<String> = (0..65)
         .map(|i| format!("{}", 9.0 + 0.01 * i as f64))
         .collect();
