@@ -2301,44 +2301,29 @@ fn aperture_sampling_beyond_the_memory_is_refused_before_any_work() {
 fn fisher_init_checks_every_output_before_writing_any() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
-    std::fs::create_dir_all(p.join("fi/history.json")).unwrap();
-    let e = refused(
-        &[
+    let init = |out: &'static str| {
+        let args = [
             "fisher",
             "init",
             "--out",
-            "fi",
+            out,
             "--aperture-step-um",
             "50",
             "--window-px",
             "3",
             "--iterations",
             "1",
-        ],
-        "--out",
-        p,
-    );
+        ];
+        refused(&args, "--out", p)
+    };
+    std::fs::create_dir_all(p.join("fi/history.json")).unwrap();
+    let e = init("fi");
     assert!(e.contains("history.json"), "{e}");
     assert_eq!(entries(&p.join("fi")), ["history.json"], "{e}");
     // The checkpoint's place too, which is written first (a file there failed after the work).
     std::fs::create_dir_all(p.join("fc")).unwrap();
     std::fs::write(p.join("fc/checkpoint"), b"").unwrap();
-    let e = refused(
-        &[
-            "fisher",
-            "init",
-            "--out",
-            "fc",
-            "--aperture-step-um",
-            "50",
-            "--window-px",
-            "3",
-            "--iterations",
-            "1",
-        ],
-        "--out",
-        p,
-    );
+    let e = init("fc");
     assert!(e.contains("checkpoint"), "{e}");
     assert_eq!(entries(&p.join("fc")), ["checkpoint"], "{e}");
 }
