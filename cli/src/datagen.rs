@@ -203,11 +203,12 @@ fn export(
             } else {
                 util::read_small_text(Path::new(text), util::MAX_ARCH_BYTES).context("--state")?
             };
-            let state: State =
+            let given: serde_json::Value =
                 serde_json::from_str(&body).map_err(|e| anyhow::anyhow!("--state: {e}"))?;
+            let state: State = serde::Deserialize::deserialize(&given)
+                .map_err(|e| anyhow::anyhow!("--state: {e}"))?;
             // An unknown key (a misspelt `lid_closure`) would be ignored silently. Checked
             // here rather than by the type: stored records keep their states readable.
-            let given: serde_json::Value = serde_json::from_str(&body)?;
             let known = serde_json::to_value(State {
                 lid_closure: 1.0,
                 ..state

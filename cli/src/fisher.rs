@@ -539,14 +539,6 @@ fn compare(a: CompareArgs) -> Result<()> {
     if pitches_um.is_empty() {
         bail!("--pitch-um: need positive pitches");
     }
-    // A value given twice would be computed and reported twice.
-    if let Some(p) = pitches_um
-        .iter()
-        .enumerate()
-        .find_map(|(i, p)| pitches_um[..i].contains(p).then_some(p))
-    {
-        bail!("--pitch-um: {p} is given twice");
-    }
     // Far below a sensor pixel the window holds no PSF (1e-308 µm gave fisher_z 0, exit 0).
     let min = crate::sim::MIN_BASE_PITCH_UM;
     if let Some(p) = pitches_um.iter().find(|&&p| p.is_nan() || p < min) {
@@ -557,6 +549,10 @@ fn compare(a: CompareArgs) -> Result<()> {
             "--pitch-um: at most {MAX_LIST} pitches, got {}",
             pitches_um.len()
         );
+    }
+    // A value given twice would be computed and reported twice.
+    if let Some(p) = crate::util::first_repeat(&pitches_um) {
+        bail!("--pitch-um: {p} is given twice");
     }
     let native = pitches_um.iter().copied().fold(f64::INFINITY, f64::min);
     // The optics flags first, so that the context below only ever wraps the pitch's errors.
@@ -574,11 +570,7 @@ fn compare(a: CompareArgs) -> Result<()> {
     if specs.len() > MAX_LIST {
         bail!("--lenses: at most {MAX_LIST} lenses, got {}", specs.len());
     }
-    if let Some(l) = specs
-        .iter()
-        .enumerate()
-        .find_map(|(i, l)| specs[..i].contains(l).then_some(l))
-    {
+    if let Some(l) = crate::util::first_repeat(&specs) {
         bail!("--lenses: {l} is given twice");
     }
     let usage = if specs.len() > 1 {

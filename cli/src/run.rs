@@ -309,6 +309,19 @@ pub(crate) const LENSES: [(&str, &str); 3] = [
     ("double_helix", "double-helix"),
 ];
 
+/// The camera chain's settings of a job whose renders have pixels of `native_pitch_m` (m):
+/// the one place both its memory check and its chains take them from.
+fn chain_config(cfg: &RunConfig, native_pitch_m: f64) -> ChainConfig {
+    let mut c = ChainConfig {
+        aperture_step_m: cfg.aperture_step_um * 1e-6,
+        slip_target: cfg.slip_target,
+        ..ChainConfig::default()
+    };
+    c.radiometry.exposure_s = cfg.exposure_ms * 1e-3;
+    c.sensor.base_pitch = c.sensor.base_pitch.min(native_pitch_m);
+    c
+}
+
 fn load_config(p: Option<&Path>) -> Result<RunConfig> {
     let Some(p) = p else {
         return Ok(RunConfig::default());
@@ -498,14 +511,10 @@ fn check(cfg: &RunConfig) -> Result<()> {
     // The three lenses train and are evaluated at once, each with `batch` frames.
     util::check_batch_memory("--config", cfg.batch, 3, cfg.width_px, cfg.height_px)?;
     // And each with its chain's PSF model: weighed at the job's layers and aperture sampling.
-    let psf_cfg = ChainConfig {
-        aperture_step_m: cfg.aperture_step_um * 1e-6,
-        ..ChainConfig::default()
-    };
     let need = CameraChain::psf_memory_bytes(
         camera.pixel_pitch_m,
         LayerSpec::default().count,
-        &psf_cfg,
+        &chain_config(cfg, camera.pixel_pitch_m),
         rayon::current_num_threads(),
         nanoeye_optics::PsfUsage::Training,
     )
@@ -859,19 +868,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     };
     stage("render", t.elapsed().as_secs_f64(), &mut stages)?;
 
-    let chain_cfg = {
-        let mut c = ChainConfig {
-            aperture_step_m: cfg.aperture_step_um * 1e-6,
-            slip_target: cfg.slip_target,
-            ..ChainConfig::default()
-        };
-        c.radiometry.exposure_s = cfg.exposure_ms * 1e-3;
-        c.sensor.base_pitch = c
-            .sensor
-            .base_pitch
-            .min(train.manifest.rig.camera.pixel_pitch_m);
-        c
-    };
+    let chain_cfg = chain_config(&cfg, train.manifest.rig.camera.pixel_pitch_m);
     let chain = CameraChain::for_dataset(&train, chain_cfg.clone())?;
 
     // 2. Fisher initialization of the learned lens (A.2): the hyperbolic phase moved towards

@@ -372,16 +372,8 @@ fn address_space_left() -> Option<u64> {
         .next()?
         .parse()
         .ok()?;
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let used_kb: u64 = status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))?
-        .trim()
-        .strip_suffix("kB")?
-        .trim()
-        .parse()
-        .ok()?;
-    Some(soft.saturating_sub(used_kb.saturating_mul(1024)))
+    let used = nanoeye_datagen::render::dataset::proc_bytes("/proc/self/status", "VmRSS:")?;
+    Some(soft.saturating_sub(used as u64))
 }
 
 /// Refuses a plan estimated at `need` bytes when it exceeds [`memory_budget`] (the kernel's
@@ -409,6 +401,14 @@ pub const MAX_ARCH_BYTES: u64 = 1 << 20;
 /// Most values of a list flag whose every value multiplies the work (fisher's lenses and
 /// pitches, gaze bias's solver radii).
 pub const MAX_LIST: usize = 64;
+
+/// The first value of `items` that an earlier one equals (a list flag given a value twice).
+pub fn first_repeat<T: PartialEq>(items: &[T]) -> Option<&T> {
+    items
+        .iter()
+        .enumerate()
+        .find_map(|(i, x)| items[..i].contains(x).then_some(x))
+}
 
 /// The text of a small regular file at `path`, at most `max` bytes: a device or a FIFO
 /// (`/dev/zero` read until memory ran out) or a file past `max` is refused before reading.

@@ -824,10 +824,16 @@ fn frames_in_flight(threads: usize, camera: &nanoeye_gaze::Camera, layers: usize
 /// Memory the system can still give this process (bytes): Linux's `MemAvailable`; None
 /// where it cannot be read.
 pub fn available_memory() -> Option<usize> {
-    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    proc_bytes("/proc/meminfo", "MemAvailable:")
+}
+
+/// The value of a `KEY:   N kB` line of a /proc file (`/proc/meminfo`, `/proc/self/status`),
+/// in bytes; None where the file or the line cannot be read.
+pub fn proc_bytes(path: &str, key: &str) -> Option<usize> {
+    let text = std::fs::read_to_string(path).ok()?;
     let kb: usize = text
         .lines()
-        .find_map(|l| l.strip_prefix("MemAvailable:"))?
+        .find_map(|l| l.strip_prefix(key))?
         .trim()
         .strip_suffix("kB")?
         .trim()
