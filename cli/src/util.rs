@@ -335,8 +335,8 @@ pub fn check_batch_memory(
 pub const MEMORY_ENV: &str = "NANOEYE_MEMORY_BYTES";
 
 /// Memory (bytes) a command may plan to use: the smallest of [`MEMORY_ENV`], Linux's
-/// `MemAvailable` and what the address-space limit (`ulimit -v`) leaves this process; None
-/// where none of them is known.
+/// `MemAvailable`, what the memory control groups allow and what the address-space limit
+/// (`ulimit -v`) leaves this process; None where none of them is known.
 pub fn memory_budget() -> Result<Option<u64>> {
     let cap = match std::env::var(MEMORY_ENV) {
         Ok(v) => Some(
@@ -385,7 +385,7 @@ pub fn check_memory(what: &str, need: u64, fix: &str) -> Result<()> {
             let gib = (1u64 << 30) as f64;
             bail!(
                 "{what}: needs about {:.2} GiB, more than the {:.2} GiB this process may use \
-                 (the least of {MEMORY_ENV}, MemAvailable and ulimit -v); {fix}",
+                 (the least of {MEMORY_ENV}, MemAvailable, the cgroup limit and ulimit -v); {fix}",
                 need as f64 / gib,
                 have as f64 / gib
             );

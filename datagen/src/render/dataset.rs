@@ -821,10 +821,16 @@ fn frames_in_flight(threads: usize, camera: &nanoeye_gaze::Camera, layers: usize
         .max(1)
 }
 
-/// Memory the system can still give this process (bytes): Linux's `MemAvailable`; None
-/// where it cannot be read.
+/// Memory the system can still give this process (bytes): the lesser of Linux's
+/// `MemAvailable` and what this process's memory control groups still allow
+/// ([`super::cgroup::memory_left`]); None where neither can be read.
 pub fn available_memory() -> Option<usize> {
-    proc_bytes("/proc/meminfo", "MemAvailable:")
+    let machine = proc_bytes("/proc/meminfo", "MemAvailable:");
+    let group = super::cgroup::memory_left();
+    match (machine, group) {
+        (Some(a), Some(b)) => Some(a.min(b)),
+        (a, b) => a.or(b),
+    }
 }
 
 /// The value of a `KEY:   N kB` line of a /proc file (`/proc/meminfo`, `/proc/self/status`),

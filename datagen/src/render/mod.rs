@@ -5,6 +5,7 @@
 //! pixel's ray from the camera centre to the first surface. Conventions in docs/renderer.md.
 
 pub mod bvh;
+pub mod cgroup;
 pub mod dataset;
 pub mod export;
 pub mod face;
