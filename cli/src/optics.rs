@@ -288,10 +288,17 @@ fn psf(a: PsfArgs) -> Result<()> {
                         phase,
                     )?,
                 };
-                ff.phase_map(&grid).with_context(|| {
-                    format!(
-                        "--lens: map is {0}×{0}; --aperture-mm/--sample-um give {1}×{1}",
-                        ff.map.grid.n, grid.n
+                // An NPY map carries no pitch: it is read at --sample-um, so the library's
+                // message (both pitches, the same number) would say nothing; the sizes do.
+                ff.phase_map(&grid).map_err(|_| {
+                    anyhow::anyhow!(
+                        "--lens: '{path}' is a {0}×{0} map; --aperture-mm {1} at --sample-um \
+                         {2} needs {3}×{3} samples (an NPY phase map has no pitch of its own: \
+                         give the --aperture-mm/--sample-um it was made with, or resample it)",
+                        ff.map.grid.n,
+                        a.aperture_mm,
+                        a.sample_um,
+                        grid.n
                     )
                 })?
             }

@@ -340,7 +340,7 @@ fn load_config(p: Option<&Path>) -> Result<RunConfig> {
             p.display()
         );
     } else {
-        serde_json::from_str(text).map_err(|e| match bad_json_key(text) {
+        serde_json::from_str(text).map_err(|e| match bad_json_key(text, &e) {
             Some(k) => anyhow::anyhow!("--config {}: key \"{k}\": {e}", p.display()),
             None => anyhow::anyhow!("--config {}: {e}", p.display()),
         })?
@@ -386,18 +386,29 @@ fn apply_sets(cfg: RunConfig, sets: &[String]) -> Result<RunConfig> {
     serde_json::from_value(merged).context("--set: the merged configuration")
 }
 
-/// The first key of a JSON object that does not deserialize on its own (serde's error for an
-/// enum given a number or null names only a column).
-fn bad_json_key(text: &str) -> Option<String> {
+/// The key of a JSON object that `err` (the whole object's error) is about: the key that
+/// alone gives the same error, else the first (in key order) that does not deserialize on its
+/// own (serde's error for an enum given a number or null names only a column). The object's
+/// keys come back sorted, not in the file's order: a file with two bad keys (a rig given as a
+/// configuration) named one key and printed the other's error.
+fn bad_json_key(text: &str, err: &serde_json::Error) -> Option<String> {
     let serde_json::Value::Object(m) = serde_json::from_str(text).ok()? else {
         return None;
     };
-    m.into_iter()
-        .find(|(k, v)| {
-            let one = serde_json::Value::Object([(k.clone(), v.clone())].into_iter().collect());
-            serde_json::from_value::<RunConfig>(one).is_err()
+    let full = err.to_string();
+    let what = full.split(" at line ").next().unwrap_or(&full);
+    let bad: Vec<(String, String)> = m
+        .into_iter()
+        .filter_map(|(k, v)| {
+            let one = serde_json::Value::Object([(k.clone(), v)].into_iter().collect());
+            let e = serde_json::from_value::<RunConfig>(one).err()?;
+            Some((k, e.to_string()))
         })
-        .map(|(k, _)| k)
+        .collect();
+    bad.iter()
+        .find(|(_, e)| e == what)
+        .or(bad.first())
+        .map(|(k, _)| k.clone())
 }
 
 fn check(cfg: &RunConfig) -> Result<()> {

@@ -80,8 +80,20 @@ fn ptc(a: PtcArgs) -> Result<()> {
                 "gain_dn_per_e" => "--gain-dn-per-e",
                 "read_noise_e" => "--read-noise-e",
                 // No level below saturation: the noise (mean + 6σ) or the gain reaches the
-                // well or the ADC's top.
-                "full_well_e" => "--read-noise-e/--gain-dn-per-e",
+                // well or the ADC's top. The well is not a flag: name the two that are, with
+                // the figures they meet.
+                "full_well_e" => {
+                    return anyhow::anyhow!(
+                        "--read-noise-e/--gain-dn-per-e: with read noise {} e- rms and gain {} \
+                         DN/e-, fewer than 3 flat-field levels stay below saturation (mean + 6σ \
+                         under the {} e- full well and the ADC's {} DN); give a smaller read \
+                         noise or gain",
+                        cfg.read_noise_e,
+                        cfg.gain_dn_per_e,
+                        cfg.full_well_e,
+                        cfg.max_dn()
+                    );
+                }
                 _ => "sensor",
             },
             _ => "sensor",

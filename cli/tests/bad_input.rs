@@ -331,6 +331,30 @@ fn impossible_psf_requests_are_refused_without_writing() {
         let args: Vec<&str> = base.iter().copied().chain(extra).collect();
         refused(&args, flag, p);
     }
+    // A phase map of another size: both sizes named; an NPY map has no pitch, so none is
+    // printed as the map's (the asked-for pitch was, as if it were the file's).
+    let n = 16usize;
+    let head = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': ({n}, {n}), }}");
+    let head = format!("{head:<117}\n");
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    npy.extend((head.len() as u16).to_le_bytes());
+    npy.extend(head.as_bytes());
+    npy.extend(vec![0u8; 8 * n * n]);
+    std::fs::write(p.join("ph16.npy"), npy).unwrap();
+    let args = [
+        "--lens",
+        "file:ph16.npy",
+        "--aperture-mm",
+        "0.1",
+        "--sample-um",
+        "2",
+    ];
+    let args: Vec<&str> = base.iter().copied().chain(args).collect();
+    let err = refused(&args, "--lens", p);
+    assert!(
+        err.contains("16×16") && err.contains("50×50") && !err.contains("pitch 0."),
+        "{err}"
+    );
     assert!(!p.join("o/psf.npy").exists());
 }
 
@@ -1493,6 +1517,13 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         // An array would be read into the keys by position (`[7]` was seed 7).
         ("[7]", "JSON object"),
         ("[]", "JSON object"),
+        // Two bad keys: the one serde's error is about is named (a rig given as a
+        // configuration named `camera` and printed `eye_radius_m`'s error).
+        (
+            r#"{"zeta": 1, "alpha": 2}"#,
+            "key \"zeta\": unknown field `zeta`",
+        ),
+        (r#"{"seed": "x", "batch": "y"}"#, "key \"seed\""),
     ] {
         std::fs::write(p.join("c.json"), cfg).unwrap();
         let err = refused(&["run", "--config", "c.json", "--out", "r"], "--config", p);
@@ -1792,8 +1823,9 @@ fn inputs_found_by_the_property_test_are_refused_naming_their_flag() {
         "--fractions",
         p,
     );
-    // No flat-field level below saturation: named the sensor's full well, not a flag.
-    refused(
+    // No flat-field level below saturation: named the sensor's full well, not a flag; then
+    // the flags with a library parameter's name (`full_well_e`) and no figure of theirs.
+    let err = refused(
         &[
             "sensor",
             "ptc",
@@ -1805,6 +1837,10 @@ fn inputs_found_by_the_property_test_are_refused_naming_their_flag() {
         ],
         "--read-noise-e",
         p,
+    );
+    assert!(
+        err.contains("977") && err.contains("full well") && !err.contains("full_well_e"),
+        "{err}"
     );
     // A valid rig whose camera never sees the pupil: the sampler's error named no input.
     let out = nanoeye(&["rig", "show", "--json"], p);
