@@ -1327,6 +1327,23 @@ fn sim_and_search_loss_name_their_bad_flags() {
     ];
     refused(&sim, "frame 0", p);
     assert!(!p.join("n1").exists(), "a failed sim left --out's parent");
+    // search loss --grad-out at a directory: refused before the frames are imaged (the check
+    // after the work met frame 0's error first; on a good set the work was done for nothing).
+    std::fs::create_dir(p.join("gdir")).unwrap();
+    let loss = [
+        "search",
+        "loss",
+        "--dataset",
+        "bad",
+        "--frames",
+        "0:1",
+        "--pitch-um",
+        "48",
+        "--grad-out",
+        "gdir",
+    ];
+    let err = refused(&loss, "--grad-out", p);
+    assert!(!err.contains("frame 0"), "{err}");
     // Refused before the run is read: --head-refit on a set too small for its leave-one-out
     // error, --fit-pitch without a budget (it would do nothing).
     let two = [
