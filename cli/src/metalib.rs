@@ -345,17 +345,13 @@ pub fn run(cmd: MetalibCmd) -> Result<()> {
     }
 }
 
-/// Tallest pillar a command takes (m): 100 µm, two orders beyond any metasurface; a height of
-/// 1e300 nm passed every check and gave t = 0 or a non-finite response.
-const MAX_HEIGHT_M: f64 = 1e-4;
-
-/// `--height-nm` in metres, finite and at most [`MAX_HEIGHT_M`].
+/// `--height-nm` in metres, finite and at most [`sweep::MAX_HEIGHT_M`].
 fn height_m(height_nm: f64) -> Result<f64> {
     let h = nm("--height-nm", height_nm)?;
-    if h > MAX_HEIGHT_M {
+    if h > sweep::MAX_HEIGHT_M {
         bail!(
             "--height-nm: must be at most {:e} nm, got {height_nm:?}",
-            MAX_HEIGHT_M * 1e9
+            sweep::MAX_HEIGHT_M * 1e9
         );
     }
     Ok(h)
@@ -649,26 +645,21 @@ fn select_cmd(a: SelectArgs) -> Result<()> {
     let mark_pitch_nm = on_sweep_grid("--mark-pitch-nm", a.mark_pitch_nm, 530.0, &data.pitches_m)?;
     let sel = select::select_sweep(&data, &Criteria::default());
     let figdir = a.figures.clone().unwrap_or_else(|| a.sweep.join("figures"));
-    let viable_path = figdir.join("viable.npy");
-    sweep::check_output_target(&viable_path).context("--figures")?;
-    let files = select::write_figures(
+    let mut files = select::render_figures(
         &figdir,
         &data,
         &sel,
         Some((mark_height_nm * 1e-9, mark_pitch_nm * 1e-9)),
         mark_pitch_nm * 1e-9,
     )?;
-    let key = |p: &select::PairSelection| {
-        format!(
-            "{}x{}",
-            (p.height_m * 1e9).round(),
-            (p.pitch_m * 1e9).round()
-        )
-    };
+    // To a thousandth of a nm: whole nm merged the pairs of a sweep in steps of 0.2 nm into
+    // one key (and the viable list named pairs the map did not).
+    let nm = |m: f64| (m * 1e12).round() / 1e3;
+    let key = |h_nm: f64, s_nm: f64| format!("{h_nm}x{s_nm}");
     let viable: Vec<[f64; 2]> = sel
         .iter()
         .filter(|p| p.viable)
-        .map(|p| [(p.height_m * 1e9).round(), (p.pitch_m * 1e9).round()])
+        .map(|p| [nm(p.height_m), nm(p.pitch_m)])
         .collect();
     let mut pairs = serde_json::Map::new();
     for p in &sel {
@@ -687,17 +678,20 @@ fn select_cmd(a: SelectArgs) -> Result<()> {
                 o.insert(k.into(), v.into());
             }
         }
-        pairs.insert(key(p), o.into());
+        pairs.insert(key(nm(p.height_m), nm(p.pitch_m)), o.into());
     }
     let mut viable_map = Vec::with_capacity(sel.len() * 8);
     for p in &sel {
         viable_map.push(if p.viable { 1.0 } else { 0.0 });
     }
     let shape = [data.heights_m.len() as u64, data.pitches_m.len() as u64];
-    sweep::write_atomic(
-        &figdir.join("viable.npy"),
-        &sweep::npy_bytes(&shape, &viable_map)?,
-    )?;
+    files.push((
+        figdir.join("viable.npy"),
+        sweep::npy_bytes(&shape, &viable_map)?,
+    ));
+    // The figures and the map as one set: a full disk left five of ten files before.
+    let files = sweep::write_set(&figdir, &files)
+        .with_context(|| format!("--figures {}", figdir.display()))?;
     if a.json {
         let v = serde_json::json!({"viable": viable, "pairs": pairs, "figures": files});
         println!("{}", serde_json::to_string(&v)?);
@@ -708,7 +702,7 @@ fn select_cmd(a: SelectArgs) -> Result<()> {
             sel.len(),
             figdir.display()
         );
-        let k = format!("{}x{}", mark_height_nm.round(), mark_pitch_nm.round());
+        let k = key(nm(mark_height_nm * 1e-9), nm(mark_pitch_nm * 1e-9));
         if let Some(p) = pairs.get(&k) {
             println!("{k}: {p}");
         }
@@ -851,6 +845,9 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
     Ok(())
 }
 
+/// Most (height, diameter) cells one index's curves of `material-study` hold: 10⁶, 32 MB.
+const MAX_STUDY_CELLS: f64 = 1e6;
+
 fn study_cmd(a: StudyArgs) -> Result<()> {
     let (lo, hi) = WAVELENGTH_RANGE_M;
     let wavelength_m = nm("--wavelength-nm", a.wavelength_nm)?;
@@ -867,11 +864,23 @@ fn study_cmd(a: StudyArgs) -> Result<()> {
         bail!("--pitch-nm: must be > 0, got {}", a.pitch_nm);
     }
     let heights = range("--heights-nm", &a.heights_nm, 1e-9)?;
-    let target = nm("--height-nm", a.height_nm)?;
-    let on_grid = heights
+    let height_values = heights
         .values("heights")
-        .map_err(|e| anyhow!("--heights-nm: {e}"))?
-        .into_iter()
+        .map_err(|e| anyhow!("--heights-nm: {e}"))?;
+    if let Some(h) = height_values
+        .iter()
+        .find(|h| !(0.0..=sweep::MAX_HEIGHT_M).contains(*h))
+    {
+        bail!(
+            "--heights-nm: height {} nm outside [0, {:e}] nm",
+            h * 1e9,
+            sweep::MAX_HEIGHT_M * 1e9
+        );
+    }
+    let target = nm("--height-nm", a.height_nm)?;
+    let on_grid = height_values
+        .iter()
+        .copied()
         .find(|h| (h - target).abs() <= 1e-6 * target.abs().max(1e-9));
     let Some(target_height_m) = on_grid else {
         bail!(
@@ -924,12 +933,31 @@ fn study_cmd(a: StudyArgs) -> Result<()> {
         dispersion::by_name(m).map_err(|e| anyhow!("--materials: {}", flagify(&e.to_string())))?;
     }
     let fractions = range("--fractions", &a.fractions, 1.0)?;
-    let solves = (materials.len() + n_values.len() * k_values.len()) as f64
-        * fractions.values("fractions").map_or(0, |v| v.len()) as f64;
+    let nd = fractions.values("fractions").map_or(0, |v| v.len()) as f64;
+    let indices = (materials.len() + n_values.len() * k_values.len()) as f64;
+    let solves = indices * nd;
     if solves > 1e6 {
         bail!(
             "--n-values/--k-values/--materials/--fractions: {solves:e} eigen-solves is more than 1e6 \
              (the default study is 7728)"
+        );
+    }
+    // Each solve is then propagated to every height and held as one index's curves (32 bytes
+    // a cell): 10⁵ heights × 1601 diameters asked for 1.3 GB at once (an allocation abort)
+    // under the solve count's bound.
+    let cells = nd * height_values.len() as f64;
+    if cells > MAX_STUDY_CELLS {
+        bail!(
+            "--heights-nm/--fractions: {cells:e} (height, diameter) cells is more than \
+             {MAX_STUDY_CELLS:e} (the default study has 6601)"
+        );
+    }
+    if cells * indices > MAX_STUDY_CELLS * 100.0 {
+        bail!(
+            "--heights-nm/--fractions/--n-values/--k-values/--materials: {:e} cells over every \
+             index is more than {:e} (the default study has 3.2e5)",
+            cells * indices,
+            MAX_STUDY_CELLS * 100.0
         );
     }
     let cfg = nanoeye_metalib::study::StudyConfig {
@@ -955,7 +983,17 @@ fn study_cmd(a: StudyArgs) -> Result<()> {
         );
     });
     faer::set_global_parallelism(saved);
-    let points = out.map_err(|e| anyhow!("{}", cell_flags(&e.to_string())))?;
+    let points = out.map_err(|e| {
+        let msg = e.to_string();
+        match msg.strip_prefix("numerical failure: ") {
+            // This command's flags, not `metalib cell`'s.
+            Some(rest) => anyhow!(
+                "--pitch-nm/--heights-nm/--fractions/--harmonics or the pillar indices \
+                 (--n-values, --k-values, --materials): {rest}"
+            ),
+            None => anyhow!("{}", cell_flags(&msg)),
+        }
+    })?;
     let secs = t0.elapsed().as_secs_f64();
     let variants: Vec<serde_json::Value> = nanoeye_metalib::study::criteria_variants()
         .iter()

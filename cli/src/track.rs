@@ -225,18 +225,19 @@ impl NpyStream {
 /// Opens an NPY file of frames: a regular file whose shape has at most three dimensions of at
 /// most 65536, in C order, f32 or f64.
 fn open_npy(path: &Path) -> Result<NpyStream> {
-    use std::io::BufRead;
     // A FIFO or a device named *.npy would be read without end.
     if !std::fs::metadata(path)?.is_file() {
         bail!("not a regular file");
     }
-    let mut rd = std::io::BufReader::with_capacity(1 << 16, std::fs::File::open(path)?);
-    // Before the NPY parser multiplies the dimensions unchecked.
-    if let Some(d) = nanoeye_metalib::sweep::npy_header_dims(rd.fill_buf()?) {
+    // Before the NPY parser allocates the header length it reads and multiplies the
+    // dimensions unchecked. A file cut short passes: its frames up to the cut are read.
+    if let Some(c) = nanoeye_npy::claim_file(path)?.map_err(anyhow::Error::msg)? {
+        let d = c.dims;
         if d.len() > 3 || d.iter().any(|&v| v == 0 || v > 1 << 16) {
             bail!("implausible shape {d:?}");
         }
     }
+    let rd = std::io::BufReader::with_capacity(1 << 16, std::fs::File::open(path)?);
     let npy = npyz::NpyFile::new(rd)?;
     let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
     if shape.iter().any(|&d| d == 0 || d > 1 << 16) || shape.len() > 3 {

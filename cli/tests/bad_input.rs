@@ -455,7 +455,9 @@ fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
         "--lens",
         p,
     );
-    assert!(e.contains("20000"), "{e}");
+    // Named by its shape: beyond the aperture grid's 20000², or (since the NPY preamble is
+    // checked first) beyond what the file's 16 bytes of data hold.
+    assert!(e.contains("4294967296"), "{e}");
     // The blueprint's reader too: the wrapped count read as an empty 2³²×2³² map, which
     // panicked indexing it after a sweep.
     let e = refused(
@@ -2379,4 +2381,161 @@ fn fisher_init_checks_every_output_before_writing_any() {
     let e = init("fc");
     assert!(e.contains("checkpoint"), "{e}");
     assert_eq!(entries(&p.join("fc")), ["checkpoint"], "{e}");
+}
+
+/// A sweep directory's files as an attacker or a failed copy leaves them: refused naming
+/// `--sweep`, never hung on or allocated for; the figure set and the study's JSON complete.
+#[test]
+fn metalib_select_and_study_refuse_crafted_sweeps_and_print_no_null() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let sweep = |out: &str, heights: &str, fractions: &str| {
+        let args = [
+            "metalib",
+            "sweep",
+            "--out",
+            out,
+            "--harmonics",
+            "1",
+            "--heights-nm",
+            heights,
+            "--pitches-nm",
+            "500:500:10",
+            "--fractions",
+            fractions,
+        ];
+        succeeded(nanoeye(&args, p));
+    };
+    sweep("sw", "700:700.4:0.2", "0.3:0.5:0.1");
+    let select = |dir: &str| {
+        let figures = format!("{dir}_fig");
+        let args = [
+            "metalib",
+            "select",
+            "--sweep",
+            dir,
+            "--figures",
+            &figures,
+            "--json",
+        ];
+        nanoeye(&args, p)
+    };
+    // Pairs 0.2 nm apart keep their own keys (whole nm merged them into one).
+    let out = succeeded(select("sw"));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let keys: Vec<&String> = v["pairs"].as_object().unwrap().keys().collect();
+    assert_eq!(keys, ["700.2x500", "700.4x500", "700x500"], "{v}");
+    // One diameter: figures drawn around it, not "no finite points to plot".
+    sweep("one", "700:700:10", "0.5:0.5:0.1");
+    let out = succeeded(select("one"));
+    assert!(!String::from_utf8_lossy(&out.stdout).contains("null"));
+
+    let copy = |name: &str| {
+        let to = p.join(name);
+        std::fs::create_dir(&to).unwrap();
+        for f in [
+            "manifest.json",
+            "phase.npy",
+            "transmittance.npy",
+            "t_re.npy",
+            "t_im.npy",
+        ] {
+            std::fs::copy(p.join("sw").join(f), to.join(f)).unwrap();
+        }
+        to
+    };
+    let manifest = std::fs::read_to_string(p.join("sw/manifest.json")).unwrap();
+    let edited = |f: &dyn Fn(&mut serde_json::Value)| {
+        let mut m: serde_json::Value = serde_json::from_str(&manifest).unwrap();
+        f(&mut m);
+        m.to_string()
+    };
+    // A 27-byte phase.npy whose version-2 header claims 4 GiB (npyz allocated it: abort).
+    let huge = copy("huge");
+    let mut npy = b"\x93NUMPY\x02\x00".to_vec();
+    npy.extend(0xFFFF_FFF0u32.to_le_bytes());
+    npy.extend(b"{'descr': '<f8'");
+    std::fs::write(huge.join("phase.npy"), npy).unwrap();
+    let err = String::from_utf8_lossy(&select("huge").stderr).to_string();
+    assert!(err.contains("--sweep") && err.contains("header"), "{err}");
+    for (name, m, what) in [
+        // Heights of 1e300 m hung the plotting of their axis; 1 m was reported viable.
+        (
+            "tall",
+            edited(&|m| {
+                m["config"]["heights_m"] =
+                    serde_json::json!({"start": 1e300, "stop": 1e300, "step": 1e-7})
+            }),
+            "heights",
+        ),
+        (
+            "wide",
+            edited(&|m| {
+                m["config"]["fractions"] = serde_json::json!({"start": 5, "stop": 50, "step": 5})
+            }),
+            "fractions",
+        ),
+        (
+            "future",
+            edited(&|m| m["version"] = serde_json::json!(999)),
+            "version",
+        ),
+    ] {
+        std::fs::write(copy(name).join("manifest.json"), m).unwrap();
+        let out = select(name);
+        let err = String::from_utf8_lossy(&out.stderr).to_string();
+        assert!(!out.status.success(), "{name}: {err}");
+        assert!(
+            err.contains("--sweep") && err.contains(what),
+            "{name}: {err}"
+        );
+        assert!(!p.join(format!("{name}_fig")).exists(), "{name}");
+    }
+    // The manifest a FIFO: refused, not read forever.
+    let fifo = copy("fifo");
+    std::fs::remove_file(fifo.join("manifest.json")).unwrap();
+    let made = std::process::Command::new("mkfifo")
+        .arg(fifo.join("manifest.json"))
+        .status()
+        .unwrap();
+    assert!(made.success());
+    refused(
+        &["metalib", "select", "--sweep", "fifo", "--json"],
+        "regular file",
+        p,
+    );
+
+    // material-study: an index without a 2π window leaves its keys out (they were null), and
+    // heights × diameters beyond what one index's curves may hold are refused by flag.
+    let study = [
+        "metalib",
+        "material-study",
+        "--harmonics",
+        "1",
+        "--fractions",
+        "0.1:0.9:0.1",
+        "--n-values",
+        "1.5:1.5:1",
+        "--k-values",
+        "0",
+        "--materials",
+        "none",
+        "--heights-nm",
+        "700:700:10",
+        "--json",
+    ];
+    let out = succeeded(nanoeye(&study, p));
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(
+        !text.contains("null") && !text.contains("min_transmittance_2pi"),
+        "{text}"
+    );
+    let mut big = study;
+    big[13] = "0:99999:1";
+    big[5] = "0.1:0.9:0.0005";
+    refused(&big, "--heights-nm", p);
+    let mut tall = study.to_vec();
+    tall.splice(12..14, ["--heights-nm=-100:700:100"]);
+    let err = refused(&tall, "--heights-nm", p);
+    assert!(err.contains("-100"), "{err}");
 }

@@ -226,8 +226,13 @@ pub fn curves_svg(
     for &(x, y, _) in pts.filter(|p| p.0.is_finite() && p.1.is_finite()) {
         (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
     }
-    if x0 >= x1 || y0 > y1 {
+    if x0 > x1 || y0 > y1 {
         return Err(MetalibError::Numerical("no finite points to plot".into()));
+    }
+    if x0 == x1 {
+        // One x (a sweep of one diameter): an axis around it.
+        let pad = (x0.abs() * 0.05).max(1e-9);
+        (x0, x1) = (x0 - pad, x1 + pad);
     }
     let pad = 0.05 * (y1 - y0).max(1e-9);
     let mut svg = String::new();

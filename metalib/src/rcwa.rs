@@ -63,6 +63,10 @@ pub const WAVELENGTH_RANGE_M: (f64, f64) = (1e-7, 1e-4);
 /// Largest pitch / wavelength ratio: beyond it the retained orders cannot resolve the
 /// propagating ones (1e-3 nm at a 530 nm pitch gave R = 4.9e6).
 pub const MAX_PITCH_PER_WAVELENGTH: f64 = 20.0;
+/// Smallest pitch / wavelength ratio: a pitch of 1e-300 nm made the grating vector overflow
+/// (a non-finite response); a thousandth of a wavelength is far inside the effective-medium
+/// regime, where every metasurface pillar is larger.
+pub const MIN_PITCH_PER_WAVELENGTH: f64 = 1e-3;
 /// Modes whose one-way amplitude factor |e^{iγk₀h}| is below this are dropped from the
 /// height-dependent multiple-reflection solve of [`LayerModes::at_height`] (their contribution
 /// is below this size; R + T = 1 holds to ~1e-12 for lossless pillars).
@@ -114,6 +118,15 @@ impl CellSpec {
         }
         if !(self.pitch_m.is_finite() && self.pitch_m > 0.0) {
             return Err(MetalibError::param("pitch", "must be finite and > 0"));
+        }
+        if self.pitch_m < MIN_PITCH_PER_WAVELENGTH * self.wavelength_m {
+            return Err(MetalibError::param(
+                "pitch",
+                format!(
+                    "pitch {} m is below {MIN_PITCH_PER_WAVELENGTH} wavelengths ({} m)",
+                    self.pitch_m, self.wavelength_m
+                ),
+            ));
         }
         if self.pitch_m > MAX_PITCH_PER_WAVELENGTH * self.wavelength_m {
             return Err(MetalibError::param(

@@ -2,7 +2,7 @@
 
 use crate::error::MetalibError;
 use crate::plot::{Canvas, Curve, colormap, curves_svg, heatmap_svg};
-use crate::sweep::{SweepData, check_output_target, write_atomic};
+use crate::sweep::SweepData;
 use rayon::prelude::*;
 use std::f64::consts::PI;
 use std::path::Path;
@@ -78,6 +78,91 @@ pub fn unwrap(phase: &[f64]) -> Vec<f64> {
     out
 }
 
+/// `good` less every diameter within `buffer` (m) of one that is not good. Diameters in
+/// ascending order take one pass and a difference array (each bad diameter's reach found by
+/// bisection with the same comparison): a buffer around every bad cell of a 10⁵-diameter
+/// curve took 10 s cell by cell, the quadratic loop kept for an unordered curve.
+fn buffered(diameters_m: &[f64], good: &[bool], buffer: f64) -> Vec<bool> {
+    let near = |a: f64, b: f64| (a - b).abs() <= buffer;
+    let mut usable = good.to_vec();
+    if !diameters_m.windows(2).all(|w| w[0] <= w[1]) {
+        for j in (0..good.len()).filter(|&j| !good[j]) {
+            for (u, &d) in usable.iter_mut().zip(diameters_m) {
+                *u &= !near(d, diameters_m[j]);
+            }
+        }
+        return usable;
+    }
+    // cover[i] counts the bad diameters whose reach starts at or before i, less those whose
+    // reach ended before it.
+    let mut cover = vec![0i64; good.len() + 1];
+    for j in (0..good.len()).filter(|&j| !good[j]) {
+        let dj = diameters_m[j];
+        let lo = diameters_m.partition_point(|&d| d < dj && !near(d, dj));
+        let hi = diameters_m.partition_point(|&d| d <= dj || near(d, dj));
+        cover[lo] += 1;
+        cover[hi] -= 1;
+    }
+    let mut depth = 0;
+    for (u, c) in usable.iter_mut().zip(&cover) {
+        depth += c;
+        *u &= depth == 0;
+    }
+    usable
+}
+
+/// Fig. S4a's quantity: the largest minimum τ over a run of neighbouring diameters whose
+/// unwrapped phase spans 2π (NaN where none does; NaN cells are passed over). Only each
+/// start's shortest such run counts (a longer one's minimum is no larger), and the shortest
+/// run's end never moves back as its start moves on: one pass with monotone queues for the
+/// window's phase extremes and least τ. The search from every start took O(n²) on a curve
+/// that never spans 2π (a lossy pillar over 10⁵ diameters ran past a minute).
+fn min_tau_over_2pi(uw: &[f64], tau: &[f64]) -> f64 {
+    use std::collections::VecDeque;
+    /// Keeps the queue's values monotone for `keep(back, new)`; NaN values never enter.
+    fn push(q: &mut VecDeque<usize>, v: &[f64], j: usize, keep: fn(f64, f64) -> bool) {
+        if v[j].is_nan() {
+            return;
+        }
+        while q.back().is_some_and(|&b| !keep(v[b], v[j])) {
+            q.pop_back();
+        }
+        q.push_back(j);
+    }
+    let (mut lo, mut hi, mut least) = (VecDeque::new(), VecDeque::new(), VecDeque::new());
+    let spans = |lo: &VecDeque<usize>, hi: &VecDeque<usize>| match (lo.front(), hi.front()) {
+        (Some(&a), Some(&b)) => uw[b] - uw[a] >= 2.0 * PI,
+        _ => false,
+    };
+    let mut best = f64::NAN;
+    let mut j = 0;
+    for i in 0..uw.len() {
+        for q in [&mut lo, &mut hi, &mut least] {
+            while q.front().is_some_and(|&f| f < i) {
+                q.pop_front();
+            }
+        }
+        while !spans(&lo, &hi) && j < uw.len() {
+            push(&mut lo, uw, j, |b, x| b < x);
+            push(&mut hi, uw, j, |b, x| b > x);
+            push(&mut least, tau, j, |b, x| b < x);
+            j += 1;
+        }
+        if !spans(&lo, &hi) {
+            // The window reaches the last diameter: no later start spans 2π either.
+            break;
+        }
+        if let Some(&m) = least.front() {
+            best = if best.is_nan() {
+                tau[m]
+            } else {
+                best.max(tau[m])
+            };
+        }
+    }
+    best
+}
+
 /// Applies the criteria to one diameter curve (diameters ascending, m).
 pub fn select_curve(
     height_m: f64,
@@ -92,14 +177,7 @@ pub fn select_curve(
     let good: Vec<bool> = (0..n)
         .map(|j| tau[j].is_finite() && phase[j].is_finite() && tau[j] >= c.min_transmittance)
         .collect();
-    let mut usable = good.clone();
-    for j in (0..n).filter(|&j| !good[j]) {
-        for (i, u) in usable.iter_mut().enumerate() {
-            if (diameters_m[i] - diameters_m[j]).abs() <= c.buffer_m + 1e-15 {
-                *u = false;
-            }
-        }
-    }
+    let usable = buffered(diameters_m, &good, c.buffer_m + 1e-15);
     // Runs of neighbouring usable diameters with one strict monotonic direction and bounded slope.
     let mut best: Option<(usize, usize, f64)> = None;
     let mut start = None::<usize>;
@@ -153,27 +231,7 @@ pub fn select_curve(
     if let Some(s) = start {
         close(s, n - 1, &mut best);
     }
-    // Fig. S4a: best window spanning 2π.
-    let mut min_tau_2pi = f64::NAN;
-    for i in 0..n {
-        let (mut lo, mut hi, mut mt) = (uw[i], uw[i], tau[i]);
-        for j in i..n {
-            lo = lo.min(uw[j]);
-            hi = hi.max(uw[j]);
-            mt = mt.min(tau[j]);
-            if !(min_tau_2pi.is_nan() || mt > min_tau_2pi) {
-                break;
-            }
-            if hi - lo >= 2.0 * PI {
-                min_tau_2pi = if min_tau_2pi.is_nan() {
-                    mt
-                } else {
-                    min_tau_2pi.max(mt)
-                };
-                break;
-            }
-        }
-    }
+    let min_tau_2pi = min_tau_over_2pi(&uw, tau);
     let (run, dmin, dmax, cov) = match best {
         Some((s, e, cov)) => (Some((s, e)), diameters_m[s], diameters_m[e], cov),
         None => (None, f64::NAN, f64::NAN, 0.0),
@@ -260,6 +318,19 @@ pub fn write_figures(
     mark: Option<(f64, f64)>,
     curve_pitch_m: f64,
 ) -> Result<Vec<String>, MetalibError> {
+    let files = render_figures(dir, data, sel, mark, curve_pitch_m)?;
+    crate::sweep::write_set(dir, &files)
+}
+
+/// The files of [`write_figures`] (paths in `dir`, bytes), rendered in memory, for a caller
+/// that writes them with files of its own as one set ([`crate::sweep::write_set`]).
+pub fn render_figures(
+    dir: &Path,
+    data: &SweepData,
+    sel: &[PairSelection],
+    mark: Option<(f64, f64)>,
+    curve_pitch_m: f64,
+) -> Result<Vec<(std::path::PathBuf, Vec<u8>)>, MetalibError> {
     for (name, v) in [
         ("mark", mark.map_or(1.0, |m| m.0.min(m.1))),
         ("curve_pitch_m", curve_pitch_m),
@@ -271,10 +342,6 @@ pub fn write_figures(
             ));
         }
     }
-    std::fs::create_dir_all(dir).map_err(|e| MetalibError::Io {
-        path: dir.display().to_string(),
-        cause: e,
-    })?;
     let (nh, ns) = (data.heights_m.len(), data.pitches_m.len());
     let nearest = |v: &[f64], x: f64| {
         v.iter()
@@ -284,8 +351,8 @@ pub fn write_figures(
             .unwrap_or(0)
     };
     let mark_idx = mark.map(|(h, s)| (nearest(&data.heights_m, h), nearest(&data.pitches_m, s)));
-    // Everything is rendered in memory first and written only when every figure succeeded,
-    // so a failure never leaves a half-updated figure directory.
+    // Everything is rendered in memory first and written as one set ([`write_set`]), so a
+    // failure never leaves a half-updated figure directory.
     let mut files: Vec<(std::path::PathBuf, Vec<u8>)> = Vec::new();
     let min_tau: Vec<f64> = sel.iter().map(|p| p.min_transmittance_2pi).collect();
     let aspect: Vec<f64> = sel.iter().map(|p| p.max_aspect_ratio).collect();
@@ -398,7 +465,12 @@ pub fn write_figures(
         }
     }
     files.push((dir.join("figS5_phase_curves.png"), c.png()?));
-    if !curves.is_empty() {
+    // Curves without a finite point (every cell of the pitch failed) have no axes to draw.
+    let plottable = curves
+        .iter()
+        .flat_map(|c| &c.points)
+        .any(|p| p.0.is_finite() && p.1.is_finite());
+    if plottable {
         let svg = curves_svg(
             &format!(
                 "Fig. S5: unwrapped phase vs diameter at s = {:.0} nm (solid where τ ≥ 0.90)",
@@ -411,13 +483,97 @@ pub fn write_figures(
         files.push((dir.join("figS5_phase_curves.svg"), svg.into_bytes()));
     }
     files.push((dir.join("figS5_phase_curves.csv"), csv.into_bytes()));
-    for (p, _) in &files {
-        check_output_target(p)?;
+    Ok(files)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The ascending path's buffer equals the cell-by-cell one, on curves with repeated
+    /// diameters, bad cells at the ends and in runs, and buffers from none to the whole curve.
+    /// The largest minimum τ over the shortest 2π runs, from every start by brute force.
+    fn min_tau_2pi_brute(uw: &[f64], tau: &[f64]) -> f64 {
+        let mut best = f64::NAN;
+        for i in 0..uw.len() {
+            let (mut lo, mut hi, mut mt) = (f64::NAN, f64::NAN, f64::NAN);
+            for j in i..uw.len() {
+                (lo, hi, mt) = (lo.min(uw[j]), hi.max(uw[j]), mt.min(tau[j]));
+                if hi - lo >= 2.0 * PI {
+                    if !mt.is_nan() {
+                        best = if best.is_nan() { mt } else { best.max(mt) };
+                    }
+                    break;
+                }
+            }
+        }
+        best
     }
-    let mut written = Vec::with_capacity(files.len());
-    for (p, bytes) in files {
-        write_atomic(&p, &bytes)?;
-        written.push(p.display().to_string());
+
+    #[test]
+    fn min_tau_over_2pi_in_one_pass_equals_every_start_searched() {
+        let mut state = 99u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 33) as f64 / (1u64 << 31) as f64
+        };
+        for trial in 0..2000 {
+            let n = trial % 30;
+            // Phases that wander up and down by up to 2 rad a step, a few NaN cells.
+            let mut p = 0.0;
+            let uw: Vec<f64> = (0..n)
+                .map(|_| {
+                    p += (next() - 0.4) * 2.0;
+                    if next() < 0.05 { f64::NAN } else { p }
+                })
+                .collect();
+            let tau: Vec<f64> = (0..n)
+                .map(|_| if next() < 0.05 { f64::NAN } else { next() })
+                .collect();
+            let (a, b) = (min_tau_over_2pi(&uw, &tau), min_tau_2pi_brute(&uw, &tau));
+            assert!(
+                a == b || (a.is_nan() && b.is_nan()),
+                "{uw:?} {tau:?}: {a} vs {b}"
+            );
+        }
+        // A curve that never spans 2π: NaN, at 10⁵ diameters in one pass.
+        let uw: Vec<f64> = (0..100_000).map(|i| i as f64 * 1e-5).collect();
+        assert!(min_tau_over_2pi(&uw, &vec![0.5; uw.len()]).is_nan());
     }
-    Ok(written)
+
+    #[test]
+    fn the_buffer_by_difference_array_equals_the_quadratic_loop() {
+        let mut state = 12345u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 33) as f64 / (1u64 << 31) as f64
+        };
+        for trial in 0..300 {
+            let n = 1 + trial % 40;
+            let mut d: Vec<f64> = (0..n).map(|_| (next() * 20.0).round() * 1e-8).collect();
+            d.sort_by(f64::total_cmp);
+            let good: Vec<bool> = (0..n).map(|_| next() > 0.3).collect();
+            for buffer in [0.0, 1e-15, 1e-8 + 1e-15, 3.3e-8, 1e-6] {
+                let mut slow = good.clone();
+                for j in (0..n).filter(|&j| !good[j]) {
+                    for i in 0..n {
+                        if (d[i] - d[j]).abs() <= buffer {
+                            slow[i] = false;
+                        }
+                    }
+                }
+                assert_eq!(buffered(&d, &good, buffer), slow, "{d:?} {good:?} {buffer}");
+            }
+        }
+        // An unordered curve takes the quadratic loop: the same answer as before.
+        let d = [3e-8, 1e-8, 2e-8];
+        assert_eq!(
+            buffered(&d, &[true, false, true], 1.5e-8),
+            vec![true, false, false]
+        );
+    }
 }

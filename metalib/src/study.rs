@@ -187,12 +187,7 @@ fn grid(cfg: &StudyConfig) -> Result<(Vec<f64>, Vec<f64>), MetalibError> {
             format!("fraction {f} outside (0, 1]"),
         ));
     }
-    if let Some(h) = heights.iter().find(|h| **h < 0.0) {
-        return Err(MetalibError::param(
-            "heights",
-            format!("negative height {h}"),
-        ));
-    }
+    crate::sweep::check_heights(&heights)?;
     Ok((heights, fractions))
 }
 
@@ -251,12 +246,15 @@ pub struct VariantOutcome {
     pub variant: &'static str,
     /// Whether the target (h, s) is viable.
     pub viable: bool,
-    /// Usable run (nm), if any run exists.
+    /// Usable run (nm), if any run exists (absent from the JSON otherwise).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub usable_range_nm: Option<[f64; 2]>,
     /// Phase coverage of the best run (rad).
     pub coverage_rad: f64,
     /// Shortest diameter window (nm) inside the usable run whose phase span reaches the
-    /// variant's required coverage (a viable run can be trimmed to it), if the run reaches it.
+    /// variant's required coverage (a viable run can be trimmed to it), if the run reaches it
+    /// (absent from the JSON otherwise).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub shortest_window_nm: Option<[f64; 2]>,
     /// Viable and both ends of the usable run, or of its shortest window, within the
     /// tolerance of the paper's 100–275 nm.
@@ -276,6 +274,7 @@ pub struct PointOutcome {
     pub k: f64,
     /// Fig. S4a quantity at the target height: largest minimum τ over a diameter window
     /// spanning 2π (absent when no window spans 2π).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub min_transmittance_2pi: Option<f64>,
     /// One entry per criteria variant, in [`criteria_variants`] order.
     pub variants: Vec<VariantOutcome>,

@@ -196,11 +196,18 @@ pub fn check_output_target(path: &Path) -> Result<(), MetalibError> {
 /// Refuses to replace anything but a regular file (a symlink, pipe, device or directory would
 /// silently become a plain file).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MetalibError> {
+    check_output_target(path)?;
+    let tmp = stage(path, bytes)?;
+    tmp.persist(path).map_err(|e| io_err(path, e.error))?;
+    Ok(())
+}
+
+/// `bytes` written in full to a temporary file beside `path`, to be persisted there.
+fn stage(path: &Path, bytes: &[u8]) -> Result<tempfile::NamedTempFile, MetalibError> {
     let dir = path
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
-    check_output_target(path)?;
     // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
     let mut tmp = tempfile::Builder::new()
         .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
@@ -215,8 +222,36 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MetalibError> {
             .set_permissions(std::fs::Permissions::from_mode(0o644))
             .map_err(|e| io_err(path, e))?;
     }
-    tmp.persist(path).map_err(|e| io_err(path, e.error))?;
-    Ok(())
+    Ok(tmp)
+}
+
+/// Writes a set of files into `dir` (created with its parents where missing) as one unit:
+/// every target is checked and every file written in full beside it before the first is
+/// renamed into place, so a full disk or a bad target leaves none of them (and no directory
+/// this call created) rather than half a set. Returns the paths written, in order.
+pub fn write_set(dir: &Path, files: &[(PathBuf, Vec<u8>)]) -> Result<Vec<String>, MetalibError> {
+    for (p, _) in files {
+        check_output_target(p)?;
+    }
+    let created = !dir.exists();
+    std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e))?;
+    let staged: Result<Vec<_>, _> = files.iter().map(|(p, b)| stage(p, b)).collect();
+    let staged = match staged {
+        Ok(s) => s,
+        Err(e) => {
+            // The temporary files are gone with `staged`; an empty new directory goes too.
+            if created {
+                let _ = std::fs::remove_dir(dir);
+            }
+            return Err(e);
+        }
+    };
+    let mut written = Vec::with_capacity(files.len());
+    for (tmp, (p, _)) in staged.into_iter().zip(files) {
+        tmp.persist(p).map_err(|e| io_err(p, e.error))?;
+        written.push(p.display().to_string());
+    }
+    Ok(written)
 }
 
 /// Serialises a C-order f64 array as NPY bytes.
@@ -238,24 +273,6 @@ pub fn npy_bytes(shape: &[u64], data: &[f64]) -> Result<Vec<u8>, MetalibError> {
     Ok(buf)
 }
 
-/// The dimensions an NPY header's `'shape'` tuple claims, read before the NPY parser, which
-/// multiplies them in u64 unchecked (2³²×2³² overflowed there: a panic, or a wrapped count of
-/// 0); `None` when the header has none to read (the parser then reports the malformed header).
-pub fn npy_header_dims(bytes: &[u8]) -> Option<Vec<u128>> {
-    let head = &bytes[..bytes.len().min(1 << 16)];
-    let text = String::from_utf8_lossy(head);
-    let at = text.find("'shape'")?;
-    let rest = &text[at..];
-    let rest = &rest[rest.find('(')? + 1..];
-    let tuple = &rest[..rest.find(')')?];
-    tuple
-        .split(',')
-        .map(str::trim)
-        .filter(|t| !t.is_empty())
-        .map(|t| t.trim_end_matches('L').parse::<u128>().ok())
-        .collect()
-}
-
 /// Most values [`read_npy`] reads: 2 GiB of f64, far beyond any phase map or sweep.
 pub const MAX_NPY_VALUES: u128 = 1 << 28;
 
@@ -275,7 +292,9 @@ pub fn read_npy(path: &Path) -> Result<(Vec<u64>, Vec<f64>), MetalibError> {
         )));
     }
     let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
-    if let Some(d) = npy_header_dims(&bytes) {
+    // Before the NPY parser, which allocates the header length it reads and multiplies the
+    // dimensions unchecked.
+    if let Some(d) = nanoeye_npy::check(&bytes, bytes.len() as u64).map_err(fmt)? {
         let n = d.iter().try_fold(1u128, |a, &v| a.checked_mul(v));
         if n.is_none_or(|n| n > MAX_NPY_VALUES) {
             return Err(fmt(format!(
@@ -410,33 +429,53 @@ pub fn sweep_grid(config: &SweepConfig) -> Result<SweepGrid, MetalibError> {
             format!("fraction {f} outside [0, 1]"),
         ));
     }
-    if let Some(h) = heights.iter().find(|h| **h < 0.0) {
-        return Err(MetalibError::param(
-            "heights",
-            format!("negative height {h}"),
-        ));
-    }
+    check_heights(&heights)?;
     if let Some(s) = pitches.iter().find(|s| **s <= 0.0) {
         return Err(MetalibError::param(
             "pitches",
             format!("non-positive pitch {s}"),
         ));
     }
-    // Validate the materials/harmonics once with a representative cell.
-    CellSpec {
-        wavelength_m: config.wavelength_m,
-        pitch_m: pitches[0],
-        diameter_m: fractions[0] * pitches[0],
-        materials: config.materials,
-        harmonics: config.harmonics,
-        rule: config.rule,
+    // Validate the materials/harmonics with representative cells: the range's ends bound the
+    // pitch and the diameter (a loaded manifest's pitches of 1e300 m once reached the plots).
+    for (&pitch_m, &fraction) in [
+        (&pitches[0], &fractions[0]),
+        (&pitches[pitches.len() - 1], &fractions[fractions.len() - 1]),
+    ] {
+        CellSpec {
+            wavelength_m: config.wavelength_m,
+            pitch_m,
+            diameter_m: fraction * pitch_m,
+            materials: config.materials,
+            harmonics: config.harmonics,
+            rule: config.rule,
+        }
+        .validate()?;
     }
-    .validate()?;
     Ok(SweepGrid {
         heights_m: heights,
         pitches_m: pitches,
         fractions,
     })
+}
+
+/// Tallest pillar any command takes (m): 100 µm, two orders beyond any metasurface; a height
+/// of 1e300 nm passed every check and gave t = 0 or a non-finite response (and a loaded
+/// manifest's heights of 1e300 m hung the plotting of their axis).
+pub const MAX_HEIGHT_M: f64 = 1e-4;
+
+/// Refuses a height below 0 or above [`MAX_HEIGHT_M`], naming `heights`.
+pub fn check_heights(heights_m: &[f64]) -> Result<(), MetalibError> {
+    match heights_m
+        .iter()
+        .find(|h| !(0.0..=MAX_HEIGHT_M).contains(*h))
+    {
+        Some(h) => Err(MetalibError::param(
+            "heights",
+            format!("height {h} m outside [0, {MAX_HEIGHT_M}] m"),
+        )),
+        None => Ok(()),
+    }
 }
 
 /// Relative cost of solving one pitch's block (one eigen-solve per fraction, then every
@@ -586,12 +625,7 @@ pub fn open_sweep(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibE
     let mut manifest = fresh_manifest(config, &grid);
     let mpath = dir.join("manifest.json");
     if mpath.exists() {
-        let old: Manifest =
-            serde_json::from_slice(&std::fs::read(&mpath).map_err(|e| io_err(&mpath, e))?)
-                .map_err(|e| MetalibError::Format {
-                    path: mpath.display().to_string(),
-                    reason: e.to_string(),
-                })?;
+        let old = read_manifest(&mpath)?;
         if old.config != manifest.config || old.version != manifest.version {
             // Name what differs: the format, or the configuration's fields.
             let what = if old.version != manifest.version {
@@ -729,8 +763,7 @@ pub fn finish_sweep(
 /// of solving every cell again, since the checkpoints it would resume from are gone.
 pub fn completed_sweep(config: &SweepConfig, dir: &Path) -> Option<Manifest> {
     let grid = sweep_grid(config).ok()?;
-    let old: Manifest =
-        serde_json::from_slice(&std::fs::read(dir.join("manifest.json")).ok()?).ok()?;
+    let old = read_manifest(&dir.join("manifest.json")).ok()?;
     let fresh = fresh_manifest(config, &grid);
     let same = old.complete && old.config == fresh.config && old.version == fresh.version;
     (same && load_sweep(dir).is_ok()).then_some(old)
@@ -841,25 +874,52 @@ const MAX_PLAUSIBLE_T: f64 = 2.0;
 /// Phases are arg t in (−π, π] (a little slack for rounding).
 const PHASE_BOUND: f64 = std::f64::consts::PI + 1e-9;
 
+/// Largest manifest read (bytes): a manifest is a configuration and a few counts, under 1 KB.
+const MAX_MANIFEST_BYTES: u64 = 1 << 20;
+
+/// Reads a sweep's manifest: a regular file of at most [`MAX_MANIFEST_BYTES`] (a FIFO blocked
+/// the read, `/dev/zero` was read until memory ran out).
+fn read_manifest(path: &Path) -> Result<Manifest, MetalibError> {
+    let format = |reason: String| MetalibError::Format {
+        path: path.display().to_string(),
+        reason,
+    };
+    let meta = std::fs::metadata(path).map_err(|e| io_err(path, e))?;
+    if !meta.is_file() || meta.len() > MAX_MANIFEST_BYTES {
+        return Err(format(format!(
+            "not a regular file of at most {MAX_MANIFEST_BYTES} bytes"
+        )));
+    }
+    let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
+    serde_json::from_slice(&bytes).map_err(|e| format(e.to_string()))
+}
+
 /// Loads a completed sweep directory.
 pub fn load_sweep(dir: &Path) -> Result<SweepData, MetalibError> {
     let mpath = dir.join("manifest.json");
-    let manifest: Manifest = serde_json::from_slice(
-        &std::fs::read(&mpath).map_err(|e| io_err(&mpath, e))?,
-    )
-    .map_err(|e| MetalibError::Format {
+    let manifest = read_manifest(&mpath)?;
+    let format = |reason: String| MetalibError::Format {
         path: mpath.display().to_string(),
-        reason: e.to_string(),
-    })?;
-    if !manifest.complete {
-        return Err(MetalibError::Format {
-            path: mpath.display().to_string(),
-            reason: "sweep incomplete; rerun `sweep` to resume it".into(),
-        });
+        reason,
+    };
+    if manifest.version != SWEEP_FORMAT_VERSION {
+        return Err(format(format!(
+            "format version {}, this build reads {SWEEP_FORMAT_VERSION}",
+            manifest.version
+        )));
     }
-    let heights_m = manifest.config.heights_m.values("heights")?;
-    let pitches_m = manifest.config.pitches_m.values("pitches")?;
-    let fractions = manifest.config.fractions.values("fractions")?;
+    if !manifest.complete {
+        return Err(format(
+            "sweep incomplete; rerun `sweep` to resume it".into(),
+        ));
+    }
+    // The grid a sweep may have been run on, checked as a new sweep's is: heights of 1e300 m
+    // hung the plots, fractions above 1 and pitches of 0 were reported as pillars.
+    let SweepGrid {
+        heights_m,
+        pitches_m,
+        fractions,
+    } = sweep_grid(&manifest.config).map_err(|e| format(e.to_string()))?;
     let expect = [
         heights_m.len() as u64,
         pitches_m.len() as u64,

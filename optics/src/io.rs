@@ -37,10 +37,10 @@ pub fn read_phase_npy(path: &Path) -> Result<Mat<f64>> {
         ));
     }
     let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
-    // npyz multiplies the header's dimensions unchecked: 2³²×2³² overflowed inside it.
-    if let Some(d) =
-        nanoeye_metalib::sweep::npy_header_dims(&bytes).filter(|d| d.iter().any(|&v| v > 20_000))
-    {
+    // npyz allocates the header length it reads and multiplies the dimensions unchecked
+    // (2³²×2³² overflowed inside it).
+    let dims = nanoeye_npy::check(&bytes, bytes.len() as u64).map_err(|why| fmt_err(path, why))?;
+    if let Some(d) = dims.filter(|d| d.iter().any(|&v| v > 20_000)) {
         return Err(fmt_err(
             path,
             format!("shape {d:?}: larger than the aperture grid's 20000²"),

@@ -92,8 +92,27 @@ fn c_order_shape<R: std::io::Read>(
     Ok(shape)
 }
 
+/// Refuses what the NPY parser must not be given: a file that is not regular (a FIFO blocks
+/// the read, `/dev/zero` never ends it) and a preamble whose claims the file cannot hold
+/// ([`nanoeye_npy::check`]: npyz allocates a claimed header length and multiplies the
+/// dimensions unchecked).
+fn check_npy_file(path: &Path) -> Result<(), RenderError> {
+    let io = |e: std::io::Error| RenderError::Io {
+        path: path.display().to_string(),
+        cause: e,
+    };
+    if !std::fs::metadata(path).map_err(io)?.is_file() {
+        return Err(invalid(path, "not a regular file"));
+    }
+    nanoeye_npy::check_file(path)
+        .map_err(io)?
+        .map_err(|why| invalid(path, why))?;
+    Ok(())
+}
+
 /// Reads an f32 NPY file; returns (shape, data in C order).
 pub fn read_npy_f32(path: &Path) -> Result<(Vec<u64>, Vec<f32>), RenderError> {
+    check_npy_file(path)?;
     let bytes = std::fs::read(path).map_err(|e| RenderError::Io {
         path: path.display().to_string(),
         cause: e,
@@ -140,6 +159,7 @@ fn read_planes(
         path: path.display().to_string(),
         cause: e,
     };
+    check_npy_file(path)?;
     let file = std::fs::File::open(path).map_err(io)?;
     let mut rd = std::io::BufReader::with_capacity(1 << 20, file);
     let npy = npyz::NpyFile::new(&mut rd).map_err(|e| invalid(path, e))?;
@@ -462,10 +482,17 @@ mod tests {
         let bytes = std::fs::read(&p).unwrap();
         let short = dir.path().join("short.npy");
         std::fs::write(&short, &bytes[..bytes.len() - 4]).unwrap();
+        // Refused by the preamble's check, before the parser, for the data it lacks.
         let e = read_npy_planes(&short, &shape).unwrap_err().to_string();
-        assert!(e.contains("short.npy") && e.contains("data length"), "{e}");
+        assert!(
+            e.contains("short.npy") && e.contains("bytes of data"),
+            "{e}"
+        );
         let e = read_npy_plane_rows(&short, &shape).unwrap_err().to_string();
-        assert!(e.contains("short.npy") && e.contains("data length"), "{e}");
+        assert!(
+            e.contains("short.npy") && e.contains("bytes of data"),
+            "{e}"
+        );
         let e = read_npy_planes(&p, &[3, 2, h as u64, w as u64 + 1])
             .unwrap_err()
             .to_string();
