@@ -18,6 +18,10 @@ const MAX_RUNS: usize = 1000;
 /// Largest metric value read: far beyond any error in degrees or mm, and small enough that
 /// the squares in a standard error stay finite (a value of 1e308 made it null).
 const MAX_VALUE: f64 = 1e9;
+/// Largest effective pitch a run's result may report (µm): a sensor pixel of 1 mm.
+const MAX_PITCH_UM: f64 = 1000.0;
+/// Largest config.json or result.json read (bytes): a few hundred KB in practice.
+const MAX_RUN_FILE_BYTES: u64 = 64 << 20;
 
 /// Up to this many groups every pair is compared; beyond, each group against group A only
 /// (the pairs, and the text, grow with the square of the groups).
@@ -50,6 +54,14 @@ impl Metric {
             Metric::P95Deg => "p95_deg",
             Metric::SlipRmseMm => "slip_rmse_mm",
             Metric::Dice => "dice",
+        }
+    }
+
+    /// The values the metric can take: Dice in [0, 1], errors in [0, MAX_VALUE].
+    fn range(self) -> std::ops::RangeInclusive<f64> {
+        match self {
+            Metric::Dice => 0.0..=1.0,
+            _ => 0.0..=MAX_VALUE,
         }
     }
 
@@ -235,8 +247,12 @@ pub fn lens_names() -> Vec<String> {
 fn load(dir: &Path, lenses: &[String], metric: Metric) -> Result<(serde_json::Value, RunRow)> {
     let d = dir.display();
     let cpath = dir.join("config.json");
-    let text = std::fs::read_to_string(&cpath)
-        .with_context(|| format!("{d}: no config.json; is it the --out of `nanoeye run`?"))?;
+    if cpath.symlink_metadata().is_err() {
+        bail!("{d}: no config.json; is it the --out of `nanoeye run`?");
+    }
+    // Regular files of bounded size: a FIFO blocked the read, `/dev/zero` was read until
+    // memory ran out (and was then reported as a job not finished).
+    let text = util::read_small_text(&cpath, MAX_RUN_FILE_BYTES)?;
     let cfg: RunConfig = serde_json::from_str(&text)
         .with_context(|| format!("{}: not a run configuration", cpath.display()))?;
     let mut config = serde_json::to_value(&cfg)?;
@@ -244,26 +260,48 @@ fn load(dir: &Path, lenses: &[String], metric: Metric) -> Result<(serde_json::Va
         m.remove("seed");
     }
     let rpath = dir.join("result.json");
-    let text = std::fs::read_to_string(&rpath).with_context(|| {
-        format!(
+    if rpath.symlink_metadata().is_err() {
+        bail!(
             "{d}: no result.json, the job has not finished (resume it: `nanoeye run --out {d}` \
              with its configuration)"
-        )
-    })?;
+        );
+    }
+    let text = util::read_small_text(&rpath, MAX_RUN_FILE_BYTES)?;
     let r: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("{}: not JSON", rpath.display()))?;
     let key = metric.key();
+    let range = metric.range();
+    let value = |v: &serde_json::Value, what: &str| match v.as_f64() {
+        Some(x) if range.contains(&x) => Ok(x),
+        _ => Err(anyhow::anyhow!(
+            "{}: {what} is missing or not a value in [{}, {:e}]",
+            rpath.display(),
+            range.start(),
+            range.end()
+        )),
+    };
     let mut values = Vec::with_capacity(lenses.len());
     for lens in lenses {
-        match r["protocol"][lens][key].as_f64() {
-            Some(v) if (0.0..=MAX_VALUE).contains(&v) => values.push(v),
-            _ => bail!(
-                "{}: protocol.{lens}.{key} is missing or not a value in [0, {MAX_VALUE:e}]",
-                rpath.display()
-            ),
-        }
+        values.push(value(
+            &r["protocol"][lens][key],
+            &format!("protocol.{lens}.{key}"),
+        )?);
     }
-    let finite = |v: &serde_json::Value| v.as_f64().filter(|x| x.is_finite());
+    // Optional, but when present a value like the protocol's: a demo of 1e308 printed its
+    // mean as null and inf with exit 0.
+    let optional = |v: &serde_json::Value, what: &str| match v {
+        serde_json::Value::Null => Ok(None),
+        v => value(v, what).map(Some),
+    };
+    let demo = optional(&r["demo_sequence"][key], &format!("demo_sequence.{key}"))?;
+    let pitch_um = match r["pitch_um"].as_f64() {
+        None => None,
+        Some(p) if p > 0.0 && p <= MAX_PITCH_UM => Some(p),
+        Some(p) => bail!(
+            "{}: pitch_um {p} is not in (0, {MAX_PITCH_UM}] µm",
+            rpath.display()
+        ),
+    };
     let best = lenses[values
         .iter()
         .enumerate()
@@ -277,9 +315,9 @@ fn load(dir: &Path, lenses: &[String], metric: Metric) -> Result<(serde_json::Va
             seed: cfg.seed,
             group: String::new(),
             values,
-            demo: finite(&r["demo_sequence"][key]),
+            demo,
             macs: r["macs"].as_u64(),
-            pitch_um: finite(&r["pitch_um"]),
+            pitch_um,
             best,
         },
     ))
@@ -700,6 +738,20 @@ pub fn svg(c: &Comparison) -> String {
 
 /// `nanoeye compare`.
 pub fn run(a: CompareArgs) -> Result<()> {
+    if let Some(p) = &a.svg {
+        // The plot replaces --svg whole: given a run's file, it destroyed the run.
+        for run in &a.runs {
+            for name in ["config.json", "result.json"] {
+                if util::same_file(p, &run.join(name)) {
+                    bail!(
+                        "--svg: '{}' is {}'s {name}; give another path",
+                        p.display(),
+                        run.display()
+                    );
+                }
+            }
+        }
+    }
     let c = compare(&a.runs, a.metric)?;
     if let Some(p) = &a.svg {
         util::check_output_target(p).context("--svg")?;

@@ -144,8 +144,7 @@ pub fn run(cmd: Cmd) -> Result<()> {
                 };
             // The answers replace --out whole: given the query file, they would replace it.
             if let Some(o) = &out {
-                let same = |a: &Path, b: &Path| matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y);
-                if same(o, &input) {
+                if crate::util::same_file(o, &input) {
                     bail!("--out: '{}' is --input; give another path", o.display());
                 }
             }

@@ -3,7 +3,8 @@
 //! Model: a run directory of `search train` or `nanoeye run` (its `checkpoint.bin`, `rig.json`
 //! and, when present, the REA's selection in `rea_state.json`). Frames: DN images on the
 //! model's p̂ grid — NPY (f32 or f64, [H, W] or [N, H, W], e.g. `nanoeye sim`'s sensor.npy),
-//! 8-bit PNG (0–255 scaled to the ADC range), or raw frames on stdin, each a 16-byte header
+//! 8- or 16-bit grayscale PNG (full scale mapped to the ADC range), or raw frames on stdin,
+//! each a 16-byte header
 //! `NEYE`, u32 LE width, u32 LE height, u32 LE 0, then width·height f32 LE DN values.
 
 use anyhow::{Context, Result, bail};
@@ -15,6 +16,12 @@ use nanoeye_sensor::SensorConfig;
 use std::io::{BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+
+/// Largest recalibrated network file read from a run (bytes): the supernet's weights, tens of
+/// MB at the default sizes.
+const MAX_NET_BYTES: u64 = 4 << 30;
+/// Largest search state read from a run (bytes): the evaluated subnets' records.
+const MAX_STATE_BYTES: u64 = 256 << 20;
 
 /// `nanoeye track` options.
 #[derive(Debug, Args)]
@@ -77,16 +84,21 @@ fn load(a: &TrackArgs) -> Result<Model> {
         _ => None,
     };
     if let Some(p) = &recalibrated {
-        let b = std::fs::read(p).with_context(|| format!("--model {}", p.display()))?;
+        // Regular files of bounded size, like every file of the run read here: a FIFO blocked
+        // the read and `/dev/zero` was read until memory ran out.
+        let b = crate::util::read_small(p, MAX_NET_BYTES)
+            .with_context(|| format!("--model {}", p.display()))?;
         nanoeye_nets::checkpoint::from_bytes(&mut net, &b)
             .with_context(|| format!("--model {}", p.display()))?;
     }
-    let rig_text = std::fs::read_to_string(a.model.join("rig.json")).with_context(|| {
-        format!(
-            "--model {}: rig.json (re-run `search train`)",
-            a.model.display()
-        )
-    })?;
+    let rig_text =
+        crate::util::read_small_text(&a.model.join("rig.json"), crate::util::MAX_ARCH_BYTES)
+            .with_context(|| {
+                format!(
+                    "--model {}: rig.json (re-run `search train`)",
+                    a.model.display()
+                )
+            })?;
     let rig0 =
         Rig::from_json(&rig_text).with_context(|| format!("--model {}", a.model.display()))?;
     let cam = rig0
@@ -102,7 +114,8 @@ fn load(a: &TrackArgs) -> Result<Model> {
         "min" => Arch::min(),
         "max" => Arch::max(),
         "best" if have_tuned => {
-            let t = std::fs::read_to_string(&tuned_arch)?;
+            let t = crate::util::read_small_text(&tuned_arch, crate::util::MAX_ARCH_BYTES)
+                .with_context(|| format!("--model {}", tuned_arch.display()))?;
             serde_json::from_str(&t).with_context(|| format!("--model {}", tuned_arch.display()))?
         }
         "best" => best_arch(&a.model)?.unwrap_or_else(Arch::min),
@@ -149,11 +162,11 @@ fn load(a: &TrackArgs) -> Result<Model> {
 /// error, not the min subnet in its place.
 fn best_arch(run: &Path) -> Result<Option<Arch>> {
     let p = run.join("rea_state.json");
-    let text = match std::fs::read_to_string(&p) {
-        Ok(t) => t,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => return Err(e).with_context(|| format!("--model: {}", p.display())),
-    };
+    if !p.exists() && p.symlink_metadata().is_err() {
+        return Ok(None);
+    }
+    let text = crate::util::read_small_text(&p, MAX_STATE_BYTES)
+        .with_context(|| format!("--model: {}", p.display()))?;
     let st: nanoeye_search::ReaState = serde_json::from_str(&text)
         .with_context(|| format!("--model: {} is not a search state", p.display()))?;
     Ok(
@@ -169,7 +182,11 @@ type Frame = std::result::Result<(String, Mat<f32>), String>;
 /// at a time: a `nanoeye sim` of 100,000 frames is gigabytes (all of it was read at once, and
 /// copied twice). A file that cannot be read gives one error frame; a file cut short, an error
 /// frame where its data ends.
-fn npy_frames(path: &Path, mut f: impl FnMut(Frame) -> Result<()>) -> Result<()> {
+fn npy_frames(
+    path: &Path,
+    grid: (usize, usize),
+    mut f: impl FnMut(Frame) -> Result<()>,
+) -> Result<()> {
     let name = path.display().to_string();
     let mut rd = match open_npy(path) {
         Ok(v) => v,
@@ -185,6 +202,11 @@ fn npy_frames(path: &Path, mut f: impl FnMut(Frame) -> Result<()>) -> Result<()>
             )));
         }
     };
+    // Before a frame's buffer is allocated (a 128-byte header claiming 65536² frames asked for
+    // 16 GiB): frames of another size are one error for the file, not one per frame.
+    if let Some(e) = off_grid((h, w), grid) {
+        return f(Err(format!("{name}: {e}")));
+    }
     let mut plane = vec![0f32; h * w];
     for k in 0..n {
         let label = if n == 1 {
@@ -255,18 +277,58 @@ fn open_npy(path: &Path) -> Result<NpyStream> {
     Ok(NpyStream { shape, values })
 }
 
-fn png_frame(path: &Path, max_dn: f32) -> Frame {
+/// Why a frame of `frame` = (rows, columns) cannot go through a model whose sensor grid at p̂
+/// is `grid`; None where they agree.
+fn off_grid(frame: (usize, usize), grid: (usize, usize)) -> Option<String> {
+    (frame != grid).then(|| {
+        format!(
+            "frame is {}×{}, the model's sensor grid at p̂ is {}×{}",
+            frame.1, frame.0, grid.1, grid.0
+        )
+    })
+}
+
+/// A grayscale PNG (8 or 16 bits) as DN: full scale maps to the ADC's `max_dn`. Its size is
+/// read from the header and checked against `grid` before the image is decoded (a 519 KB PNG
+/// of 23100² pixels was decoded, copied and converted — 3 GB — before its size was compared);
+/// colour is refused rather than converted by luma, and 16 bits are kept (they were cut to 8).
+fn png_frame(path: &Path, max_dn: f32, grid: (usize, usize)) -> Frame {
     let name = path.display().to_string();
-    let img = image::open(path)
-        .map_err(|e| format!("{name}: {e}"))?
-        .to_luma8();
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    Ok((
-        name,
-        Mat::from_fn(h, w, |i, j| {
-            img.get_pixel(j as u32, i as u32)[0] as f32 / 255.0 * max_dn
+    let fail = |e: &dyn std::fmt::Display| format!("{name}: {e}");
+    // A FIFO named *.png would block the decoder.
+    if !std::fs::metadata(path).map_err(|e| fail(&e))?.is_file() {
+        return Err(fail(&"not a regular file"));
+    }
+    let open = || {
+        image::ImageReader::open(path)
+            .and_then(|r| r.with_guessed_format())
+            .map_err(|e| fail(&e))
+    };
+    let (w, h) = open()?.into_dimensions().map_err(|e| fail(&e))?;
+    if let Some(e) = off_grid((h as usize, w as usize), grid) {
+        return Err(fail(&e));
+    }
+    let dn = |v: f32, full: f32| v / full * max_dn;
+    let m = match open()?.decode().map_err(|e| fail(&e))? {
+        image::DynamicImage::ImageLuma8(g) => Mat::from_fn(h as usize, w as usize, |i, j| {
+            dn(f32::from(g.get_pixel(j as u32, i as u32)[0]), 255.0)
         }),
-    ))
+        image::DynamicImage::ImageLuma16(g) => Mat::from_fn(h as usize, w as usize, |i, j| {
+            dn(f32::from(g.get_pixel(j as u32, i as u32)[0]), 65535.0)
+        }),
+        other => {
+            return Err(fail(&format!(
+                "a {:?} image; frames are 8- or 16-bit grayscale (a sensor's DN), not colour",
+                other.color()
+            )));
+        }
+    };
+    Ok((name, m))
+}
+
+/// Whether a file extension is `want`, in any case (`F.PNG` was skipped).
+fn is_ext(ext: &std::ffi::OsStr, want: &str) -> bool {
+    ext.to_str().is_some_and(|e| e.eq_ignore_ascii_case(want))
 }
 
 fn stdin_frame(r: &mut impl Read) -> Option<Frame> {
@@ -320,12 +382,8 @@ enum FrameError {
 
 fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, FrameError> {
     let (h, w) = m.shape;
-    if (img.nrows(), img.ncols()) != (h, w) {
-        return Err(FrameError::Input(format!(
-            "frame is {}×{}, the model's sensor grid at p̂ is {w}×{h}",
-            img.ncols(),
-            img.nrows()
-        )));
+    if let Some(e) = off_grid((img.nrows(), img.ncols()), m.shape) {
+        return Err(FrameError::Input(e));
     }
     for i in 0..h {
         for j in 0..w {
@@ -378,7 +436,7 @@ pub fn track(a: TrackArgs) -> Result<()> {
     if a.frames.is_none() && !a.stdin {
         bail!("--frames DIR or --stdin: say where the frames come from");
     }
-    let max_dn = m.max_dn;
+    let (max_dn, grid) = (m.max_dn, m.shape);
     let out = std::io::stdout();
     let mut out = BufWriter::new(out.lock());
     // Frames that were not valid input (the first one's index, source and reason, and how
@@ -427,7 +485,10 @@ pub fn track(a: TrackArgs) -> Result<()> {
             .with_context(|| format!("--frames {}", dir.display()))?
             .flatten()
             .map(|e| e.path())
-            .filter(|p| p.extension().is_some_and(|e| e == "npy" || e == "png"))
+            .filter(|p| {
+                p.extension()
+                    .is_some_and(|e| is_ext(e, "npy") || is_ext(e, "png"))
+            })
             .collect();
         // A `nanoeye sim` output directory also holds the ground-truth masks (mask.npy); they
         // are not frames, and tracking them would report nonsense gaze for every one.
@@ -454,10 +515,10 @@ pub fn track(a: TrackArgs) -> Result<()> {
                 i += 1;
                 Ok(())
             };
-            if p.extension().is_some_and(|e| e == "png") {
-                one(png_frame(&p, max_dn))?;
+            if p.extension().is_some_and(|e| is_ext(e, "png")) {
+                one(png_frame(&p, max_dn, grid))?;
             } else {
-                npy_frames(&p, one)?;
+                npy_frames(&p, grid, one)?;
             }
         }
     } else {
@@ -567,7 +628,7 @@ mod tests {
         let p = d.path().join("f.npy");
         std::fs::write(&p, bytes).unwrap();
         let mut out = Vec::new();
-        npy_frames(&p, |f| {
+        npy_frames(&p, (2, 2), |f| {
             out.push(f);
             Ok(())
         })
@@ -600,5 +661,13 @@ mod tests {
         let f = npy_file_frames(&npy("<f4", &[1, 1, 2, 2], &values[..4]));
         assert_eq!(f.len(), 1);
         assert!(f[0].is_err());
+        // Frames of another size than the model's grid: one error for the file, before a
+        // frame's buffer is allocated (a header alone claiming 65536² frames asked for 16 GiB).
+        for shape in [&[65536usize, 65536][..], &[4, 3, 3]] {
+            let f = npy_file_frames(&npy("<f4", shape, &[]));
+            assert_eq!(f.len(), 1, "{shape:?}");
+            let e = f[0].as_ref().unwrap_err();
+            assert!(e.contains("sensor grid at p̂ is 2×2"), "{e}");
+        }
     }
 }

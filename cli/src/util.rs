@@ -413,6 +413,17 @@ pub fn first_repeat<T: PartialEq>(items: &[T]) -> Option<&T> {
 /// The text of a small regular file at `path`, at most `max` bytes: a device or a FIFO
 /// (`/dev/zero` read until memory ran out) or a file past `max` is refused before reading.
 pub fn read_small_text(path: &Path, max: u64) -> Result<String> {
+    String::from_utf8(read_small(path, max)?)
+        .with_context(|| format!("'{}' is not UTF-8 text", path.display()))
+}
+
+/// Whether two paths name one existing file (an output that would replace an input).
+pub fn same_file(a: &Path, b: &Path) -> bool {
+    matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y)
+}
+
+/// [`read_small_text`]'s bytes, not required to be text.
+pub fn read_small(path: &Path, max: u64) -> Result<Vec<u8>> {
     let meta =
         std::fs::metadata(path).with_context(|| format!("cannot read '{}'", path.display()))?;
     if !meta.is_file() {
@@ -425,7 +436,7 @@ pub fn read_small_text(path: &Path, max: u64) -> Result<String> {
             meta.len()
         );
     }
-    std::fs::read_to_string(path).with_context(|| format!("cannot read '{}'", path.display()))
+    std::fs::read(path).with_context(|| format!("cannot read '{}'", path.display()))
 }
 
 /// Prints a serializable value as one line of JSON on stdout.

@@ -2188,6 +2188,51 @@ fn compare_names_what_it_cannot_read_and_writes_nothing_then() {
     refused(&["compare", "r0", "r1"], "r1: no result.json", p);
     std::fs::write(p.join("r1/result.json"), "{\"protocol\": {}").unwrap();
     refused(&["compare", "r1"], "r1/result.json: not JSON", p);
+    // --svg at a run's own file: refused, the run intact (the plot replaced result.json).
+    for name in ["result.json", "config.json"] {
+        let target = format!("r0/{name}");
+        let before = std::fs::read(p.join(&target)).unwrap();
+        refused(&["compare", "r0", "--svg", &target], "--svg", p);
+        assert_eq!(std::fs::read(p.join(&target)).unwrap(), before);
+    }
+    // A demo or a Dice a job cannot have written: refused by key (a demo of 1e308 printed
+    // its mean as null and inf with exit 0), and a pitch of 0.
+    for (extra, key) in [
+        (
+            serde_json::json!({"demo_sequence": {"mean_deg": 1e308}}),
+            "demo_sequence.mean_deg",
+        ),
+        (
+            serde_json::json!({"demo_sequence": {"mean_deg": -1}}),
+            "demo_sequence.mean_deg",
+        ),
+        (serde_json::json!({"pitch_um": 0.0}), "pitch_um"),
+    ] {
+        let mut r = result.clone();
+        r.as_object_mut()
+            .unwrap()
+            .extend(extra.as_object().unwrap().clone());
+        std::fs::write(p.join("r1/result.json"), r.to_string()).unwrap();
+        refused(&["compare", "r1"], key, p);
+    }
+    let mut r = result.clone();
+    for (lens, dice) in [("learned", 7.0), ("hyperbolic", 0.7), ("double_helix", 0.7)] {
+        r["protocol"][lens]["dice"] = serde_json::json!(dice);
+    }
+    std::fs::write(p.join("r1/result.json"), r.to_string()).unwrap();
+    refused(
+        &["compare", "r1", "--metric", "dice"],
+        "protocol.learned.dice",
+        p,
+    );
+    // A run file that is a FIFO: refused, not read forever.
+    std::fs::remove_file(p.join("r1/result.json")).unwrap();
+    let made = std::process::Command::new("mkfifo")
+        .arg(p.join("r1/result.json"))
+        .status()
+        .unwrap();
+    assert!(made.success());
+    refused(&["compare", "r1"], "not a regular file", p);
     assert_eq!(
         entries(p),
         before.into_iter().chain(["r1".into()]).collect::<Vec<_>>()

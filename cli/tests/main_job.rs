@@ -354,6 +354,53 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
             .all(|l| l.contains("outside the sensor's range")),
         "{out_lines}"
     );
+    // PNG frames: 8- and 16-bit grayscale go through (an upper-case extension too); colour is
+    // refused rather than converted by luma, another size is refused from the header before
+    // the image is decoded, and a FIFO is not opened.
+    let meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(sim.join("sim.json")).unwrap()).unwrap();
+    let (h, w) = (
+        meta["height"].as_u64().unwrap() as u32,
+        meta["width"].as_u64().unwrap() as u32,
+    );
+    let pngs = d.path().join("pngs");
+    std::fs::create_dir(&pngs).unwrap();
+    image::GrayImage::new(w, h)
+        .save(pngs.join("a_gray8.png"))
+        .unwrap();
+    image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::new(w, h)
+        .save_with_format(pngs.join("b_gray16.PNG"), image::ImageFormat::Png)
+        .unwrap();
+    image::RgbImage::new(w, h)
+        .save(pngs.join("c_rgb.png"))
+        .unwrap();
+    image::GrayImage::new(4000, 4000)
+        .save(pngs.join("d_big.png"))
+        .unwrap();
+    let made = Command::new("mkfifo")
+        .arg(pngs.join("e_fifo.png"))
+        .status()
+        .unwrap();
+    assert!(made.success());
+    let o = track(&[], &pngs);
+    assert!(!o.status.success());
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 5, "{lines:?}");
+    // Tracked (a gaze, or the chain's own per-frame error, with a latency) ...
+    for l in &lines[..2] {
+        assert!(l["latency_us"].as_u64().is_some(), "{l}");
+    }
+    // ... or refused as input, without one.
+    for (l, why) in lines[2..]
+        .iter()
+        .zip(["not colour", "sensor grid", "regular file"])
+    {
+        assert!(l["latency_us"].is_null(), "{l}");
+        assert!(l["error"].as_str().unwrap().contains(why), "{why}: {l}");
+    }
     // `--subnet best` without the run's tracker files takes the search's pick from
     // rea_state.json; one that cannot be read is an error naming it, not the min subnet.
     let bare = d.path().join("bare");

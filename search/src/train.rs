@@ -1248,7 +1248,15 @@ fn open_checkpoint(path: &Path, name: &'static str) -> Result<(Vec<u8>, Meta, us
 }
 
 fn read_checkpoint(path: &Path, name: &'static str) -> Result<Vec<u8>> {
-    std::fs::read(path).map_err(|e| param(name, format!("{}: {e}", path.display())))
+    let err = |e: std::io::Error| param(name, format!("{}: {e}", path.display()));
+    // A FIFO blocked the read and `/dev/zero` was read until memory ran out.
+    if !std::fs::metadata(path).map_err(err)?.is_file() {
+        return Err(param(
+            name,
+            format!("{}: not a regular file", path.display()),
+        ));
+    }
+    std::fs::read(path).map_err(err)
 }
 
 /// [`open_checkpoint`] of bytes already read from `path`.
