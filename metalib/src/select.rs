@@ -492,6 +492,18 @@ mod tests {
 
     /// The ascending path's buffer equals the cell-by-cell one, on curves with repeated
     /// diameters, bad cells at the ends and in runs, and buffers from none to the whole curve.
+    /// Uniform draws in [0, 1) from a seeded linear congruential generator (metalib has no
+    /// random-number dependency).
+    fn uniform(seed: u64) -> impl FnMut() -> f64 {
+        let mut state = seed;
+        move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 33) as f64 / (1u64 << 31) as f64
+        }
+    }
+
     /// The largest minimum τ over the shortest 2π runs, from every start by brute force.
     fn min_tau_2pi_brute(uw: &[f64], tau: &[f64]) -> f64 {
         let mut best = f64::NAN;
@@ -512,13 +524,7 @@ mod tests {
 
     #[test]
     fn min_tau_over_2pi_in_one_pass_equals_every_start_searched() {
-        let mut state = 99u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 33) as f64 / (1u64 << 31) as f64
-        };
+        let mut next = uniform(99);
         for trial in 0..2000 {
             let n = trial % 30;
             // Phases that wander up and down by up to 2 rad a step, a few NaN cells.
@@ -545,13 +551,7 @@ mod tests {
 
     #[test]
     fn the_buffer_by_difference_array_equals_the_quadratic_loop() {
-        let mut state = 12345u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 33) as f64 / (1u64 << 31) as f64
-        };
+        let mut next = uniform(12345);
         for trial in 0..300 {
             let n = 1 + trial % 40;
             let mut d: Vec<f64> = (0..n).map(|_| (next() * 20.0).round() * 1e-8).collect();
