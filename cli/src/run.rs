@@ -329,7 +329,7 @@ fn load_config(p: Option<&Path>) -> Result<RunConfig> {
     // A small regular file: a FIFO would block, /dev/zero be read without end.
     let text = util::read_small_text(p, util::MAX_ARCH_BYTES)
         .with_context(|| format!("--config {}", p.display()))?;
-    let text = text.trim_start_matches('\u{feff}');
+    let text = text.as_str();
     let is_toml = p.extension().is_some_and(|e| e == "toml");
     let cfg: RunConfig = if is_toml {
         toml::from_str(text).with_context(|| format!("--config {}", p.display()))?

@@ -530,8 +530,7 @@ fn parse_subnet(text: &str) -> Result<Arch> {
             };
             let s = util::read_small_text(Path::new(p), util::MAX_ARCH_BYTES)
                 .with_context(|| format!("--subnet {p}"))?;
-            let a: Arch = serde_json::from_str(s.trim_start_matches('\u{feff}'))
-                .with_context(|| format!("--subnet {p}"))?;
+            let a: Arch = serde_json::from_str(&s).with_context(|| format!("--subnet {p}"))?;
             a.validate().with_context(|| format!("--subnet {p}"))?;
             Ok(a)
         }

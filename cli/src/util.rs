@@ -413,8 +413,14 @@ pub fn first_repeat<T: PartialEq>(items: &[T]) -> Option<&T> {
 /// The text of a small regular file at `path`, at most `max` bytes: a device or a FIFO
 /// (`/dev/zero` read until memory ran out) or a file past `max` is refused before reading.
 pub fn read_small_text(path: &Path, max: u64) -> Result<String> {
-    String::from_utf8(read_small(path, max)?)
-        .with_context(|| format!("'{}' is not UTF-8 text", path.display()))
+    let text = String::from_utf8(read_small(path, max)?)
+        .with_context(|| format!("'{}' is not UTF-8 text", path.display()))?;
+    // A byte-order mark some editors write first: JSON's RFC 8259 lets a reader ignore it,
+    // and the JSONL readers did; an arch or a rig saved with one was refused.
+    Ok(match text.strip_prefix('\u{feff}') {
+        Some(rest) => rest.to_string(),
+        None => text,
+    })
 }
 
 /// Whether two paths name one existing file (an output that would replace an input).

@@ -940,6 +940,17 @@ fn arch_json_with_an_unknown_key_is_refused() {
     });
     std::fs::write(p.join("a.json"), arch.to_string()).unwrap();
     refused(&["nets", "macs", "--arch", "file:a.json"], "--arch", p);
+    // A byte-order mark first (an editor's): read past, as the JSONL readers do, for an arch
+    // and a rig alike (both were refused).
+    let mut arch = arch;
+    arch.as_object_mut().unwrap().remove("kernal");
+    std::fs::write(p.join("b.json"), format!("\u{feff}{arch}")).unwrap();
+    succeeded(nanoeye(&["nets", "macs", "--arch", "file:b.json"], p));
+    let rig = succeeded(nanoeye(&["rig", "show", "--json"], p)).stdout;
+    let mut bom = "\u{feff}".as_bytes().to_vec();
+    bom.extend(rig);
+    std::fs::write(p.join("rig.json"), bom).unwrap();
+    succeeded(nanoeye(&["rig", "show", "--rig", "rig.json"], p));
 }
 
 #[test]
