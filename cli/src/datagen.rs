@@ -124,6 +124,12 @@ pub fn run(cmd: Cmd) -> Result<()> {
                 bail!("--n: at most {max} for --set {name} (the set is held in memory), got {n}");
             }
             let rig_path = rig;
+            if rig_path
+                .as_deref()
+                .is_some_and(|p| util::same_file(p, &out))
+            {
+                bail!("--out: '{}' is --rig; give another path", out.display());
+            }
             let rig = rig::load(rig_path.as_deref())?;
             // The built-in rig always admits the sets; a rig file whose camera never sees the
             // pupil does not, and the error must say which input is at fault.
@@ -187,6 +193,21 @@ fn export(
     {
         bail!("--out: must name a .glb file, got '{}'", out.display());
     }
+    // The model replaces --out whole: given an input, it would replace it.
+    let inputs = [
+        ("--rig", rig),
+        (
+            "--state",
+            state
+                .filter(|t| !t.trim_start().starts_with('{'))
+                .map(Path::new),
+        ),
+    ];
+    for (flag, p) in inputs {
+        if p.is_some_and(|p| util::same_file(p, out)) {
+            bail!("--out: '{}' is {flag}; give another path", out.display());
+        }
+    }
     let rig = rig::load(rig)?;
     let state: State = match state {
         None => State {
@@ -205,8 +226,17 @@ fn export(
             };
             let given: serde_json::Value =
                 serde_json::from_str(&body).map_err(|e| anyhow::anyhow!("--state: {e}"))?;
-            let state: State = serde::Deserialize::deserialize(&given)
-                .map_err(|e| anyhow::anyhow!("--state: {e}"))?;
+            // serde's error for a null names a line and a column, not the key.
+            if let Some((k, _)) = given
+                .as_object()
+                .and_then(|m| m.iter().find(|(_, v)| v.is_null()))
+            {
+                bail!("--state: key '{k}' is null; give a number");
+            }
+            // From the text, not the parsed value: a key given twice is refused there (the
+            // value kept only the last).
+            let state: State =
+                serde_json::from_str(&body).map_err(|e| anyhow::anyhow!("--state: {e}"))?;
             // An unknown key (a misspelt `lid_closure`) would be ignored silently. Checked
             // here rather than by the type: stored records keep their states readable.
             let known = serde_json::to_value(State {

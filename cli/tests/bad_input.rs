@@ -2595,3 +2595,86 @@ fn metalib_select_and_study_refuse_crafted_sweeps_and_print_no_null() {
     let err = refused(&tall, "--heights-nm", p);
     assert!(err.contains("-100"), "{err}");
 }
+
+/// A helper's audit (fifty-third session): datagen's outputs that replaced its inputs, state
+/// keys not named, and a resume that trusted frame records and files it had not written.
+#[test]
+fn datagen_refuses_its_inputs_as_output_and_renders_a_tampered_frame_again() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let rig = succeeded(nanoeye(&["rig", "show", "--json"], p)).stdout;
+    std::fs::write(p.join("rig_in.json"), &rig).unwrap();
+    let states = [
+        "datagen",
+        "states",
+        "--set",
+        "ambiguity",
+        "--n",
+        "1",
+        "--rig",
+        "rig_in.json",
+        "--out",
+        "rig_in.json",
+    ];
+    refused(&states, "--out", p);
+    assert_eq!(std::fs::read(p.join("rig_in.json")).unwrap(), rig);
+    let state = r#"{"azimuth_rad": 0.1, "elevation_rad": 0, "torsion_rad": 0, "slip_m": [0, 0, 0], "cam_rot_rad": [0, 0, 0], "lid_closure": 0}"#;
+    std::fs::write(p.join("st.glb"), state).unwrap();
+    let export = ["datagen", "export", "--state", "st.glb", "--out", "st.glb"];
+    refused(&export, "--out", p);
+    assert_eq!(std::fs::read_to_string(p.join("st.glb")).unwrap(), state);
+    std::fs::write(p.join("rig.glb"), &rig).unwrap();
+    refused(
+        &["datagen", "export", "--rig", "rig.glb", "--out", "rig.glb"],
+        "--out",
+        p,
+    );
+    let null = state.replace("\"azimuth_rad\": 0.1", "\"azimuth_rad\": null");
+    refused(
+        &["datagen", "export", "--state", &null, "--out", "o.glb"],
+        "azimuth_rad",
+        p,
+    );
+    let twice = state.replace(
+        "\"lid_closure\": 0",
+        "\"lid_closure\": 0, \"lid_closure\": 1",
+    );
+    refused(
+        &["datagen", "export", "--state", &twice, "--out", "o.glb"],
+        "duplicate",
+        p,
+    );
+    assert!(!p.join("o.glb").exists());
+
+    // A record copied over another frame's, and a frame's radiance deleted: both frames are
+    // rendered again on the rerun, and frames.jsonl names each of the three frames once.
+    succeeded(nanoeye(&tiny_dataset("ds"), p));
+    let f = p.join("ds/frames");
+    let radiance = std::fs::read(f.join("000001_radiance.npy")).unwrap();
+    std::fs::copy(f.join("000000.json"), f.join("000001.json")).unwrap();
+    std::fs::remove_file(f.join("000000_radiance.npy")).unwrap();
+    let out = succeeded(nanoeye(&tiny_dataset("ds"), p));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["frames_written"], 2, "{v}");
+    assert_eq!(
+        std::fs::read(f.join("000001_radiance.npy")).unwrap(),
+        radiance
+    );
+    let frames: Vec<u64> = std::fs::read_to_string(p.join("ds/frames.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<serde_json::Value>(l).unwrap()["frame"]
+                .as_u64()
+                .unwrap()
+        })
+        .collect();
+    assert_eq!(frames, [0, 1, 2]);
+    // A manifest that is not text is refused, not overwritten as absent.
+    std::fs::write(p.join("ds/dataset.json"), b"\xff\xfe").unwrap();
+    refused(&tiny_dataset("ds"), "dataset manifest", p);
+    assert_eq!(
+        std::fs::read(p.join("ds/dataset.json")).unwrap(),
+        b"\xff\xfe"
+    );
+}

@@ -181,6 +181,97 @@ fn empty_and_out_of_range_meshes_are_errors() {
     assert!(Mesh::from_gltf_bytes(b"{}", MeshUnits::Metres, "e.gltf").is_err());
 }
 
+/// What a helper's audit found (fifty-third session): inputs that hung, aborted or multiplied
+/// the geometry, each an error naming the file or the part of it at fault.
+#[test]
+fn hostile_mesh_files_are_errors_not_hangs_or_aborts() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let err = |p: &std::path::Path| {
+        Mesh::load(p, MeshUnits::Millimetres)
+            .unwrap_err()
+            .to_string()
+    };
+    let fifo = |p: &std::path::Path| {
+        let made = std::process::Command::new("mkfifo")
+            .arg(p)
+            .status()
+            .unwrap();
+        assert!(made.success());
+    };
+    // A FIFO as the mesh, as its material library, as a glTF's external buffer (each
+    // blocked); /dev/zero as the mesh or behind a `file://` buffer (read without end).
+    fifo(&d.join("fifo.obj"));
+    assert!(err(&d.join("fifo.obj")).contains("regular file"));
+    std::fs::write(d.join("m.obj"), format!("mtllib fifo.mtl\n{CUBE_OBJ}")).unwrap();
+    fifo(&d.join("fifo.mtl"));
+    let e = err(&d.join("m.obj"));
+    assert!(
+        e.contains("mtllib fifo.mtl") && e.contains("regular file"),
+        "{e}"
+    );
+    std::os::unix::fs::symlink("/dev/zero", d.join("zero.obj")).unwrap();
+    assert!(err(&d.join("zero.obj")).contains("regular file"));
+    let cube = cube_gltf();
+    let data_uri = cube
+        .split("\"uri\":\"")
+        .nth(1)
+        .unwrap()
+        .split('"')
+        .next()
+        .unwrap();
+    for (file, uri, why) in [
+        ("f.gltf", "fifo.bin", "regular file"),
+        ("z.gltf", "file:///dev/zero", "regular file"),
+        ("p.gltf", "%FF%FE.bin", "not UTF-8"),
+    ] {
+        if uri == "fifo.bin" {
+            fifo(&d.join(uri));
+        }
+        std::fs::write(d.join(file), cube.replace(data_uri, uri)).unwrap();
+        let e = err(&d.join(file));
+        assert!(e.contains("buffer 0") && e.contains(why), "{file}: {e}");
+    }
+    // An external buffer far longer than its byteLength (the importer read a 5 GB file whole
+    // for a buffer of 44 bytes): refused from its length, nothing read.
+    let f = std::fs::File::create(d.join("long.bin")).unwrap();
+    f.set_len(10 << 20).unwrap();
+    std::fs::write(d.join("l.gltf"), cube.replace(data_uri, "long.bin")).unwrap();
+    assert!(err(&d.join("l.gltf")).contains("byteLength"));
+    // A missing material library is an error, not triangles classed by object name alone.
+    std::fs::write(d.join("miss.obj"), format!("mtllib gone.mtl\n{CUBE_OBJ}")).unwrap();
+    assert!(err(&d.join("miss.obj")).contains("mtllib gone.mtl"));
+    // A sparse POSITION accessor claiming 3e9 values in 760 bytes (36 GB asked for).
+    let sparse = cube.replace(
+        r#"{"bufferView":0,"componentType":5126,"count":8,"type":"VEC3","#,
+        r#"{"componentType":5126,"count":3000000000,"type":"VEC3","sparse":{"count":1,"indices":{"bufferView":1,"componentType":5123},"values":{"bufferView":0}},"#,
+    );
+    assert_ne!(sparse, cube);
+    let e = Mesh::from_gltf_bytes(sparse.as_bytes(), MeshUnits::Metres, "s.gltf")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("3000000000"), "{e}");
+    // Node 0 holds node 1 twice: nodes form trees, and a chain of such nodes multiplied the
+    // triangles by 2 per level (20 levels in 1.4 KB asked for 2.4 GB).
+    let dag = cube.replace(
+        r#""nodes":[{"mesh":0}]"#,
+        r#""nodes":[{"children":[1,1]},{"mesh":0}]"#,
+    );
+    assert_ne!(dag, cube);
+    let e = Mesh::from_gltf_bytes(dag.as_bytes(), MeshUnits::Metres, "d.gltf")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("node 1 has more than one parent"), "{e}");
+    // The same node as a tree (one child) loads as the cube.
+    let tree = cube.replace(
+        r#""nodes":[{"mesh":0}]"#,
+        r#""nodes":[{"children":[1]},{"mesh":0}]"#,
+    );
+    check_cube_render(
+        &Mesh::from_gltf_bytes(tree.as_bytes(), MeshUnits::Millimetres, "t.gltf").unwrap(),
+    );
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(64))]
 

@@ -567,7 +567,26 @@ pub fn field_differences(
 /// that differs. A directory without dataset.json but with frames is refused too (unknown origin).
 fn check_existing(dir: &Path, manifest: &DatasetManifest) -> Result<(), RenderError> {
     let path = dir.join("dataset.json");
-    match std::fs::read_to_string(&path) {
+    // Only a missing manifest is absent: one that cannot be read (a FIFO blocked, `/dev/zero`
+    // was read until memory ran out, bytes that are not text were overwritten) is refused.
+    let read = match std::fs::symlink_metadata(&path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(e),
+        _ => {
+            let meta = std::fs::metadata(&path).map_err(|e| io_err(&path, e))?;
+            if !meta.is_file() || meta.len() > MAX_RECORD_BYTES {
+                return Err(RenderError::Invalid {
+                    what: "out",
+                    reason: format!(
+                        "{} is not a regular file of at most {MAX_RECORD_BYTES} bytes; render \
+                         into a new directory",
+                        path.display()
+                    ),
+                });
+            }
+            Ok(std::fs::read(&path).map_err(|e| io_err(&path, e))?)
+        }
+    };
+    match read.map(|b| String::from_utf8_lossy(&b).into_owned()) {
         Ok(text) => {
             let old: DatasetManifest =
                 serde_json::from_str(&text).map_err(|e| RenderError::Invalid {
@@ -734,11 +753,54 @@ pub fn write_dataset(opts: &DatasetOptions) -> Result<DatasetSummary, RenderErro
     Ok(summary)
 }
 
-/// The complete record of frame `i` in `dir`, if its record file exists and parses.
-fn finished_record(dir: &Path, i: usize) -> Option<String> {
-    std::fs::read_to_string(dir.join(format!("frames/{i:06}.json")))
-        .ok()
-        .filter(|t| serde_json::from_str::<FrameRecord>(t).is_ok())
+/// Largest frame record read (bytes): a state, landmarks and file names, a few KB.
+const MAX_RECORD_BYTES: u64 = 1 << 20;
+
+/// The complete record of frame `i` of `plan` in `dir`: its record file is a regular file that
+/// parses, describes frame `i` as planned (item, role, subject, state) with this frame's file
+/// names, and each of its files is a regular file (each NPY's preamble within its length).
+/// None otherwise, and the frame is rendered again (it depends only on its index): a record
+/// copied from frame 0 to frame 1 was kept, giving frames.jsonl frame 0 twice; a deleted
+/// radiance file left a dataset without it; a FIFO in place of a record blocked the resume.
+fn finished_record(dir: &Path, i: usize, plan: &PlannedFrame) -> Option<String> {
+    let path = dir.join(format!("frames/{i:06}.json"));
+    let meta = std::fs::metadata(&path).ok()?;
+    if !meta.is_file() || meta.len() > MAX_RECORD_BYTES {
+        return None;
+    }
+    let text = std::fs::read_to_string(&path).ok()?;
+    let r: FrameRecord = serde_json::from_str(&text).ok()?;
+    let planned = r.frame == i
+        && r.item == plan.item
+        && r.role == plan.role
+        && r.subject == plan.subject
+        && r.state == plan.state;
+    let stem = format!("frames/{i:06}");
+    let f = &r.files;
+    let named = [
+        (&f.preview, "_preview.png"),
+        (&f.radiance, "_radiance.npy"),
+        (&f.depth, "_depth.npy"),
+        (&f.mask_visible_pupil, "_mask_visible_pupil.png"),
+        (&f.mask_pupil, "_mask_pupil.png"),
+    ]
+    .into_iter()
+    .chain(f.layers.iter().map(|l| (l, "_layers.npy")))
+    .chain(f.masks.iter().map(|m| (m, "_masks.npy")))
+    .all(|(name, suffix)| *name == format!("{stem}{suffix}") && file_intact(&dir.join(name)));
+    (planned && named).then_some(text)
+}
+
+/// Whether a frame's file is a regular file and, for an NPY, holds the data its preamble
+/// claims.
+fn file_intact(path: &Path) -> bool {
+    if !std::fs::metadata(path).is_ok_and(|m| m.is_file()) {
+        return false;
+    }
+    if path.extension().is_some_and(|e| e == "npy") {
+        return matches!(nanoeye_npy::check_file(path), Ok(Ok(Some(_))));
+    }
+    true
 }
 
 /// Renders frames `frames` (indices into `plan.planned`) of a dataset opened by
@@ -894,7 +956,7 @@ fn render_one(opts: &DatasetOptions, plan: &DatasetPlan, i: usize) -> Result<boo
     let f = &plan.planned[i];
     let stem = format!("frames/{i:06}");
     let record_path = opts.out_dir.join(format!("{stem}.json"));
-    if finished_record(&opts.out_dir, i).is_some() {
+    if finished_record(&opts.out_dir, i, f).is_some() {
         return Ok(false);
     }
     let pixel_seed = pixel_seed(opts.set, opts.seed, i, f.item);
@@ -973,13 +1035,15 @@ fn render_one(opts: &DatasetOptions, plan: &DatasetPlan, i: usize) -> Result<boo
 pub fn finish_dataset(opts: &DatasetOptions, plan: &DatasetPlan) -> Result<(), RenderError> {
     let mut lines = String::new();
     for i in 0..plan.planned.len() {
-        let text = finished_record(&opts.out_dir, i).ok_or_else(|| RenderError::Invalid {
-            what: "out",
-            reason: format!(
-                "frame {i}'s record {} is missing or unreadable (every process must write to \
+        let text = finished_record(&opts.out_dir, i, &plan.planned[i]).ok_or_else(|| {
+            RenderError::Invalid {
+                what: "out",
+                reason: format!(
+                    "frame {i}'s record {} is missing or unreadable (every process must write to \
                  the same directory)",
-                opts.out_dir.join(format!("frames/{i:06}.json")).display()
-            ),
+                    opts.out_dir.join(format!("frames/{i:06}.json")).display()
+                ),
+            }
         })?;
         lines.push_str(text.trim_end());
         lines.push('\n');

@@ -7,7 +7,7 @@ use super::prim::{Clip, Shape};
 use super::scene::{Light, Prim, Scene, layer_of, rotate_shape};
 use crate::states::State;
 use nanoeye_gaze::{Vec3, geom};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Length unit of a mesh file's coordinates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -119,7 +119,11 @@ fn analytic_shape(
         if (n - 1.0).abs() < 1e-12 {
             d
         } else {
-            geom::scale(d, 1.0 / n)
+            // Scaled by its largest component first: |n|² of [1.7e308, 1.7e308, 0] overflowed
+            // and the disc's normal became [0, 0, 0].
+            let big = d.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+            let d = geom::scale(d, 1.0 / big);
+            geom::scale(d, 1.0 / geom::norm(d))
         }
     };
     let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
@@ -134,7 +138,7 @@ fn analytic_shape(
             None => Clip::None,
             Some(c) => {
                 if !(finite(&c.normal) && c.offset.is_finite() && (c.sign == 1.0 || c.sign == -1.0))
-                    || geom::norm(c.normal) == 0.0
+                    || c.normal.iter().all(|&x| x == 0.0)
                 {
                     return Err(mesh_err(name, "extras.nanoeye.sphere.clip: bad plane"));
                 }
@@ -154,9 +158,14 @@ fn analytic_shape(
             clip,
         }
     } else if let Some(d) = &x.disc {
+        // A normal of zero length, or one whose components underflow to it.
+        if !(finite(&d.normal) && d.normal.iter().any(|&c| c != 0.0)) {
+            return Err(mesh_err(
+                name,
+                "extras.nanoeye.disc: need a finite non-zero normal",
+            ));
+        }
         if !(finite(&d.center)
-            && finite(&d.normal)
-            && geom::norm(d.normal) > 0.0
             && d.r_in.is_finite()
             && d.r_out.is_finite()
             && 0.0 <= d.r_in
@@ -182,6 +191,105 @@ fn analytic_shape(
 /// Largest triangle count accepted (guards memory on hostile files).
 pub const MAX_TRIANGLES: usize = 20_000_000;
 
+/// Largest mesh file read (bytes): 20 M triangles of OBJ text are about 2 GB.
+const MAX_MESH_BYTES: u64 = 4 << 30;
+/// Largest material library (`.mtl`) read (bytes).
+const MAX_MTL_BYTES: u64 = 16 << 20;
+
+/// The bytes of a regular file of at most `max` bytes (a FIFO blocked the read, `/dev/zero`
+/// was read until memory ran out), or why not.
+fn read_regular(path: &Path, max: u64) -> Result<Vec<u8>, String> {
+    let meta = std::fs::metadata(path).map_err(|e| e.to_string())?;
+    if !meta.is_file() {
+        return Err("not a regular file".into());
+    }
+    if meta.len() > max {
+        return Err(format!("{} bytes, more than {max}", meta.len()));
+    }
+    std::fs::read(path).map_err(|e| e.to_string())
+}
+
+/// A URI's percent-escapes decoded as the glTF importer decodes them (an escape that is not
+/// two hex digits stays as it is); None where the result is not UTF-8 (the importer
+/// panicked on `%FF%FE.bin`).
+fn percent_decoded(uri: &str) -> Option<String> {
+    let b = uri.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        let hex = |c: u8| (c as char).to_digit(16);
+        match (
+            b[i],
+            b.get(i + 1).copied().and_then(hex),
+            b.get(i + 2).copied().and_then(hex),
+        ) {
+            (b'%', Some(h), Some(l)) => {
+                out.push((h * 16 + l) as u8);
+                i += 3;
+            }
+            (c, _, _) => {
+                out.push(c);
+                i += 1;
+            }
+        }
+    }
+    String::from_utf8(out).ok()
+}
+
+/// A glTF or GLB's document and buffers, its images left alone (nothing here uses them; a
+/// corrupt texture failed a valid mesh). An external buffer (resolved from `base`) must be a
+/// regular file no longer than its `byteLength` and 1 MiB of slack: the importer read any
+/// file whole, whatever length the buffer declared (a 44-byte buffer over a 5 GB file aborted
+/// the process) and followed FIFOs and `/dev/zero`. Without `base`, external references are
+/// an error. Panics of the parser on malformed data are caught by the caller.
+fn gltf_parts(
+    bytes: &[u8],
+    base: Option<&Path>,
+    name: &str,
+) -> Result<(gltf::Document, Vec<gltf::buffer::Data>), RenderError> {
+    // From the bytes already read: the path-based reader allocated a GLB header's claimed
+    // length (a 624-byte file claiming 4 GiB aborted the process).
+    let g = gltf::Gltf::from_slice(bytes).map_err(|e| mesh_err(name, e))?;
+    let mut blob = g.blob;
+    let doc = g.document;
+    let mut buffers = Vec::with_capacity(doc.buffers().len());
+    for b in doc.buffers() {
+        let fail = |why: String| mesh_err(name, format!("buffer {}: {why}", b.index()));
+        if let (gltf::buffer::Source::Uri(uri), Some(base)) = (b.source(), base) {
+            let file = if let Some(p) = uri.strip_prefix("file://").or(uri.strip_prefix("file:")) {
+                Some(PathBuf::from(p))
+            } else if uri.contains(':') {
+                None // data: URIs (bounded by the file), or a scheme the importer refuses
+            } else {
+                let rel = percent_decoded(uri)
+                    .ok_or_else(|| fail(format!("uri '{uri}' is not UTF-8 once decoded")))?;
+                Some(base.join(rel))
+            };
+            if let Some(file) = file {
+                let meta = std::fs::metadata(&file).map_err(|e| fail(format!("{uri}: {e}")))?;
+                let most = b.length() as u64 + (1 << 20);
+                if !meta.is_file() || meta.len() > most {
+                    return Err(fail(format!(
+                        "{uri}: not a regular file of at most its byteLength {} (+1 MiB)",
+                        b.length()
+                    )));
+                }
+            }
+        }
+        let data = gltf::buffer::Data::from_source_and_blob(b.source(), base, &mut blob)
+            .map_err(|e| fail(e.to_string()))?;
+        if data.len() < b.length() {
+            return Err(fail(format!(
+                "{} bytes, its byteLength says {}",
+                data.len(),
+                b.length()
+            )));
+        }
+        buffers.push(data);
+    }
+    Ok((doc, buffers))
+}
+
 fn mesh_err(path: &str, reason: impl std::fmt::Display) -> RenderError {
     RenderError::Mesh {
         path: path.to_string(),
@@ -197,18 +305,16 @@ impl Mesh {
             .extension()
             .and_then(|e| e.to_str())
             .map(|e| e.to_ascii_lowercase());
-        let bytes = std::fs::read(path).map_err(|e| mesh_err(&name, e))?;
+        let bytes = read_regular(path, MAX_MESH_BYTES).map_err(|e| mesh_err(&name, e))?;
+        let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
         match ext.as_deref() {
-            Some("obj") => {
-                let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
-                Mesh::from_obj_bytes(&bytes, units, &name, Some(&dir))
-            }
+            Some("obj") => Mesh::from_obj_bytes(&bytes, units, &name, Some(&dir)),
             Some("gltf") | Some("glb") => {
-                // External buffers resolve relative to the file, so use the path-based importer.
-                let r = std::panic::catch_unwind(|| gltf::import(path));
+                // External buffers resolve relative to the file.
+                let r = std::panic::catch_unwind(|| gltf_parts(&bytes, Some(&dir), &name));
                 match r {
-                    Ok(Ok((doc, buffers, _))) => Mesh::from_gltf_doc(&doc, &buffers, units, &name),
-                    Ok(Err(e)) => Err(mesh_err(&name, e)),
+                    Ok(Ok((doc, buffers))) => Mesh::from_gltf_doc(&doc, &buffers, units, &name),
+                    Ok(Err(e)) => Err(e),
                     Err(_) => Err(mesh_err(&name, "glTF importer failed on malformed data")),
                 }
             }
@@ -234,18 +340,34 @@ impl Mesh {
             ignore_lines: true,
         };
         let mut reader = std::io::BufReader::new(bytes);
-        let loaded = std::panic::catch_unwind(move || {
-            tobj::load_obj_buf(&mut reader, &opts, |p| match mtl_dir {
-                Some(d) => tobj::load_mtl(d.join(p)),
-                None => Err(tobj::LoadError::OpenFileFailed),
+        // A material library is read as the mesh is: a regular file of bounded size (a FIFO
+        // blocked, `/dev/zero` aborted the process), and one that cannot be read is an error
+        // naming it (every triangle was classed by object name alone, silently).
+        let mtl_error = std::cell::RefCell::new(None::<RenderError>);
+        let loaded = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            tobj::load_obj_buf(&mut reader, &opts, |p| {
+                let Some(d) = mtl_dir else {
+                    return Err(tobj::LoadError::OpenFileFailed);
+                };
+                match read_regular(&d.join(p), MAX_MTL_BYTES) {
+                    Ok(b) => tobj::load_mtl_buf(&mut std::io::BufReader::new(&b[..])),
+                    Err(e) => {
+                        let why = format!("mtllib {}: {e}", p.display());
+                        *mtl_error.borrow_mut() = Some(mesh_err(name, why));
+                        Err(tobj::LoadError::OpenFileFailed)
+                    }
+                }
             })
-        });
+        }));
         let (models, materials) = match loaded {
             Ok(Ok(x)) => x,
             Ok(Err(e)) => return Err(mesh_err(name, e)),
             Err(_) => return Err(mesh_err(name, "OBJ parser failed on malformed data")),
         };
-        let materials = materials.unwrap_or_default();
+        if let Some(e) = mtl_error.into_inner() {
+            return Err(e);
+        }
+        let materials = materials.map_err(|e| mesh_err(name, format!("mtllib: {e}")))?;
         let s = units.scale();
         let mut mesh = Mesh::default();
         for m in &models {
@@ -285,9 +407,9 @@ impl Mesh {
         units: MeshUnits,
         name: &str,
     ) -> Result<Mesh, RenderError> {
-        match std::panic::catch_unwind(|| gltf::import_slice(bytes)) {
-            Ok(Ok((doc, buffers, _))) => Mesh::from_gltf_doc(&doc, &buffers, units, name),
-            Ok(Err(e)) => Err(mesh_err(name, e)),
+        match std::panic::catch_unwind(|| gltf_parts(bytes, None, name)) {
+            Ok(Ok((doc, buffers))) => Mesh::from_gltf_doc(&doc, &buffers, units, name),
+            Ok(Err(e)) => Err(e),
             Err(_) => Err(mesh_err(name, "glTF importer failed on malformed data")),
         }
     }
@@ -300,11 +422,32 @@ impl Mesh {
     ) -> Result<Mesh, RenderError> {
         let s = units.scale();
         let mut mesh = Mesh::default();
+        // glTF's nodes form disjoint trees (2.0 spec, 3.5.3): a node under two parents, or a
+        // scene's root that is also a child, would be drawn twice per path — 20 levels of
+        // [child, child] in a 1.4 KB file asked for 2.4 GB of triangles.
         let scene = doc.default_scene().or_else(|| doc.scenes().next());
-        let mut stack: Vec<(gltf::Node, [[f64; 4]; 4])> = match scene {
-            Some(sc) => sc.nodes().map(|n| (n, IDENTITY4)).collect(),
-            None => doc.nodes().map(|n| (n, IDENTITY4)).collect(),
+        let mut parents = vec![0usize; doc.nodes().len()];
+        for n in doc.nodes() {
+            for c in n.children() {
+                parents[c.index()] += 1;
+            }
+        }
+        // The roots: the scene's, or without a scene every node no other node holds.
+        let roots: Vec<gltf::Node> = match scene {
+            Some(sc) => sc.nodes().collect(),
+            None => doc.nodes().filter(|n| parents[n.index()] == 0).collect(),
         };
+        for n in &roots {
+            parents[n.index()] += 1;
+        }
+        if let Some(i) = parents.iter().position(|&k| k > 1) {
+            return Err(mesh_err(
+                name,
+                format!("node {i} has more than one parent (glTF nodes form disjoint trees)"),
+            ));
+        }
+        let mut stack: Vec<(gltf::Node, [[f64; 4]; 4])> =
+            roots.into_iter().map(|n| (n, IDENTITY4)).collect();
         let mut visited = 0usize;
         while let Some((node, parent)) = stack.pop() {
             visited += 1;
@@ -356,6 +499,25 @@ impl Mesh {
                     .or_else(|| node.name().map(str::to_string))
                     .unwrap_or_default();
                 let kind = MaterialKind::from_name(&label);
+                // Counts checked before the reader collects them: a sparse accessor of 760
+                // bytes claimed 3e9 positions (36 GB asked for at once).
+                for a in prim
+                    .get(&gltf::Semantic::Positions)
+                    .into_iter()
+                    .chain(prim.indices())
+                {
+                    if a.count() > 3 * MAX_TRIANGLES {
+                        return Err(mesh_err(
+                            name,
+                            format!(
+                                "accessor {} holds {} values, more than {MAX_TRIANGLES} \
+                                 triangles need",
+                                a.index(),
+                                a.count()
+                            ),
+                        ));
+                    }
+                }
                 let reader = prim.reader(|b| buffers.get(b.index()).map(|d| d.0.as_slice()));
                 let positions: Vec<[f32; 3]> = match reader.read_positions() {
                     Some(p) => p.collect(),
