@@ -20,8 +20,6 @@ const MAX_RUNS: usize = 1000;
 const MAX_VALUE: f64 = 1e9;
 /// Largest effective pitch a run's result may report (µm): a sensor pixel of 1 mm.
 const MAX_PITCH_UM: f64 = 1000.0;
-/// Largest config.json or result.json read (bytes): a few hundred KB in practice.
-const MAX_RUN_FILE_BYTES: u64 = 64 << 20;
 
 /// Up to this many groups every pair is compared; beyond, each group against group A only
 /// (the pairs, and the text, grow with the square of the groups).
@@ -252,7 +250,7 @@ fn load(dir: &Path, lenses: &[String], metric: Metric) -> Result<(serde_json::Va
     }
     // Regular files of bounded size: a FIFO blocked the read, `/dev/zero` was read until
     // memory ran out (and was then reported as a job not finished).
-    let text = util::read_small_text(&cpath, MAX_RUN_FILE_BYTES)?;
+    let text = util::read_small_text(&cpath, util::MAX_RECORD_BYTES)?;
     let cfg: RunConfig = serde_json::from_str(&text)
         .with_context(|| format!("{}: not a run configuration", cpath.display()))?;
     let mut config = serde_json::to_value(&cfg)?;
@@ -266,7 +264,7 @@ fn load(dir: &Path, lenses: &[String], metric: Metric) -> Result<(serde_json::Va
              with its configuration)"
         );
     }
-    let text = util::read_small_text(&rpath, MAX_RUN_FILE_BYTES)?;
+    let text = util::read_small_text(&rpath, util::MAX_RECORD_BYTES)?;
     let r: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("{}: not JSON", rpath.display()))?;
     let key = metric.key();

@@ -102,6 +102,7 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
         .context("--lens")?
         .phase_rad;
     let mut e = Embedder::new(&chain, &ds, cfg, phase0).map_err(flag)?;
+    util::check_not_dataset(&a.out)?;
     let ck = a.out.join("checkpoint.bin");
     util::check_output_target(&ck)?;
     util::remove_stale_temps_under(&a.out);
@@ -118,7 +119,8 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
             "--out",
         )?;
         // The starting lens is part of the run's parameters: a resume from another is refused.
-        let had = std::fs::read_to_string(&lens_path).context("--out (resume): lens.json")?;
+        let had = util::read_small_text(&lens_path, util::MAX_RECORD_BYTES)
+            .context("--out (resume): lens.json")?;
         if had.trim() != lens_json {
             bail!(
                 "--lens: {} was started from {}, not {lens_json}; use another --out",
@@ -137,7 +139,7 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
     // nothing vouches for it (an audit: a rerun with another --lens reported the old bounds).
     let init_path = a.out.join("init.json");
     let kept = if ck.exists() {
-        std::fs::read_to_string(&init_path).ok()
+        util::read_record(&init_path, util::MAX_RECORD_BYTES).context("--out (resume)")?
     } else {
         None
     };

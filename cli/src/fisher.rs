@@ -403,6 +403,7 @@ fn init(a: InitArgs) -> Result<()> {
         let phase = Hyperbolic::default().phase_map(&grid)?.phase_rad;
         (InitState::new(phase), requested)
     };
+    crate::util::check_not_dataset(&a.out)?;
     // Every output's place checked before the first is written: a directory at
     // OUT/history.json was found only after the checkpoint, phase and montage were written.
     for name in [

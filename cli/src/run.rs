@@ -766,9 +766,10 @@ pub fn run(a: RunArgs) -> Result<()> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from(format!("nanoeye-run-{}", cfg.seed)));
+    util::check_not_dataset(&out)?;
     std::fs::create_dir_all(&out).with_context(|| format!("--out {}", out.display()))?;
     let cpath = out.join("config.json");
-    if let Ok(text) = std::fs::read_to_string(&cpath) {
+    if let Some(text) = util::read_record(&cpath, util::MAX_RECORD_BYTES).context("--out")? {
         let old: RunConfig = serde_json::from_str(&text)
             .with_context(|| format!("--out: {} is not a run configuration", cpath.display()))?;
         // A key the file lacks was added after that run began; the default it would take now
@@ -814,9 +815,24 @@ pub fn run(a: RunArgs) -> Result<()> {
     // Temporary files of a killed run, anywhere in its tree (frames, checkpoints).
     util::remove_stale_temps_under(&out);
     // A finished run: report it again without redoing anything.
-    if let Ok(text) = std::fs::read_to_string(out.join("result.json")) {
-        let result: serde_json::Value = serde_json::from_str(&text)
-            .with_context(|| format!("--out: {} is corrupt", out.join("result.json").display()))?;
+    let rpath = out.join("result.json");
+    if let Some(text) = util::read_record(&rpath, util::MAX_RECORD_BYTES).context("--out")? {
+        let corrupt = |why: String| {
+            anyhow::anyhow!(
+                "--out: {} is corrupt ({why}); delete it to re-evaluate the run",
+                rpath.display()
+            )
+        };
+        let result: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| corrupt(e.to_string()))?;
+        // As the run wrote it: an object without a null (it refuses to write one), or the
+        // report of an edited file would print null with exit 0.
+        if !result.is_object() {
+            return Err(corrupt("not a JSON object".into()));
+        }
+        if let Some(k) = util::first_null(&result, &[]) {
+            return Err(corrupt(format!("`{k}` is null")));
+        }
         eprintln!(
             "{} is complete; reporting it (delete result.json to re-evaluate)",
             out.display()
@@ -824,8 +840,10 @@ pub fn run(a: RunArgs) -> Result<()> {
         return print_result(&result, a.json);
     }
     let spath = out.join("stages.json");
-    let mut stages: Stages = std::fs::read_to_string(&spath)
-        .ok()
+    // Stage timings only: one that cannot be parsed starts over, but what is not a regular
+    // file is refused rather than read.
+    let mut stages: Stages = util::read_record(&spath, util::MAX_RECORD_BYTES)
+        .context("--out")?
         .and_then(|t| serde_json::from_str(&t).ok())
         .unwrap_or_default();
     let note = |s: &str| eprintln!("[{:>6.0} s] {s}", t0.elapsed().as_secs_f64());

@@ -437,6 +437,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
             .parse::<LensSpec>()
             .map_err(|e| anyhow::anyhow!("--lens: {e} (or init)"))?
     };
+    util::check_not_dataset(&a.out)?;
     let ck = a.out.join("checkpoint.bin");
     // The lens a run started from is part of its parameters: a resume from another is refused.
     let lens_json = serde_json::to_string(&if init {
@@ -484,7 +485,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
             )?;
         }
         if ck.exists() && lens_path.exists() {
-            let had = std::fs::read_to_string(&lens_path).context("--out (resume): lens.json")?;
+            let had = util::read_small_text(&lens_path, util::MAX_RECORD_BYTES)
+                .context("--out (resume): lens.json")?;
             if had.trim() != lens_json {
                 // Name the flag that differs: the embedding's triplet set, where all else
                 // agrees, or the lens.

@@ -242,7 +242,7 @@ pub fn recorded_difference<'k>(
     keys: &[(&'k str, &'k str)],
     what: &str,
 ) -> Result<Option<(&'k str, &'k str, serde_json::Value, serde_json::Value)>> {
-    let Ok(text) = std::fs::read_to_string(path) else {
+    let Some(text) = read_record(path, MAX_RECORD_BYTES).with_context(|| what.to_string())? else {
         return Ok(None);
     };
     let had: serde_json::Value = serde_json::from_str(&text)
@@ -423,9 +423,36 @@ pub fn read_small_text(path: &Path, max: u64) -> Result<String> {
     })
 }
 
+/// Refuses an output directory that is a rendered dataset (it holds dataset.json): `search
+/// train --out DS` with DS its --dataset wrote a run into the data it reads, exit 0.
+pub fn check_not_dataset(out: &Path) -> Result<()> {
+    if out.join("dataset.json").symlink_metadata().is_ok() {
+        bail!(
+            "--out: '{}' is a dataset directory (it holds dataset.json); give another path",
+            out.display()
+        );
+    }
+    Ok(())
+}
+
 /// Whether two paths name one existing file (an output that would replace an input).
 pub fn same_file(a: &Path, b: &Path) -> bool {
     matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y)
+}
+
+/// Largest record a command reads back from its own output directory (bytes): a run's
+/// configuration or result, a resume's inputs, a few hundred KB at most.
+pub const MAX_RECORD_BYTES: u64 = 64 << 20;
+
+/// [`read_small_text`] of a record that may not exist yet: None where nothing is at `path`;
+/// an error where something is there but is not a regular file of at most `max` bytes (a FIFO
+/// blocked a resume, `/dev/zero` was read until memory ran out, and a directory was taken for
+/// no record, skipping the comparison it holds).
+pub fn read_record(path: &Path, max: u64) -> Result<Option<String>> {
+    match path.symlink_metadata() {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        _ => read_small_text(path, max).map(Some),
+    }
 }
 
 /// [`read_small_text`]'s bytes, not required to be text.

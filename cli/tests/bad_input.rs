@@ -2678,3 +2678,32 @@ fn datagen_refuses_its_inputs_as_output_and_renders_a_tampered_frame_again() {
         b"\xff\xfe"
     );
 }
+
+/// A command's --out that is a rendered dataset (its --dataset, say) is refused before any
+/// work: `search train`, `fisher init` and `run` wrote into the data they read (a helper's
+/// audit, fifty-third session), and it changes nothing there.
+#[test]
+fn an_out_that_is_a_dataset_is_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    succeeded(nanoeye(&tiny_dataset("ds"), p));
+    let before = common::tree(&p.join("ds"));
+    let train: Vec<&str> = [
+        &["search", "train"][..],
+        &common::TINY_CHAIN,
+        &common::TINY_TRAIN,
+    ]
+    .concat()
+    .into_iter()
+    .chain(["--out", "ds"])
+    .collect();
+    for args in [
+        train,
+        vec!["fisher", "init", "--iterations", "1", "--out", "ds"],
+        vec!["run", "--out", "ds"],
+    ] {
+        let err = refused(&args, "--out", p);
+        assert!(err.contains("dataset directory"), "{args:?}: {err}");
+    }
+    assert!(common::tree(&p.join("ds")) == before);
+}

@@ -422,6 +422,43 @@ fn search_train_and_rea_resume_to_the_same_bytes() {
         tree(&searched) == before,
         "a refused resume changed the run"
     );
+    // An edited state is refused by what no search writes (a helper's audit: an empty
+    // population panicked drawing a tournament, a repeated history was reported as more
+    // cycles than asked for, a fitness of 1e308 was picked as best), and changes nothing.
+    let sp = searched.join("run/rea_state.json");
+    let state = std::fs::read(&sp).unwrap();
+    let st: serde_json::Value = serde_json::from_slice(&state).unwrap();
+    type Edit = fn(&mut serde_json::Value);
+    let edits: [(Edit, &str); 3] = [
+        (|s| s["population"] = serde_json::json!([]), "population"),
+        (
+            |s| {
+                let h = s["history"].as_array().unwrap().clone();
+                s["history"] = serde_json::json!([h.clone(), h].concat());
+            },
+            "cycle records",
+        ),
+        (
+            |s| s["evaluated"][1]["fitness"] = serde_json::json!(1e308),
+            "score",
+        ),
+    ];
+    for (edit, why) in edits {
+        let mut s = st.clone();
+        edit(&mut s);
+        std::fs::write(&sp, s.to_string()).unwrap();
+        let out = common::nanoeye(&rea, &searched);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains("rea_state.json") && err.contains(why),
+            "{why}: {err}"
+        );
+    }
+    std::fs::write(&sp, &state).unwrap();
+    assert!(
+        tree(&searched) == before,
+        "a refused resume changed the run"
+    );
     // --pitch-um is not rea's (each candidate starts from the run's p̂): another value resumes
     // the finished search, with a note, to the same history.
     let mut other = rea.clone();

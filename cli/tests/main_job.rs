@@ -444,6 +444,20 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     assert!(again.status.success());
     let r2: serde_json::Value = serde_json::from_slice(&again.stdout).unwrap();
     assert_eq!(r2, r);
+    // A finished run's result.json edited to hold a null (or not an object) is refused, not
+    // printed with exit 0 (a helper's audit).
+    let rp = out.join("result.json");
+    let kept = std::fs::read(&rp).unwrap();
+    let mut edited = r.clone();
+    edited["v_deg"] = serde_json::Value::Null;
+    for text in [edited.to_string(), "\"hello\"".into()] {
+        std::fs::write(&rp, text).unwrap();
+        let o = run();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains("is corrupt"), "{err}");
+        assert!(o.stdout.is_empty());
+    }
+    std::fs::write(&rp, kept).unwrap();
     // `--set` to the value the run has is the same configuration; to another value it is not.
     let with_set = |kv: &str| {
         Command::new(env!("CARGO_BIN_EXE_nanoeye"))

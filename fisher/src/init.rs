@@ -164,6 +164,10 @@ impl InitState {
                  consistent; remove the directory to start over",
             ));
         }
+        // A FIFO blocked the read and `/dev/zero` was read until memory ran out.
+        if !std::fs::metadata(&p).is_ok_and(|m| m.is_file()) {
+            return Err(io("checkpoint", &p, "not a regular file"));
+        }
         let bytes = std::fs::read(&p).map_err(|e| io("checkpoint", &p, e))?;
         let bad = |why: &str| io("checkpoint", &p, why);
         let hm = CHECKPOINT_MAGIC.len();

@@ -265,8 +265,16 @@ pub fn bootstrap(
         if let Some(e) = l.errors_deg.iter().find(|e| e.len() != frames) {
             return Err(format!("lens {k}: {} frames, lens 0 has {frames}", e.len()));
         }
-        if l.errors_deg.iter().flatten().any(|e| !e.is_finite()) {
-            return Err(format!("lens {k}: a frame's error is not finite"));
+        // An angle between two directions: a stored error of 1e308 (an edited state) made the
+        // means overflow and printed null with exit 0.
+        if l.errors_deg
+            .iter()
+            .flatten()
+            .any(|e| !(0.0..=180.0).contains(e))
+        {
+            return Err(format!(
+                "lens {k}: a frame's error is not an angle in [0°, 180°]"
+            ));
         }
     }
     let nl = lenses.len();
@@ -410,6 +418,23 @@ mod tests {
                     .collect()
             })
             .collect()
+    }
+
+    #[test]
+    fn a_frame_error_that_is_no_angle_is_refused() {
+        let macs = [10, 20, 30];
+        let items: Vec<usize> = (0..12).map(|f| f / 3).collect();
+        for bad in [1e308, -50.0, 180.5, f64::NAN] {
+            let mut e = pattern(12, 0.0);
+            e[1][4] = bad;
+            let r = bootstrap(
+                &[lens(&macs, pattern(12, 0.0)), lens(&macs, e)],
+                &items,
+                10,
+                1,
+            );
+            assert!(r.unwrap_err().contains("lens 1"), "{bad}");
+        }
     }
 
     #[test]

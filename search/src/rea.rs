@@ -201,6 +201,66 @@ pub struct ReaState {
     pub history: Vec<CycleRecord>,
 }
 
+impl ReaState {
+    /// What a search could have written, checked before a resume trusts it (an edited state
+    /// with an empty population panicked drawing a tournament; a history repeated five times
+    /// reported 15 cycles of 3; a fitness of 1e308 was picked as best). A search commits its
+    /// individuals in id order, the first `population` of them the initial population and
+    /// each later one the child of cycle id − population, which adds it to the population and
+    /// ages out the oldest: so ids run 0, 1, …; the population holds min(evaluated,
+    /// population) distinct evaluated ids; there is one cycle record per child, naming it and
+    /// evaluated ids only; and scores are finite.
+    pub fn check(&self) -> std::result::Result<(), String> {
+        let (n, c) = (self.evaluated.len(), &self.config);
+        if n > c.population + c.cycles {
+            return Err(format!(
+                "{n} individuals, more than the {} initial and {} children of this search",
+                c.population, c.cycles
+            ));
+        }
+        if let Some((i, x)) = self.evaluated.iter().enumerate().find(|(i, x)| x.id != *i) {
+            return Err(format!("evaluated[{i}] has id {}", x.id));
+        }
+        if let Some(x) = self.evaluated.iter().find(|x| {
+            !(x.v.is_finite() && x.fitness.is_finite() && x.pitch_um.is_finite())
+                || x.v < 0.0
+                || x.fitness.abs() > 1e9
+        }) {
+            return Err(format!("individual {} has a score no search gives", x.id));
+        }
+        let mut seen = vec![false; n];
+        for &id in &self.population {
+            if id >= n || std::mem::replace(&mut seen[id], true) {
+                return Err(format!("population id {id} is unknown or repeated"));
+            }
+        }
+        if self.population.len() != n.min(c.population) {
+            return Err(format!(
+                "a population of {} where {n} evaluated individuals make {}",
+                self.population.len(),
+                n.min(c.population)
+            ));
+        }
+        if self.history.len() != n.saturating_sub(c.population) {
+            return Err(format!(
+                "{} cycle records for {} children",
+                self.history.len(),
+                n.saturating_sub(c.population)
+            ));
+        }
+        for (k, h) in self.history.iter().enumerate() {
+            let ids = h.population.iter().chain(&h.tournament);
+            let unknown = ids.chain([&h.parent, &h.removed]).any(|&id| id >= n);
+            if h.cycle != k || h.child.id != c.population + k || unknown {
+                return Err(format!(
+                    "cycle record {k} does not fit the evaluated individuals"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Scores candidates with the inner loop; what a process evaluating candidates for a
 /// search needs (cheap to clone: references and the configuration).
 #[derive(Clone)]
@@ -370,6 +430,8 @@ impl<'a> Rea<'a> {
                 ),
             ));
         }
+        st.check()
+            .map_err(|why| param("state", format!("{}: {why}", path.display())))?;
         self.state = st;
         Ok(())
     }

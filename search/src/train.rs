@@ -1160,6 +1160,7 @@ impl<'a> Trainer<'a> {
         if n != self.phase.nrows() {
             return Err(bad("phase grid differs from this run's aperture grid"));
         }
+
         if meta.phase_adam.m.len() != self.phase_adam.m.len()
             || meta.phase_adam.v.len() != self.phase_adam.m.len()
         {
@@ -1174,10 +1175,12 @@ impl<'a> Trainer<'a> {
         let nl = r.u64()? as usize;
         nanoeye_nets::checkpoint::from_bytes(&mut self.net, r.take(nl)?)?;
         let t = r.i32()?;
-        let cnt = r.u64()? as usize;
+        // Counts bounded by the bytes that must follow them: a checkpoint edited with its
+        // checksum recomputed claimed 2⁴⁰ moments (an allocation abort) or 2⁶¹ (a panic).
+        let cnt = r.count(8)?;
         let (mut m, mut v) = (Vec::new(), Vec::new());
         for _ in 0..cnt {
-            let l = r.u64()? as usize;
+            let l = r.count(8)?;
             let mut a = Vec::with_capacity(l);
             for _ in 0..l {
                 a.push(r.f32()?);
@@ -1229,7 +1232,12 @@ pub fn load_model(path: &Path) -> Result<(Supernet, f64, TrainConfig)> {
         b: &b[..b.len() - 8],
         at,
     };
-    r.take(meta.phase_n * meta.phase_n * 8)?;
+    let phase_bytes = meta
+        .phase_n
+        .checked_mul(meta.phase_n)
+        .and_then(|v| v.checked_mul(8))
+        .ok_or_else(|| param("model", format!("{}: phase grid too large", path.display())))?;
+    r.take(phase_bytes)?;
     let nl = r.u64()? as usize;
     let mut net = Supernet::new(meta.config.supernet.clone(), meta.config.weights_seed)?;
     nanoeye_nets::checkpoint::from_bytes(&mut net, r.take(nl)?)?;
@@ -1297,6 +1305,19 @@ impl<'b> Reader<'b> {
     }
     fn u64(&mut self) -> Result<u64> {
         Ok(u64::from_le_bytes(self.take(8)?.try_into().expect("8")))
+    }
+    /// A count of items of at least `each` bytes, refused when the bytes left cannot hold
+    /// them.
+    fn count(&mut self, each: usize) -> Result<usize> {
+        let n = self.u64()?;
+        let left = (self.b.len() - self.at) as u64;
+        if n.checked_mul(each as u64).is_none_or(|b| b > left) {
+            return Err(param(
+                "checkpoint",
+                format!("a count of {n} items is more than the {left} bytes left hold"),
+            ));
+        }
+        Ok(n as usize)
     }
     fn f64(&mut self) -> Result<f64> {
         Ok(f64::from_le_bytes(self.take(8)?.try_into().expect("8")))
@@ -1639,6 +1660,22 @@ pub fn evaluate_net(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A checkpoint's counts are bounded by the bytes after them (an edited checkpoint with its
+    /// checksum recomputed claimed 2⁴⁰ Adam moments: an allocation abort; 2⁶¹: a panic).
+    #[test]
+    fn a_count_beyond_the_bytes_left_is_an_error_not_an_allocation() {
+        let mut b = 2u64.to_le_bytes().to_vec();
+        b.extend([0u8; 16]);
+        assert_eq!(Reader { b: &b, at: 0 }.count(8).unwrap(), 2);
+        assert!(Reader { b: &b, at: 0 }.count(9).is_err());
+        for n in [1u64 << 40, 1 << 61, u64::MAX] {
+            let mut b = n.to_le_bytes().to_vec();
+            b.extend([0u8; 64]);
+            let e = Reader { b: &b, at: 0 }.count(8).unwrap_err().to_string();
+            assert!(e.contains(&n.to_string()), "{e}");
+        }
+    }
 
     #[test]
     fn windows_start_at_multiples_and_the_last_step_ends_the_last() {
