@@ -245,12 +245,11 @@ pub fn lens_names() -> Vec<String> {
 fn load(dir: &Path, lenses: &[String], metric: Metric) -> Result<(serde_json::Value, RunRow)> {
     let d = dir.display();
     let cpath = dir.join("config.json");
-    if cpath.symlink_metadata().is_err() {
-        bail!("{d}: no config.json; is it the --out of `nanoeye run`?");
-    }
     // Regular files of bounded size: a FIFO blocked the read, `/dev/zero` was read until
     // memory ran out (and was then reported as a job not finished).
-    let text = util::read_small_text(&cpath, util::MAX_RECORD_BYTES)?;
+    let Some(text) = util::read_record(&cpath, util::MAX_RECORD_BYTES)? else {
+        bail!("{d}: no config.json; is it the --out of `nanoeye run`?");
+    };
     let cfg: RunConfig = serde_json::from_str(&text)
         .with_context(|| format!("{}: not a run configuration", cpath.display()))?;
     let mut config = serde_json::to_value(&cfg)?;
@@ -258,13 +257,12 @@ fn load(dir: &Path, lenses: &[String], metric: Metric) -> Result<(serde_json::Va
         m.remove("seed");
     }
     let rpath = dir.join("result.json");
-    if rpath.symlink_metadata().is_err() {
+    let Some(text) = util::read_record(&rpath, util::MAX_RECORD_BYTES)? else {
         bail!(
             "{d}: no result.json, the job has not finished (resume it: `nanoeye run --out {d}` \
              with its configuration)"
         );
-    }
-    let text = util::read_small_text(&rpath, util::MAX_RECORD_BYTES)?;
+    };
     let r: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("{}: not JSON", rpath.display()))?;
     let key = metric.key();

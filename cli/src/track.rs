@@ -162,11 +162,11 @@ fn load(a: &TrackArgs) -> Result<Model> {
 /// error, not the min subnet in its place.
 fn best_arch(run: &Path) -> Result<Option<Arch>> {
     let p = run.join("rea_state.json");
-    if !p.exists() && p.symlink_metadata().is_err() {
+    let Some(text) = crate::util::read_record(&p, MAX_STATE_BYTES)
+        .with_context(|| format!("--model: {}", p.display()))?
+    else {
         return Ok(None);
-    }
-    let text = crate::util::read_small_text(&p, MAX_STATE_BYTES)
-        .with_context(|| format!("--model: {}", p.display()))?;
+    };
     let st: nanoeye_search::ReaState = serde_json::from_str(&text)
         .with_context(|| format!("--model: {} is not a search state", p.display()))?;
     Ok(
