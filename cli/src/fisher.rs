@@ -108,6 +108,11 @@ fn depths(flag: &str, text: &str) -> Result<Vec<f64>> {
     if m.iter().any(|&z| z.is_nan() || z < min) {
         bail!("{flag}: depths must be at least {} mm", min * 1e3);
     }
+    // As `optics psf` bounds them: depths of 1e300 mm gave every fisher_z 0 with exit 0.
+    let max = crate::optics::MAX_DISTANCE_M;
+    if m.iter().any(|&z| z > max) {
+        bail!("{flag}: depths must be at most {} mm", max * 1e3);
+    }
     Ok(m)
 }
 
@@ -567,6 +572,17 @@ fn compare(a: CompareArgs) -> Result<()> {
         .collect();
     if specs.is_empty() {
         bail!("--lenses: no lens given");
+    }
+    // The montage replaces its path whole: a lens file there (an NPY named .png) was lost.
+    for spec in &specs {
+        if let Some(f) = spec.strip_prefix("file:") {
+            if crate::util::same_file(&a.montage, Path::new(f)) {
+                bail!(
+                    "--montage: '{}' is the lens {spec}; give another path",
+                    a.montage.display()
+                );
+            }
+        }
     }
     if specs.len() > MAX_LIST {
         bail!("--lenses: at most {MAX_LIST} lenses, got {}", specs.len());

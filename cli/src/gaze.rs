@@ -63,11 +63,29 @@ struct Query {
     slip_m: [f64; 3],
 }
 
-/// Reads a PNG mask (8- or 16-bit grey, or any format reduced to luma) into [0, 1].
-pub fn read_mask_png(path: &Path) -> Result<Mat<f32>> {
-    let img = image::open(path)
-        .with_context(|| format!("cannot read mask '{}'", path.display()))?
-        .into_luma16();
+/// Reads a PNG mask (8- or 16-bit grey, or any format reduced to luma) into [0, 1]: a regular
+/// file whose header's size is `grid` = (rows, columns), the camera image's, checked before
+/// the image is decoded (a FIFO blocked the batch; a 48 KB PNG of 20000² pixels took 3 GB
+/// before its size was compared).
+pub fn read_mask_png(path: &Path, grid: (usize, usize)) -> Result<Mat<f32>> {
+    let what = || format!("cannot read mask '{}'", path.display());
+    if !std::fs::metadata(path).with_context(what)?.is_file() {
+        bail!("mask '{}' is not a regular file", path.display());
+    }
+    let open = || {
+        image::ImageReader::open(path)
+            .and_then(|r| r.with_guessed_format())
+            .with_context(what)
+    };
+    let (w, h) = open()?.into_dimensions().with_context(what)?;
+    if (h as usize, w as usize) != grid {
+        bail!(
+            "mask is {w}×{h} px but the camera image is {}×{}",
+            grid.1,
+            grid.0
+        );
+    }
+    let img = open()?.decode().with_context(what)?.into_luma16();
     let (w, h) = img.dimensions();
     Ok(Mat::from_fn(h as usize, w as usize, |i, j| {
         img.get_pixel(j as u32, i as u32)[0] as f32 / 65535.0
@@ -92,21 +110,54 @@ fn no_solution(e: &anyhow::Error) -> bool {
     )
 }
 
+/// Largest |slip_m| component a query may give (m): glasses a metre off the nose. 1e200 made
+/// the refraction-aware solver's norms overflow into a zero gaze and a null visual axis.
+const MAX_SLIP_M: f64 = 1.0;
+/// Largest |pupil_px| component a query may give (px), far outside any image.
+const MAX_PUPIL_PX: f64 = 1e7;
+
+/// Answers one query line; `masks` collects the mask files read (none may be `--out`), and
+/// `grid` is the camera image's (rows, columns).
 fn solve_line(
     solver: &dyn GazeSolver,
     centre: PupilCentre,
     line: &str,
     base: &Path,
+    grid: (usize, usize),
+    masks: &mut Vec<PathBuf>,
 ) -> Result<serde_json::Value> {
     let q: Query = serde_json::from_str(line).context("not a query object")?;
+    if let Some(x) = q
+        .slip_m
+        .iter()
+        .find(|x| !(-MAX_SLIP_M..=MAX_SLIP_M).contains(*x))
+    {
+        bail!("\"slip_m\": {x} m is outside ±{MAX_SLIP_M} m");
+    }
+    if let Some(x) = q
+        .pupil_px
+        .iter()
+        .flatten()
+        .find(|x| !(-MAX_PUPIL_PX..=MAX_PUPIL_PX).contains(*x))
+    {
+        bail!("\"pupil_px\": {x} px is outside ±{MAX_PUPIL_PX:e} px");
+    }
     let sol = match (q.pupil_px, q.mask_png) {
         (Some(px), None) => solver.solve_pixel(px, q.slip_m)?,
         (None, Some(png)) => {
-            let mask = read_mask_png(&base.join(png))?;
+            let path = base.join(png);
+            masks.push(path.clone());
+            let mask = read_mask_png(&path, grid)?;
             solver.solve_mask_with(mask.as_ref(), q.slip_m, centre)?
         }
         _ => bail!("exactly one of \"pupil_px\" and \"mask_png\" is required"),
     };
+    // A gaze is a unit vector: anything else is no answer, not one to print (a zero gaze and
+    // a null visual axis were printed with exit 0).
+    let unit = |v: [f64; 3]| (v.iter().map(|x| x * x).sum::<f64>() - 1.0).abs() < 1e-6;
+    if !unit(sol.gaze) || sol.visual_axis.is_some_and(|v| !unit(v)) {
+        bail!("the solver found no gaze for this query (its result is not a unit vector)");
+    }
     let mut out = json!({
         "gaze": sol.gaze,
         "pupil_3d_m": sol.pupil_3d_m,
@@ -130,7 +181,8 @@ pub fn run(cmd: Cmd) -> Result<()> {
             out,
         } => {
             let centre = PupilCentre::parse(&pupil_centre).context("--pupil-centre")?;
-            let rig = rig::load(rig.as_deref())?;
+            let rig_path = rig;
+            let rig = rig::load(rig_path.as_deref())?;
             let solver: Box<dyn GazeSolver> =
                 match SolverKind::parse(&solver).context("--solver")? {
                     SolverKind::Sphere => {
@@ -142,14 +194,29 @@ pub fn run(cmd: Cmd) -> Result<()> {
                         Box::new(if kappa { s.with_kappa(&rig) } else { s })
                     }
                 };
-            // The answers replace --out whole: given the query file, they would replace it.
+            // The answers replace --out whole: given the query file, the rig or a mask, they
+            // would replace it.
+            let inputs = [
+                ("--input", Some(input.as_path())),
+                ("--rig", rig_path.as_deref()),
+            ];
             if let Some(o) = &out {
-                if crate::util::same_file(o, &input) {
-                    bail!("--out: '{}' is --input; give another path", o.display());
+                for (flag, p) in inputs {
+                    if p.is_some_and(|p| crate::util::same_file(o, p)) {
+                        bail!("--out: '{}' is {flag}; give another path", o.display());
+                    }
                 }
+            }
+            // A FIFO blocked; /dev/zero was read as one endless line (an allocation abort).
+            let meta = std::fs::metadata(&input)
+                .with_context(|| format!("--input: cannot open '{}'", input.display()))?;
+            if !meta.is_file() {
+                bail!("--input: '{}' is not a regular file", input.display());
             }
             let file = std::fs::File::open(&input)
                 .with_context(|| format!("--input: cannot open '{}'", input.display()))?;
+            let grid = (rig.camera.height_px, rig.camera.width_px);
+            let mut masks = Vec::new();
             // Mask paths are relative to the query file's directory.
             let base = input.parent().unwrap_or(Path::new(".")).to_path_buf();
             let mut lines = Vec::new();
@@ -170,7 +237,7 @@ pub fn run(cmd: Cmd) -> Result<()> {
                 // A bad line answers with an error object and never stops the batch.
                 let v = match util::jsonl_line(&raw, n) {
                     Ok(line) if line.trim().is_empty() => continue,
-                    Ok(line) => solve_line(solver.as_ref(), centre, line, &base),
+                    Ok(line) => solve_line(solver.as_ref(), centre, line, &base, grid, &mut masks),
                     Err(e) => Err(e),
                 }
                 .unwrap_or_else(|e| {
@@ -197,6 +264,18 @@ pub fn run(cmd: Cmd) -> Result<()> {
                     "--input {}: none of its {} query lines is a valid query ({first})",
                     input.display(),
                     lines.len()
+                );
+            }
+            if let (Some(o), Some(m)) = (
+                &out,
+                masks
+                    .iter()
+                    .find(|m| out.as_deref().is_some_and(|o| crate::util::same_file(o, m))),
+            ) {
+                bail!(
+                    "--out: '{}' is the mask '{}' of a query; give another path",
+                    o.display(),
+                    m.display()
                 );
             }
             let mut text = lines.join("\n");

@@ -72,7 +72,7 @@ pub fn run(cmd: Cmd) -> Result<()> {
 /// Largest metasurface-to-sensor distance (m).
 const MAX_SENSOR_DISTANCE_M: f64 = 1.0;
 /// Largest object distance (m).
-const MAX_DISTANCE_M: f64 = 1e3;
+pub const MAX_DISTANCE_M: f64 = 1e3;
 /// Nearest object distance (m), for `fisher` too: a hundred wavelengths; a point source at
 /// 1e-311 m gave a PSF of zeros with exit 0.
 pub const MIN_DISTANCE_M: f64 = 1e-4;
@@ -332,6 +332,14 @@ fn psf(a: PsfArgs) -> Result<()> {
     let montage_png = montage(&stack.planes)?;
     for name in ["psf.npy", "montage.png"] {
         crate::util::check_output_target(&a.out.join(name)).context("--out")?;
+    }
+    // An output replacing the lens it was computed from (a file: lens at OUT/psf.npy).
+    if let Some(f) = a.lens.strip_prefix("file:") {
+        for name in ["psf.npy", "montage.png"] {
+            if crate::util::same_file(&a.out.join(name), std::path::Path::new(f)) {
+                bail!("--out: its {name} is --lens {}; give another --out", a.lens);
+            }
+        }
     }
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("--out: cannot create '{}'", a.out.display()))?;

@@ -189,6 +189,19 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     }
     util::check_output_target(&a.plot).context("--plot")?;
     util::check_output_target(&state_path).context("--state")?;
+    // The plot replaces its path whole: an existing file there must be an earlier plot, not
+    // an input (the plot replaced a run's checkpoint.bin and a dataset's dataset.json, exit 0).
+    if let Ok(mut f) = std::fs::File::open(&a.plot) {
+        use std::io::Read;
+        let mut head = [0u8; 5];
+        let n = f.read(&mut head).unwrap_or(0);
+        if n > 0 && !(head[..n].starts_with(b"<svg") || head[..n].starts_with(b"<?xml")) {
+            bail!(
+                "--plot: '{}' exists and is not an SVG plot; give another path",
+                a.plot.display()
+            );
+        }
+    }
     let ds =
         Dataset::open(&a.dataset).with_context(|| format!("--dataset {}", a.dataset.display()))?;
     let train = match &a.train {
@@ -211,16 +224,18 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     // A run without a search has no state; a state that does not parse is refused, not
     // silently replaced by uniform draws.
     let rea_path = runs[0].join("rea_state.json");
-    let mut archs: Vec<Arch> = match std::fs::read_to_string(&rea_path) {
-        Ok(t) => {
+    // A regular file of bounded size (a FIFO blocked, /dev/zero was read without end).
+    let mut archs: Vec<Arch> = match util::read_record(&rea_path, util::MAX_RECORD_BYTES)
+        .with_context(|| format!("--runs: {}", rea_path.display()))?
+    {
+        Some(t) => {
             let st: nanoeye_search::ReaState = serde_json::from_str(&t)
                 .with_context(|| format!("--runs: {} is not a search state", rea_path.display()))?;
             let mut e = st.evaluated;
             e.sort_by(|x, y| y.fitness.total_cmp(&x.fitness));
             e.into_iter().map(|i| i.arch).collect()
         }
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
-        Err(e) => return Err(e).with_context(|| format!("--runs: {}", rea_path.display())),
+        None => Vec::new(),
     };
     archs.truncate(a.subnets);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);

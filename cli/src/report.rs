@@ -255,9 +255,18 @@ fn slip_svg(rows: &[serde_json::Value]) -> String {
     s + "</svg>\n"
 }
 
-/// `s` with the characters XML text may not hold escaped.
+/// `s` with the characters XML text may not hold escaped, and the control characters XML 1.0
+/// allows in no form (a run directory named with ESC made an SVG no parser reads) replaced by
+/// U+FFFD.
 pub(crate) fn esc(s: &str) -> String {
-    s.replace('&', "&amp;")
+    s.chars()
+        .map(|c| match c {
+            '\t' | '\n' | '\r' => c,
+            c if c.is_control() && (c as u32) < 0x20 => '\u{fffd}',
+            c => c,
+        })
+        .collect::<String>()
+        .replace('&', "&amp;")
         .replace('<', "&lt;")
         .replace('>', "&gt;")
 }
@@ -630,6 +639,15 @@ fn num(v: &serde_json::Value) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Markup characters escaped, control characters (not allowed in XML 1.0 in any form)
+    /// replaced; tabs and line ends kept.
+    #[test]
+    fn escaped_text_is_well_formed_xml_text() {
+        assert_eq!(esc("a<b>&c"), "a&lt;b&gt;&amp;c");
+        assert_eq!(esc("ctl\u{1}\u{1b}[31m"), "ctl\u{fffd}\u{fffd}[31m");
+        assert_eq!(esc("t\tn\nr\r é"), "t\tn\nr\r é");
+    }
 
     /// A run whose learned lens came from the embedding objective shows its objective before
     /// and after, the bounds with three significant digits; a run without shows no such table.

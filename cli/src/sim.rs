@@ -465,6 +465,18 @@ pub fn sim(a: SimArgs) -> Result<()> {
     if a.out.exists() && !a.out.is_dir() {
         bail!("--out {}: exists and is not a directory", a.out.display());
     }
+    util::check_not_dataset(&a.out)?;
+    // An output replacing the lens it was computed from (file:OUT/sensor.npy).
+    if let LensSpec::File(f) = &a.lens {
+        for name in ["sensor.npy", "mask.npy", "targets.jsonl", "sim.json"] {
+            if util::same_file(&a.out.join(name), f) {
+                bail!(
+                    "--out: its {name} is --lens {}; give another --out",
+                    f.display()
+                );
+            }
+        }
+    }
     // A run that fails while imaging leaves no directory it created, --out's missing parents
     // included, innermost first (its temporary files go first; `remove_dir` takes only an
     // empty one).
@@ -574,6 +586,25 @@ fn loss(a: LossArgs) -> Result<()> {
     // Where the gradient goes, checked before the work (a directory there was found after).
     if let Some(p) = &a.grad_out {
         util::check_output_target(p).with_context(|| format!("--grad-out {}", p.display()))?;
+        // Not an input: the phase map, or a file of the dataset (a layers file was replaced).
+        if matches!(&lens, LensSpec::File(f) if util::same_file(p, f)) {
+            bail!(
+                "--grad-out: '{}' is --phase; give another path",
+                p.display()
+            );
+        }
+        let within = |d: &Path| {
+            let parent = p.parent().filter(|q| !q.as_os_str().is_empty());
+            let parent = parent.unwrap_or(Path::new(".")).canonicalize();
+            matches!((parent, d.canonicalize()), (Ok(x), Ok(y)) if x.starts_with(&y))
+        };
+        if within(&ds.dir) {
+            bail!(
+                "--grad-out: '{}' lies inside --dataset {}; give another path",
+                p.display(),
+                ds.dir.display()
+            );
+        }
     }
     let noise = match a.noise {
         OnOff::On => NoiseMode::Gaussian,

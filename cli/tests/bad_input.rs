@@ -761,6 +761,65 @@ fn gaze_solve_refuses_a_file_without_a_query_and_answers_misses() {
             .all(|l| l.contains("\"error\"") && l.contains("misses")),
         "{text}"
     );
+    // A slip of 1e200 m overflowed the refraction-aware solver into a zero gaze and a null
+    // visual axis, printed with exit 0: now the line names slip_m (a helper's audit).
+    std::fs::write(
+        p.join("huge.jsonl"),
+        "{\"pupil_px\":[160,100],\"slip_m\":[1e200,1e200,1e200]}\n",
+    )
+    .unwrap();
+    let args = [
+        "gaze",
+        "solve",
+        "--input",
+        "huge.jsonl",
+        "--solver",
+        "refractive",
+        "--kappa",
+    ];
+    let err = refused(&args, "slip_m", p);
+    assert!(!err.contains("null"), "{err}");
+    // --out at the rig or at a query's mask, a FIFO as --input or as a mask: refused (the
+    // rig and the mask were replaced by the answers; the FIFOs blocked).
+    let rig = succeeded(nanoeye(&["rig", "show", "--json"], p)).stdout;
+    std::fs::write(p.join("rig.json"), &rig).unwrap();
+    let args = [
+        "gaze",
+        "solve",
+        "--input",
+        "huge.jsonl",
+        "--rig",
+        "rig.json",
+        "--out",
+        "rig.json",
+    ];
+    refused(&args, "--out", p);
+    assert_eq!(std::fs::read(p.join("rig.json")).unwrap(), rig);
+    image::GrayImage::new(320, 200)
+        .save(p.join("m.png"))
+        .unwrap();
+    std::fs::write(p.join("mq.jsonl"), "{\"mask_png\":\"m.png\"}\n").unwrap();
+    let m = std::fs::read(p.join("m.png")).unwrap();
+    refused(
+        &["gaze", "solve", "--input", "mq.jsonl", "--out", "m.png"],
+        "--out",
+        p,
+    );
+    assert_eq!(std::fs::read(p.join("m.png")).unwrap(), m);
+    for f in ["fifo.jsonl", "fifo.png"] {
+        let made = std::process::Command::new("mkfifo")
+            .arg(p.join(f))
+            .status()
+            .unwrap();
+        assert!(made.success());
+    }
+    refused(
+        &["gaze", "solve", "--input", "fifo.jsonl"],
+        "regular file",
+        p,
+    );
+    std::fs::write(p.join("fq.jsonl"), "{\"mask_png\":\"fifo.png\"}\n").unwrap();
+    refused(&["gaze", "solve", "--input", "fq.jsonl"], "regular file", p);
 }
 
 #[test]
@@ -2706,4 +2765,129 @@ fn an_out_that_is_a_dataset_is_refused() {
         assert!(err.contains("dataset directory"), "{args:?}: {err}");
     }
     assert!(common::tree(&p.join("ds")) == before);
+}
+
+/// A helper's audit of the chain's commands (fifty-third session): a crafted dataset (a slab
+/// index beyond its count panicked; a FIFO blocked; a NaN mask reached sim's output, exit 0)
+/// and outputs that replaced their inputs.
+#[test]
+fn crafted_datasets_and_outputs_over_inputs_are_refused_by_the_chain_commands() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    succeeded(nanoeye(&tiny_dataset("ds"), p));
+    let copy = |name: &str| {
+        let to = p.join(name);
+        for sub in ["", "frames"] {
+            std::fs::create_dir_all(to.join(sub)).unwrap();
+            for e in std::fs::read_dir(p.join("ds").join(sub)).unwrap().flatten() {
+                if e.path().is_file() {
+                    std::fs::copy(e.path(), to.join(sub).join(e.file_name())).unwrap();
+                }
+            }
+        }
+        to
+    };
+    let chain = |ds: &str| -> Vec<String> {
+        common::TINY_CHAIN
+            .iter()
+            .map(|s| {
+                if *s == "ds" {
+                    ds.to_string()
+                } else {
+                    s.to_string()
+                }
+            })
+            .collect()
+    };
+    let sim = |ds: &str, out: &str| -> Vec<String> {
+        let mut v = vec!["sim".to_string()];
+        v.extend(chain(ds));
+        v.extend(["--out".into(), out.into()]);
+        v
+    };
+    let refused_s = |args: &[String], what: &str| {
+        let a: Vec<&str> = args.iter().map(String::as_str).collect();
+        refused(&a, what, p)
+    };
+    // A slab index of 99 of 8.
+    let bad = copy("idx");
+    let lines = std::fs::read_to_string(bad.join("frames.jsonl")).unwrap();
+    let mut recs: Vec<serde_json::Value> = lines
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let k = recs[0]["layers"].as_array().unwrap().len() - 1;
+    recs[0]["layers"][k]["index"] = serde_json::json!(99);
+    let text: String = recs.iter().map(|r| format!("{r}\n")).collect();
+    std::fs::write(bad.join("frames.jsonl"), text).unwrap();
+    let err = refused_s(&sim("idx", "o1"), "layers[].index");
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(!p.join("o1").exists());
+    // frames.jsonl a FIFO.
+    let fifo = copy("fifo");
+    std::fs::remove_file(fifo.join("frames.jsonl")).unwrap();
+    let made = std::process::Command::new("mkfifo")
+        .arg(fifo.join("frames.jsonl"))
+        .status()
+        .unwrap();
+    assert!(made.success());
+    refused_s(&sim("fifo", "o2"), "regular file");
+    // A NaN in a pupil mask.
+    let nan = copy("nan");
+    let mp = nan.join("frames/000000_masks.npy");
+    let mut b = std::fs::read(&mp).unwrap();
+    let at = b.len() - 40;
+    b[at..at + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    std::fs::write(&mp, b).unwrap();
+    refused_s(&sim("nan", "o3"), "coverage");
+    // Outputs over inputs: sim into its dataset, --grad-out at --phase or inside the dataset.
+    let before = common::tree(&p.join("ds"));
+    refused_s(&sim("ds", "ds"), "dataset directory");
+    let zeros = {
+        let n = 100usize;
+        let head = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': ({n}, {n}), }}");
+        let head = format!("{head:<117}\n");
+        let mut v = b"\x93NUMPY\x01\x00".to_vec();
+        v.extend((head.len() as u16).to_le_bytes());
+        v.extend(head.as_bytes());
+        v.extend(vec![0u8; 8 * n * n]);
+        v
+    };
+    std::fs::write(p.join("p.npy"), &zeros).unwrap();
+    let mut loss: Vec<String> = vec!["search".into(), "loss".into()];
+    loss.extend(chain("ds"));
+    loss.extend(["--phase".into(), "p.npy".into(), "--grad-out".into()]);
+    let mut at_phase = loss.clone();
+    at_phase.push("p.npy".into());
+    refused_s(&at_phase, "--grad-out");
+    assert_eq!(std::fs::read(p.join("p.npy")).unwrap(), zeros);
+    let mut inside = loss.clone();
+    inside.push("ds/frames/000000_layers.npy".into());
+    refused_s(&inside, "inside --dataset");
+    assert!(common::tree(&p.join("ds")) == before);
+    // search pareto --plot at an input (it replaced a run's checkpoint.bin, exit 0).
+    let pareto = [
+        "search",
+        "pareto",
+        "--runs",
+        "nope",
+        "--dataset",
+        "ds",
+        "--plot",
+    ];
+    let err = refused(&[&pareto[..], &["ds/dataset.json"]].concat(), "--plot", p);
+    assert!(err.contains("not an SVG"), "{err}");
+    assert!(common::tree(&p.join("ds")) == before);
+    // fisher compare: depths beyond any scene (1e300 mm gave every fisher_z 0, exit 0).
+    let args = [
+        "fisher",
+        "compare",
+        "--depths-mm",
+        "1e300:2e300:1e300",
+        "--pitch-um",
+        "12",
+        "--montage",
+        "m.png",
+    ];
+    refused(&args, "--depths-mm", p);
 }

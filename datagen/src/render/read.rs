@@ -236,12 +236,25 @@ fn read_planes(
     Ok(planes)
 }
 
+/// The text of a regular file of at most `max` bytes (a FIFO blocked, `/dev/zero` was read
+/// until memory ran out).
+fn read_text(path: &Path, max: u64) -> std::io::Result<String> {
+    let meta = std::fs::metadata(path)?;
+    if !meta.is_file() || meta.len() > max {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!("not a regular file of at most {max} bytes"),
+        ));
+    }
+    std::fs::read_to_string(path)
+}
+
 impl Dataset {
     /// Opens `dir`: parses dataset.json and frames.jsonl (a leading byte-order mark is
     /// ignored; a malformed line is an error naming its number).
     pub fn open(dir: &Path) -> Result<Dataset, RenderError> {
         let mpath = dir.join("dataset.json");
-        let text = std::fs::read_to_string(&mpath).map_err(|e| RenderError::Io {
+        let text = read_text(&mpath, 1 << 20).map_err(|e| RenderError::Io {
             path: format!(
                 "{} (is this a directory written by `nanoeye datagen render`?)",
                 mpath.display()
@@ -260,8 +273,17 @@ impl Dataset {
             ));
         }
         manifest.rig.validate()?;
+        // The renderer's own bounds: a count of 10⁷ slabs was believed and allocated for.
+        let ls = manifest.layers;
+        let finite = ls.near_m.is_finite() && ls.far_m.is_finite();
+        if !((1..=256).contains(&ls.count) && finite && ls.near_m < ls.far_m) {
+            return Err(invalid(
+                &mpath,
+                format!("layers: need 1 ≤ count ≤ 256 and finite near < far, got {ls:?}"),
+            ));
+        }
         let jpath = dir.join("frames.jsonl");
-        let text = std::fs::read_to_string(&jpath).map_err(|e| RenderError::Io {
+        let text = read_text(&jpath, 4 << 30).map_err(|e| RenderError::Io {
             path: format!(
                 "{} (an interrupted render? re-run it to finish)",
                 jpath.display()
@@ -279,6 +301,36 @@ impl Dataset {
                 return Err(invalid(
                     &jpath,
                     format!("line {}: frame {} out of order", i + 1, rec.frame),
+                ));
+            }
+            // Slabs of this dataset, near to far, each once: an index of 99 (of 8) panicked
+            // indexing the chain's PSFs.
+            let mut last = None;
+            for l in &rec.layers {
+                if l.index >= ls.count || last.is_some_and(|k| l.index <= k) {
+                    return Err(invalid(
+                        &jpath,
+                        format!(
+                            "line {}: layers[].index {} is not a new slab of the {} (near to far)",
+                            i + 1,
+                            l.index,
+                            ls.count
+                        ),
+                    ));
+                }
+                last = Some(l.index);
+            }
+            // The frame's files inside the dataset (one named `../other/…` was read).
+            let f = &rec.files;
+            let inside = |p: &String| {
+                Path::new(p)
+                    .components()
+                    .all(|c| matches!(c, std::path::Component::Normal(_)))
+            };
+            if !f.layers.iter().chain(&f.masks).all(inside) {
+                return Err(invalid(
+                    &jpath,
+                    format!("line {}: files outside the dataset directory", i + 1),
                 ));
             }
             records.push(rec);
@@ -355,6 +407,17 @@ impl Dataset {
         let masks = read_npy_planes(&mpath, &[2, h as u64, w as u64])?;
         let [mask_visible_pupil, mask_pupil]: [Mat<f32>; 2] =
             masks.try_into().expect("two planes checked");
+        // Coverage in [0, 1]: a NaN (or −5) in an edited mask reached sim's mask.npy, exit 0.
+        for m in [&mask_visible_pupil, &mask_pupil] {
+            for j in 0..m.ncols() {
+                if let Some(v) = m.col(j).iter().find(|v| !(0.0..=1.0).contains(*v)) {
+                    return Err(invalid(
+                        &mpath,
+                        format!("a pupil coverage of {v}, outside [0, 1]"),
+                    ));
+                }
+            }
+        }
         Ok(StoredFrame {
             layers,
             mask_visible_pupil,
