@@ -425,15 +425,16 @@ impl CameraChain {
         positive("psf_window_m", cfg.psf_window_m)?;
         let (psf_cfg, grid) = psf_setup(native_pitch_m, cfg)?;
         let model = AsmPsf::memory_bytes(&psf_cfg, &grid, layers, threads, usage)?;
-        // A training's own per-sample arrays: in `phase_vjp` each depth's term copied column
-        // by column and gathered (two f64 per depth), and the sum, φ and its Adam moments.
-        let own = if usage == PsfUsage::Training {
-            (grid.n as u64)
-                .pow(2)
-                .saturating_mul(8 * (2 * layers as u64 + 4))
-        } else {
-            0
+        // The chain's own per-sample arrays, in f64 or u64: always the caller's phase map
+        // (phase and amplitude) and the memo's bit copies of both (left out until a helper's
+        // audit: `sim --aperture-step-um 0.2` was estimated at 2.21 GiB and peaked at 2.78,
+        // an allocation abort under a limit between them); in a training also `phase_vjp`'s
+        // copy and gather of each depth's term, and the sum, φ and its Adam moments.
+        let per_sample = 4 + match usage {
+            PsfUsage::Training => 2 * layers as u64 + 4,
+            _ => 0,
         };
+        let own = (grid.n as u64).pow(2).saturating_mul(8 * per_sample);
         Ok(model.saturating_add(own))
     }
 
