@@ -497,11 +497,7 @@ fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
     assert!(!p.join("bp").exists());
     #[cfg(unix)]
     {
-        let made = std::process::Command::new("mkfifo")
-            .arg(p.join("fifo"))
-            .status()
-            .unwrap();
-        assert!(made.success());
+        common::mkfifo(&p.join("fifo"));
         refused(&["rig", "show", "--rig", "fifo"], "--rig", p);
         refused(&["gaze", "bias", "--rig", "fifo"], "--rig", p);
         refused(
@@ -807,11 +803,7 @@ fn gaze_solve_refuses_a_file_without_a_query_and_answers_misses() {
     );
     assert_eq!(std::fs::read(p.join("m.png")).unwrap(), m);
     for f in ["fifo.jsonl", "fifo.png"] {
-        let made = std::process::Command::new("mkfifo")
-            .arg(p.join(f))
-            .status()
-            .unwrap();
-        assert!(made.success());
+        common::mkfifo(&p.join(f));
     }
     refused(
         &["gaze", "solve", "--input", "fifo.jsonl"],
@@ -2297,11 +2289,7 @@ fn compare_names_what_it_cannot_read_and_writes_nothing_then() {
     );
     // A run file that is a FIFO: refused, not read forever.
     std::fs::remove_file(p.join("r1/result.json")).unwrap();
-    let made = std::process::Command::new("mkfifo")
-        .arg(p.join("r1/result.json"))
-        .status()
-        .unwrap();
-    assert!(made.success());
+    common::mkfifo(&p.join("r1/result.json"));
     refused(&["compare", "r1"], "not a regular file", p);
     assert_eq!(
         entries(p),
@@ -2609,11 +2597,7 @@ fn metalib_select_and_study_refuse_crafted_sweeps_and_print_no_null() {
     // The manifest a FIFO: refused, not read forever.
     let fifo = copy("fifo");
     std::fs::remove_file(fifo.join("manifest.json")).unwrap();
-    let made = std::process::Command::new("mkfifo")
-        .arg(fifo.join("manifest.json"))
-        .status()
-        .unwrap();
-    assert!(made.success());
+    common::mkfifo(&fifo.join("manifest.json"));
     refused(
         &["metalib", "select", "--sweep", "fifo", "--json"],
         "regular file",
@@ -2826,11 +2810,7 @@ fn crafted_datasets_and_outputs_over_inputs_are_refused_by_the_chain_commands() 
     // frames.jsonl a FIFO.
     let fifo = copy("fifo");
     std::fs::remove_file(fifo.join("frames.jsonl")).unwrap();
-    let made = std::process::Command::new("mkfifo")
-        .arg(fifo.join("frames.jsonl"))
-        .status()
-        .unwrap();
-    assert!(made.success());
+    common::mkfifo(&fifo.join("frames.jsonl"));
     refused_s(&sim("fifo", "o2"), "regular file");
     // A NaN in a pupil mask.
     let nan = copy("nan");

@@ -2,6 +2,8 @@
 //! the chain (the learned and baseline lenses give different protocol errors), the report's
 //! images exist, and a second call reports the finished run without redoing it.
 
+mod common;
+
 use std::path::PathBuf;
 use std::process::Command;
 
@@ -377,11 +379,7 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     image::GrayImage::new(4000, 4000)
         .save(pngs.join("d_big.png"))
         .unwrap();
-    let made = Command::new("mkfifo")
-        .arg(pngs.join("e_fifo.png"))
-        .status()
-        .unwrap();
-    assert!(made.success());
+    common::mkfifo(&pngs.join("e_fifo.png"));
     let o = track(&[], &pngs);
     assert!(!o.status.success());
     let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&o.stdout)

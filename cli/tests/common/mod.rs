@@ -119,3 +119,12 @@ pub fn npy_f64(rows: usize, cols: usize, data: &[f64]) -> Vec<u8> {
     }
     out
 }
+
+/// Makes a FIFO at `path` (the inputs that must be refused, not read forever).
+pub fn mkfifo(path: &Path) {
+    let made = Command::new("mkfifo")
+        .arg(path)
+        .status()
+        .expect("run mkfifo");
+    assert!(made.success(), "mkfifo {}", path.display());
+}
