@@ -513,7 +513,18 @@ pub fn train(a: TrainArgs) -> Result<()> {
             }
         }
         if ck.exists() {
-            std::fs::read(&ck).with_context(|| format!("--out (resume): {}", ck.display()))?
+            let b =
+                std::fs::read(&ck).with_context(|| format!("--out (resume): {}", ck.display()))?;
+            // Empty bytes tell the other ranks "no checkpoint"; no save writes an empty file,
+            // and one was overwritten by a fresh start.
+            if b.is_empty() {
+                bail!(
+                    "--out (resume): '{}' is empty, not a training checkpoint; remove it to \
+                     start afresh, or give another --out",
+                    ck.display()
+                );
+            }
+            b
         } else {
             Vec::new()
         }
@@ -570,6 +581,11 @@ pub fn train(a: TrainArgs) -> Result<()> {
         t.set_embedding(trip)
             .map_err(|e| with_flag(e, &[("embed_batch", "--embed-batch")], "--embed-triplets"))?;
     }
+    // The records beside the checkpoint go in it too: one copied from another run's --out
+    // (whose records differ) is refused, not resumed here.
+    let mut kept = inputs.clone();
+    kept["lens"] = serde_json::from_str(&lens_json)?;
+    t.set_inputs(kept);
     if !resume.is_empty() {
         t.load_bytes(resume, &ck).context("--out (resume)")?;
         if w.is_root() {

@@ -2206,6 +2206,20 @@ fn search_train_embedding_term_runs_resumes_and_names_its_bad_flags() {
     std::fs::rename(p.join("tv_orig"), p.join("tv")).unwrap();
     assert!(nanoeye(&args(&run(&with)), p).status.success());
     assert_eq!(std::fs::read(p.join("o/phase.npy")).unwrap(), phase);
+    // A checkpoint copied from another run's --out, whose records beside it are not its own,
+    // is refused naming what differs (it resumed, mixing two runs); so is an empty one, which
+    // no save writes (it was taken for none and overwritten).
+    let mut o2 = run(&[&with[..], &["--val", "tv"][..]].concat());
+    let k = o2.iter().position(|a| a == "o").unwrap();
+    o2[k] = "o2".into();
+    succeeded(nanoeye(&args(&o2), p));
+    let ck2 = p.join("o2/checkpoint.bin");
+    std::fs::copy(p.join("o/checkpoint.bin"), &ck2).unwrap();
+    let e = refused(&args(&o2), "other inputs", p);
+    assert!(e.contains("`val`"), "{e}");
+    std::fs::write(&ck2, b"").unwrap();
+    refused(&args(&o2), "is empty", p);
+    assert_eq!(std::fs::read(&ck2).unwrap(), b"");
 }
 
 #[test]

@@ -384,6 +384,9 @@ struct Meta {
     /// φ's window in progress (`phase_every` > 1), absent between windows.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     phase_pending: Option<StoredPending>,
+    /// The caller's inputs ([`Trainer::set_inputs`]), absent when it gave none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    inputs: Option<serde_json::Value>,
 }
 
 /// The MAC budget of S16's inner loop.
@@ -423,6 +426,8 @@ pub struct Trainer<'a> {
     pub step: usize,
     /// Per-step losses.
     pub history: Vec<StepRecord>,
+    /// What the result depends on beyond `cfg` ([`Self::set_inputs`]).
+    inputs: Option<serde_json::Value>,
 }
 
 /// Magic line of a training checkpoint.
@@ -508,8 +513,17 @@ impl<'a> Trainer<'a> {
             embed: None,
             step: 0,
             history: Vec::new(),
+            inputs: None,
             cfg,
         })
+    }
+
+    /// Records what the result depends on beyond the configuration — a JSON object, e.g. the
+    /// CLI's resume record and lens — in every checkpoint; [`Self::load`] then refuses a
+    /// checkpoint saved with other values (one copied from another run's directory resumed
+    /// there, mixing two runs). Keys one side lacks are not compared.
+    pub fn set_inputs(&mut self, inputs: serde_json::Value) {
+        self.inputs = Some(inputs);
     }
 
     /// Gives the embedding term (`embed_weight` > 0) its variational triplets: `triplets`
@@ -1100,6 +1114,7 @@ impl<'a> Trainer<'a> {
             history: self.history.clone(),
             phase_n: self.phase.nrows(),
             phase_pending: self.pending.as_ref().map(PendingPhase::to_stored),
+            inputs: self.inputs.clone(),
         };
         let json = serde_json::to_vec(&meta).map_err(|e| param("checkpoint", e.to_string()))?;
         let net = nanoeye_nets::checkpoint::to_bytes(&mut self.net)?;
@@ -1156,6 +1171,7 @@ impl<'a> Trainer<'a> {
                 ),
             ));
         }
+        check_inputs(meta.inputs.as_ref(), self.inputs.as_ref(), path)?;
         let n = meta.phase_n;
         if n != self.phase.nrows() {
             return Err(bad("phase grid differs from this run's aperture grid"));
@@ -1253,6 +1269,44 @@ pub fn read_config(path: &Path) -> Result<TrainConfig> {
 /// returns the bytes, the metadata and the offset just after it. Errors name `name`.
 fn open_checkpoint(path: &Path, name: &'static str) -> Result<(Vec<u8>, Meta, usize)> {
     parse_checkpoint(read_checkpoint(path, name)?, path, name)
+}
+
+/// Refuses a checkpoint whose inputs ([`Trainer::set_inputs`]) differ from this run's in a
+/// key both hold; either side without inputs (a checkpoint of an older build, a caller that
+/// gives none) is not compared.
+fn check_inputs(
+    had: Option<&serde_json::Value>,
+    now: Option<&serde_json::Value>,
+    path: &Path,
+) -> Result<()> {
+    use serde_json::{Map, Value};
+    let (Some(had), Some(now)) = (had, now) else {
+        return Ok(());
+    };
+    let as_map = |v: &Value| match v {
+        Value::Object(m) => m.clone(),
+        other => Map::from_iter([(String::from("inputs"), other.clone())]),
+    };
+    let (a, b) = (as_map(had), as_map(now));
+    let common = |x: &Map<String, Value>, y: &Map<String, Value>| -> Map<String, Value> {
+        x.iter()
+            .filter(|(k, _)| y.contains_key(*k))
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect()
+    };
+    let (a, b) = (common(&a, &b), common(&b, &a));
+    if a != b {
+        return Err(param(
+            "checkpoint",
+            format!(
+                "{} was written by a run with other inputs ({}): it belongs to another run; \
+                 resume in that run's --out, or start a new one",
+                path.display(),
+                crate::error::differences(&a, &b)
+            ),
+        ));
+    }
+    Ok(())
 }
 
 fn read_checkpoint(path: &Path, name: &'static str) -> Result<Vec<u8>> {
@@ -1660,6 +1714,30 @@ pub fn evaluate_net(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A checkpoint's inputs are compared key by key where both sides hold the key: another
+    /// value is refused naming it; a key one side lacks (an older build's record) and a side
+    /// without inputs are not compared.
+    #[test]
+    fn checkpoint_inputs_differ_only_in_keys_both_hold() {
+        use serde_json::json;
+        let p = Path::new("ck.bin");
+        let a = json!({"dataset": "00ff", "val": null, "lens": {"lens": "init"}});
+        assert!(check_inputs(Some(&a), Some(&a), p).is_ok());
+        assert!(check_inputs(None, Some(&a), p).is_ok());
+        assert!(check_inputs(Some(&a), None, p).is_ok());
+        let older = json!({"dataset": "00ff"});
+        assert!(check_inputs(Some(&older), Some(&a), p).is_ok());
+        assert!(check_inputs(Some(&a), Some(&older), p).is_ok());
+        let e = check_inputs(Some(&a), Some(&json!({"dataset": "00fe"})), p)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("`dataset`") && e.contains("other inputs"), "{e}");
+        let e = check_inputs(Some(&a), Some(&json!({"lens": {"lens": "hyperbolic"}})), p)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("`lens`") && !e.contains("`dataset`"), "{e}");
+    }
 
     /// A checkpoint's counts are bounded by the bytes after them (an edited checkpoint with its
     /// checksum recomputed claimed 2⁴⁰ Adam moments: an allocation abort; 2⁶¹: a panic).
