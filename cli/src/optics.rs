@@ -251,7 +251,7 @@ fn psf(a: PsfArgs) -> Result<()> {
         rayon::current_num_threads(),
         PsfUsage::Once,
     )
-    .context("--pitch-um/--window-px/--period-mm")?;
+    .context("--sample-um/--pitch-um/--window-px/--period-mm")?;
     crate::util::check_memory(
         "--sample-um/--aperture-mm/--window-px/--period-mm",
         need,
@@ -307,7 +307,7 @@ fn psf(a: PsfArgs) -> Result<()> {
             }
         },
     };
-    let model = AsmPsf::new(cfg, grid).context("--pitch-um/--window-px/--period-mm")?;
+    let model = AsmPsf::new(cfg, grid).context("--sample-um/--pitch-um/--window-px/--period-mm")?;
     let w = crate::dist::world();
     let (stack, timing) = if w.is_distributed() {
         psf_distributed(&model, &map, &depths, w)?

@@ -194,7 +194,20 @@ impl CameraArgs {
             None => cfg.sensor.base_pitch.min(native),
         };
         check_psf_memory(&cfg, ds, usage, 1)?;
-        CameraChain::for_dataset(ds, cfg).context("--dataset / chain parameters")
+        CameraChain::for_dataset(ds, cfg).map_err(chain_error)
+    }
+}
+
+/// A chain's refusal, naming the flag behind it where one is: the PSF model's period follows
+/// from the aperture and its sampling (the chain has no period of its own), so a folded grid
+/// beyond the model's is `--aperture-step-um`'s (0.07 µm named `period_m`).
+fn chain_error(e: nanoeye_search::SearchError) -> anyhow::Error {
+    match &e {
+        nanoeye_search::SearchError::Optics(nanoeye_optics::OpticsError::InvalidParameter {
+            name: "period_m",
+            reason,
+        }) => anyhow::anyhow!("--aperture-step-um: {reason}"),
+        _ => anyhow::Error::from(e).context("--dataset / chain parameters"),
     }
 }
 
@@ -213,7 +226,7 @@ pub fn check_psf_memory(
         rayon::current_num_threads(),
         usage,
     )
-    .context("--dataset / chain parameters")?;
+    .map_err(chain_error)?;
     util::check_memory(
         "--aperture-step-um",
         one.saturating_mul(copies as u64),

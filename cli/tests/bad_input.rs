@@ -322,6 +322,9 @@ fn impossible_psf_requests_are_refused_without_writing() {
         ),
         (vec!["--aperture-mm", "1e-300"], "--aperture-mm"),
         (vec!["--sample-um", "1e308"], "--sample-um"),
+        // The folded grid of the default period beyond the model's: named only the pitch,
+        // window and period flags, not the sampling that made it.
+        (vec!["--sample-um", "0.07"], "--sample-um"),
         (vec!["--sensor-mm", "1e308"], "--sensor-mm"),
         (
             vec!["--aperture-mm", "0.1", "--period-mm", "0.01"],
@@ -1227,6 +1230,20 @@ fn sim_and_search_loss_name_their_bad_flags() {
                 "o",
             ],
             "--aperture-step-um",
+        ),
+        // Finer than the PSF model's folded grid holds (but above the flag's own floor): it
+        // was named `period_m`, a parameter the chain has no flag for.
+        (
+            vec![
+                "sim",
+                "--dataset",
+                "ds",
+                "--aperture-step-um",
+                "0.07",
+                "--out",
+                "o",
+            ],
+            "--aperture-step-um: the period",
         ),
         (
             vec!["search", "loss", "--dataset", "ds", "--frames", "0:99"],

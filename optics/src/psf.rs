@@ -470,9 +470,23 @@ impl AsmPsf {
         // Checked in floating point first: a huge period must not wrap the integer size.
         let folded = ((period / delta) - 1e-9).ceil().max(2.0);
         if folded.is_nan() || folded > 16384.0 {
+            // Say what makes the period up: unset, it follows from the aperture, the window and
+            // the aperture sampling, none of which the caller calls a period.
+            let made_of = match cfg.period_m {
+                Some(_) => String::from("as given"),
+                None => format!(
+                    "the aperture's {d:.4e} m + the {w}-pixel window's {:.4e} m + a taper \
+                     margin of {margin:.4e} m",
+                    w as f64 * p
+                ),
+            };
             return Err(OpticsError::param(
                 "period_m",
-                format!("folded grid of {folded:e} samples is too large (max 16384)"),
+                format!(
+                    "the period of {period:.4e} m ({made_of}) sampled every {delta:.4e} m is a \
+                     folded grid of {folded:e} samples, more than 16384: sample the aperture \
+                     more coarsely, or narrow the window"
+                ),
             ));
         }
         let n_fold = fast_fft_size(folded as usize);
