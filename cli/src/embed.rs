@@ -151,6 +151,11 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
             ev
         }
     };
+    // The records beside the checkpoint go in it too: one copied from another run's --out
+    // (whose records differ) is refused, not resumed here.
+    let mut kept = inputs.clone();
+    kept["lens"] = serde_json::from_str(&lens_json)?;
+    e.set_inputs(kept);
     if ck.exists() {
         e.load(&ck)
             .map_err(|e| anyhow::anyhow!("--out (resume): {e}"))?;

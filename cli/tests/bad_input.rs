@@ -2094,6 +2094,12 @@ fn search_embed_runs_resumes_and_names_its_bad_flags() {
         dh["init"], out["init"],
         "the hyperbolic run's bounds reported"
     );
+    // The hyperbolic run's checkpoint copied over the double-helix run's: its records there
+    // (lens.json, inputs.json) are not its own, so it is refused naming the key (it resumed,
+    // reporting the hyperbolic run's lens as the double-helix run's).
+    std::fs::copy(p.join("e/checkpoint.bin"), p.join("k/checkpoint.bin")).unwrap();
+    let e = refused(&args(&v), "other inputs", p);
+    assert!(e.contains("`lens`"), "{e}");
 }
 
 #[test]

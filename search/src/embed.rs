@@ -388,6 +388,9 @@ struct EmbedMeta {
     step: usize,
     adam_t: i32,
     history: Vec<EmbedRecord>,
+    /// The caller's inputs ([`Embedder::set_inputs`]), absent when it gave none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    inputs: Option<serde_json::Value>,
 }
 
 /// Adam on φ under the embedding objective, over a dataset's triplets (p̂ fixed).
@@ -400,9 +403,18 @@ pub struct Embedder<'a> {
     adam: VecAdam,
     step: usize,
     history: Vec<EmbedRecord>,
+    /// What the result depends on beyond `cfg` ([`Self::set_inputs`]).
+    inputs: Option<serde_json::Value>,
 }
 
 impl<'a> Embedder<'a> {
+    /// Records what the result depends on beyond the configuration in every checkpoint, as
+    /// [`crate::Trainer::set_inputs`] does: [`Self::load`] refuses a checkpoint saved with
+    /// other values in a key both hold.
+    pub fn set_inputs(&mut self, inputs: serde_json::Value) {
+        self.inputs = Some(inputs);
+    }
+
     /// Starts from `phase` (n×n on the chain's aperture grid).
     pub fn new(
         chain: &'a CameraChain,
@@ -441,6 +453,7 @@ impl<'a> Embedder<'a> {
             phase,
             step: 0,
             history: Vec::new(),
+            inputs: None,
         })
     }
 
@@ -547,6 +560,7 @@ impl<'a> Embedder<'a> {
             step: self.step,
             adam_t: self.adam.t,
             history: self.history.clone(),
+            inputs: self.inputs.clone(),
         };
         let json = serde_json::to_vec(&meta).map_err(|e| param("checkpoint", e.to_string()))?;
         let n = self.phase.nrows();
@@ -595,6 +609,7 @@ impl<'a> Embedder<'a> {
                 crate::error::differences(&meta.config, &self.cfg)
             )));
         }
+        crate::train::check_inputs(meta.inputs.as_ref(), self.inputs.as_ref(), path)?;
         let n = self.phase.nrows();
         if meta.triplets != self.trips.len() || meta.phase_n != n {
             return Err(bad(format!(

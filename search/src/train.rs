@@ -1274,7 +1274,7 @@ fn open_checkpoint(path: &Path, name: &'static str) -> Result<(Vec<u8>, Meta, us
 /// Refuses a checkpoint whose inputs ([`Trainer::set_inputs`]) differ from this run's in a
 /// key both hold; either side without inputs (a checkpoint of an older build, a caller that
 /// gives none) is not compared.
-fn check_inputs(
+pub(crate) fn check_inputs(
     had: Option<&serde_json::Value>,
     now: Option<&serde_json::Value>,
     path: &Path,
