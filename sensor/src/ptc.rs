@@ -80,6 +80,7 @@ pub fn photon_transfer(
     let sensor = CmosSensor::new(cfg.clone())?;
     let g = cfg.gain_dn_per_e;
     let mut points = Vec::with_capacity(levels);
+    let mut unresolved = 0;
     for l in 0..levels {
         let frac = (l as f64 / (levels - 1) as f64).powi(2);
         let mu_e = 0.6 * cfg.full_well_e * frac;
@@ -88,6 +89,14 @@ pub fn photon_transfer(
         if mu_e + 6.0 * sd >= cfg.full_well_e
             || cfg.black_level_dn + g * (mu_e + 6.0 * sd) >= cfg.max_dn()
         {
+            continue;
+        }
+        // Rounding adds Δ²/12 only where the noise before it spans the step (Sheppard's
+        // correction, off by < 1 % of Δ²/12 from σ = Δ/2 on): a narrower noise rounds to a
+        // variance set by where the mean falls between two codes — 0 at most levels of a
+        // small gain, which drew the fit to a slope of 0 with an error of 0.
+        if cfg.quantize && g * sd < 0.5 {
+            unresolved += 1;
             continue;
         }
         let photons = (mu_e / cfg.quantum_efficiency) as f32;
@@ -106,6 +115,15 @@ pub fn photon_transfer(
         let mean = s / n;
         let var = (s2 - n * mean * mean) / (n - 1.0);
         points.push((mean, var));
+    }
+    if points.len() < 3 && points.len() + unresolved >= 3 {
+        return Err(SensorError::InvalidParameter {
+            name: "gain_dn_per_e",
+            value: g,
+            why: "with ADC rounding, fewer than 3 flat-field levels have noise of at least half \
+                  a DN before rounding, where the photon-transfer line holds: a larger gain or \
+                  read noise, or no rounding",
+        });
     }
     if points.len() < 3 {
         return Err(SensorError::InvalidParameter {
@@ -176,6 +194,43 @@ mod bad_input_tests {
         assert_eq!(name_of(e), "levels");
         let e = photon_transfer(&cfg, 16, 1 << 20, 1).unwrap_err();
         assert_eq!(name_of(e), "side");
+    }
+
+    /// A helper's audit: with rounding on, a gain of 1e-3 DN/e⁻ fitted a slope of −7e-23 and
+    /// read noise 0.5 e⁻ an intercept of 0 ± 0, exit 0. Levels whose noise does not span the
+    /// ADC step are left out: the line is refused, or fitted on the levels where it holds.
+    #[test]
+    fn levels_below_the_adc_step_are_left_out_of_the_line() {
+        let small = SensorConfig {
+            gain_dn_per_e: 1e-3,
+            ..SensorConfig::default()
+        };
+        assert_eq!(
+            name_of(photon_transfer(&small, 16, 64, 1).unwrap_err()),
+            "gain_dn_per_e"
+        );
+        for (gain, read) in [(0.01, 4.0), (SensorConfig::default().gain_dn_per_e, 0.5)] {
+            let cfg = SensorConfig {
+                gain_dn_per_e: gain,
+                read_noise_e: read,
+                ..SensorConfig::default()
+            };
+            let r = photon_transfer(&cfg, 16, 128, 1).unwrap();
+            assert!(r.points.len() < 16 && r.points.len() >= 3);
+            assert!(
+                (r.slope - gain).abs() < 4.0 * r.slope_se && r.slope_se < 0.05 * gain,
+                "gain {gain}: slope {} ± {}",
+                r.slope,
+                r.slope_se
+            );
+            assert!(
+                (r.intercept - r.intercept_expected).abs() < 4.0 * r.intercept_se,
+                "gain {gain}: intercept {} ± {} against {}",
+                r.intercept,
+                r.intercept_se,
+                r.intercept_expected
+            );
+        }
     }
 
     #[test]
