@@ -123,17 +123,24 @@ pub fn glint_snr(ambient: f64, d: f64, exposure_s: f64, band: f64) -> Result<Gli
     let to_e = exposure_s / radio.photon_energy_j() * sensor.quantum_efficiency;
     // Glint: total power into the aperture, over its image on the sensor.
     let i_glint = rho * e_led * r_c * r_c / 4.0;
-    let glint_total_e = i_glint * area / (d_cam * d_cam) * to_e;
+    let glint_total_w = i_glint * area / (d_cam * d_cam);
+    let glint_total_e = glint_total_w * to_e;
     let r_led = Light::near_camera(&rig.camera.nominal_pose()).radius_m;
     let mag = 0.5 * r_c / (d * 1e-2 + 0.5 * r_c);
     let r_img = r_led * mag * s / d_cam;
     let glint_px = (std::f64::consts::PI * r_img * r_img / (p * p)).max(1.0);
     let glint_e = glint_total_e / glint_px;
     // Lambertian iris: radiance ρ_iris·E/π into the pixel's étendue A·p²/s².
-    let per_radiance = area * p * p / (s * s) * to_e;
+    let etendue = area * p * p / (s * s);
+    let per_radiance = etendue * to_e;
     let led_bg = subject.iris_albedo * e_led / std::f64::consts::PI * per_radiance;
     let amb_bg = subject.iris_albedo * e_amb / std::f64::consts::PI * per_radiance;
     let fw = sensor.full_well_e;
+    // Glint over background per pixel without the exposure's factor, which both carry: at
+    // 1e-308 ms the background underflowed and the ratio read 0.02 against 132 at 0.1 ms. The
+    // background is never 0 (the LED's irradiance is positive below the limit).
+    let ratio = (glint_total_w / glint_px)
+        / (subject.iris_albedo * (e_led + e_amb) / std::f64::consts::PI * etendue);
     let saturated = glint_e + led_bg + amb_bg >= fw;
     let signal = (glint_e + led_bg + amb_bg).min(fw) - (led_bg + amb_bg).min(fw);
     let noise = ((signal + led_bg + amb_bg).min(fw) + sensor.read_noise_e.powi(2)).sqrt();
@@ -146,8 +153,12 @@ pub fn glint_snr(ambient: f64, d: f64, exposure_s: f64, band: f64) -> Result<Gli
         ambient_background_e: amb_bg,
         saturated,
         snr: signal / noise,
-        contrast: signal / (led_bg + amb_bg).max(1e-300),
-        glint_to_background: glint_e / (led_bg + amb_bg).max(1e-300),
+        contrast: if saturated {
+            signal / (led_bg + amb_bg)
+        } else {
+            ratio
+        },
+        glint_to_background: ratio,
     })
 }
 
@@ -220,6 +231,27 @@ pub fn run(a: SafetyArgs) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Glint and background both scale with the exposure: their ratio does not (a helper's
+    /// audit: 1e-308 ms read 0.02 against 132 at 0.1 ms, the background floored at 1e-300).
+    #[test]
+    fn the_glint_to_background_ratio_does_not_depend_on_the_exposure() {
+        for (ambient, band) in [(0.0, 1.0), (4.0, 1.0), (4.0, 0.1)] {
+            let at = |t: f64| glint_snr(ambient, 1.6, t, band).unwrap();
+            let (one, tiny) = (at(1e-4), at(1e-311));
+            let rel = (tiny.glint_to_background / one.glint_to_background - 1.0).abs();
+            assert!(
+                rel < 1e-12,
+                "{} vs {}",
+                tiny.glint_to_background,
+                one.glint_to_background
+            );
+            // Unclipped, the contrast is that ratio; at 0.1 ms indoors the glint saturates.
+            assert!(!tiny.saturated && tiny.contrast == tiny.glint_to_background);
+            let direct = one.glint_e / (one.led_background_e + one.ambient_background_e);
+            assert!((one.glint_to_background / direct - 1.0).abs() < 1e-12);
+        }
+    }
 
     #[test]
     fn reproduces_the_papers_indoor_and_outdoor_limits() {
