@@ -89,7 +89,8 @@ fn write_jsonl<T: serde::Serialize>(items: &[T], out: &std::path::Path) -> Resul
             w.write_all(b"\n")?;
         }
         Ok(())
-    })?;
+    })
+    .context("--out")?;
     Ok(items.len())
 }
 
@@ -123,6 +124,8 @@ pub fn run(cmd: Cmd) -> Result<()> {
             if n > max {
                 bail!("--n: at most {max} for --set {name} (the set is held in memory), got {n}");
             }
+            // Before the sampling: a directory or a device at --out was found after it.
+            util::check_output_target(&out).context("--out")?;
             let rig_path = rig;
             if rig_path
                 .as_deref()
@@ -208,6 +211,7 @@ fn export(
             bail!("--out: '{}' is {flag}; give another path", out.display());
         }
     }
+    util::check_output_target(out).context("--out")?;
     let rig = rig::load(rig)?;
     let state: State = match state {
         None => State {
@@ -267,7 +271,7 @@ fn export(
     let light = Light::near_camera(&state.camera_pose(&rig));
     let bytes =
         export_glb(&rig, &state, &subj, &light).map_err(|e| anyhow::anyhow!("--state: {e}"))?;
-    util::write_atomic(out, &bytes)?;
+    util::write_atomic(out, &bytes).context("--out")?;
     if json {
         util::print_json(&json!({"out": out, "bytes": bytes.len(), "subject": subject}))
     } else {

@@ -608,8 +608,8 @@ fn loss(a: LossArgs) -> Result<()> {
         }
         let within = |d: &Path| {
             let parent = p.parent().filter(|q| !q.as_os_str().is_empty());
-            let parent = parent.unwrap_or(Path::new(".")).canonicalize();
-            matches!((parent, d.canonicalize()), (Ok(x), Ok(y)) if x.starts_with(&y))
+            let parent = util::resolved(parent.unwrap_or(Path::new(".")));
+            matches!((parent, d.canonicalize()), (Some(x), Ok(y)) if x.starts_with(&y))
         };
         if within(&ds.dir) {
             bail!(

@@ -426,7 +426,9 @@ pub fn read_small_text(path: &Path, max: u64) -> Result<String> {
 /// Refuses an output directory that is a rendered dataset (it holds dataset.json): `search
 /// train --out DS` with DS its --dataset wrote a run into the data it reads, exit 0.
 pub fn check_not_dataset(out: &Path) -> Result<()> {
-    if out.join("dataset.json").symlink_metadata().is_ok() {
+    // Resolved first: `new/../DS` names DS once `new` is made, but not while it is missing.
+    let dir = resolved(out).unwrap_or_else(|| out.to_path_buf());
+    if dir.join("dataset.json").symlink_metadata().is_ok() {
         bail!(
             "--out: '{}' is a dataset directory (it holds dataset.json); give another path",
             out.display()
@@ -435,9 +437,44 @@ pub fn check_not_dataset(out: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Whether two paths name one existing file (an output that would replace an input).
+/// Whether two paths name one file (an output that would replace an input), each
+/// [`resolved`]: `new/../rig.json` is rig.json once the command has made `new`.
 pub fn same_file(a: &Path, b: &Path) -> bool {
-    matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y)
+    matches!((resolved(a), resolved(b)), (Some(x), Some(y)) if x == y)
+}
+
+/// `path` absolute with its links resolved, where it need not exist yet: its longest existing
+/// ancestor canonicalized, the rest appended with `.` and `..` taken by name. That is where
+/// the command's writes land: the directories it creates on the way are not links, so `..`
+/// from one is its parent (`new/../rig.json` was not recognised as rig.json, and replaced it).
+pub fn resolved(path: &Path) -> Option<PathBuf> {
+    use std::path::Component;
+    if let Ok(p) = path.canonicalize() {
+        return Some(p);
+    }
+    let abs = if path.is_absolute() {
+        path.to_path_buf()
+    } else {
+        std::env::current_dir().ok()?.join(path)
+    };
+    let parts: Vec<Component> = abs.components().collect();
+    for k in (1..parts.len()).rev() {
+        let Ok(mut base) = parts[..k].iter().collect::<PathBuf>().canonicalize() else {
+            continue;
+        };
+        for c in &parts[k..] {
+            match c {
+                Component::CurDir => {}
+                Component::ParentDir => {
+                    base.pop();
+                }
+                Component::Normal(n) => base.push(n),
+                Component::RootDir | Component::Prefix(_) => return None,
+            }
+        }
+        return Some(base);
+    }
+    None
 }
 
 /// Largest record a command reads back from its own output directory (bytes): a run's
@@ -542,6 +579,35 @@ pub fn parse_list(flag: &str, text: &str) -> Result<Vec<f64>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A path through directories not made yet resolves where the write lands; an existing
+    /// link is followed, as the kernel does.
+    #[test]
+    fn resolved_takes_missing_directories_and_dots_by_name() {
+        let d = tempfile::tempdir().unwrap();
+        let root = d.path().canonicalize().unwrap();
+        std::fs::write(root.join("f"), b"x").unwrap();
+        let f = root.join("f");
+        assert_eq!(resolved(&root.join("new/../f")), Some(f.clone()));
+        assert_eq!(resolved(&root.join("a/./b/../../f")), Some(f.clone()));
+        assert_eq!(resolved(&root.join("new/g")), Some(root.join("new/g")));
+        assert!(same_file(&root.join("new/../f"), &f));
+        assert!(!same_file(&root.join("new/f"), &f));
+        #[cfg(unix)]
+        {
+            std::fs::create_dir_all(root.join("x/y")).unwrap();
+            std::os::unix::fs::symlink(root.join("x/y"), root.join("l")).unwrap();
+            // `l/..` is x (the link's target's parent), not the root.
+            assert_eq!(
+                resolved(&root.join("l/../new/g")),
+                Some(root.join("x/new/g"))
+            );
+            assert_eq!(
+                resolved(&root.join("l/new/../../f")),
+                Some(root.join("x/f"))
+            );
+        }
+    }
 
     #[test]
     fn batch_memory_is_estimated_from_the_measured_step() {

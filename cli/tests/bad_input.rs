@@ -2725,6 +2725,48 @@ fn datagen_refuses_its_inputs_as_output_and_renders_a_tampered_frame_again() {
         p,
     );
     assert!(!p.join("o.glb").exists());
+    // The same inputs through a directory that does not exist yet (a helper's audit: the check
+    // did not see `new/../rig_in.json` as rig_in.json, and the command made `new` and replaced
+    // the rig, exit 0); and outputs that are a directory or a FIFO, named as --out.
+    let mut through = states;
+    through[9] = "new/../rig_in.json";
+    refused(&through, "is --rig", p);
+    assert_eq!(std::fs::read(p.join("rig_in.json")).unwrap(), rig);
+    refused(
+        &[
+            "datagen",
+            "export",
+            "--state",
+            "st.glb",
+            "--out",
+            "x/../st.glb",
+        ],
+        "is --state",
+        p,
+    );
+    assert_eq!(std::fs::read_to_string(p.join("st.glb")).unwrap(), state);
+    refused(
+        &[
+            "datagen",
+            "export",
+            "--rig",
+            "rig.glb",
+            "--out",
+            "y/./../rig.glb",
+        ],
+        "is --rig",
+        p,
+    );
+    assert_eq!(std::fs::read(p.join("rig.glb")).unwrap(), rig);
+    std::fs::create_dir(p.join("adir")).unwrap();
+    common::mkfifo(&p.join("fifo.jsonl"));
+    for out in ["adir", "fifo.jsonl"] {
+        let mut a = states;
+        a[9] = out;
+        refused(&a, "--out: ", p);
+    }
+    std::fs::create_dir(p.join("d.glb")).unwrap();
+    refused(&["datagen", "export", "--out", "d.glb"], "--out: ", p);
 
     // A record copied over another frame's, and a frame's radiance deleted: both frames are
     // rendered again on the rerun, and frames.jsonl names each of the three frames once.
