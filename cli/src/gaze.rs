@@ -322,6 +322,15 @@ pub fn run(cmd: Cmd) -> Result<()> {
                 .map(|r| pupil_sphere_bias(&rig, r * 1e-3, &grid))
                 .collect::<Result<Vec<_>, _>>()
                 .context("--solver-radii-mm")?;
+            // A rig whose camera sees the pupil at none of the gazes has no bias to report (a
+            // 1×1-pixel camera printed a table of dashes, exit 0), as datagen states refuses it.
+            if reports.iter().all(|r| r.in_view == 0) {
+                bail!(
+                    "--rig: the camera sees the pupil at none of the {} gazes of the sweep \
+                     (az −35…45°, el −15…15°); check its pose and image size",
+                    steps * steps
+                );
+            }
             if json {
                 return util::print_json(&json!({"reports": reports}));
             }

@@ -375,6 +375,27 @@ fn a_rig_with_a_wrong_fy_or_the_camera_inside_the_eye_is_refused() {
         "fy_px",
         p,
     );
+    // A valid rig whose 1×1-pixel camera sees the pupil at no gaze: gaze bias printed a
+    // table of dashes with exit 0 (a helper's audit); datagen states refused it already.
+    let cam = rig["camera"].clone();
+    let mut one = rig.clone();
+    let c = &mut one["camera"];
+    // Pixels four times as large (within the rig's pitch range), the image one of them.
+    let scale = 4.0;
+    c["width_px"] = serde_json::json!(1);
+    c["height_px"] = serde_json::json!(1);
+    c["pixel_pitch_m"] = serde_json::json!(cam["pixel_pitch_m"].as_f64().unwrap() * scale);
+    c["fx_px"] = serde_json::json!(cam["fx_px"].as_f64().unwrap() / scale);
+    c["fy_px"] = serde_json::json!(cam["fy_px"].as_f64().unwrap() / scale);
+    c["cx_px"] = serde_json::json!(0.5);
+    c["cy_px"] = serde_json::json!(0.5);
+    std::fs::write(p.join("one.json"), one.to_string()).unwrap();
+    succeeded(nanoeye(&["rig", "show", "--rig", "one.json"], p));
+    refused(
+        &["gaze", "bias", "--rig", "one.json", "--steps", "3"],
+        "--rig: the camera sees the pupil at none",
+        p,
+    );
     let mut bad = rig.clone();
     bad["camera"]["position_m"] = serde_json::json!([0.0, 0.0, 0.001]);
     std::fs::write(p.join("in.json"), bad.to_string()).unwrap();
