@@ -15,7 +15,9 @@ mod rng;
 pub use binning::{BoxIntegrator, IntegratorGrad};
 pub use cmos::{CmosSensor, NoiseMode, SensorConfig, SensorGrad, SensorTape};
 pub use error::SensorError;
-pub use ptc::{MAX_PTC_LEVELS, MAX_PTC_PIXELS, MAX_PTC_SIDE, PtcResult, photon_transfer};
+pub use ptc::{
+    MAX_PTC_LEVELS, MAX_PTC_PIXELS, MAX_PTC_SIDE, MIN_ROUNDED_NOISE_DN, PtcResult, photon_transfer,
+};
 pub use rng::{standard_normal, stream_rng};
 
 use faer::Mat;

@@ -34,6 +34,10 @@ pub const MAX_PTC_SIDE: usize = 4096;
 /// bound that keeps a request from running for days.
 pub const MAX_PTC_PIXELS: usize = 1 << 30;
 
+/// Least noise before ADC rounding (DN rms) of a level the quantized line is fitted on: from
+/// here Δ²/12 is the rounding's variance to within 0.2 % of it.
+pub const MIN_ROUNDED_NOISE_DN: f64 = 0.7;
+
 /// Runs the photon-transfer measurement on `levels` flat fields of `side`×`side` pixels,
 /// from dark to 60 % of full well (quadratic spacing to pin the intercept), seeded by `seed`.
 pub fn photon_transfer(
@@ -92,10 +96,11 @@ pub fn photon_transfer(
             continue;
         }
         // Rounding adds Δ²/12 only where the noise before it spans the step (Sheppard's
-        // correction, off by < 1 % of Δ²/12 from σ = Δ/2 on): a narrower noise rounds to a
-        // variance set by where the mean falls between two codes — 0 at most levels of a
-        // small gain, which drew the fit to a slope of 0 with an error of 0.
-        if cfg.quantize && g * sd < 0.5 {
+        // correction): off by up to 0.0079 DN² (a tenth of Δ²/12) at σ = Δ/2, depending on
+        // where the mean falls between two codes, 0.00013 DN² at σ = 0.7 Δ (the Gaussian's
+        // rounded variance, worst offset). A narrower noise rounds to a variance of 0 at most
+        // levels of a small gain, which drew the fit to a slope of 0 with an error of 0.
+        if cfg.quantize && g * sd < MIN_ROUNDED_NOISE_DN {
             unresolved += 1;
             continue;
         }
@@ -120,8 +125,8 @@ pub fn photon_transfer(
         return Err(SensorError::InvalidParameter {
             name: "gain_dn_per_e",
             value: g,
-            why: "with ADC rounding, fewer than 3 flat-field levels have noise of at least half \
-                  a DN before rounding, where the photon-transfer line holds: a larger gain or \
+            why: "with ADC rounding, fewer than 3 flat-field levels have noise of at least \
+                  0.7 DN before rounding, where the photon-transfer line holds: a larger gain or \
                   read noise, or no rounding",
         });
     }
@@ -209,7 +214,7 @@ mod bad_input_tests {
             name_of(photon_transfer(&small, 16, 64, 1).unwrap_err()),
             "gain_dn_per_e"
         );
-        for (gain, read) in [(0.01, 4.0), (SensorConfig::default().gain_dn_per_e, 0.5)] {
+        for (gain, read) in [(0.02, 4.0), (SensorConfig::default().gain_dn_per_e, 0.5)] {
             let cfg = SensorConfig {
                 gain_dn_per_e: gain,
                 read_noise_e: read,
