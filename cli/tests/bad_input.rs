@@ -1786,6 +1786,11 @@ fn datagen_export_refuses_bad_states_and_writes_a_glb() {
             r#"{"azimuth_rad":0,"elevation_rad":0,"torsion_rad":0,"slip_m":[0,0,0],"lid_closure":3}"#,
             "lid_closure",
         ),
+        // A vector by its components (its length overflowed and was shown as `inf`).
+        (
+            r#"{"azimuth_rad":0,"elevation_rad":0,"torsion_rad":0,"slip_m":[1e300,0,0]}"#,
+            "slip_m: [1e300, 0.0, 0.0] has length inf",
+        ),
         ("missing.json", "--state"),
         // A misspelt key was ignored (an audit).
         (

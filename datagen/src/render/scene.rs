@@ -896,17 +896,25 @@ pub fn procedural_parts(
         ("state.azimuth_rad", state.azimuth_rad, half_pi),
         ("state.elevation_rad", state.elevation_rad, half_pi),
         ("state.torsion_rad", state.torsion_rad, half_pi),
-        ("state.slip_m", geom::norm(state.slip_m), 0.1),
-        (
-            "state.cam_rot_rad",
-            geom::norm(state.cam_rot_rad),
-            std::f64::consts::PI,
-        ),
     ] {
         if v.is_nan() || v.abs() >= limit {
             return Err(RenderError::Invalid {
                 what,
                 reason: format!("{v} outside (−{limit}, {limit})"),
+            });
+        }
+    }
+    // Vectors by their length, shown with the components given (a length of 1e300² printed
+    // as `inf`).
+    for (what, v, limit) in [
+        ("state.slip_m", state.slip_m, 0.1),
+        ("state.cam_rot_rad", state.cam_rot_rad, std::f64::consts::PI),
+    ] {
+        let n = geom::norm(v);
+        if n.is_nan() || n >= limit {
+            return Err(RenderError::Invalid {
+                what,
+                reason: format!("{v:?} has length {n}, not below {limit}"),
             });
         }
     }
