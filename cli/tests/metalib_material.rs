@@ -139,6 +139,9 @@ fn the_sweep_manifest_records_the_material_and_a_resume_with_another_is_refused(
             && err.contains("`material`"),
         "{err}"
     );
+    // The finished sweep is left as it was (a refused run made it an empty partial/, a
+    // helper's audit).
+    assert!(!d.path().join("s/partial").exists());
 }
 
 #[test]

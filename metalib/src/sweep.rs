@@ -389,14 +389,27 @@ fn decode_block(bytes: &[u8], expect: usize, config_hash: u64) -> Option<Vec<[f6
 }
 
 /// Solves every height of one (pitch, diameter) cell: one eigen-decomposition, many heights.
-/// Failed solves are stored as NaN and counted in the manifest.
+/// Failed solves are stored as NaN and counted in the manifest; so are responses beyond what
+/// [`load_sweep`] accepts (τ above [`MAX_PLAUSIBLE_TRANSMITTANCE`]: a strongly absorbing pillar
+/// at 3 harmonics gave τ = 3.26, saved with exit 0 and "0 failed", and the sweep could not be
+/// loaded).
 fn solve_column(spec: &CellSpec, heights: &[f64]) -> Vec<[f64; 4]> {
     let nan = [f64::NAN; 4];
     match LayerModes::new(spec) {
         Ok(modes) => heights
             .iter()
             .map(|&h| match modes.transmission_at(h) {
-                Ok(t) => [t.arg(), modes.transmittance_of(t), t.re, t.im],
+                Ok(t) => {
+                    let tau = modes.transmittance_of(t);
+                    let plausible = tau <= MAX_PLAUSIBLE_TRANSMITTANCE
+                        && t.re.abs() <= MAX_PLAUSIBLE_T
+                        && t.im.abs() <= MAX_PLAUSIBLE_T;
+                    if plausible {
+                        [t.arg(), tau, t.re, t.im]
+                    } else {
+                        nan
+                    }
+                }
                 Err(_) => nan,
             })
             .collect(),
@@ -621,7 +634,6 @@ fn write_manifest(dir: &Path, manifest: &Manifest) -> Result<(), MetalibError> {
 /// of [`run_sweep`]; a distributed run calls it on one process only.
 pub fn open_sweep(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibError> {
     let grid = sweep_grid(config)?;
-    std::fs::create_dir_all(dir.join("partial")).map_err(|e| io_err(dir, e))?;
     let mut manifest = fresh_manifest(config, &grid);
     let mpath = dir.join("manifest.json");
     if mpath.exists() {
@@ -656,6 +668,8 @@ pub fn open_sweep(config: &SweepConfig, dir: &Path) -> Result<Manifest, MetalibE
         }
         manifest.block_fnv1a64 = old.block_fnv1a64;
     }
+    // Made once the directory is this sweep's: a refused one was left an empty partial/.
+    std::fs::create_dir_all(dir.join("partial")).map_err(|e| io_err(dir, e))?;
     // Keep only the records whose block is still there and intact.
     let cells = grid.heights_m.len() * grid.fractions.len();
     let chash = config_hash(config);
@@ -1013,6 +1027,48 @@ mod bad_input_tests {
         };
         let dir = tempfile::tempdir().unwrap();
         assert!(run_sweep(&cfg, dir.path(), &|_, _| {}).is_err());
+    }
+
+    /// A helper's audit: a pillar of k = 100 at 3 harmonics gave τ up to 3.26, which the sweep
+    /// saved as a result ("0 failed") and load_sweep then refused; such cells are failures.
+    #[test]
+    fn responses_a_load_would_refuse_are_failed_cells() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = SweepConfig {
+            heights_m: Range {
+                start: 700e-9,
+                stop: 700e-9,
+                step: 1e-9,
+            },
+            pitches_m: Range {
+                start: 530e-9,
+                stop: 530e-9,
+                step: 1e-9,
+            },
+            fractions: Range {
+                start: 0.1,
+                stop: 0.9,
+                step: 0.005,
+            },
+            harmonics: 3,
+            materials: Materials {
+                k_pillar: 100.0,
+                ..Materials::default()
+            },
+            ..SweepConfig::default()
+        };
+        let m = run_sweep(&cfg, dir.path(), &|_, _| {}).unwrap();
+        assert!(m.failed_cells > 0, "no cell failed");
+        let data = load_sweep(dir.path()).unwrap();
+        assert_eq!(
+            data.transmittance.iter().filter(|v| v.is_nan()).count(),
+            m.failed_cells
+        );
+        assert!(
+            data.transmittance
+                .iter()
+                .all(|&t| t.is_nan() || t <= MAX_PLAUSIBLE_TRANSMITTANCE)
+        );
     }
 
     #[test]
