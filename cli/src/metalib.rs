@@ -710,6 +710,9 @@ fn select_cmd(a: SelectArgs) -> Result<()> {
     Ok(())
 }
 
+/// The files `metalib blueprint` writes in its --out.
+const BLUEPRINT_OUTPUTS: [&str; 3] = ["diameters.npy", "layout.gds", "preview.png"];
+
 fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
     let h = height_m(a.height_nm)?;
     let s = nm("--pitch-nm", a.pitch_nm)?;
@@ -724,6 +727,19 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
     };
     opt.validate().map_err(blueprint_flag)?;
     a.solver.wavelength_m()?;
+    // No output over an input, before any work (a helper's audit: --phase OUT/diameters.npy
+    // was replaced by the blueprint's diameters, exit 0).
+    for name in BLUEPRINT_OUTPUTS {
+        let o = a.out.join(name);
+        for (flag, p) in [
+            ("--phase", Some(&a.phase)),
+            ("--library-csv", a.library_csv.as_ref()),
+        ] {
+            if p.is_some_and(|p| crate::util::same_file(&o, p)) {
+                bail!("--out: its {name} would replace {flag}; give another --out");
+            }
+        }
+    }
     let (shape, phase) =
         sweep::read_npy(&a.phase).with_context(|| format!("--phase {}", a.phase.display()))?;
     if shape.len() != 2 {
@@ -816,6 +832,7 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
         ),
         ("preview.png", blueprint::preview_png(&bp, dmin, dmax)?),
     ];
+    debug_assert!(outputs.iter().map(|o| o.0).eq(BLUEPRINT_OUTPUTS));
     for (name, _) in &outputs {
         sweep::check_output_target(&a.out.join(name)).context("--out")?;
     }

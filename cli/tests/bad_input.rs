@@ -1003,6 +1003,26 @@ fn blueprint_validates_everything_before_writing() {
         entries(&p.join("bp")),
         ["diameters.npy", "layout.gds", "preview.png"]
     );
+    // An input where an output goes, also through a directory not made yet (a helper's
+    // audit: --phase OUT/diameters.npy was replaced, exit 0): refused before any work.
+    std::fs::copy(p.join("phase.npy"), p.join("bp/diameters.npy")).unwrap();
+    let mut over = base.to_vec();
+    over[3] = "bp/diameters.npy";
+    for out in ["bp", "bp/new/.."] {
+        over[9] = out;
+        refused(&over, "would replace --phase", p);
+    }
+    let mut over = base.to_vec();
+    over[11] = "bp/layout.gds";
+    refused(&over, "would replace --library-csv", p);
+    assert_eq!(
+        std::fs::read(p.join("bp/diameters.npy")).unwrap(),
+        std::fs::read(p.join("phase.npy")).unwrap()
+    );
+    assert_eq!(
+        entries(&p.join("bp")),
+        ["diameters.npy", "layout.gds", "preview.png"]
+    );
 }
 
 #[test]
