@@ -97,6 +97,10 @@ pub fn run(cmd: Cmd) -> Result<()> {
     }
 }
 
+/// Least spacing of neighbouring depth planes (m): 1 µm, where the PSFs of the default lens
+/// still differ by far more than f32 round-off.
+const MIN_DEPTH_STEP_M: f64 = 1e-6;
+
 fn depths(flag: &str, text: &str) -> Result<Vec<f64>> {
     let d = parse_range(flag, text)?;
     if d.len() < 2 {
@@ -112,6 +116,21 @@ fn depths(flag: &str, text: &str) -> Result<Vec<f64>> {
     let max = crate::optics::MAX_DISTANCE_M;
     if m.iter().any(|&z| z > max) {
         bail!("{flag}: depths must be at most {} mm", max * 1e3);
+    }
+    // ∂PSF/∂z is a difference of neighbouring f32 planes: planes 1e-11 mm apart differ by
+    // round-off alone, and fisher_z read 0 or 8e8 with exit 0 (a helper's audit).
+    // (With slack: 17:26:0.001 steps by 0.000999… mm in f64.)
+    if let Some(w) = m
+        .windows(2)
+        .find(|w| (w[1] - w[0]).abs() < MIN_DEPTH_STEP_M * (1.0 - 1e-6))
+    {
+        bail!(
+            "{flag}: neighbouring depths must be at least {} mm apart (∂PSF/∂z is their \
+             difference), got {} and {} mm",
+            MIN_DEPTH_STEP_M * 1e3,
+            w[0] * 1e3,
+            w[1] * 1e3
+        );
     }
     Ok(m)
 }

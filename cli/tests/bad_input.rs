@@ -217,6 +217,29 @@ fn huge_counts_are_refused_naming_the_flag() {
             "--photons",
         ),
         (vec!["fisher", "compare", "--montage", "m.jpg"], "--montage"),
+        // Planes 1e-11 mm apart: ∂PSF/∂z was round-off, fisher_z 0 or 8e8 with exit 0.
+        (
+            vec![
+                "fisher",
+                "compare",
+                "--depths-mm",
+                "20:20.00000000001:1e-11",
+                "--montage",
+                "m.png",
+            ],
+            "--depths-mm: neighbouring depths",
+        ),
+        (
+            vec![
+                "fisher",
+                "init",
+                "--depths-mm",
+                "20:20.0000001:0.0000001",
+                "--out",
+                "fi",
+            ],
+            "--depths-mm: neighbouring depths",
+        ),
         // Named `--pitch` (no such flag) before.
         (
             vec!["metalib", "material-study", "--pitch-nm", "1e300", "--json"],
