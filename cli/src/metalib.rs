@@ -364,6 +364,22 @@ fn nm(flag: &str, v: f64) -> Result<f64> {
     Ok(v * 1e-9)
 }
 
+/// Refuses `solves` RCWA solves at once at `harmonics` orders that would need more memory than
+/// the process may use, naming --harmonics: the allowed 40 orders took 4.5 GB a solve, and an
+/// allocation failure inside the eigen-solver panicked. Peak per solve: 128 B per (2N+1)⁴ plus
+/// 32 MiB, above the peaks of `metalib cell` (release, /usr/bin/time: N = 10, 20, 25, 30 →
+/// 36, 300, 683 MB, 1.43 GB, ≈ 30 MB + 100 B·(2N+1)⁴); a sweep on two threads at N = 20
+/// peaked at 570 MB.
+fn check_rcwa_memory(harmonics: usize, solves: usize) -> Result<()> {
+    let orders = (2 * harmonics as u64 + 1).saturating_pow(4);
+    let one = orders.saturating_mul(128).saturating_add(32 << 20);
+    crate::util::check_memory(
+        "--harmonics",
+        one.saturating_mul(solves as u64),
+        "give fewer --harmonics",
+    )
+}
+
 fn cell(a: CellArgs) -> Result<()> {
     let spec = CellSpec {
         wavelength_m: a.solver.wavelength_m()?,
@@ -377,6 +393,7 @@ fn cell(a: CellArgs) -> Result<()> {
     if h < 0.0 {
         bail!("--height-nm: must be >= 0, got {:?}", a.height_nm);
     }
+    check_rcwa_memory(spec.harmonics, 1)?;
     let r = LayerModes::new(&spec)
         .map_err(|e| anyhow!("{}", cell_flags(&e.to_string())))?
         .at_height(h)
@@ -443,6 +460,7 @@ fn sweep_cmd(a: SweepArgs) -> Result<()> {
     // The whole grid is checked before planning or solving, naming the flags (the sweep's own
     // check reported a bad axis as an --out error, and --plan-ranks by its parameter name).
     sweep::sweep_grid(&config).map_err(|e| anyhow!("{}", sweep_flags(&e.to_string())))?;
+    check_rcwa_memory(config.harmonics, rayon::current_num_threads())?;
     let out = match (a.plan_ranks, &a.out) {
         (Some(n), _) => return plan_cmd(&config, n),
         (None, Some(out)) => out.clone(),
@@ -762,6 +780,7 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
             .0
     } else {
         // Compute the (h, s) slice directly: one eigen-solve per diameter.
+        check_rcwa_memory(a.solver.harmonics, rayon::current_num_threads())?;
         let cfg = SweepConfig {
             heights_m: Range {
                 start: h,
@@ -977,6 +996,7 @@ fn study_cmd(a: StudyArgs) -> Result<()> {
             MAX_STUDY_CELLS * 100.0
         );
     }
+    check_rcwa_memory(a.harmonics, rayon::current_num_threads())?;
     let cfg = nanoeye_metalib::study::StudyConfig {
         wavelength_m,
         pitch_m,

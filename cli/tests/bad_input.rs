@@ -2559,6 +2559,65 @@ fn aperture_sampling_beyond_the_memory_is_refused_before_any_work() {
     let out = with_memory(&["optics", "psf", "--out", "ps2"], "lots", p);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("NANOEYE_MEMORY_BYTES"));
+    // The RCWA at the most harmonics allowed (40 orders: 4.5 GB a solve): an allocation
+    // failure inside the eigen-solver panicked under ulimit -v (a helper's audit). Refused
+    // under a 1 GB cap before any solve, naming --harmonics; 10 orders fit the same cap.
+    let h40 = |cmd: &[&'static str]| -> Vec<&'static str> {
+        let mut v = vec!["metalib"];
+        v.extend(cmd);
+        v.extend(["--harmonics", "40"]);
+        v
+    };
+    for args in [
+        h40(&[
+            "cell",
+            "--height-nm",
+            "700",
+            "--pitch-nm",
+            "530",
+            "--diameter-nm",
+            "200",
+            "--json",
+        ]),
+        h40(&[
+            "sweep",
+            "--heights-nm",
+            "700:700:10",
+            "--pitches-nm",
+            "530:530:10",
+            "--fractions",
+            "0.3:0.4:0.1",
+            "--out",
+            "sw",
+        ]),
+        h40(&["material-study", "--json"]),
+    ] {
+        let out = with_memory(&args, "1e9", p);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} ran under a 1 GB cap");
+        assert!(
+            err.contains("--harmonics") && err.contains("GiB") && !err.contains("panicked"),
+            "{args:?}: {err}"
+        );
+    }
+    assert!(!p.join("sw").exists());
+    succeeded(with_memory(
+        &[
+            "metalib",
+            "cell",
+            "--height-nm",
+            "700",
+            "--pitch-nm",
+            "530",
+            "--diameter-nm",
+            "200",
+            "--harmonics",
+            "10",
+            "--json",
+        ],
+        "1e9",
+        p,
+    ));
 }
 
 #[test]
