@@ -837,6 +837,13 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
         );
     }
     let bp = blueprint::invert_phase_map(&lib, &phase, rows, cols, &opt).map_err(blueprint_flag)?;
+    // The layout is built in memory (about 0.5 KB a pillar at 64 vertices: a 2500² map's 2.7
+    // GB aborted an allocation under ulimit -v 4 GB); weighed with the preview's canvas.
+    crate::util::check_memory(
+        "--phase/--circle-vertices",
+        blueprint::gdsii_len(&bp, &opt).saturating_add(3 * (rows as u64) * (cols as u64)),
+        "give a smaller phase map or fewer --circle-vertices",
+    )?;
     // Every output is produced in memory and every target checked before the first write,
     // so a failure never leaves new files next to old ones.
     let (dmin, dmax) = lib.diameter_range_m();

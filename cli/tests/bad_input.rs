@@ -1038,6 +1038,25 @@ fn blueprint_validates_everything_before_writing() {
     let mut over = base.to_vec();
     over[11] = "bp/layout.gds";
     refused(&over, "would replace --library-csv", p);
+    // A layout beyond the memory there is: weighed before it is built (a helper's audit: a
+    // 2500² map's 2.7 GB GDS aborted an allocation under ulimit -v). 1000² pillars of 64
+    // vertices are about 0.5 GB, against a 100 MB cap.
+    std::fs::write(
+        p.join("big.npy"),
+        npy_f64(1000, 1000, &vec![1.0; 1_000_000]),
+    )
+    .unwrap();
+    let mut big = base.to_vec();
+    big[3] = "big.npy";
+    big[9] = "bbig";
+    let out = with_memory(&big, "1e8", p);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "ran under a 100 MB cap");
+    assert!(
+        err.contains("--phase/--circle-vertices") && err.contains("GiB"),
+        "{err}"
+    );
+    assert!(!p.join("bbig").exists());
     assert_eq!(
         std::fs::read(p.join("bp/diameters.npy")).unwrap(),
         std::fs::read(p.join("phase.npy")).unwrap()
