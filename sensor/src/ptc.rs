@@ -122,12 +122,24 @@ pub fn photon_transfer(
         points.push((mean, var));
     }
     if points.len() < 3 && points.len() + unresolved >= 3 {
-        return Err(SensorError::InvalidParameter {
-            name: "gain_dn_per_e",
-            value: g,
-            why: "with ADC rounding, fewer than 3 flat-field levels have noise of at least \
-                  0.7 DN before rounding, where the photon-transfer line holds: a larger gain or \
-                  read noise, or no rounding",
+        // Some levels resolved: more of them may be enough (3 levels at the default sensor
+        // keep 2); none: the gain and read noise are too small for the ADC step.
+        return Err(if points.is_empty() {
+            SensorError::InvalidParameter {
+                name: "gain_dn_per_e",
+                value: g,
+                why: "with ADC rounding, no flat-field level has noise of at least 0.7 DN \
+                      before rounding, where the photon-transfer line holds: a larger gain or \
+                      read noise, or no rounding",
+            }
+        } else {
+            SensorError::InvalidParameter {
+                name: "levels",
+                value: levels as f64,
+                why: "with ADC rounding, fewer than 3 flat-field levels have noise of at least \
+                      0.7 DN before rounding, where the photon-transfer line holds: more \
+                      levels, a larger gain or read noise, or no rounding",
+            }
         });
     }
     if points.len() < 3 {
@@ -214,6 +226,10 @@ mod bad_input_tests {
             name_of(photon_transfer(&small, 16, 64, 1).unwrap_err()),
             "gain_dn_per_e"
         );
+        // Three levels of the default sensor: the dark one is left out, two remain — more
+        // levels would do (the property test's case named the gain).
+        let e = photon_transfer(&SensorConfig::default(), 3, 8, 1).unwrap_err();
+        assert_eq!(name_of(e), "levels");
         for (gain, read) in [(0.02, 4.0), (SensorConfig::default().gain_dn_per_e, 0.5)] {
             let cfg = SensorConfig {
                 gain_dn_per_e: gain,
