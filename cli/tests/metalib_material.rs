@@ -67,6 +67,41 @@ fn an_unknown_material_is_refused_naming_the_flag_and_the_known_names() {
     );
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("--material") && err.contains("--wavelength-nm"));
+    // Without a material, the default (a-Si at 940 nm) is refused at another wavelength (it
+    // was used as it is: n 3.7, k 0.008 at 100 and 5000 nm, a helper's audit); explicit
+    // indices, or a table holding the wavelength, are taken.
+    for w in ["500", "1500"] {
+        let out = nanoeye(&cell(&["--wavelength-nm", w]), &std::env::temp_dir());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains("--wavelength-nm: the default pillar index"),
+            "{err}"
+        );
+    }
+    let v = json(&nanoeye(
+        &cell(&[
+            "--wavelength-nm",
+            "1064",
+            "--n-pillar",
+            "3.6",
+            "--k-pillar",
+            "0.004",
+            "--json",
+        ]),
+        &std::env::temp_dir(),
+    ));
+    assert_eq!(v["n_pillar"], 3.6);
+    let v = json(&nanoeye(
+        &cell(&[
+            "--wavelength-nm",
+            "1064",
+            "--material",
+            "pierce-spicer-1972",
+            "--json",
+        ]),
+        &std::env::temp_dir(),
+    ));
+    assert!(v["n_pillar"].as_f64().unwrap() != 3.7, "{v}");
 }
 
 #[test]
