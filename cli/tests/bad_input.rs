@@ -2581,24 +2581,12 @@ fn aperture_sampling_beyond_the_memory_is_refused_before_any_work() {
     // The RCWA at the most harmonics allowed (40 orders: 4.5 GB a solve): an allocation
     // failure inside the eigen-solver panicked under ulimit -v (a helper's audit). Refused
     // under a 1 GB cap before any solve, naming --harmonics; 10 orders fit the same cap.
-    let h40 = |cmd: &[&'static str]| -> Vec<&'static str> {
-        let mut v = vec!["metalib"];
-        v.extend(cmd);
-        v.extend(["--harmonics", "40"]);
-        v
-    };
+    let h40 =
+        |cmd: &[&'static str]| -> Vec<&'static str> { [cmd, &["--harmonics", "40"]].concat() };
     for args in [
+        h40(&[&common::CELL[..], &["--json"]].concat()),
         h40(&[
-            "cell",
-            "--height-nm",
-            "700",
-            "--pitch-nm",
-            "530",
-            "--diameter-nm",
-            "200",
-            "--json",
-        ]),
-        h40(&[
+            "metalib",
             "sweep",
             "--heights-nm",
             "700:700:10",
@@ -2609,7 +2597,7 @@ fn aperture_sampling_beyond_the_memory_is_refused_before_any_work() {
             "--out",
             "sw",
         ]),
-        h40(&["material-study", "--json"]),
+        h40(&["metalib", "material-study", "--json"]),
     ] {
         let out = with_memory(&args, "1e9", p);
         let err = String::from_utf8_lossy(&out.stderr);
@@ -2620,23 +2608,8 @@ fn aperture_sampling_beyond_the_memory_is_refused_before_any_work() {
         );
     }
     assert!(!p.join("sw").exists());
-    succeeded(with_memory(
-        &[
-            "metalib",
-            "cell",
-            "--height-nm",
-            "700",
-            "--pitch-nm",
-            "530",
-            "--diameter-nm",
-            "200",
-            "--harmonics",
-            "10",
-            "--json",
-        ],
-        "1e9",
-        p,
-    ));
+    let ok = [&common::CELL[..], &["--harmonics", "10", "--json"]].concat();
+    succeeded(with_memory(&ok, "1e9", p));
 }
 
 #[test]

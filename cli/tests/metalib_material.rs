@@ -17,16 +17,7 @@ fn json(out: &Output) -> serde_json::Value {
 
 /// `metalib cell` at the paper's (h, s) = (700, 530) nm and a 200 nm pillar, then `more`.
 fn cell<'a>(more: &[&'a str]) -> Vec<&'a str> {
-    let mut v = vec![
-        "metalib",
-        "cell",
-        "--height-nm",
-        "700",
-        "--pitch-nm",
-        "530",
-        "--diameter-nm",
-        "200",
-    ];
+    let mut v = common::CELL.to_vec();
     v.extend_from_slice(more);
     v
 }

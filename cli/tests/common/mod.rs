@@ -57,6 +57,18 @@ pub const TINY_CHAIN: [&str; 8] = [
     "0.0004",
 ];
 
+/// `metalib cell` at the paper's (h, s) = (700, 530) nm and a 200 nm pillar.
+pub const CELL: [&str; 8] = [
+    "metalib",
+    "cell",
+    "--height-nm",
+    "700",
+    "--pitch-nm",
+    "530",
+    "--diameter-nm",
+    "200",
+];
+
 /// `search train` flags of a two-step run on [`TINY_CHAIN`] (no random subnets, p̂ within the
 /// tiny chain's grids).
 pub const TINY_TRAIN: [&str; 8] = [
