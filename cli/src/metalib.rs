@@ -391,8 +391,8 @@ fn nm(flag: &str, v: f64) -> Result<f64> {
 /// 36, 300, 683 MB, 1.43 GB, ≈ 30 MB + 100 B·(2N+1)⁴); a sweep on two threads at N = 20
 /// peaked at 570 MB.
 fn check_rcwa_memory(harmonics: usize, solves: usize) -> Result<()> {
-    // Saturating: a count of 1.7e19 (the property test's) overflowed; the solver's own bound
-    // names it after this refusal.
+    // Saturating: a count of 1.7e19 (the property test's) overflowed; such a count is refused
+    // here, naming the flag, before the solver's own bound of 40.
     let orders = (harmonics as u64)
         .saturating_mul(2)
         .saturating_add(1)
