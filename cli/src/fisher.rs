@@ -384,18 +384,30 @@ fn init(a: InitArgs) -> Result<()> {
         "window_px": a.optics.window_px,
         "aperture_step_um": a.optics.aperture_step_um,
     });
+    let keys = [
+        ("window_px", "--window-px"),
+        ("aperture_step_um", "--aperture-step-um"),
+    ];
     let (mut state, cfg) = if InitState::checkpoint_exists(&ckpt) {
         let (s, c) = InitState::load(&ckpt)
             .with_context(|| format!("--out: cannot resume from '{}'", ckpt.display()))?;
-        crate::util::check_inputs(
-            &inputs_path,
-            &inputs,
-            &[
-                ("window_px", "--window-px"),
-                ("aperture_step_um", "--aperture-step-um"),
-            ],
-            "--out",
-        )?;
+        crate::util::check_inputs(&inputs_path, &inputs, &keys, "--out")?;
+        // The checkpoint keeps them too: without inputs.json (deleted, or the checkpoint
+        // copied from another run) a resume with another window went on (a helper's audit).
+        if let Some((key, flag)) = s.inputs.as_ref().and_then(|had| {
+            keys.iter()
+                .find(|(k, _)| had.get(*k).is_some_and(|v| *v != inputs[*k]))
+        }) {
+            bail!(
+                "{flag}: differs from the checkpoint in '{}' ({key} = {} there, {} now); use \
+                 the original value or another --out",
+                ckpt.display(),
+                s.inputs
+                    .as_ref()
+                    .map_or(serde_json::Value::Null, |h| h[*key].clone()),
+                inputs[*key]
+            );
+        }
         // A resumed run must continue the same problem: refuse changed parameters by name.
         let changed = [
             ("--depths-mm", c.depths_m != requested.depths_m),
@@ -427,6 +439,7 @@ fn init(a: InitArgs) -> Result<()> {
         let phase = Hyperbolic::default().phase_map(&grid)?.phase_rad;
         (InitState::new(phase), requested)
     };
+    state.inputs = Some(inputs.clone());
     crate::util::check_not_dataset(&a.out)?;
     // Every output's place checked before the first is written: a directory at
     // OUT/history.json was found only after the checkpoint, phase and montage were written.

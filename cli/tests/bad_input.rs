@@ -1135,6 +1135,16 @@ fn fisher_init_resume_refuses_changed_parameters_and_keeps_one_checkpoint_file()
     args.extend(["--iterations", "2"]);
     let e = refused(&args, "--aperture-step-um", p);
     assert!(e.contains("differs from the run being resumed"), "{e}");
+    // Without inputs.json the checkpoint's own record refuses them (a helper's audit: the
+    // resume went on and rewrote inputs.json with the new window).
+    let rec = std::fs::read(p.join("fi/inputs.json")).unwrap();
+    std::fs::remove_file(p.join("fi/inputs.json")).unwrap();
+    let mut args = base.to_vec();
+    args[7] = "5";
+    args.extend(["--iterations", "2"]);
+    let e = refused(&args, "--window-px", p);
+    assert!(e.contains("differs from the checkpoint"), "{e}");
+    std::fs::write(p.join("fi/inputs.json"), rec).unwrap();
     // A resumed run reports the run's first iteration, not the resuming process's: the same
     // as a run that stops there.
     let first = |out: std::process::Output| {

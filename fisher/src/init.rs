@@ -76,6 +76,10 @@ pub struct InitState {
     pub s_v: [f64; 3],
     /// Per-iteration records.
     pub history: Vec<InitRecord>,
+    /// What the caller's run depends on beyond [`InitConfig`] (e.g. the CLI's PSF window and
+    /// aperture step), kept in the checkpoint so that a resume can compare it; `None` for a
+    /// checkpoint written without it.
+    pub inputs: Option<serde_json::Value>,
 }
 
 #[derive(serde::Serialize, serde::Deserialize)]
@@ -87,6 +91,8 @@ struct Meta {
     s_v: [f64; 3],
     config: InitConfig,
     history: Vec<InitRecord>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    inputs: Option<serde_json::Value>,
 }
 
 const BETA1: f64 = 0.9;
@@ -106,6 +112,7 @@ impl InitState {
             s_m: [0.0; 3],
             s_v: [0.0; 3],
             history: Vec::new(),
+            inputs: None,
         }
     }
 
@@ -125,6 +132,7 @@ impl InitState {
             s_v: self.s_v,
             config: cfg.clone(),
             history: self.history.clone(),
+            inputs: self.inputs.clone(),
         };
         let json = serde_json::to_vec(&meta).map_err(|e| FisherError::Shape {
             name: "checkpoint",
@@ -209,6 +217,7 @@ impl InitState {
                 s_m: meta.s_m,
                 s_v: meta.s_v,
                 history: meta.history,
+                inputs: meta.inputs,
             },
             meta.config,
         ))
