@@ -394,18 +394,15 @@ fn init(a: InitArgs) -> Result<()> {
         crate::util::check_inputs(&inputs_path, &inputs, &keys, "--out")?;
         // The checkpoint keeps them too: without inputs.json (deleted, or the checkpoint
         // copied from another run) a resume with another window went on (a helper's audit).
-        if let Some((key, flag)) = s.inputs.as_ref().and_then(|had| {
-            keys.iter()
-                .find(|(k, _)| had.get(*k).is_some_and(|v| *v != inputs[*k]))
-        }) {
+        if let Some((flag, key, old, new)) = s
+            .inputs
+            .as_ref()
+            .and_then(|had| crate::util::value_difference(had, &inputs, &keys))
+        {
             bail!(
-                "{flag}: differs from the checkpoint in '{}' ({key} = {} there, {} now); use \
-                 the original value or another --out",
-                ckpt.display(),
-                s.inputs
-                    .as_ref()
-                    .map_or(serde_json::Value::Null, |h| h[*key].clone()),
-                inputs[*key]
+                "{flag}: differs from the checkpoint in '{}' ({key} = {old} there, {new} now); \
+                 use the original value or another --out",
+                ckpt.display()
             );
         }
         // A resumed run must continue the same problem: refuse changed parameters by name.

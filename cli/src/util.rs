@@ -247,10 +247,20 @@ pub fn recorded_difference<'k>(
     };
     let had: serde_json::Value = serde_json::from_str(&text)
         .with_context(|| format!("{what}: {} is not JSON", path.display()))?;
-    Ok(keys.iter().find_map(|&(key, flag)| {
+    Ok(value_difference(&had, now, keys))
+}
+
+/// The first of `keys` (key, flag) whose value in the record `had` differs from `now`'s, as
+/// (flag, key, recorded, now); keys the record lacks are not compared.
+pub fn value_difference<'k>(
+    had: &serde_json::Value,
+    now: &serde_json::Value,
+    keys: &[(&'k str, &'k str)],
+) -> Option<(&'k str, &'k str, serde_json::Value, serde_json::Value)> {
+    keys.iter().find_map(|&(key, flag)| {
         let old = had.get(key)?;
         (*old != now[key]).then(|| (flag, key, old.clone(), now[key].clone()))
-    }))
+    })
 }
 
 /// One line of JSONL input as text: `raw` without its line ending; line 1 loses a leading
