@@ -261,7 +261,12 @@ fn write_file(path: &Path, bytes: &[u8]) -> Result<(), FisherError> {
         ));
     }
     // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
-    let mut tmp = tempfile::Builder::new()
+    let mut b = tempfile::Builder::new();
+    // A temporary file is created owner-only (0600); an output is an ordinary file, so ask
+    // for 0666 and let the umask take its share, as `File::create` would.
+    #[cfg(unix)]
+    b.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    let mut tmp = b
         .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
         .tempfile_in(dir)
         .map_err(|e| io("output", path, e))?;

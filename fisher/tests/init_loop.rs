@@ -65,3 +65,18 @@ fn loss_decreases_and_checkpoint_resumes_exactly() {
     assert!(ra.l_init.is_finite());
     assert!(ra.terms.iter().all(|&t| t > 0.0), "terms {:?}", ra.terms);
 }
+
+/// The phase map `fisher init` writes has the mode `File::create` gives under this umask,
+/// not a temporary file's 0600.
+#[cfg(unix)]
+#[test]
+fn written_phase_map_has_the_mode_file_create_gives() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let mode = |p: &std::path::Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+    let plain = dir.path().join("plain");
+    std::fs::write(&plain, b"x").unwrap();
+    let out = dir.path().join("phase.npy");
+    nanoeye_fisher::write_npy(&out, &faer::Mat::zeros(3, 3)).unwrap();
+    assert_eq!(mode(&out), mode(&plain));
+}

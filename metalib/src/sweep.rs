@@ -209,19 +209,16 @@ fn stage(path: &Path, bytes: &[u8]) -> Result<tempfile::NamedTempFile, MetalibEr
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
     // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
-    let mut tmp = tempfile::Builder::new()
+    let mut b = tempfile::Builder::new();
+    // A temporary file is created owner-only (0600); an output is an ordinary file, so ask
+    // for 0666 and let the umask take its share, as `File::create` would.
+    #[cfg(unix)]
+    b.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    let mut tmp = b
         .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
         .tempfile_in(dir)
         .map_err(|e| io_err(path, e))?;
     tmp.write_all(bytes).map_err(|e| io_err(path, e))?;
-    // NamedTempFile is created 0600; outputs are ordinary data files.
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        tmp.as_file()
-            .set_permissions(std::fs::Permissions::from_mode(0o644))
-            .map_err(|e| io_err(path, e))?;
-    }
     Ok(tmp)
 }
 
@@ -1219,6 +1216,24 @@ mod bad_input_tests {
         std::os::unix::fs::symlink(&real, &link).unwrap();
         assert!(write_atomic(&link, b"x").is_err());
         assert_eq!(std::fs::read(&real).unwrap(), b"keep");
+    }
+
+    /// The sweep's files have the mode `File::create` gives under this umask (they were
+    /// 0644 whatever the umask, after a temporary file's 0600).
+    #[cfg(unix)]
+    #[test]
+    fn an_atomic_write_has_the_mode_file_create_gives() {
+        let dir = tempfile::tempdir().unwrap();
+        use std::os::unix::fs::PermissionsExt;
+        let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+        let plain = dir.path().join("plain");
+        std::fs::write(&plain, b"x").unwrap();
+        let out = dir.path().join("out.json");
+        write_atomic(&out, b"x").unwrap();
+        assert_eq!(mode(&out), mode(&plain));
+        let set_dir = dir.path().join("set");
+        let set = write_set(&set_dir, &[(set_dir.join("a.json"), b"x".to_vec())]).unwrap();
+        assert_eq!(mode(Path::new(&set[0])), mode(&plain));
     }
 }
 

@@ -665,3 +665,19 @@ fn memory_estimate_tracks_the_aperture_samples_and_the_models_limits() {
         assert_eq!(e1, e2);
     }
 }
+
+/// A PSF stack `optics psf` saves has the mode `File::create` gives under this umask, not a
+/// temporary file's 0600.
+#[cfg(unix)]
+#[test]
+fn saved_stack_has_the_mode_file_create_gives() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let mode = |p: &std::path::Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+    let plain = dir.path().join("plain");
+    std::fs::write(&plain, b"x").unwrap();
+    let out = dir.path().join("psf.npy");
+    let stack = nanoeye_optics::PsfStack::from_planes(&[0.02], 3e-6, 3, &[Some(Mat::zeros(3, 3))]);
+    nanoeye_optics::io::save_stack_npy(&stack, &out).unwrap();
+    assert_eq!(mode(&out), mode(&plain));
+}

@@ -439,7 +439,12 @@ pub(crate) fn write_file_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(|e| param("out", format!("{}: {e}", dir.display())))?;
     let io = |e: std::io::Error| param("out", format!("{}: {e}", path.display()));
     // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
-    let mut tmp = tempfile::Builder::new()
+    let mut b = tempfile::Builder::new();
+    // A temporary file is created owner-only (0600); an output is an ordinary file, so ask
+    // for 0666 and let the umask take its share, as `File::create` would.
+    #[cfg(unix)]
+    b.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    let mut tmp = b
         .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
         .tempfile_in(dir)
         .map_err(io)?;
@@ -1714,6 +1719,21 @@ pub fn evaluate_net(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A checkpoint has the mode `File::create` gives under this umask, not a temporary
+    /// file's 0600 (every output of a run was owner-only).
+    #[cfg(unix)]
+    #[test]
+    fn an_atomic_write_has_the_mode_file_create_gives() {
+        let dir = tempfile::tempdir().unwrap();
+        use std::os::unix::fs::PermissionsExt;
+        let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+        let plain = dir.path().join("plain");
+        std::fs::write(&plain, b"x").unwrap();
+        let out = dir.path().join("checkpoint.bin");
+        write_file_atomic(&out, b"x").unwrap();
+        assert_eq!(mode(&out), mode(&plain));
+    }
 
     /// A checkpoint's inputs are compared key by key where both sides hold the key: another
     /// value is refused naming it; a key one side lacks (an older build's record) and a side

@@ -375,7 +375,12 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RenderError> {
     }
     let dir = path.parent().unwrap_or(Path::new("."));
     // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.
-    let mut tmp = tempfile::Builder::new()
+    let mut b = tempfile::Builder::new();
+    // A temporary file is created owner-only (0600); an output is an ordinary file, so ask
+    // for 0666 and let the umask take its share, as `File::create` would.
+    #[cfg(unix)]
+    b.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    let mut tmp = b
         .prefix(&format!(".nanoeye-tmp-{}-", std::process::id()))
         .tempfile_in(dir)
         .map_err(|e| io_err(path, e))?;
@@ -1108,6 +1113,21 @@ fn visible_fraction(visible: &Mat<f32>, unoccluded: &Mat<f32>) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A dataset's files have the mode `File::create` gives under this umask, not a
+    /// temporary file's 0600 (a rendered dataset was owner-only).
+    #[cfg(unix)]
+    #[test]
+    fn an_atomic_write_has_the_mode_file_create_gives() {
+        let dir = tempfile::tempdir().unwrap();
+        use std::os::unix::fs::PermissionsExt;
+        let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+        let plain = dir.path().join("plain");
+        std::fs::write(&plain, b"x").unwrap();
+        let out = dir.path().join("frames.jsonl");
+        write_atomic(&out, b"x").unwrap();
+        assert_eq!(mode(&out), mode(&plain));
+    }
 
     /// A variational triplet's frames share their pixel samples, triplets do not; every other
     /// set keeps one seed per frame (the bits of datasets rendered before).
