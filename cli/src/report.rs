@@ -255,6 +255,12 @@ fn slip_svg(rows: &[serde_json::Value]) -> String {
     s + "</svg>\n"
 }
 
+/// A JSON value of the run's own files as page text: a number as written, anything else
+/// (a file edited or left by another build) escaped rather than pasted in as markup.
+fn raw(v: &serde_json::Value) -> String {
+    esc(&v.to_string())
+}
+
 /// `s` with the characters XML text may not hold escaped, and the control characters XML 1.0
 /// allows in no form (a run directory named with ESC made an SVG no parser reads) replaced by
 /// U+FFFD.
@@ -354,8 +360,8 @@ overlap of the predicted and true pupil masks; slip RMSE: root mean square of th
             num(&s["mean_deg"]),
             num(&s["median_deg"]),
             num(&s["p95_deg"]),
-            s["failures"],
-            s["frames"],
+            raw(&s["failures"]),
+            raw(&s["frames"]),
             num(&s["dice"]),
             num(&s["slip_rmse_mm"])
         )?;
@@ -525,20 +531,20 @@ oldest member removed. V = mean gaze error on the validation set (degrees).</p><
             writeln!(
                 h,
                 "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
-                c["cycle"],
-                c["parent"],
-                c["child"]["id"],
+                raw(&c["cycle"]),
+                raw(&c["parent"]),
+                raw(&c["child"]["id"]),
                 num(&c["child"]["v"]),
-                c["child"]["macs"],
+                raw(&c["child"]["macs"]),
                 num(&c["child"]["pitch_um"]),
-                c["removed"]
+                raw(&c["removed"])
             )?;
         }
     }
     writeln!(
         h,
         "</table><p>Selected subnet: {} MACs ({}) at p̂ = {} µm, V = {}°.</p><pre>{}</pre>",
-        r["macs"],
+        raw(&r["macs"]),
         match (r["macs"].as_u64(), cfg["budget_macs"].as_u64()) {
             (Some(m), Some(b)) if b > 0 && m <= b => format!("within the {b} MAC budget"),
             (Some(_), Some(b)) if b > 0 => format!("over the {b} MAC budget"),
@@ -647,6 +653,27 @@ mod tests {
         assert_eq!(esc("a<b>&c"), "a&lt;b&gt;&amp;c");
         assert_eq!(esc("ctl\u{1}\u{1b}[31m"), "ctl\u{fffd}\u{fffd}[31m");
         assert_eq!(esc("t\tn\nr\r é"), "t\tn\nr\r é");
+    }
+
+    /// Values read from the run's own files (rea.jsonl, result.json) are page text: one edited
+    /// to hold markup shows it escaped instead of adding elements to the page.
+    #[test]
+    fn values_from_the_runs_files_cannot_add_markup() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(d.path().join("runs/learned")).unwrap();
+        let line = serde_json::json!({"cycle": 1, "parent": "<b>p</b>", "child": {"id": "<i>c</i>",
+            "v": 1.0, "macs": "<u>m</u>", "pitch_um": 9.0}, "removed": "<s>r</s>"});
+        std::fs::write(d.path().join("runs/learned/rea.jsonl"), format!("{line}\n")).unwrap();
+        let r = serde_json::json!({"stages": {}, "macs": "<em>x</em>",
+            "protocol": {"learned": {"failures": "<q>f</q>", "frames": 3, "mean_deg": 1.0}}});
+        let h = html(d.path(), &r).unwrap();
+        for tag in ["<b>p", "<i>c", "<u>m", "<s>r", "<em>x", "<q>f"] {
+            assert!(!h.contains(tag), "{tag} pasted into the page");
+        }
+        for text in ["&lt;b&gt;p", "&lt;i&gt;c", "&lt;u&gt;m", "&lt;s&gt;r", "&lt;em&gt;x", "&lt;q&gt;f"] {
+            assert!(h.contains(text), "{text} missing");
+        }
+        assert!(h.contains("<td>3</td>"), "a number stays as written");
     }
 
     /// A run whose learned lens came from the embedding objective shows its objective before
