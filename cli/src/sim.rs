@@ -479,6 +479,11 @@ pub fn sim(a: SimArgs) -> Result<()> {
         bail!("--out {}: exists and is not a directory", a.out.display());
     }
     util::check_not_dataset(&a.out)?;
+    // Every output's target before the imaging, not only the two opened first: a directory
+    // at OUT/sim.json was refused after every frame had been imaged.
+    for name in ["sensor.npy", "mask.npy", "targets.jsonl", "sim.json"] {
+        util::check_output_target(&a.out.join(name)).with_context(|| format!("--out {name}"))?;
+    }
     // An output replacing the lens it was computed from (file:OUT/sensor.npy).
     if let LensSpec::File(f) = &a.lens {
         for name in ["sensor.npy", "mask.npy", "targets.jsonl", "sim.json"] {

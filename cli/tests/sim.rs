@@ -109,3 +109,30 @@ fn sim_streams_every_frame_in_order_and_records_its_settings() {
     assert_eq!(six["base_pitch_um"], Value::from(6.0), "{six}");
     assert_eq!(read_npy(&p.join("all/sensor.npy")).0, [2, h, w]);
 }
+
+/// An output target that cannot be replaced is refused before any frame is imaged: with a
+/// directory at OUT/sim.json, sensor.npy, mask.npy and targets.jsonl were written first and
+/// the run failed at its end.
+#[test]
+fn an_unwritable_output_is_refused_before_imaging() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    assert!(nanoeye(&tiny_dataset_of("ds", "1"), p).status.success());
+    for name in ["sim.json", "targets.jsonl"] {
+        let out = p.join(format!("o_{name}"));
+        std::fs::create_dir_all(out.join(name)).unwrap();
+        let mut args = TINY_CHAIN.to_vec();
+        args.splice(0..0, ["sim"]);
+        let o_arg = out.display().to_string();
+        args.extend(["--frames", "0:2", "--out", &o_arg]);
+        let o = nanoeye(&args, p);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success());
+        assert!(err.contains(&format!("--out {name}")), "{err}");
+        for written in ["sensor.npy", "mask.npy", "targets.jsonl"] {
+            if written != name {
+                assert!(!out.join(written).exists(), "{written} written before refusing");
+            }
+        }
+    }
+}
