@@ -747,7 +747,13 @@ pub fn run(a: RunArgs) -> Result<()> {
     if a.rig.is_some() {
         cfg.rig = Some(crate::rig::load(a.rig.as_deref())?);
     } else if let Some(r) = &cfg.rig {
-        r.validate().context("--config: rig")?;
+        // The rig is the last --set rig=… if one is given, else the configuration file's.
+        let from = if a.set.iter().any(|s| s.starts_with("rig=")) {
+            "--set rig"
+        } else {
+            "--config: rig"
+        };
+        r.validate().context(from)?;
     }
     // check's messages name the key; with --set the value may not come from --config.
     check(&cfg).map_err(|e| {

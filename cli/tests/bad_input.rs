@@ -1833,6 +1833,15 @@ fn run_set_overrides_one_key_and_refuses_bad_ones_naming_it() {
         p,
     );
     assert!(err.contains("train_steps"), "{err}");
+    // A rig that parses but fails its checks was named as --config's.
+    let shown = nanoeye(&["rig", "show", "--json"], p);
+    let good = String::from_utf8(shown.stdout).unwrap();
+    let bad = good.trim().replace("\"eye_radius_m\":0.012", "\"eye_radius_m\":-1");
+    assert_ne!(bad, good.trim(), "the default rig's eye radius is 12 mm");
+    let set = format!("rig={bad}");
+    let err = refused(&["run", "--out", "r", "--set", &set], "--set rig", p);
+    assert!(err.contains("eye_radius_m") && !err.contains("--config"), "{err}");
+    assert!(!p.join("r").exists());
     let both = ["run", "--out", "r", "--rig", "r.json", "--set", "rig=null"];
     let err = refused(&both, "--rig", p);
     assert!(err.contains("--set rig"), "{err}");
