@@ -26,6 +26,7 @@ mod train;
 mod util;
 
 use clap::{Parser, Subcommand};
+use std::io::IsTerminal;
 use std::process::ExitCode;
 
 /// nanoeye: co-designed nano-optical eye tracking, every stage from pillars to gaze.
@@ -164,7 +165,23 @@ fn main() -> ExitCode {
     nanoeye_alloc::like_cli();
     let _session = dist::init();
     let w = dist::world();
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        // Help and version go to stdout as clap writes them; a usage error goes through the
+        // same cut of long words as ours (clap echoed a 100 kB value whole).
+        Err(e) if !e.use_stderr() => e.exit(),
+        Err(e) => {
+            let text = match std::io::stderr().is_terminal() {
+                true => e.render().ansi().to_string(),
+                false => e.render().to_string(),
+            };
+            let _ = std::io::Write::write_all(
+                &mut std::io::stderr().lock(),
+                short_words(&text).as_bytes(),
+            );
+            return ExitCode::from(e.exit_code().clamp(1, 255) as u8);
+        }
+    };
     if w.is_distributed() && !distributes(&cli.command) {
         // Nothing started yet: every rank stops, rank 0 says why.
         if w.is_root() {
@@ -188,13 +205,13 @@ fn main() -> ExitCode {
                  and a rerun of the same command resumes them\n",
                 w.rank(),
                 w.size(),
-                short_numbers(&format!("{e:#}"))
+                short_words(&short_numbers(&format!("{e:#}")))
             );
             let _ = std::io::Write::write_all(&mut std::io::stderr().lock(), msg.as_bytes());
             w.abort(1)
         }
         Err(e) => {
-            eprintln!("error: {}", short_numbers(&format!("{e:#}")));
+            eprintln!("error: {}", short_words(&short_numbers(&format!("{e:#}"))));
             ExitCode::FAILURE
         }
     }
@@ -241,9 +258,57 @@ fn short_numbers(msg: &str) -> String {
     out
 }
 
+/// Longest run of non-blank characters an error prints whole: a path or a JSON value given on
+/// the command line, not a megabyte of one echoed back.
+const WORD_MAX: usize = 400;
+
+/// `msg` with each run of more than [`WORD_MAX`] non-blank characters cut to its first 160 and
+/// last 80, the middle replaced by a count of what was left out: a 1 MB `--set` value, a path
+/// or a rig's JSON was echoed whole, twice.
+fn short_words(msg: &str) -> String {
+    let mut out = String::with_capacity(msg.len().min(64 * 1024));
+    let mut word: Vec<char> = Vec::new();
+    let flush = |word: &mut Vec<char>, out: &mut String| {
+        if word.len() > WORD_MAX {
+            let n = word.len();
+            out.extend(&word[..160]);
+            out.push_str(&format!("…[{} characters]…", n - 240));
+            out.extend(&word[n - 80..]);
+        } else {
+            out.extend(word.iter());
+        }
+        word.clear();
+    };
+    for c in msg.chars() {
+        if c.is_whitespace() {
+            flush(&mut word, &mut out);
+            out.push(c);
+        } else {
+            word.push(c);
+        }
+    }
+    flush(&mut word, &mut out);
+    out
+}
+
 #[cfg(test)]
 mod tests {
-    use super::short_numbers;
+    use super::{WORD_MAX, short_numbers, short_words};
+
+    /// A long run of non-blank characters is cut to its ends with the count left out; words
+    /// up to the limit, blanks and line ends stay as written.
+    #[test]
+    fn words_echoed_beyond_reason_are_cut_and_no_others() {
+        let big = format!("a{}z", "é".repeat(100_000));
+        let msg = format!("--set seed={big}: invalid digit\n  in {big}");
+        let short = short_words(&msg);
+        assert!(short.len() < 2000, "{}", short.len());
+        assert!(short.starts_with("--set seed=aé"), "{short}");
+        assert!(short.contains("…[99762 characters]…é"), "{short}");
+        assert!(short.contains("éz: invalid digit\n  in a"), "{short}");
+        let keep = format!("path {} and\t{}", "p".repeat(WORD_MAX), "q");
+        assert_eq!(short_words(&keep), keep);
+    }
 
     #[test]
     fn numbers_printed_in_full_beyond_reason_are_shortened_and_no_others() {

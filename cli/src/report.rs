@@ -670,7 +670,14 @@ mod tests {
         for tag in ["<b>p", "<i>c", "<u>m", "<s>r", "<em>x", "<q>f"] {
             assert!(!h.contains(tag), "{tag} pasted into the page");
         }
-        for text in ["&lt;b&gt;p", "&lt;i&gt;c", "&lt;u&gt;m", "&lt;s&gt;r", "&lt;em&gt;x", "&lt;q&gt;f"] {
+        for text in [
+            "&lt;b&gt;p",
+            "&lt;i&gt;c",
+            "&lt;u&gt;m",
+            "&lt;s&gt;r",
+            "&lt;em&gt;x",
+            "&lt;q&gt;f",
+        ] {
             assert!(h.contains(text), "{text} missing");
         }
         assert!(h.contains("<td>3</td>"), "a number stays as written");

@@ -1833,14 +1833,30 @@ fn run_set_overrides_one_key_and_refuses_bad_ones_naming_it() {
         p,
     );
     assert!(err.contains("train_steps"), "{err}");
+    // A long value is not echoed whole (a 100 kB one was, twice: 200 kB of stderr).
+    let big = format!("seed={}", "x".repeat(100_000));
+    let err = refused(&["run", "--out", "r", "--set", &big], "--set seed", p);
+    assert!(err.len() < 4096, "{} bytes of error", err.len());
+    assert!(err.contains("characters]"), "{err}");
+    // And not by clap either, whose usage errors keep their exit status 2.
+    let bad = "x".repeat(100_000);
+    let out = nanoeye(&["optics", "psf", "--pitch-um", &bad, "--out", "o"], p);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.len() < 4096 && err.contains("--pitch-um"), "{err}");
     // A rig that parses but fails its checks was named as --config's.
     let shown = nanoeye(&["rig", "show", "--json"], p);
     let good = String::from_utf8(shown.stdout).unwrap();
-    let bad = good.trim().replace("\"eye_radius_m\":0.012", "\"eye_radius_m\":-1");
+    let bad = good
+        .trim()
+        .replace("\"eye_radius_m\":0.012", "\"eye_radius_m\":-1");
     assert_ne!(bad, good.trim(), "the default rig's eye radius is 12 mm");
     let set = format!("rig={bad}");
     let err = refused(&["run", "--out", "r", "--set", &set], "--set rig", p);
-    assert!(err.contains("eye_radius_m") && !err.contains("--config"), "{err}");
+    assert!(
+        err.contains("eye_radius_m") && !err.contains("--config"),
+        "{err}"
+    );
     assert!(!p.join("r").exists());
     let both = ["run", "--out", "r", "--rig", "r.json", "--set", "rig=null"];
     let err = refused(&both, "--rig", p);

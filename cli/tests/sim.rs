@@ -131,7 +131,10 @@ fn an_unwritable_output_is_refused_before_imaging() {
         assert!(err.contains(&format!("--out {name}")), "{err}");
         for written in ["sensor.npy", "mask.npy", "targets.jsonl"] {
             if written != name {
-                assert!(!out.join(written).exists(), "{written} written before refusing");
+                assert!(
+                    !out.join(written).exists(),
+                    "{written} written before refusing"
+                );
             }
         }
     }
