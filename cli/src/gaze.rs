@@ -64,9 +64,9 @@ struct Query {
 }
 
 /// Reads a PNG mask (8- or 16-bit grey, or any format reduced to luma) into [0, 1]: a regular
-/// file whose header's size is `grid` = (rows, columns), the camera image's, checked before
-/// the image is decoded (a FIFO blocked the batch; a 48 KB PNG of 20000² pixels took 3 GB
-/// before its size was compared).
+/// file whose header's size is `grid` = (rows, columns), the camera image's, or a downscale of
+/// it by one factor in x and y (docs/formats.md), checked before the image is decoded (a FIFO
+/// blocked the batch; a 48 KB PNG of 20000² pixels took 3 GB before its size was compared).
 pub fn read_mask_png(path: &Path, grid: (usize, usize)) -> Result<Mat<f32>> {
     let what = || format!("cannot read mask '{}'", path.display());
     if !std::fs::metadata(path).with_context(what)?.is_file() {
@@ -78,13 +78,9 @@ pub fn read_mask_png(path: &Path, grid: (usize, usize)) -> Result<Mat<f32>> {
             .with_context(what)
     };
     let (w, h) = open()?.into_dimensions().with_context(what)?;
-    if (h as usize, w as usize) != grid {
-        bail!(
-            "mask is {w}×{h} px but the camera image is {}×{}",
-            grid.1,
-            grid.0
-        );
-    }
+    // The solver's own rule (a downscale was refused here, against the format's documentation);
+    // no larger than the camera image, so the decode stays bounded by it.
+    nanoeye_gaze::centroid::mask_scale(w as usize, h as usize, grid.1, grid.0)?;
     let img = open()?.decode().with_context(what)?.into_luma16();
     let (w, h) = img.dimensions();
     Ok(Mat::from_fn(h as usize, w as usize, |i, j| {

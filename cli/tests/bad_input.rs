@@ -3105,3 +3105,54 @@ fn crafted_datasets_and_outputs_over_inputs_are_refused_by_the_chain_commands() 
     ];
     refused(&args, "--depths-mm", p);
 }
+
+/// A mask downscaled by one factor in x and y is read as docs/formats.md says (it was refused
+/// as "not the camera image's size"): the same disc at 320×200, 160×100 and 80×50 gives the
+/// same pupil centre in camera pixels; a mask with unequal factors or larger than the image is
+/// refused naming both sizes.
+#[test]
+fn gaze_solve_reads_a_downscaled_mask_and_refuses_other_sizes() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    // A disc centred at camera pixel (150, 90), radius 16 px, drawn at 1/k scale.
+    let disc = |k: u32, w: u32, h: u32| {
+        image::GrayImage::from_fn(w, h, |x, y| {
+            let (u, v) = ((x as f64 + 0.5) * k as f64, (y as f64 + 0.5) * k as f64);
+            let inside = (u - 150.0).powi(2) + (v - 90.0).powi(2) < 16.0f64.powi(2);
+            image::Luma([if inside { 255 } else { 0 }])
+        })
+    };
+    let mut q = String::new();
+    for (k, w, h) in [(1, 320, 200), (2, 160, 100), (4, 80, 50)] {
+        disc(k, w, h).save(p.join(format!("m{k}.png"))).unwrap();
+        q += &format!("{{\"mask_png\":\"m{k}.png\"}}\n");
+    }
+    std::fs::write(p.join("q.jsonl"), &q).unwrap();
+    let out = succeeded(nanoeye(&["gaze", "solve", "--input", "q.jsonl"], p));
+    let rows: Vec<serde_json::Value> = String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(rows.len(), 3);
+    for r in &rows {
+        let px: Vec<f64> = serde_json::from_value(r["pupil_px"].clone()).unwrap();
+        // The disc's pixel centres are symmetric about (150, 90) at every scale.
+        assert!(
+            (px[0] - 150.0).abs() < 1e-9 && (px[1] - 90.0).abs() < 1e-9,
+            "{r}"
+        );
+    }
+    for (w, h) in [(160, 200), (640, 400), (321, 200)] {
+        image::GrayImage::new(w, h).save(p.join("bad.png")).unwrap();
+        std::fs::write(p.join("b.jsonl"), "{\"mask_png\":\"bad.png\"}\n").unwrap();
+        let out = nanoeye(&["gaze", "solve", "--input", "b.jsonl"], p);
+        // One query line, no valid one: the line's error goes to stderr, exit non-zero.
+        let text = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{w}×{h}: {text}");
+        assert!(
+            text.contains(&format!("mask is {w}×{h} px")) && text.contains("320×200"),
+            "{w}×{h}: {text}"
+        );
+    }
+}
