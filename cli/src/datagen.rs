@@ -164,8 +164,13 @@ pub fn run(cmd: Cmd) -> Result<()> {
             elevation_deg,
             json,
         } => {
-            if !(azimuth_deg.abs() < 90.0 && elevation_deg.abs() < 90.0) {
-                bail!("--azimuth-deg/--elevation-deg: Fick angles must lie in (−90°, 90°)");
+            for (flag, v) in [
+                ("--azimuth-deg", azimuth_deg),
+                ("--elevation-deg", elevation_deg),
+            ] {
+                if !(v.abs() < 90.0) {
+                    bail!("{flag}: a Fick angle must lie in (−90°, 90°), got {v}");
+                }
             }
             let psi = eye::listing_torsion(azimuth_deg.to_radians(), elevation_deg.to_radians())?;
             if json {

@@ -3156,3 +3156,26 @@ fn gaze_solve_reads_a_downscaled_mask_and_refuses_other_sizes() {
         );
     }
 }
+
+/// `datagen listing` names the angle at fault (both flags were named whichever was wrong).
+#[test]
+fn datagen_listing_names_the_angle_at_fault() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    for (az, el, flag, other) in [
+        ("100", "0", "--azimuth-deg", "--elevation-deg"),
+        ("10", "-90", "--elevation-deg", "--azimuth-deg"),
+        ("NaN", "0", "--azimuth-deg", "--elevation-deg"),
+    ] {
+        let args = [
+            "datagen",
+            "listing",
+            "--azimuth-deg",
+            az,
+            "--elevation-deg",
+            el,
+        ];
+        let err = refused(&args, flag, p);
+        assert!(!err.contains(other), "{err}");
+    }
+}
