@@ -235,19 +235,26 @@ pub fn fit_toy_with_progress(
         mse += slip_mse(&out.slip, &t)?.0 * n as f64;
         seen += n;
     }
-    if !(dice.is_finite() && mse.is_finite()) {
-        return Err(NetsError::Param(format!(
-            "lr: the trained subnet gives non-finite held-out metrics (dice {dice}, slip MSE \
-             {mse}); lower the learning rate {}",
-            cfg.lr
-        )));
-    }
+    let (dice, slip_mse) = held_out_means(dice, mse, cfg.n_test, cfg.lr)?;
     Ok(ToyResult {
-        dice: dice / cfg.n_test as f64,
-        slip_mse: mse / cfg.n_test as f64,
+        dice,
+        slip_mse,
         train_loss: last,
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// The held-out means (Dice, slip MSE) of sums over `n` images, refused naming the learning
+/// rate `lr` where either is not finite (the message gave the sums: a "Dice" of 16).
+fn held_out_means(dice_sum: f64, mse_sum: f64, n: usize, lr: f64) -> Result<(f64, f64)> {
+    let (dice, mse) = (dice_sum / n as f64, mse_sum / n as f64);
+    if !(dice.is_finite() && mse.is_finite()) {
+        return Err(NetsError::Param(format!(
+            "lr: the trained subnet gives non-finite held-out metrics (mean Dice {dice}, slip \
+             MSE {mse}); lower the learning rate {lr}"
+        )));
+    }
+    Ok((dice, mse))
 }
 
 #[cfg(test)]
@@ -295,5 +302,22 @@ mod bad_input_tests {
             "lr",
         );
         assert!(toy_batch(usize::MAX, 0, 0, 1).is_err());
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The refusal gives the means, not the sums over the held-out images (a diverged run's
+    /// message read "dice 16.07", a Dice score outside [0, 1]).
+    #[test]
+    fn held_out_metrics_are_means_and_a_non_finite_one_is_refused_with_means() {
+        assert_eq!(held_out_means(12.0, 3.0, 16, 0.1).unwrap(), (0.75, 0.1875));
+        let e = held_out_means(16.0, f64::INFINITY, 32, 1.0)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("mean Dice 0.5,") && e.contains("MSE inf"), "{e}");
+        assert!(e.contains("learning rate 1"), "{e}");
     }
 }
