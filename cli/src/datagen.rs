@@ -168,7 +168,7 @@ pub fn run(cmd: Cmd) -> Result<()> {
                 ("--azimuth-deg", azimuth_deg),
                 ("--elevation-deg", elevation_deg),
             ] {
-                if !(v.abs() < 90.0) {
+                if v.is_nan() || v.abs() >= 90.0 {
                     bail!("{flag}: a Fick angle must lie in (−90°, 90°), got {v}");
                 }
             }
