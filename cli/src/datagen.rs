@@ -218,15 +218,17 @@ fn export(
     }
     util::check_output_target(out).context("--out")?;
     let rig = rig::load(rig)?;
+    // Primary gaze, no slippage: the default, and the layout a given state must have.
+    let primary = State {
+        azimuth_rad: 0.0,
+        elevation_rad: 0.0,
+        torsion_rad: 0.0,
+        slip_m: [0.0; 3],
+        cam_rot_rad: [0.0; 3],
+        lid_closure: 0.0,
+    };
     let state: State = match state {
-        None => State {
-            azimuth_rad: 0.0,
-            elevation_rad: 0.0,
-            torsion_rad: 0.0,
-            slip_m: [0.0; 3],
-            cam_rot_rad: [0.0; 3],
-            lid_closure: 0.0,
-        },
+        None => primary,
         Some(text) => {
             let body = if text.trim_start().starts_with('{') {
                 text.to_string()
@@ -235,6 +237,9 @@ fn export(
             };
             let given: serde_json::Value =
                 serde_json::from_str(&body).map_err(|e| anyhow::anyhow!("--state: {e}"))?;
+            if let Some(m) = util::array_for_object(&serde_json::to_value(primary)?, &given) {
+                bail!("--state: {m}");
+            }
             // serde's error for a null names a line and a column, not the key.
             if let Some((k, _)) = given
                 .as_object()

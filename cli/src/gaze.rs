@@ -122,6 +122,10 @@ fn solve_line(
     grid: (usize, usize),
     masks: &mut Vec<PathBuf>,
 ) -> Result<serde_json::Value> {
+    let v: serde_json::Value = serde_json::from_str(line).context("not a query object")?;
+    if let Some(m) = crate::util::array_for_object(&serde_json::json!({}), &v) {
+        bail!("{m}");
+    }
     let q: Query = serde_json::from_str(line).context("not a query object")?;
     if let Some(x) = q
         .slip_m

@@ -117,6 +117,7 @@ fn macs(a: MacsArgs) -> Result<()> {
                 crate::util::MAX_ARCH_BYTES,
             )
             .context("--arch")?;
+            crate::util::arch_layout(&text).with_context(|| format!("--arch: '{path}'"))?;
             let arch: Arch = serde_json::from_str(&text)
                 .with_context(|| format!("--arch: '{path}' is not an Arch JSON"))?;
             subnet_cost(&cfg, &arch, a.resolution, a.resolution)

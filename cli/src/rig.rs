@@ -28,6 +28,12 @@ pub fn load(path: Option<&Path>) -> Result<Rig> {
             // A FIFO or device would block or be read without end: a rig is a small file.
             let text =
                 crate::util::read_small_text(p, crate::util::MAX_ARCH_BYTES).context("--rig")?;
+            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) {
+                let t = serde_json::to_value(Rig::default())?;
+                if let Some(m) = crate::util::array_for_object(&t, &v) {
+                    anyhow::bail!("--rig: '{}': {m}", p.display());
+                }
+            }
             Rig::from_json(&text)
                 .with_context(|| format!("--rig: '{}' is not a valid rig", p.display()))
         }

@@ -340,12 +340,26 @@ fn load_config(p: Option<&Path>) -> Result<RunConfig> {
             p.display()
         );
     } else {
+        if let Ok(v) = serde_json::from_str::<serde_json::Value>(text) {
+            if let Some(m) = util::array_for_object(&config_template()?, &v) {
+                bail!("--config {}: {m}", p.display());
+            }
+        }
         serde_json::from_str(text).map_err(|e| match bad_json_key(text, &e) {
             Some(k) => anyhow::anyhow!("--config {}: key \"{k}\": {e}", p.display()),
             None => anyhow::anyhow!("--config {}: {e}", p.display()),
         })?
     };
     Ok(cfg)
+}
+
+/// The configuration's layout with every optional part present (the rig), for
+/// [`util::array_for_object`].
+fn config_template() -> Result<serde_json::Value> {
+    Ok(serde_json::to_value(RunConfig {
+        rig: Some(Rig::default()),
+        ..RunConfig::default()
+    })?)
 }
 
 /// `cfg` with each `KEY=VALUE` of `sets` in place of its key: VALUE as JSON where it parses
@@ -376,6 +390,9 @@ fn apply_sets(cfg: RunConfig, sets: &[String]) -> Result<RunConfig> {
         }
         let value = serde_json::from_str::<serde_json::Value>(text)
             .unwrap_or_else(|_| serde_json::Value::String(text.to_string()));
+        if let Some(m) = util::array_for_object(&config_template()?[key], &value) {
+            bail!("--set {key}: {m}");
+        }
         // Alone over the base, so that the error names this key and no other.
         let mut one = base.clone();
         one[key] = value.clone();

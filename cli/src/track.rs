@@ -116,6 +116,8 @@ fn load(a: &TrackArgs) -> Result<Model> {
         "best" if have_tuned => {
             let t = crate::util::read_small_text(&tuned_arch, crate::util::MAX_ARCH_BYTES)
                 .with_context(|| format!("--model {}", tuned_arch.display()))?;
+            crate::util::arch_layout(&t)
+                .with_context(|| format!("--model {}", tuned_arch.display()))?;
             serde_json::from_str(&t).with_context(|| format!("--model {}", tuned_arch.display()))?
         }
         "best" => best_arch(&a.model)?.unwrap_or_else(Arch::min),
@@ -125,6 +127,7 @@ fn load(a: &TrackArgs) -> Result<Model> {
                 .with_context(|| format!("--subnet: '{s}' is not best, min, max or file:A.json"))?;
             let t = crate::util::read_small_text(Path::new(p), crate::util::MAX_ARCH_BYTES)
                 .with_context(|| format!("--subnet {p}"))?;
+            crate::util::arch_layout(&t).with_context(|| format!("--subnet {p}"))?;
             let a: Arch = serde_json::from_str(&t).with_context(|| format!("--subnet {p}"))?;
             a.validate().with_context(|| format!("--subnet {p}"))?;
             a

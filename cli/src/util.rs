@@ -39,6 +39,63 @@ pub fn check_output_target(path: &Path) -> Result<()> {
     }
 }
 
+/// Where `given` (a JSON document) has something other than an object at a place `template`
+/// (the same type's serialization) has one, that place as a path (`camera`, `stages/0`), with
+/// what was found: serde reads a struct from an array of its fields in order, so `[0.012, …]`
+/// made a rig and `[[160,100],null,[0,0,0]]` a gaze query. A null is left to the type (an
+/// optional part); keys `template` lacks are not looked at.
+pub fn array_for_object(template: &serde_json::Value, given: &serde_json::Value) -> Option<String> {
+    use serde_json::Value;
+    fn walk(t: &Value, g: &Value, at: &str) -> Option<String> {
+        let kind = |g: &Value| match g {
+            Value::Array(_) => "an array",
+            Value::String(_) => "a string",
+            Value::Number(_) => "a number",
+            Value::Bool(_) => "a boolean",
+            _ => "something else",
+        };
+        let join = |k: &str| {
+            if at.is_empty() {
+                k.to_string()
+            } else {
+                format!("{at}/{k}")
+            }
+        };
+        match (t, g) {
+            (_, Value::Null) => None,
+            (Value::Object(tm), Value::Object(gm)) => tm
+                .iter()
+                .find_map(|(k, tv)| gm.get(k).and_then(|gv| walk(tv, gv, &join(k)))),
+            (Value::Object(_), g) if at.is_empty() => Some(format!(
+                "a JSON object {{\"key\": value, …}} is expected, not {}",
+                kind(g)
+            )),
+            (Value::Object(_), g) => Some(format!(
+                "{at}: a JSON object {{\"key\": value, …}} is expected here, not {}",
+                kind(g)
+            )),
+            (Value::Array(ta), Value::Array(ga)) if !ta.is_empty() => ga
+                .iter()
+                .enumerate()
+                .find_map(|(i, gv)| walk(ta.get(i).unwrap_or(&ta[0]), gv, &join(&i.to_string()))),
+            _ => None,
+        }
+    }
+    walk(template, given, "")
+}
+
+/// Refuses an Arch JSON `text` laid out otherwise than an Arch (an array of its fields); text
+/// that is no JSON is left to the parser's own message.
+pub fn arch_layout(text: &str) -> Result<()> {
+    if let Ok(v) = serde_json::from_str::<serde_json::Value>(text) {
+        let t = serde_json::to_value(nanoeye_nets::Arch::min())?;
+        if let Some(m) = array_for_object(&t, &v) {
+            bail!("{m}");
+        }
+    }
+    Ok(())
+}
+
 /// Removes `TMP_PREFIX` files in `dir` left by processes that no longer run (on systems
 /// without /proc: those older than a day). Errors are ignored: cleaning is best effort.
 pub fn remove_stale_temps(dir: &Path) {

@@ -3179,3 +3179,69 @@ fn datagen_listing_names_the_angle_at_fault() {
         assert!(!err.contains(other), "{err}");
     }
 }
+
+/// A struct given as an array of its fields is refused naming where (serde reads a struct
+/// from an array by position: a rig, a gaze query, an Arch and a state written as arrays were
+/// taken; a helper's audit), and the object forms still work.
+#[test]
+fn arrays_in_place_of_objects_are_refused_naming_where() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let shown = succeeded(nanoeye(&["rig", "show", "--json"], p)).stdout;
+    let rig: serde_json::Value = serde_json::from_slice(&shown).unwrap();
+    let fields = |v: &serde_json::Value| -> serde_json::Value {
+        v.as_object().unwrap().values().cloned().collect()
+    };
+    let mut nested = rig.clone();
+    nested["camera"] = fields(&rig["camera"]);
+    let write = |name: &str, v: &serde_json::Value| {
+        std::fs::write(p.join(name), v.to_string()).unwrap();
+    };
+    write("rig.json", &rig);
+    write("flat.json", &fields(&rig));
+    write("nested.json", &nested);
+    write("cfg.json", &serde_json::json!({ "rig": nested }));
+    std::fs::write(p.join("q.jsonl"), "[[160,100],null,[0,0,0]]\n").unwrap();
+    std::fs::write(p.join("a.json"), "[[3],[3],[2],0.5]").unwrap();
+    std::fs::write(p.join("s.json"), "[0,0,0,[0,0,0],[0,0,0]]").unwrap();
+    let set = format!("rig={nested}");
+    for (args, flag, place) in [
+        (vec!["rig", "show", "--rig", "flat.json"], "--rig", ""),
+        (
+            vec!["rig", "show", "--rig", "nested.json"],
+            "--rig",
+            "camera: ",
+        ),
+        (
+            vec!["run", "--print-config", "--set", &set],
+            "--set rig",
+            "camera: ",
+        ),
+        (
+            vec!["run", "--print-config", "--config", "cfg.json"],
+            "--config",
+            "rig/camera: ",
+        ),
+        (vec!["gaze", "solve", "--input", "q.jsonl"], "--input", ""),
+        (vec!["nets", "macs", "--arch", "file:a.json"], "--arch", ""),
+        (
+            vec!["datagen", "export", "--state", "s.json", "--out", "s.glb"],
+            "--state",
+            "",
+        ),
+    ] {
+        let err = refused(&args, flag, p);
+        let want = format!("{place}a JSON object {{\"key\": value, …}} is expected");
+        assert!(
+            err.contains(&want) && err.contains("not an array"),
+            "{args:?}: {err}"
+        );
+    }
+    assert!(!p.join("s.glb").exists());
+    succeeded(nanoeye(&["rig", "show", "--rig", "rig.json"], p));
+    write("cfg.json", &serde_json::json!({ "rig": rig }));
+    succeeded(nanoeye(
+        &["run", "--print-config", "--config", "cfg.json"],
+        p,
+    ));
+}
