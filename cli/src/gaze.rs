@@ -81,6 +81,12 @@ pub fn read_mask_png(path: &Path, grid: (usize, usize)) -> Result<Mat<f32>> {
     // The solver's own rule (a downscale was refused here, against the format's documentation);
     // no larger than the camera image, so the decode stays bounded by it.
     nanoeye_gaze::centroid::mask_scale(w as usize, h as usize, grid.1, grid.0)?;
+    // Decoded (up to 8 bytes a pixel for 16-bit colour), as 16-bit luma and as f32.
+    crate::util::check_memory(
+        &format!("mask '{}'", path.display()),
+        14 * w as u64 * h as u64,
+        "give a smaller (downscaled) mask or a camera of fewer pixels (--rig)",
+    )?;
     let img = open()?.decode().with_context(what)?.into_luma16();
     let (w, h) = img.dimensions();
     Ok(Mat::from_fn(h as usize, w as usize, |i, j| {

@@ -27,6 +27,9 @@ pub const PIXEL_PITCH_RANGE_M: (f64, f64) = (1e-7, 1e-3);
 pub const MAX_CAMERA_DISTANCE_M: f64 = 1.0;
 /// Largest image side (px) a rig may declare.
 pub const MAX_IMAGE_SIDE_PX: usize = 1 << 16;
+/// Largest sensor side (m), pixels times pitch: a glasses camera's is a few millimetres (the
+/// prototype's 3.84 mm), a full-frame sensor's 36 mm; 65,536 px of 1 mm (65 m) was taken.
+pub const MAX_SENSOR_SIDE_M: f64 = 0.05;
 /// Largest slippage pitch rate (rad per m of slip): 1 rad per mm.
 pub const MAX_PITCH_RATE_RAD_PER_M: f64 = 1e3;
 /// Largest σ of the mounting translation (m) per axis.
@@ -333,6 +336,21 @@ impl Camera {
                 ),
             });
         }
+        let side = self.width_px.max(self.height_px) as f64 * self.pixel_pitch_m;
+        if side > MAX_SENSOR_SIDE_M {
+            return Err(GazeError::InvalidRig {
+                field: if self.width_px >= self.height_px {
+                    "camera.width_px"
+                } else {
+                    "camera.height_px"
+                },
+                reason: format!(
+                    "{}×{} px of {:e} m make a sensor {side:.3} m wide, beyond the plausible \
+                     {MAX_SENSOR_SIDE_M} m",
+                    self.width_px, self.height_px, self.pixel_pitch_m
+                ),
+            });
+        }
         let d = geom::norm(self.position_m);
         if !(geom::is_finite(self.position_m) && d <= MAX_CAMERA_DISTANCE_M) {
             return Err(GazeError::InvalidRig {
@@ -601,5 +619,27 @@ mod bad_input_tests {
         };
         assert_eq!(field_of(&rig), "cornea.apex_m");
         Rig::default().validate().unwrap();
+    }
+
+    /// A sensor wider than any camera's (a helper's audit: 65,536 px of 1 mm, a 65 m sensor,
+    /// was taken, and a 20000² px one made `gaze solve` decode a 2.7 GB mask) is refused
+    /// naming its longer side; the default's 3.84 mm and a 36 mm full frame are not.
+    #[test]
+    fn a_sensor_beyond_any_cameras_size_is_refused() {
+        let cam = |w: usize, h: usize, pitch: f64| {
+            let mut rig = Rig::default();
+            let c = &mut rig.camera;
+            c.pixel_pitch_m = pitch;
+            c.fx_px = c.focal_length_m / pitch;
+            c.fy_px = c.fx_px;
+            (c.width_px, c.height_px) = (w, h);
+            (c.cx_px, c.cy_px) = (w as f64 / 2.0, h as f64 / 2.0);
+            rig
+        };
+        assert_eq!(field_of(&cam(65536, 65536, 1e-3)), "camera.width_px");
+        assert_eq!(field_of(&cam(20000, 20000, 12e-6)), "camera.width_px");
+        assert_eq!(field_of(&cam(200, 5000, 12e-6)), "camera.height_px");
+        cam(6000, 4000, 6e-6).validate().unwrap();
+        cam(320, 200, 12e-6).validate().unwrap();
     }
 }
