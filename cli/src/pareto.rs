@@ -167,6 +167,16 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     // Every run is scored on its own (the state holds them in this order); a lens's runs are
     // averaged afterwards.
     let runs: Vec<PathBuf> = groups.iter().flatten().cloned().collect();
+    // One run twice compares a lens with itself, or averages one seed as two.
+    for (i, r) in runs.iter().enumerate() {
+        if let Some(s) = runs[..i].iter().find(|s| util::same_file(s, r)) {
+            bail!(
+                "--runs: '{}' and '{}' are the same run; give each run once",
+                s.display(),
+                r.display()
+            );
+        }
+    }
     if a.subnets == 0 || a.subnets > 100_000 {
         bail!("--subnets: must be 1..=100000, got {}", a.subnets);
     }
@@ -189,6 +199,23 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     }
     util::check_output_target(&a.plot).context("--plot")?;
     util::check_output_target(&state_path).context("--state")?;
+    // Not into an input's tree either (the plot replaced a run's own loss.svg, exit 0).
+    let inputs = runs
+        .iter()
+        .map(|r| ("--runs", r))
+        .chain([("--dataset", &a.dataset)])
+        .chain(a.train.iter().map(|t| ("--train", t)));
+    for (flag, dir) in inputs {
+        for (out, path) in [("--plot", &a.plot), ("--state", &state_path)] {
+            if util::is_inside(path, dir) {
+                bail!(
+                    "{out}: '{}' lies inside {flag} '{}'; write it elsewhere",
+                    path.display(),
+                    dir.display()
+                );
+            }
+        }
+    }
     // The plot replaces its path whole: an existing file there must be an earlier plot, not
     // an input (the plot replaced a run's checkpoint.bin and a dataset's dataset.json, exit 0).
     if let Ok(mut f) = std::fs::File::open(&a.plot) {

@@ -112,12 +112,25 @@ pub fn check_aperture_step(what: &str, step_um: f64) -> Result<()> {
 }
 
 /// Refuses camera flags other than those `run` (a `search train` output) was trained with, as
-/// its inputs.json records them (a run without the record, begun before it existed, is not
-/// checked); `flag` names the run's flag (`--run`, `--runs`).
+/// its inputs.json records them, or without that file its checkpoint's own record (a run with
+/// neither, begun before they existed, is not checked); `flag` names the run's flag (`--run`,
+/// `--runs`).
 pub fn check_trained_with(run: &Path, camera: &CameraArgs, flag: &str) -> Result<()> {
-    let path = run.join("inputs.json");
+    let mut path = run.join("inputs.json");
     let now = camera.record();
-    if let Some((f, key, old, new)) = util::recorded_difference(&path, &now, &CAMERA_KEYS, flag)? {
+    let mut diff = util::recorded_difference(&path, &now, &CAMERA_KEYS, flag)?;
+    let ck = run.join("checkpoint.bin");
+    if util::read_record(&path, util::MAX_RECORD_BYTES)?.is_none() && ck.is_file() {
+        // inputs.json deleted: rea and pareto scored on another chain than the training's,
+        // exit 0 (a helper's audit), where `search train` itself refused from the checkpoint.
+        if let Some(had) = nanoeye_search::train::read_inputs(&ck)
+            .with_context(|| format!("{flag} {}", run.display()))?
+        {
+            diff = util::value_difference(&had, &now, &CAMERA_KEYS);
+            path = ck;
+        }
+    }
+    if let Some((f, key, old, new)) = diff {
         bail!(
             "{f}: differs from the run's training ({} records {key} = {old}, this command \
              gives {new}); the chain must be the one the run was trained with",

@@ -883,12 +883,24 @@ pub fn rea(a: ReaArgs) -> Result<()> {
             ("dataset", "--dataset"),
             ("val", "--val"),
         ];
-        util::check_inputs(
-            &inputs_path,
-            &inputs,
-            &[&keys[..], &CAMERA_KEYS[..]].concat(),
-            "--run",
-        )?;
+        let keys = [&keys[..], &CAMERA_KEYS[..]].concat();
+        util::check_inputs(&inputs_path, &inputs, &keys, "--run")?;
+        // The state's own copy of the record: with rea_inputs.json deleted, a resume on
+        // another --val scored its candidates on other data than the earlier ones (an audit).
+        let text = util::read_record(&state_path, 1 << 30)
+            .context("--run (resume)")?
+            .unwrap_or_default();
+        let had = serde_json::from_str::<serde_json::Value>(&text)
+            .ok()
+            .map(|s| s["inputs"].clone())
+            .unwrap_or_default();
+        if let Some((flag, key, old, new)) = util::value_difference(&had, &inputs, &keys) {
+            bail!(
+                "{flag}: differs from the search being resumed ({} records {key} = {old}, \
+                 this command gives {new}); use the original value or search a copy of the run",
+                state_path.display()
+            );
+        }
     }
     util::write_atomic(&inputs_path, format!("{inputs}\n").as_bytes())?;
     if state_path.exists() {
@@ -912,7 +924,11 @@ pub fn rea(a: ReaArgs) -> Result<()> {
             name: "run",
             reason: e.to_string(),
         };
-        let text = serde_json::to_string(s).map_err(|e| io(e.into()))?;
+        // With the inputs it was computed from: a resume compares them even where
+        // rea_inputs.json is gone.
+        let mut state = serde_json::to_value(s).map_err(|e| io(e.into()))?;
+        state["inputs"] = inputs.clone();
+        let text = serde_json::to_string(&state).map_err(|e| io(e.into()))?;
         util::write_atomic(&state_path, text.as_bytes()).map_err(io)?;
         let lines: String = s
             .history
@@ -948,6 +964,9 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         let chains: Vec<&CameraChain> = std::iter::once(&chain).chain(&extra).collect();
         r.run_threads(&chains, &mut save)?;
     }
+    // Once more, whatever was done: a finished search resumed with rea.jsonl deleted or cut
+    // reported the file and left it so (an audit); the same state writes the same bytes.
+    save(&r.state)?;
     bar.finish_and_clear();
     let best = r.best().context("the search evaluated nothing")?;
     let out = serde_json::json!({

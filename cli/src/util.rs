@@ -490,8 +490,9 @@ pub fn read_small_text(path: &Path, max: u64) -> Result<String> {
     })
 }
 
-/// Refuses an output directory that is a rendered dataset (it holds dataset.json): `search
-/// train --out DS` with DS its --dataset wrote a run into the data it reads, exit 0.
+/// Refuses an output directory that is, or lies inside, a rendered dataset (one holding
+/// dataset.json): `search train --out DS` with DS its --dataset wrote a run into the data it
+/// reads, exit 0.
 pub fn check_not_dataset(out: &Path) -> Result<()> {
     // Resolved first: `new/../DS` names DS once `new` is made, but not while it is missing.
     let dir = resolved(out).unwrap_or_else(|| out.to_path_buf());
@@ -501,7 +502,26 @@ pub fn check_not_dataset(out: &Path) -> Result<()> {
             out.display()
         );
     }
+    // Nor a directory inside one (`--out DS/frames` wrote a 100 MB checkpoint into a dataset).
+    if let Some(ds) = dir
+        .ancestors()
+        .skip(1)
+        .find(|d| d.join("dataset.json").symlink_metadata().is_ok())
+    {
+        bail!(
+            "--out: '{}' lies inside the dataset directory '{}' (it holds dataset.json); give a \
+             path outside it",
+            out.display(),
+            ds.display()
+        );
+    }
     Ok(())
+}
+
+/// Whether `path` is `dir` or lies below it, both [`resolved`] (an output inside an input's
+/// tree).
+pub fn is_inside(path: &Path, dir: &Path) -> bool {
+    matches!((resolved(path), resolved(dir)), (Some(p), Some(d)) if p.starts_with(&d))
 }
 
 /// Whether two paths name one file (an output that would replace an input), each

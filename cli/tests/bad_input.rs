@@ -2974,9 +2974,15 @@ fn an_out_that_is_a_dataset_is_refused() {
     .into_iter()
     .chain(["--out", "ds"])
     .collect();
+    // Nor a directory inside it (`--out ds/frames` wrote a run into the dataset; a helper's
+    // audit, fifty-fifth session).
+    let mut inside = train.clone();
+    *inside.last_mut().unwrap() = "ds/frames/run";
     for args in [
         train,
+        inside,
         vec!["fisher", "init", "--iterations", "1", "--out", "ds"],
+        vec!["fisher", "init", "--iterations", "1", "--out", "ds/f"],
         vec!["run", "--out", "ds"],
     ] {
         let err = refused(&args, "--out", p);

@@ -422,6 +422,48 @@ fn search_train_and_rea_resume_to_the_same_bytes() {
         tree(&searched) == before,
         "a refused resume changed the run"
     );
+    // The same without rea_inputs.json (refused from rea_state.json's own record), then
+    // without the run's inputs.json too (--base-pitch-um refused from the checkpoint's
+    // record): both went on, one scoring candidates on other data (a helper's audit).
+    let hide = |name: &str| {
+        let (from, to) = (searched.join(name), searched.join(format!("{name}.kept")));
+        std::fs::rename(&from, &to).unwrap();
+        (from, to)
+    };
+    let hidden = [hide("run/rea_inputs.json"), hide("run/inputs.json")];
+    for (more, flag, whose) in [
+        (
+            &["--base-pitch-um", "1"][..],
+            "--base-pitch-um",
+            "checkpoint.bin records",
+        ),
+        (&["--val", "ds"][..], "--val", "rea_state.json records"),
+    ] {
+        let args: Vec<&str> = rea.iter().copied().chain(more.iter().copied()).collect();
+        let out = common::nanoeye(&args, &searched);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(flag) && err.contains(whose),
+            "{more:?}: {err}"
+        );
+    }
+    for (from, to) in hidden {
+        std::fs::rename(to, from).unwrap();
+    }
+    assert!(
+        tree(&searched) == before,
+        "a refused resume changed the run"
+    );
+    // A finished search resumed with its history deleted writes it again, the same bytes
+    // (it reported the file and left it missing).
+    std::fs::remove_file(searched.join("run/rea.jsonl")).unwrap();
+    let out = common::nanoeye(&rea, &searched);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(tree(&searched) == before, "the history was not restored");
     // An edited state is refused by what no search writes (a helper's audit: an empty
     // population panicked drawing a tournament, a repeated history was reported as more
     // cycles than asked for, a fitness of 1e308 was picked as best), and changes nothing.
@@ -476,14 +518,14 @@ fn search_train_and_rea_resume_to_the_same_bytes() {
         std::fs::read(searched.join("run/rea.jsonl")).unwrap(),
         jsonl
     );
-    // The Pareto points of the search's subnets and uniform draws; the run given twice, so
+    // The Pareto points of the search's subnets and uniform draws; the run and its copy, so
     // that a kill can leave one lens finished and the next one partial in the state.
     let pareto: Vec<&str> = [&["search", "pareto"][..], &TINY_CHAIN[4..]]
         .concat()
         .into_iter()
         .chain([
             "--runs",
-            "run,run",
+            "run,run2",
             "--dataset",
             "ds",
             "--subnets",
@@ -495,6 +537,7 @@ fn search_train_and_rea_resume_to_the_same_bytes() {
     let from_searched = |cwd: &Path| {
         copy_dir(&searched.join("ds"), &cwd.join("ds"));
         copy_dir(&searched.join("run"), &cwd.join("run"));
+        copy_dir(&searched.join("run"), &cwd.join("run2"));
     };
     check_job(
         &Job {

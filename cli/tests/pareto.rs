@@ -142,22 +142,54 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     assert!(!svg.contains("median V"));
     assert_eq!(points(&none, "points"), pts);
 
-    // Runs of one lens joined by `+` are averaged subnet by subnet: the same run twice
-    // averages to its own points exactly ((x + x) / 2 = x, MACs too), and its seed-by-seed
-    // paired differences against itself are exactly 0, one per seed.
-    let seeds = pareto_of(p, "run+run,run+run", &["--plot", "seeds.svg"]);
+    // Runs of one lens joined by `+` are averaged subnet by subnet: a run and its copy
+    // average to the run's own points exactly ((x + x) / 2 = x, MACs too), and the
+    // seed-by-seed paired differences of two such lenses are exactly 0, one per seed. (Copies:
+    // the same run given twice is refused, as it compared a lens with itself.)
+    for copy in ["run2", "run3", "run4"] {
+        common::copy_dir(&p.join("run"), &p.join(copy));
+    }
+    let dup = pareto_runs(
+        p,
+        "run+run2,run/",
+        "3",
+        &[&RUN_CHAIN[..], &["--plot", "x.svg"]].concat(),
+    );
+    let err = String::from_utf8_lossy(&dup.stderr);
+    assert!(
+        !dup.status.success() && err.contains("'run' and 'run/' are the same run"),
+        "{err}"
+    );
+    // Outputs inside an input's tree are refused before any scoring (the plot replaced the
+    // run's own loss.svg; a helper's audit).
+    let loss = std::fs::read(p.join("run/loss.svg")).unwrap();
+    for (plot, flag) in [("run/loss.svg", "--runs"), ("ds/p.svg", "--dataset")] {
+        let err = pareto_refused(p, "3", &["--plot", plot]);
+        assert!(
+            err.contains(&format!("--plot: '{plot}' lies inside {flag}")),
+            "{err}"
+        );
+    }
+    let err = pareto_refused(p, "3", &["--plot", "x.svg", "--state", "run/s.json"]);
+    assert!(
+        err.contains("--state: 'run/s.json' lies inside --runs"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(p.join("run/loss.svg")).unwrap(), loss);
+    assert!(!p.join("ds/p.svg").exists() && !p.join("run/s.json").exists());
+    let seeds = pareto_of(p, "run+run2,run3+run4", &["--plot", "seeds.svg"]);
     assert_eq!(points(&seeds, "points"), pts);
-    assert_eq!(seeds["lenses"][0]["run"], "run+run");
+    assert_eq!(seeds["lenses"][0]["run"], "run+run2");
     assert_eq!(
         seeds["lenses"][1]["runs"],
-        serde_json::json!(["run", "run"])
+        serde_json::json!(["run3", "run4"])
     );
     assert_eq!(
-        seeds["seed_differences"]["run+run - run+run"],
+        seeds["seed_differences"]["run+run2 - run3+run4"],
         serde_json::json!([0.0, 0.0])
     );
     assert_eq!(
-        seeds["seed_intervals"]["run+run - run+run"],
+        seeds["seed_intervals"]["run+run2 - run3+run4"],
         serde_json::json!({"value": 0.0, "lo": 0.0, "hi": 0.0, "seeds": 2})
     );
     assert_eq!(plain["lenses"][0]["runs"], serde_json::json!(["run"]));
@@ -177,7 +209,7 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     .unwrap();
     let reused = pareto_of(
         p,
-        "run+run,run+run",
+        "run+run2,run3+run4",
         &[
             "--plot",
             "reused.svg",

@@ -1270,6 +1270,12 @@ pub fn read_config(path: &Path) -> Result<TrainConfig> {
     Ok(open_checkpoint(path, "run")?.1.config)
 }
 
+/// The inputs record a training checkpoint keeps ([`Trainer::set_inputs`]; None in one of an
+/// older build), checksum verified.
+pub fn read_inputs(path: &Path) -> Result<Option<serde_json::Value>> {
+    Ok(open_checkpoint(path, "run")?.1.inputs)
+}
+
 /// Reads a training checkpoint, checks its magic line and checksum and parses the metadata;
 /// returns the bytes, the metadata and the offset just after it. Errors name `name`.
 fn open_checkpoint(path: &Path, name: &'static str) -> Result<(Vec<u8>, Meta, usize)> {
