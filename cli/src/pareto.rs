@@ -271,7 +271,7 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
     }
     let key = Key::new(&a, &runs, &archs)?;
     let mut state = match std::fs::read(&state_path) {
-        Ok(bytes) => State::resume(&bytes, key, &state_path)?,
+        Ok(bytes) => State::resume(&bytes, key, &state_path, ds.len())?,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => State {
             key,
             lenses: Vec::new(),
@@ -752,7 +752,7 @@ struct State {
 impl State {
     /// The state in `bytes` if it was scored from the inputs of `key`, with `key` (the paths
     /// as given now) in place of its own; refused, naming what differs, if not.
-    fn resume(bytes: &[u8], key: Key, path: &Path) -> Result<State> {
+    fn resume(bytes: &[u8], key: Key, path: &Path, frames: usize) -> Result<State> {
         let mut st: State = serde_json::from_slice(bytes).with_context(|| {
             format!(
                 "--state {}: not a `search pareto` state (delete it, or give another --state)",
@@ -792,6 +792,29 @@ impl State {
                  nanoeye); delete it to score again",
                 path.display()
             );
+        }
+        // What scoring writes: a subnet's MACs, its V and one error per evaluation frame, each
+        // an angle (an edited error of 1e308 was blamed on --bootstrap, or with --bootstrap 0
+        // printed as V = 1.7e307, exit 0).
+        let angle = |v: f64| (0.0..=180.0).contains(&v);
+        for (r, (points, errors)) in st.lenses.iter().zip(&st.frame_errors).enumerate() {
+            for (k, (p, e)) in points.iter().zip(errors).enumerate() {
+                if p.macs == 0
+                    || !angle(p.v_deg)
+                    || e.len() != frames
+                    || !e.iter().all(|&v| angle(v))
+                {
+                    bail!(
+                        "--state {}: run {r}, subnet {k} is no score a search writes ({} MACs, \
+                         V {}°, {} frame errors for {frames} frames, each in [0°, 180°]); delete \
+                         it, or give another --state",
+                        path.display(),
+                        p.macs,
+                        p.v_deg,
+                        e.len()
+                    );
+                }
+            }
         }
         st.key = key;
         Ok(st)

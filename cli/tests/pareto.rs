@@ -202,6 +202,36 @@ fn pareto_scores_subnets_of_a_trained_run_with_and_without_the_head_refit() {
     assert_ne!(doctored["lenses"][0][0]["v_deg"], Value::from(1.0));
     doctored["lenses"][0][0]["v_deg"] = 1.0.into();
     doctored["frame_errors"][0][0] = Value::from(vec![1.0; 6]);
+    // A state edited to hold what no scoring writes is refused naming --state, with the
+    // bootstrap on or off (an error of 1e308 was blamed on --bootstrap, or with --bootstrap 0
+    // printed as V = 1.7e307, exit 0; MACs 0 and too few frame errors were taken).
+    type Edit = fn(&mut Value);
+    let edits: [Edit; 4] = [
+        |s| s["frame_errors"][0][1][0] = 1e308.into(),
+        |s| s["frame_errors"][0][1][0] = (-1.0).into(),
+        |s| s["lenses"][0][1]["macs"] = 0.into(),
+        |s| s["frame_errors"][0][1] = Value::from(vec![1.0; 2]),
+    ];
+    for (i, edit) in edits.iter().enumerate() {
+        let mut bad = doctored.clone();
+        edit(&mut bad);
+        std::fs::write(p.join("bad.json"), serde_json::to_vec(&bad).unwrap()).unwrap();
+        for boot in ["0", "10"] {
+            let args = [
+                "--plot",
+                "bad.svg",
+                "--state",
+                "bad.json",
+                "--bootstrap",
+                boot,
+            ];
+            let err = pareto_refused(p, "3", &args);
+            assert!(
+                err.contains("--state") && err.contains("no score a search writes"),
+                "{i}: {err}"
+            );
+        }
+    }
     std::fs::write(
         p.join("doctored.json"),
         serde_json::to_vec(&doctored).unwrap(),
