@@ -425,12 +425,14 @@ pub fn train(a: TrainArgs) -> Result<()> {
         None => None,
     };
     let init = a.lens == "init";
+    // Whatever the lens: a NaN given for a flag this lens does not use is still no value
+    // (it exited 0; a helper's audit).
+    crate::fisher::check_init_budget(
+        a.fisher_iterations,
+        a.fisher_photons,
+        ["--fisher-iterations", "--fisher-photons"],
+    )?;
     let spec = if init {
-        crate::fisher::check_init_budget(
-            a.fisher_iterations,
-            a.fisher_photons,
-            ["--fisher-iterations", "--fisher-photons"],
-        )?;
         LensSpec::Hyperbolic
     } else {
         a.lens

@@ -1259,6 +1259,22 @@ fn sim_and_search_loss_name_their_bad_flags() {
             vec!["sim", "--dataset", "ds", "--frames", "2:1", "--out", "o"],
             "--frames",
         ),
+        // Not used by this lens, but no value: it exited 0 (an audit, fifty-fifth session).
+        (
+            vec![
+                "search",
+                "train",
+                "--dataset",
+                "ds",
+                "--lens",
+                "hyperbolic",
+                "--fisher-photons",
+                "NaN",
+                "--out",
+                "o",
+            ],
+            "--fisher-photons",
+        ),
         // It trained a step, then failed naming the rig's pixel pitch (an audit).
         (
             vec![
