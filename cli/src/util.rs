@@ -15,9 +15,19 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     write_atomic_with(path, |w| w.write_all(bytes).map_err(Into::into))
 }
 
-/// Fails unless `path` is absent or a regular file: renaming over a symlink, pipe, device or
-/// directory would silently replace that node with a plain file.
+/// Fails unless `path` is absent or a regular file, and where its spelling names a directory
+/// (`out/`, `.`, `a/..`): renaming over a symlink, pipe, device or directory would silently
+/// replace that node with a plain file.
 pub fn check_output_target(path: &Path) -> Result<()> {
+    // `out/`, `.` or `a/..` name a directory: the write failed only at its end, after the
+    // work (`search pareto --plot Q/` scored every subnet first; a helper's audit).
+    let text = path.as_os_str().as_encoded_bytes();
+    if text.ends_with(b"/") || text.ends_with(b"/.") || text == b"." || path.file_name().is_none() {
+        bail!(
+            "'{}' names a directory, not a file; give a file name",
+            path.display()
+        );
+    }
     match std::fs::symlink_metadata(path) {
         Ok(m) if m.file_type().is_file() => Ok(()),
         Ok(m) => {
@@ -666,6 +676,23 @@ pub fn parse_list(flag: &str, text: &str) -> Result<Vec<f64>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A path spelled as a directory is no output file, whether or not it exists (the write
+    /// failed only after the work).
+    #[test]
+    fn a_path_spelled_as_a_directory_is_no_output_target() {
+        let d = tempfile::tempdir().unwrap();
+        let f = d.path().join("f");
+        std::fs::write(&f, b"x").unwrap();
+        for bad in ["q/", ".", "a/..", "a/.", "..", "/"] {
+            let e = check_output_target(Path::new(bad)).unwrap_err().to_string();
+            assert!(e.contains("names a directory"), "{bad}: {e}");
+        }
+        assert!(check_output_target(&d.path().join("f/")).is_err());
+        check_output_target(&f).unwrap();
+        check_output_target(&d.path().join("new.svg")).unwrap();
+        check_output_target(Path::new("a/.b")).unwrap();
+    }
 
     /// A path through directories not made yet resolves where the write lands; an existing
     /// link is followed, as the kernel does.
