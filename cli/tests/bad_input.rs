@@ -3112,7 +3112,11 @@ fn crafted_datasets_and_outputs_over_inputs_are_refused_by_the_chain_commands() 
         "--plot",
     ];
     let err = refused(&[&pareto[..], &["ds/dataset.json"]].concat(), "--plot", p);
+    assert!(err.contains("lies inside --dataset"), "{err}");
+    std::fs::write(p.join("notes.txt"), b"mine").unwrap();
+    let err = refused(&[&pareto[..], &["notes.txt"]].concat(), "--plot", p);
     assert!(err.contains("not an SVG"), "{err}");
+    assert_eq!(std::fs::read(p.join("notes.txt")).unwrap(), b"mine");
     assert!(common::tree(&p.join("ds")) == before);
     // fisher compare: depths beyond any scene (1e300 mm gave every fisher_z 0, exit 0).
     let args = [
