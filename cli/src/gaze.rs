@@ -316,6 +316,14 @@ pub fn run(cmd: Cmd) -> Result<()> {
                     radii.len()
                 );
             }
+            // A radius twice is the same sweep twice: its rows were printed twice.
+            if let Some(r) = radii
+                .iter()
+                .enumerate()
+                .find_map(|(i, r)| radii[..i].contains(r).then_some(r))
+            {
+                bail!("--solver-radii-mm: {r} mm is given twice; give each radius once");
+            }
             // The rig's true pupil radius is always a row: the zero-bias reference.
             let true_mm = rig.pupil_sphere_radius_m * 1e3;
             if !radii.iter().any(|r| (r - true_mm).abs() < 1e-9) {

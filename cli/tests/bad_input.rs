@@ -130,6 +130,11 @@ fn huge_counts_are_refused_naming_the_flag() {
         ),
         (vec!["run", "--subjects", tera], "--subjects"),
         (vec!["gaze", "bias", "--steps", tera], "--steps"),
+        // The same sweep twice: its rows were printed twice (a helper's audit).
+        (
+            vec!["gaze", "bias", "--steps", "2", "--solver-radii-mm=10,11,10"],
+            "--solver-radii-mm: 10 mm is given twice",
+        ),
         (
             vec![
                 "metalib",
