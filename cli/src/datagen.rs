@@ -250,7 +250,12 @@ fn export(
             // From the text, not the parsed value: a key given twice is refused there (the
             // value kept only the last).
             let state: State =
-                serde_json::from_str(&body).map_err(|e| anyhow::anyhow!("--state: {e}"))?;
+                serde_json::from_str(&body).map_err(|e| {
+                    match util::failing_path(&primary, &given) {
+                        Some((key, why)) => anyhow::anyhow!("--state: key '{key}': {why}"),
+                        None => anyhow::anyhow!("--state: {e}"),
+                    }
+                })?;
             // An unknown key (a misspelt `lid_closure`) would be ignored silently. Checked
             // here rather than by the type: stored records keep their states readable.
             let known = serde_json::to_value(State {

@@ -28,14 +28,27 @@ pub fn load(path: Option<&Path>) -> Result<Rig> {
             // A FIFO or device would block or be read without end: a rig is a small file.
             let text =
                 crate::util::read_small_text(p, crate::util::MAX_ARCH_BYTES).context("--rig")?;
-            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) {
+            let parsed = serde_json::from_str::<serde_json::Value>(&text).ok();
+            if let Some(v) = &parsed {
                 let t = serde_json::to_value(Rig::default())?;
-                if let Some(m) = crate::util::array_for_object(&t, &v) {
+                if let Some(m) = crate::util::array_for_object(&t, v) {
                     anyhow::bail!("--rig: '{}': {m}", p.display());
                 }
             }
-            Rig::from_json(&text)
-                .with_context(|| format!("--rig: '{}' is not a valid rig", p.display()))
+            Rig::from_json(&text).map_err(|e| {
+                // A value the type does not take, named by its path rather than a column.
+                let at = parsed
+                    .as_ref()
+                    .filter(|_| serde_json::from_str::<Rig>(&text).is_err())
+                    .and_then(|v| crate::util::failing_path(&Rig::default(), v));
+                match at {
+                    Some((path, why)) => {
+                        anyhow::anyhow!("--rig: '{}': rig field `{path}`: {why}", p.display())
+                    }
+                    None => anyhow::Error::new(e)
+                        .context(format!("--rig: '{}' is not a valid rig", p.display())),
+                }
+            })
         }
     }
 }

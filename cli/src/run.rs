@@ -396,8 +396,16 @@ fn apply_sets(cfg: RunConfig, sets: &[String]) -> Result<RunConfig> {
         // Alone over the base, so that the error names this key and no other.
         let mut one = base.clone();
         one[key] = value.clone();
-        serde_json::from_value::<RunConfig>(one)
-            .map_err(|e| anyhow::anyhow!("--set {key}={text}: {e}"))?;
+        serde_json::from_value::<RunConfig>(one).map_err(|e| {
+            // A rig's bad value named by its path (serde's error names none).
+            let at = (key == "rig")
+                .then(|| util::failing_path(&Rig::default(), &value))
+                .flatten();
+            match at {
+                Some((path, why)) => anyhow::anyhow!("--set rig: rig field `{path}`: {why}"),
+                None => anyhow::anyhow!("--set {key}={text}: {e}"),
+            }
+        })?;
         obj.insert(key.to_string(), value);
     }
     serde_json::from_value(merged).context("--set: the merged configuration")

@@ -94,6 +94,39 @@ pub fn array_for_object(template: &serde_json::Value, given: &serde_json::Value)
     walk(template, given, "")
 }
 
+/// The first value of `given` (a JSON document for `T`) that `T` does not take, as its path
+/// (`camera.cx_px`) and serde's error for it alone over `template`'s other values: serde's
+/// error for the whole document named a line and column only (`"cx_px": null`), or called an
+/// array one element too long "trailing characters" (`"kappa_rad": [0, 0, 0]`).
+pub fn failing_path<T>(template: &T, given: &serde_json::Value) -> Option<(String, String)>
+where
+    T: serde::Serialize + serde::de::DeserializeOwned,
+{
+    use serde_json::Value;
+    fn leaves(v: &Value, at: String, out: &mut Vec<String>) {
+        match v {
+            Value::Object(m) if !m.is_empty() => {
+                for (k, x) in m {
+                    leaves(x, format!("{at}/{k}"), out);
+                }
+            }
+            _ => out.push(at),
+        }
+    }
+    let base = serde_json::to_value(template).ok()?;
+    let mut paths = Vec::new();
+    leaves(given, String::new(), &mut paths);
+    paths.into_iter().find_map(|p| {
+        let (parent, key) = p.rsplit_once('/')?;
+        let mut t = base.clone();
+        t.pointer_mut(parent)?
+            .as_object_mut()?
+            .insert(key.to_string(), given.pointer(&p)?.clone());
+        let e = serde_json::from_value::<T>(t).err()?;
+        Some((p.trim_start_matches('/').replace('/', "."), e.to_string()))
+    })
+}
+
 /// Refuses an Arch JSON `text` laid out otherwise than an Arch (an array of its fields); text
 /// that is no JSON is left to the parser's own message.
 pub fn arch_layout(text: &str) -> Result<()> {

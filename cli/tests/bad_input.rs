@@ -3276,3 +3276,45 @@ fn arrays_in_place_of_objects_are_refused_naming_where() {
         p,
     ));
 }
+
+/// A rig's or a state's value of the wrong type or length is named by its path (serde's error
+/// gave a line and column only, and called an array one element too long "trailing
+/// characters"; a helper's audit).
+#[test]
+fn a_bad_value_in_a_rig_or_state_is_named_by_its_path() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let shown = succeeded(nanoeye(&["rig", "show", "--json"], p)).stdout;
+    let rig: serde_json::Value = serde_json::from_slice(&shown).unwrap();
+    type Edit = fn(&mut serde_json::Value);
+    let edits: [(Edit, &str); 3] = [
+        (
+            |r| r["kappa_rad"] = serde_json::json!([0, 0, 0]),
+            "rig field `kappa_rad`: invalid length 3",
+        ),
+        (
+            |r| r["camera"]["cx_px"] = serde_json::Value::Null,
+            "rig field `camera.cx_px`: invalid type: null",
+        ),
+        (
+            |r| r["cornea"]["index"] = "a".into(),
+            "rig field `cornea.index`: invalid type: string",
+        ),
+    ];
+    for (edit, want) in edits {
+        let mut r = rig.clone();
+        edit(&mut r);
+        std::fs::write(p.join("e.json"), r.to_string()).unwrap();
+        let err = refused(&["rig", "show", "--rig", "e.json"], want, p);
+        assert!(!err.contains("line 1"), "{err}");
+        let set = format!("rig={r}");
+        refused(&["run", "--print-config", "--set", &set], want, p);
+    }
+    std::fs::write(
+        p.join("s.json"),
+        r#"{"azimuth_rad":0,"elevation_rad":0,"torsion_rad":0,"slip_m":[0,0,0,0]}"#,
+    )
+    .unwrap();
+    let args = ["datagen", "export", "--state", "s.json", "--out", "s.glb"];
+    refused(&args, "--state: key 'slip_m': invalid length 4", p);
+}
