@@ -735,18 +735,18 @@ pub fn svg(c: &Comparison) -> String {
 /// `nanoeye compare`.
 pub fn run(a: CompareArgs) -> Result<()> {
     if let Some(p) = &a.svg {
-        // The plot replaces --svg whole: given a run's file, it destroyed the run.
+        // The plot replaces --svg whole: given a run's file, it destroyed the run (config.json,
+        // result.json; then any other, a lens's rig.json, which `track` then refused).
         for run in &a.runs {
-            for name in ["config.json", "result.json"] {
-                if util::same_file(p, &run.join(name)) {
-                    bail!(
-                        "--svg: '{}' is {}'s {name}; give another path",
-                        p.display(),
-                        run.display()
-                    );
-                }
+            if util::is_inside(p, run) {
+                bail!(
+                    "--svg: '{}' lies inside the run {}; write the plot elsewhere",
+                    p.display(),
+                    run.display()
+                );
             }
         }
+        util::check_output_target(p).context("--svg")?;
     }
     let c = compare(&a.runs, a.metric)?;
     if let Some(p) = &a.svg {

@@ -2438,6 +2438,26 @@ fn compare_names_what_it_cannot_read_and_writes_nothing_then() {
         refused(&["compare", "r0", "--svg", &target], "--svg", p);
         assert_eq!(std::fs::read(p.join(&target)).unwrap(), before);
     }
+    // Nor any other place in a run (it replaced a lens's rig.json, which `track` then refused;
+    // a helper's audit, fifty-fifth session).
+    std::fs::create_dir_all(p.join("r0/runs/learned")).unwrap();
+    std::fs::write(p.join("r0/runs/learned/rig.json"), b"{}").unwrap();
+    for target in [
+        "r0/runs/learned/rig.json",
+        "r0/plot.svg",
+        "./r0/../r0/stages.json",
+    ] {
+        refused(
+            &["compare", "r0", "--svg", target],
+            "lies inside the run",
+            p,
+        );
+    }
+    assert_eq!(
+        std::fs::read(p.join("r0/runs/learned/rig.json")).unwrap(),
+        b"{}"
+    );
+    assert!(!p.join("r0/plot.svg").exists() && !p.join("r0/stages.json").exists());
     // A demo or a Dice a job cannot have written: refused by key (a demo of 1e308 printed
     // its mean as null and inf with exit 0), and a pitch of 0.
     for (extra, key) in [
