@@ -539,6 +539,11 @@ pub fn track(a: TrackArgs) -> Result<()> {
                 break;
             }
         }
+        // As `--frames` with no frame file: nothing tracked is not a success (it exited 0
+        // with no line; a helper's audit).
+        if i == 0 {
+            bail!("--stdin: the input ended before its first frame; nothing to track");
+        }
     }
     out.flush()?;
     if let Some((i, name, e)) = invalid {

@@ -436,6 +436,19 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
     let o = child.wait_with_output().unwrap();
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stdout).contains("NEYE"));
+    // No frame at all is refused, as `--frames` with none is (it exited 0 with no line).
+    let o = Command::new(bin)
+        .args(["track", "--stdin", "--model"])
+        .arg(out.join("runs/learned"))
+        .stdin(std::process::Stdio::null())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("--stdin: the input ended"),
+        "{err}"
+    );
+    assert!(o.stdout.is_empty());
 
     // Finished: the second call reports the same result without redoing any stage.
     let again = run();
