@@ -341,8 +341,9 @@ impl SolverKind {
         match s {
             "sphere" => Ok(SolverKind::Sphere),
             "refractive" => Ok(SolverKind::Refractive),
-            _ => Err(GazeError::InvalidRig {
-                field: "solver",
+            // The solver is no rig field ("rig field `solver`" misled; a helper's audit).
+            _ => Err(GazeError::InvalidParameter {
+                name: "solver",
                 reason: format!("unknown solver {s:?}; use sphere or refractive"),
             }),
         }
@@ -382,6 +383,18 @@ mod tests {
         })
         .unwrap();
         (RefractiveSolver::new(rig).unwrap(), s)
+    }
+
+    /// The two names parse; another is refused as a parameter, not as a rig field.
+    #[test]
+    fn solver_names_parse_and_another_is_no_rig_field() {
+        assert_eq!(SolverKind::parse("sphere").unwrap(), SolverKind::Sphere);
+        assert_eq!(
+            SolverKind::parse("refractive").unwrap(),
+            SolverKind::Refractive
+        );
+        let e = SolverKind::parse("foo").unwrap_err().to_string();
+        assert!(e.starts_with("parameter `solver`: unknown solver"), "{e}");
     }
 
     /// Without refraction (n = 1) the cornea bends nothing, so the solver must agree with the
