@@ -19,6 +19,8 @@ use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
 mod channels;
+#[cfg(target_arch = "x86_64")]
+mod rows16;
 
 /// Output lanes accumulated in registers per block of an output row.
 const LANES: usize = 16;
@@ -812,6 +814,11 @@ pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
     if howo == 0 || hw == 0 {
         y.fill(0.0);
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if rows16::takes(g) {
+        rows16::forward(g, c, x, w, y);
         return;
     }
     #[cfg(target_arch = "x86_64")]
