@@ -36,10 +36,18 @@ pub fn load(path: Option<&Path>) -> Result<Rig> {
                 }
             }
             Rig::from_json(&text).map_err(|e| {
-                // A value the type does not take, named by its path rather than a column.
+                // A value the type does not take (from_json's "(json)" error, not a check's),
+                // named by its path rather than a column.
+                let unparsed = matches!(
+                    e,
+                    nanoeye_gaze::GazeError::InvalidRig {
+                        field: "(json)",
+                        ..
+                    }
+                );
                 let at = parsed
                     .as_ref()
-                    .filter(|_| serde_json::from_str::<Rig>(&text).is_err())
+                    .filter(|_| unparsed)
                     .and_then(|v| crate::util::failing_path(&Rig::default(), v));
                 match at {
                     Some((path, why)) => {

@@ -118,18 +118,23 @@ pub fn check_aperture_step(what: &str, step_um: f64) -> Result<()> {
 pub fn check_trained_with(run: &Path, camera: &CameraArgs, flag: &str) -> Result<()> {
     let mut path = run.join("inputs.json");
     let now = camera.record();
-    let mut diff = util::recorded_difference(&path, &now, &CAMERA_KEYS, flag)?;
     let ck = run.join("checkpoint.bin");
-    if util::read_record(&path, util::MAX_RECORD_BYTES)?.is_none() && ck.is_file() {
-        // inputs.json deleted: rea and pareto scored on another chain than the training's,
-        // exit 0 (a helper's audit), where `search train` itself refused from the checkpoint.
-        if let Some(had) = nanoeye_search::train::read_inputs(&ck)
-            .with_context(|| format!("{flag} {}", run.display()))?
-        {
-            diff = util::value_difference(&had, &now, &CAMERA_KEYS);
-            path = ck;
-        }
-    }
+    let had =
+        match util::read_record(&path, util::MAX_RECORD_BYTES).with_context(|| flag.to_string())? {
+            Some(text) => Some(
+                serde_json::from_str(&text)
+                    .with_context(|| format!("{flag}: {} is not JSON", path.display()))?,
+            ),
+            // inputs.json deleted: rea and pareto scored on another chain than the training's,
+            // exit 0 (a helper's audit), where `search train` itself refused from the checkpoint.
+            None if ck.is_file() => {
+                path = ck.clone();
+                nanoeye_search::train::read_inputs(&ck)
+                    .with_context(|| format!("{flag} {}", run.display()))?
+            }
+            None => None,
+        };
+    let diff = had.and_then(|h| util::value_difference(&h, &now, &CAMERA_KEYS));
     if let Some((f, key, old, new)) = diff {
         bail!(
             "{f}: differs from the run's training ({} records {key} = {old}, this command \
