@@ -467,12 +467,19 @@ pub fn memory_budget() -> Result<Option<u64>> {
         .min())
 }
 
-/// Bytes of address space the soft `RLIMIT_AS` still leaves this process, read from /proc;
-/// None without a limit or where /proc cannot be read. Under `ulimit -v` an allocation past
-/// it aborts the process, whatever memory the system has. The limit less the resident set
-/// (`VmRSS`), not less `VmSize`: the allocator reserves about 1 GiB of address space it has
-/// not used and hands out again, which refused the default `optics psf` under a limit it
-/// fits in.
+/// Resident bytes a plan may take under an address-space limit, as a share of the limit less
+/// the resident set: the allocator reserves address space ahead of use, so the address space
+/// of `sim` peaked at 2.0–2.6× its resident peak (`--aperture-step-um` 0.2 and 0.3: 5.15 GiB
+/// for 2.54 GiB resident, 3.15 for 1.20; fifty-sixth session), and a plan estimated at 3.56
+/// GiB under a 3.81 GiB `ulimit -v` passed the check and aborted on an allocation.
+const ADDRESS_SPACE_SHARE: u64 = 2;
+
+/// Bytes the soft `RLIMIT_AS` still leaves this process for a plan's resident memory, read
+/// from /proc; None without a limit or where /proc cannot be read. Under `ulimit -v` an
+/// allocation past it aborts the process, whatever memory the system has. The limit less the
+/// resident set (`VmRSS`), not less `VmSize` (the allocator's first reservation of about 1 GiB
+/// is address space it has not used and hands out again: that refused the default `optics
+/// psf` under a limit it fits in), divided by [`ADDRESS_SPACE_SHARE`].
 fn address_space_left() -> Option<u64> {
     let limits = std::fs::read_to_string("/proc/self/limits").ok()?;
     let soft: u64 = limits
@@ -483,7 +490,7 @@ fn address_space_left() -> Option<u64> {
         .parse()
         .ok()?;
     let used = nanoeye_datagen::render::dataset::proc_bytes("/proc/self/status", "VmRSS:")?;
-    Some(soft.saturating_sub(used as u64))
+    Some(soft.saturating_sub(used as u64) / ADDRESS_SPACE_SHARE)
 }
 
 /// Refuses a plan estimated at `need` bytes when it exceeds [`memory_budget`] (the kernel's
@@ -495,7 +502,7 @@ pub fn check_memory(what: &str, need: u64, fix: &str) -> Result<()> {
             let gib = (1u64 << 30) as f64;
             bail!(
                 "{what}: needs about {:.2} GiB, more than the {:.2} GiB this process may use \
-                 (the least of {MEMORY_ENV}, MemAvailable, the cgroup limit and ulimit -v); {fix}",
+                 (the least of {MEMORY_ENV}, MemAvailable, the cgroup limit and half what ulimit -v leaves); {fix}",
                 need as f64 / gib,
                 have as f64 / gib
             );

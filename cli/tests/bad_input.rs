@@ -2570,6 +2570,37 @@ fn with_memory(args: &[&str], bytes: &str, cwd: &Path) -> std::process::Output {
         .expect("run nanoeye")
 }
 
+/// Under `ulimit -v` a plan may take half what the limit leaves: the allocator reserves
+/// address space ahead of use (sim's peaked at 2.0–2.6× its resident set), and `sim
+/// --aperture-step-um 0.2`, estimated at 3.56 GiB, passed the check under a 3.81 GiB limit and
+/// aborted on an allocation with a backtrace (a helper's audit). Here 0.25 µm samples are
+/// estimated at 1.96 GiB on two threads, under a 2.86 GiB limit (the code before ran it):
+/// refused before any work, naming the flag.
+#[cfg(target_os = "linux")]
+#[test]
+fn under_an_address_space_limit_a_plan_takes_half_of_what_it_leaves() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    assert!(nanoeye(&tiny_dataset("ds"), p).status.success());
+    let out = std::process::Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 3000000 && exec '{}' sim --dataset ds --pitch-um 48 \
+             --aperture-step-um 0.25 --out so",
+            common::BIN
+        ))
+        .current_dir(p)
+        .output()
+        .expect("run sh");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("--aperture-step-um: needs about") && err.contains("ulimit -v"),
+        "{err}"
+    );
+    assert_eq!(entries(p), ["ds"], "a refused command wrote something");
+}
+
 #[test]
 fn aperture_sampling_beyond_the_memory_is_refused_before_any_work() {
     let d = tempfile::tempdir().unwrap();
