@@ -52,6 +52,18 @@ pub struct EmbedArgs {
     json: bool,
 }
 
+/// The files a run writes into `--out`.
+const OUTPUTS: [&str; 8] = [
+    "checkpoint.bin",
+    "phase.npy",
+    "history.jsonl",
+    "embed.svg",
+    "lens.json",
+    "inputs.json",
+    "init.json",
+    "metrics.json",
+];
+
 /// Runs (or resumes) the embedding optimisation.
 pub fn embed(a: EmbedArgs) -> Result<()> {
     let t0 = Instant::now();
@@ -101,10 +113,34 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
         .phase_map(chain.aperture_grid(), r.wavelength_m, r.sensor_distance_m)
         .context("--lens")?
         .phase_rad;
+    // p̂ against the native grid and the sensor before anything is written: a p̂ finer than
+    // the grid was refused by the embedder, after --out held lens.json and inputs.json,
+    // naming a `pitch` parameter or a rig field instead of the flag (a helper's audit).
+    chain
+        .native()
+        .at(a.chain.pitch_um() * 1e-6)
+        .context("--pitch-um")?;
     let mut e = Embedder::new(&chain, &ds, cfg, phase0).map_err(flag)?;
+    if a.out.exists() && !a.out.is_dir() {
+        bail!("--out {}: exists and is not a directory", a.out.display());
+    }
     util::check_not_dataset(&a.out)?;
+    // Every output's target before the steps, not only the checkpoint's (a directory at
+    // OUT/phase.npy was found after the training), and none of them the starting lens (`--lens
+    // file:OUT/phase.npy` was replaced by the run's own phase map).
+    for name in OUTPUTS {
+        util::check_output_target(&a.out.join(name)).with_context(|| format!("--out {name}"))?;
+        if let LensSpec::File(f) = &spec {
+            if util::same_file(&a.out.join(name), f) {
+                bail!(
+                    "--out: its {name} is --lens {}; give another --out (or copy the lens \
+                     out of it first)",
+                    f.display()
+                );
+            }
+        }
+    }
     let ck = a.out.join("checkpoint.bin");
-    util::check_output_target(&ck)?;
     util::remove_stale_temps_under(&a.out);
     let lens_path = a.out.join("lens.json");
     let lens_json = serde_json::json!({ "lens": a.lens }).to_string();

@@ -2154,7 +2154,19 @@ fn search_embed_runs_resumes_and_names_its_bad_flags() {
         // TINY_CHAIN's camera flags, on the triplets.
         a.extend(&common::TINY_CHAIN[2..]);
         a.extend(["--steps", "2", "--batch", "2", "--out", "e", "--json"]);
-        a.extend(extra);
+        // A flag already there takes the new value (given twice, clap's own error would
+        // name it whatever the value).
+        let mut rest = extra;
+        while let [f, v, tail @ ..] = rest {
+            match a.iter().position(|x| x == f) {
+                Some(i) if f.starts_with("--") => {
+                    a[i + 1] = v;
+                    rest = tail;
+                }
+                _ => break,
+            }
+        }
+        a.extend(rest);
         a.into_iter().map(String::from).collect::<Vec<_>>()
     };
     fn args(v: &[String]) -> Vec<&str> {
@@ -2175,6 +2187,10 @@ fn search_embed_runs_resumes_and_names_its_bad_flags() {
         (vec!["--lens", "concave"], "--lens"),
         (vec!["--dataset", "ds"], "--dataset"),
         (vec!["--pitch-um", "nan"], "--pitch-um"),
+        // Finer than the native grid, and beyond the sensor: named, and nothing written (a
+        // helper's audit: `invalid \`pitch\`` and a rig field, after e/ held two files).
+        (vec!["--pitch-um", "1"], "--pitch-um"),
+        (vec!["--pitch-um", "100000"], "--pitch-um"),
     ] {
         let v = run(&extra);
         refused(&args(&v), flag, p);
@@ -2244,6 +2260,24 @@ fn search_embed_runs_resumes_and_names_its_bad_flags() {
     std::fs::copy(p.join("e/checkpoint.bin"), p.join("k/checkpoint.bin")).unwrap();
     let e = refused(&args(&v), "other inputs", p);
     assert!(e.contains("`lens`"), "{e}");
+    // A starting lens that is one of the run's outputs is refused before the steps (it was
+    // replaced by the run's phase map, exit 0), and so is a directory where an output goes
+    // (found after the training, with the checkpoint written).
+    std::fs::create_dir_all(p.join("l")).unwrap();
+    std::fs::copy(p.join("e/phase.npy"), p.join("l/phase.npy")).unwrap();
+    let mut v = run(&["--lens", "file:l/phase.npy"]);
+    let k = v.iter().position(|a| a == "e").unwrap();
+    v[k] = "l".into();
+    let e = refused(&args(&v), "--out", p);
+    assert!(e.contains("phase.npy is --lens"), "{e}");
+    assert_eq!(std::fs::read(p.join("l/phase.npy")).unwrap(), phase);
+    assert_eq!(entries(&p.join("l")), ["phase.npy"]);
+    std::fs::create_dir_all(p.join("m/metrics.json")).unwrap();
+    let mut v = run(&[]);
+    v[k] = "m".into();
+    let e = refused(&args(&v), "--out metrics.json", p);
+    assert!(e.contains("directory"), "{e}");
+    assert_eq!(entries(&p.join("m")), ["metrics.json"]);
 }
 
 #[test]
