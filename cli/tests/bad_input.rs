@@ -510,6 +510,19 @@ fn crafted_headers_fifos_and_out_of_range_numbers_are_refused_by_name() {
     // Named by its shape: beyond the aperture grid's 20000², or (since the NPY preamble is
     // checked first) beyond what the file's 16 bytes of data hold.
     assert!(e.contains("4294967296"), "{e}");
+    // A header that claims less than the file holds (a 2×2 header over five values): the
+    // first four were taken as the map, exit 0 (a helper's audit).
+    std::fs::write(
+        p.join("long.npy"),
+        common::npy_f64(2, 2, &[0.0, 1.0, 2.0, 3.0, 4.0]),
+    )
+    .unwrap();
+    let e = refused(
+        &["optics", "psf", "--lens", "file:long.npy", "--out", "ps"],
+        "--lens",
+        p,
+    );
+    assert!(e.contains("does not describe the data"), "{e}");
     // The blueprint's reader too: the wrapped count read as an empty 2³²×2³² map, which
     // panicked indexing it after a sweep.
     let e = refused(

@@ -36,6 +36,9 @@ pub struct Claim {
     pub dims: Vec<u128>,
     /// Bytes per value (of a plain `'descr'`; 1 where it has no size).
     pub item_bytes: u128,
+    /// Whether `item_bytes` is the dtype's own size (a plain `'descr'`), so that the data's
+    /// length must equal what the shape needs.
+    pub sized: bool,
     /// Bytes of the file after the header.
     pub data_bytes: u128,
 }
@@ -80,16 +83,18 @@ pub fn claim(prefix: &[u8], file_len: u64) -> Result<Option<Claim>, String> {
             "the header claims {header_len} bytes, beyond the file's {file_len}"
         ));
     }
+    let item = item_bytes(prefix);
     Ok(header_dims(prefix).map(|dims| Claim {
         dims,
-        item_bytes: item_bytes(prefix).unwrap_or(1),
+        item_bytes: item.unwrap_or(1),
+        sized: item.is_some(),
         data_bytes: u128::from(file_len - data_at),
     }))
 }
 
-/// [`claim`], also refusing a shape whose values the data after the header cannot hold:
-/// returns the claimed dimensions (None where there is no readable shape) or why the file
-/// cannot be what it claims.
+/// [`claim`], also refusing a shape whose values the data after the header cannot hold, or
+/// (for a plain dtype) data longer than the shape's values: returns the claimed dimensions
+/// (None where there is no readable shape) or why the file cannot be what it claims.
 pub fn check(prefix: &[u8], file_len: u64) -> Result<Option<Vec<u128>>, String> {
     filled(claim(prefix, file_len)?)
 }
@@ -100,6 +105,17 @@ fn filled(c: Option<Claim>) -> Result<Option<Vec<u128>>, String> {
         Some(c) if !c.fits() => Err(format!(
             "shape {:?} of {}-byte values needs more than the file's {} bytes of data",
             c.dims, c.item_bytes, c.data_bytes
+        )),
+        // Bytes past the shape's values: the header does not describe the data (a 200×200
+        // f8 map under a (100, 100) header was read as its first quarter, exit 0; a helper's
+        // audit). A stream reader that wants a file cut short uses `claim` instead.
+        Some(c) if c.sized && c.needs().is_some_and(|n| n < c.data_bytes) => Err(format!(
+            "shape {:?} of {}-byte values needs {} bytes of data, but the file holds {} after \
+             its header: the header does not describe the data",
+            c.dims,
+            c.item_bytes,
+            c.needs().unwrap_or(0),
+            c.data_bytes
         )),
         c => Ok(c.map(|c| c.dims)),
     }
@@ -116,6 +132,10 @@ fn item_bytes(prefix: &[u8]) -> Option<u128> {
         .trim_start()
         .strip_prefix('\'')?;
     let descr = &rest[..rest.find('\'')?];
+    // A unicode string's digits count characters of four bytes each, not bytes.
+    if descr.contains('U') {
+        return None;
+    }
     let digits: String = descr.chars().skip_while(|c| !c.is_ascii_digit()).collect();
     digits.parse().ok().filter(|&n| n > 0)
 }
@@ -189,6 +209,12 @@ mod tests {
         assert!(check(&b, b.len() as u64).is_err());
         let b = npy(1, &dict("(2, 3)"), 5);
         assert!(check(&b, b.len() as u64).is_err());
+        // Data past the shape's values (one byte more, or f8 data under an f4 header).
+        for data in [25, 48] {
+            let b = npy(1, &dict("(2, 3)"), data);
+            let e = check(&b, b.len() as u64).unwrap_err();
+            assert!(e.contains("does not describe") && e.contains("24"), "{e}");
+        }
         // Dimensions past u128 do not parse: no shape, left to the parser.
         let b = npy(1, &dict("(340282366920938463463374607431768211456, 2)"), 8);
         assert_eq!(check(&b, b.len() as u64), Ok(None));
@@ -216,6 +242,12 @@ mod tests {
         assert_eq!(check_file(&p).unwrap(), Ok(Some(vec![2, 2])));
         std::fs::write(&p, npy(1, &dict("(2, 2)"), 15)).unwrap();
         assert!(check_file(&p).unwrap().is_err());
+        std::fs::write(&p, npy(1, &dict("(2, 2)"), 17)).unwrap();
+        assert!(check_file(&p).unwrap().is_err());
+        // A structured dtype has no plain size: its length is left to the parser.
+        let structured = "{'descr': [('a', '<f4')], 'fortran_order': False, 'shape': (2,), }";
+        std::fs::write(&p, npy(1, structured, 9)).unwrap();
+        assert_eq!(check_file(&p).unwrap(), Ok(Some(vec![2])));
         std::fs::remove_dir_all(&d).unwrap();
     }
 }
