@@ -426,6 +426,18 @@ fn init(a: InitArgs) -> Result<()> {
                 grid.n
             );
         }
+        // Fewer iterations than the checkpoint holds would rewrite the outputs of a longer
+        // run under a shorter request, exit 0 (a helper's audit): the count is the total.
+        if a.iterations < s.iteration {
+            bail!(
+                "--iterations: {} is fewer than the {} the checkpoint in '{}' has done (the \
+                 count is the run's total); give at least {} or another --out",
+                a.iterations,
+                s.iteration,
+                ckpt.display(),
+                s.iteration
+            );
+        }
         eprintln!(
             "resuming from '{}' at iteration {}",
             ckpt.display(),

@@ -347,6 +347,15 @@ pub fn recorded_difference<'k>(
     };
     let had: serde_json::Value = serde_json::from_str(&text)
         .with_context(|| format!("{what}: {} is not JSON", path.display()))?;
+    // An array (or null, or a number) has no keys, so nothing would be compared and any
+    // inputs would resume (`fisher init` mixed two window sizes; a helper's audit).
+    if !had.is_object() {
+        bail!(
+            "{what}: {} is not a JSON object of the run's inputs; restore it or use another \
+             directory",
+            path.display()
+        );
+    }
     Ok(value_difference(&had, now, keys))
 }
 
@@ -732,6 +741,29 @@ mod tests {
         check_output_target(&f).unwrap();
         check_output_target(&d.path().join("new.svg")).unwrap();
         check_output_target(Path::new("a/.b")).unwrap();
+    }
+
+    /// A record of inputs that is no JSON object is refused, not taken as recording nothing
+    /// (an array resumed a `fisher init` on another window size); an object is compared.
+    #[test]
+    fn a_record_of_inputs_that_is_no_object_is_refused() {
+        let d = tempfile::tempdir().unwrap();
+        let f = d.path().join("inputs.json");
+        let now = serde_json::json!({"window_px": 30});
+        let keys = [("window_px", "--window-px")];
+        for bad in ["[9, 10.0]", "null", "7", "\"x\""] {
+            std::fs::write(&f, bad).unwrap();
+            let e = check_inputs(&f, &now, &keys, "--out").unwrap_err();
+            assert!(
+                format!("{e:#}").contains("not a JSON object"),
+                "{bad}: {e:#}"
+            );
+        }
+        std::fs::write(&f, r#"{"window_px": 9}"#).unwrap();
+        let e = check_inputs(&f, &now, &keys, "--out").unwrap_err();
+        assert!(e.to_string().starts_with("--window-px: differs"), "{e}");
+        std::fs::write(&f, r#"{"window_px": 30}"#).unwrap();
+        check_inputs(&f, &now, &keys, "--out").unwrap();
     }
 
     /// A path through directories not made yet resolves where the write lands; an existing

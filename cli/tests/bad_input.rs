@@ -1122,8 +1122,8 @@ fn fisher_init_resume_refuses_changed_parameters_and_keeps_one_checkpoint_file()
         "--window-px",
         "3",
     ];
-    let run =
-        |extra: &[&'static str]| nanoeye(&base.iter().chain(extra).copied().collect::<Vec<_>>(), p);
+    let base_with = |extra: &[&'static str]| base.iter().chain(extra).copied().collect::<Vec<_>>();
+    let run = |extra: &[&'static str]| nanoeye(&base_with(extra), p);
     succeeded(run(&["--iterations", "1"]));
     assert_eq!(entries(&p.join("fi/checkpoint")), ["checkpoint.bin"]);
     for (extra, flag) in [
@@ -1174,6 +1174,17 @@ fn fisher_init_resume_refuses_changed_parameters_and_keeps_one_checkpoint_file()
     fresh.extend(["--iterations", "1", "--json"]);
     let a = first(nanoeye(&fresh, p));
     assert_eq!(first(run(&["--iterations", "2", "--json"])), a);
+    // Fewer iterations than the checkpoint has done: refused, outputs untouched (they were
+    // rewritten, exit 0, reporting 2 for a request of 1).
+    let before = common::tree(&p.join("fi"));
+    let e = refused(&base_with(&["--iterations", "1"]), "--iterations", p);
+    assert!(e.contains("fewer than the 2"), "{e}");
+    assert!(common::tree(&p.join("fi")) == before, "outputs changed");
+    // A record of inputs that is no JSON object is refused, not read as recording nothing.
+    std::fs::write(p.join("fi/inputs.json"), "[9, 10.0]").unwrap();
+    let e = refused(&base_with(&["--iterations", "3"]), "--out", p);
+    assert!(e.contains("not a JSON object"), "{e}");
+    std::fs::write(p.join("fi/inputs.json"), &before[Path::new("inputs.json")]).unwrap();
     // A corrupted checkpoint is refused, not resumed.
     let ck = p.join("fi/checkpoint/checkpoint.bin");
     let mut bytes = std::fs::read(&ck).unwrap();

@@ -23,6 +23,15 @@ pub enum FisherError {
         /// Column.
         col: usize,
     },
+    /// A file could not be read or written, or is not what it should be (a checkpoint that
+    /// is cut short, corrupted or no checkpoint at all).
+    #[error("{name}: {why}")]
+    File {
+        /// Which file.
+        name: &'static str,
+        /// Where and why.
+        why: String,
+    },
     /// Shapes or lengths disagree.
     #[error("shape mismatch for {name}: {why}")]
     Shape {

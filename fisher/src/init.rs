@@ -240,7 +240,7 @@ fn fnv1a64(bytes: &[u8]) -> u64 {
 }
 
 fn io(name: &'static str, path: &Path, e: impl std::fmt::Display) -> FisherError {
-    FisherError::Shape {
+    FisherError::File {
         name,
         why: format!("{}: {e}", path.display()),
     }
@@ -424,4 +424,30 @@ pub fn init_step(
     state.iteration += 1;
     state.history.push(rec.clone());
     Ok(rec)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A checkpoint that is cut short, corrupted or no checkpoint is named as such, with its
+    /// path, not as a "shape mismatch" (a helper's audit found every load error worded so).
+    #[test]
+    fn a_bad_checkpoint_is_named_as_a_file_not_a_shape() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join(CHECKPOINT_FILE);
+        let mut junk = CHECKPOINT_MAGIC.to_vec();
+        junk.extend([7u8; 40]);
+        for (bytes, why) in [
+            (&b""[..], "not a nanoeye init checkpoint"),
+            (&junk[..], "checksum mismatch"),
+        ] {
+            std::fs::write(&p, bytes).unwrap();
+            let e = InitState::load(d.path()).err().unwrap().to_string();
+            assert!(
+                e.starts_with("checkpoint: ") && e.contains(why) && e.contains(CHECKPOINT_FILE),
+                "{e}"
+            );
+        }
+    }
 }
