@@ -2164,6 +2164,38 @@ fn a_wrapped_stage_error_is_printed_once() {
     assert!(!p.join("s").exists(), "{:?}", entries(p));
 }
 
+/// A dataset's stored layers hold premultiplied radiance (finite, ≥ 0) and coverage (a
+/// fraction of samples): an edited file with α = 5 imaged 4.96e8 electrons and radiance −1000
+/// a black frame, exit 0 (a helper's audit). Refused naming the file, the layer and the value.
+#[test]
+fn layers_holding_impossible_radiance_or_coverage_are_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    assert!(nanoeye(&tiny_dataset("ds"), p).status.success());
+    fn sim(ds: &str) -> Vec<&str> {
+        let mut a = common::TINY_CHAIN.to_vec();
+        a[1] = ds;
+        [&["sim"][..], &a, &["--noise", "off", "--out", "so"]].concat()
+    }
+    succeeded(nanoeye(&sim("ds"), p));
+    // Layer 0's radiance plane first, then its coverage (80 × 50 values each).
+    for (name, at, v, says) in [
+        ("neg", 0usize, -1000.0f32, "radiance of -1000"),
+        ("nan", 7, f32::NAN, "radiance of NaN"),
+        ("alpha", 4000, 5.0, "coverage of 5"),
+        ("alphaneg", 4001, -0.5, "coverage of -0.5"),
+    ] {
+        common::copy_dir(&p.join("ds"), &p.join(name));
+        let f = p.join(name).join("frames/000000_layers.npy");
+        let mut b = std::fs::read(&f).unwrap();
+        let data = 10 + u16::from_le_bytes([b[8], b[9]]) as usize;
+        b[data + 4 * at..][..4].copy_from_slice(&v.to_le_bytes());
+        std::fs::write(&f, b).unwrap();
+        let e = refused(&sim(name), "000000_layers.npy", p);
+        assert!(e.contains(says) && e.contains("layer 0"), "{name}: {e}");
+    }
+}
+
 #[test]
 fn search_embed_runs_resumes_and_names_its_bad_flags() {
     let d = tempfile::tempdir().unwrap();

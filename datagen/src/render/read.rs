@@ -70,6 +70,15 @@ impl StoredLayer {
     }
 }
 
+/// Largest coverage a stored layer may hold: a fraction of samples, summed in f32 from
+/// 1/spp per sample, so it may pass 1 by the sum's round-off (spp · 2⁻²⁴ at most).
+const MAX_COVERAGE: f32 = 1.0 + 1e-4;
+
+/// The first value of a plane that `ok` refuses (NaN included where `ok` compares).
+fn first_outside(m: &Mat<f32>, ok: impl Fn(f32) -> bool) -> Option<f32> {
+    (0..m.ncols()).find_map(|j| m.col(j).iter().copied().find(|&v| !ok(v)))
+}
+
 fn invalid(path: &Path, reason: impl std::fmt::Display) -> RenderError {
     RenderError::Encode {
         path: path.display().to_string(),
@@ -390,7 +399,7 @@ impl Dataset {
         let k = rec.layers.len();
         let planes = read_npy_plane_rows(&lpath, &[k as u64, 2, h as u64, w as u64])?;
         let mut planes = planes.into_iter();
-        let layers = rec
+        let layers: Vec<StoredLayer> = rec
             .layers
             .iter()
             .map(|info| {
@@ -403,6 +412,24 @@ impl Dataset {
                 }
             })
             .collect();
+        // Premultiplied radiance finite and ≥ 0, coverage a fraction of samples: an edited
+        // file with every α at 5 imaged 4.96e8 electrons, and radiance −1000 a black frame,
+        // exit 0 (a helper's audit; a NaN was refused only in the optics, naming a kernel).
+        for l in &layers {
+            let li = l.info.index;
+            if let Some(v) = first_outside(&l.radiance_t, |v| v.is_finite() && v >= 0.0) {
+                return Err(invalid(
+                    &lpath,
+                    format!("layer {li} holds a radiance of {v}; radiance is finite and ≥ 0"),
+                ));
+            }
+            if let Some(v) = first_outside(&l.alpha_t, |v| (0.0..=MAX_COVERAGE).contains(&v)) {
+                return Err(invalid(
+                    &lpath,
+                    format!("layer {li} holds a coverage of {v}, outside [0, 1]"),
+                ));
+            }
+        }
         let mpath = self.dir.join(mp);
         let masks = read_npy_planes(&mpath, &[2, h as u64, w as u64])?;
         let [mask_visible_pupil, mask_pupil]: [Mat<f32>; 2] =
