@@ -230,7 +230,10 @@ fn export(
     let state: State = match state {
         None => primary,
         Some(text) => {
-            let body = if text.trim_start().starts_with('{') {
+            // Inline JSON: an object, or an array that no file is named after (refused below
+            // as the wrong layout, not as a missing file).
+            let t = text.trim_start();
+            let body = if t.starts_with('{') || (t.starts_with('[') && !Path::new(text).exists()) {
                 text.to_string()
             } else {
                 util::read_small_text(Path::new(text), util::MAX_ARCH_BYTES).context("--state")?

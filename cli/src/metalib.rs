@@ -122,6 +122,66 @@ impl SolverArgs {
             .map_err(|e| anyhow!("--{}", flagify(&e.to_string())))?;
         Ok(m)
     }
+    /// Refuses a solver flag given against the sweep at `dir` whose settings `cfg` are: a
+    /// command that reads a sweep's cells solves nothing, so `--harmonics 5` or `--material X`
+    /// beside `--sweep` were ignored and the output was the sweep's (a helper's audit). A
+    /// value-typed flag counts as given where it is not its default.
+    fn against_sweep(&self, dir: &std::path::Path, cfg: &SweepConfig) -> Result<()> {
+        let m = &cfg.materials;
+        let differs = |given: Option<f64>, had: f64| given.is_some_and(|v| v != had);
+        let wl_nm = cfg.wavelength_m * 1e9;
+        let clashes = [
+            (
+                "--harmonics",
+                self.harmonics != DEFAULT_HARMONICS && self.harmonics != cfg.harmonics,
+                cfg.harmonics.to_string(),
+            ),
+            (
+                "--rule",
+                self.rule != DEFAULT_RULE.name() && self.rule()? != cfg.rule,
+                cfg.rule.name().to_string(),
+            ),
+            (
+                "--wavelength-nm",
+                (self.wavelength_nm - DEFAULT_WAVELENGTH_M * 1e9).abs() > 1e-9
+                    && (self.wavelength_nm - wl_nm).abs() > 1e-6,
+                format!("{wl_nm}"),
+            ),
+            (
+                "--material",
+                self.material.is_some() && self.material != cfg.material,
+                cfg.material.clone().unwrap_or_else(|| "none".into()),
+            ),
+            (
+                "--n-pillar",
+                differs(self.n_pillar, m.n_pillar),
+                m.n_pillar.to_string(),
+            ),
+            (
+                "--k-pillar",
+                differs(self.k_pillar, m.k_pillar),
+                m.k_pillar.to_string(),
+            ),
+            (
+                "--n-substrate",
+                differs(self.n_substrate, m.n_substrate),
+                m.n_substrate.to_string(),
+            ),
+            (
+                "--n-background",
+                differs(self.n_background, m.n_background),
+                m.n_background.to_string(),
+            ),
+        ];
+        if let Some((flag, _, had)) = clashes.into_iter().find(|c| c.1) {
+            bail!(
+                "{flag}: the sweep in {} was solved with {had}; a blueprint from a sweep reads \
+                 its cells and solves nothing — drop {flag}, or run a sweep with it",
+                dir.display()
+            );
+        }
+        Ok(())
+    }
     fn rule(&self) -> Result<Rule> {
         self.rule.parse().map_err(|e| anyhow!("--rule: {e}"))
     }
@@ -800,6 +860,7 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
             .map_err(|e| anyhow!("--library-csv: {e}"))?
     } else if let Some(dir) = &a.sweep {
         let data = sweep::load_sweep(dir).with_context(|| format!("--sweep {}", dir.display()))?;
+        a.solver.against_sweep(dir, &data.manifest.config)?;
         TabulatedLibrary::from_sweep(&data, h, s, &Criteria::default())
             .map_err(|e| anyhow!("--sweep: {e}"))?
             .0

@@ -479,7 +479,13 @@ pub fn sim(a: SimArgs) -> Result<()> {
     chain.set_s1_cache(false);
     let ids = match &a.frames {
         Some(t) => parse_frames("--frames", t, ds.len())?,
-        None => (0..ds.len().min(MAX_FRAMES)).collect(),
+        // "Default all": a dataset past the bound is refused, not cut short silently.
+        None if ds.len() > MAX_FRAMES => bail!(
+            "--frames: the dataset holds {} frames, more than the {MAX_FRAMES} one call \
+             images; give --frames A:B (e.g. 0:{MAX_FRAMES}) and run the rest in other calls",
+            ds.len()
+        ),
+        None => (0..ds.len()).collect(),
     };
     let r = &chain.config().radiometry;
     let map = a

@@ -1934,6 +1934,9 @@ fn datagen_export_refuses_bad_states_and_writes_a_glb() {
             "slip_m: [1e300, 0.0, 0.0] has length inf",
         ),
         ("missing.json", "--state"),
+        // A state laid out as an array, inline: named as such (it was looked for as a file
+        // named '[0.1,…]'; a helper's audit).
+        ("[0.1, 0.2, 0.0, [0, 0, 0]]", "a JSON object"),
         // A misspelt key was ignored (an audit).
         (
             r#"{"azimuth_rad":0,"elevation_rad":0,"torsion_rad":0,"slip_m":[0,0,0],"lid_closur":0.5}"#,
@@ -2886,6 +2889,47 @@ fn metalib_select_and_study_refuse_crafted_sweeps_and_print_no_null() {
     sweep("one", "700:700:10", "0.5:0.5:0.1");
     let out = succeeded(select("one"));
     assert!(!String::from_utf8_lossy(&out.stdout).contains("null"));
+    // A blueprint from the sweep reads its cells: a solver flag that contradicts the sweep
+    // is refused naming it (ignored before, the output the sweep's; a helper's audit), one
+    // that agrees with it is taken, and so is none.
+    std::fs::write(p.join("ph.npy"), npy_f64(2, 2, &[0.0, 1.0, 2.0, 3.0])).unwrap();
+    let bp = |extra: &[&str]| {
+        let mut a = vec![
+            "metalib",
+            "blueprint",
+            "--sweep",
+            "sw",
+            "--phase",
+            "ph.npy",
+            "--height-nm",
+            "700",
+            "--pitch-nm",
+            "500",
+            "--square-aperture",
+            "--out",
+            "bp",
+        ];
+        a.extend(extra);
+        nanoeye(&a, p)
+    };
+    for (extra, flag) in [
+        (&["--harmonics", "5"][..], "--harmonics"),
+        (&["--rule", "laurent"], "--rule"),
+        (&["--material", "green-2008-csi"], "--material"),
+        (&["--n-pillar", "2"], "--n-pillar"),
+        (&["--n-substrate", "3"], "--n-substrate"),
+    ] {
+        let out = bp(extra);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{extra:?} was ignored");
+        assert!(
+            err.contains(flag) && err.contains("solves nothing"),
+            "{err}"
+        );
+        assert!(!p.join("bp").exists());
+    }
+    succeeded(bp(&["--harmonics", "1"]));
+    succeeded(bp(&[]));
 
     let copy = |name: &str| {
         let to = p.join(name);
