@@ -748,13 +748,10 @@ fn select_cmd(a: SelectArgs) -> Result<()> {
     let mark_pitch_nm = on_sweep_grid("--mark-pitch-nm", a.mark_pitch_nm, 530.0, &data.pitches_m)?;
     let sel = select::select_sweep(&data, &Criteria::default());
     let figdir = a.figures.clone().unwrap_or_else(|| a.sweep.join("figures"));
-    let mut files = select::render_figures(
-        &figdir,
-        &data,
-        &sel,
-        Some((mark_height_nm * 1e-9, mark_pitch_nm * 1e-9)),
-        mark_pitch_nm * 1e-9,
-    )?;
+    // A sweep of zero height alone (legal: the bare substrate) has no pillar to mark; the
+    // figures went unwritten with an error about an internal `mark` (a helper's audit).
+    let mark = (mark_height_nm > 0.0).then_some((mark_height_nm * 1e-9, mark_pitch_nm * 1e-9));
+    let mut files = select::render_figures(&figdir, &data, &sel, mark, mark_pitch_nm * 1e-9)?;
     // To a thousandth of a nm: whole nm merged the pairs of a sweep in steps of 0.2 nm into
     // one key (and the viable list named pairs the map did not).
     let nm = |m: f64| (m * 1e12).round() / 1e3;

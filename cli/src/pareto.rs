@@ -186,7 +186,10 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
             a.bootstrap
         );
     }
-    // Both outputs checked before minutes of scoring, not after.
+    // Both outputs checked before minutes of scoring, not after; the plot's own target
+    // first (`--plot .` was refused as "--state: . is also --plot", the default state path
+    // of a plot with no file name).
+    util::check_output_target(&a.plot).context("--plot")?;
     let state_path = a
         .state
         .clone()
@@ -197,7 +200,6 @@ pub fn pareto(a: ParetoArgs) -> Result<()> {
             state_path.display()
         );
     }
-    util::check_output_target(&a.plot).context("--plot")?;
     util::check_output_target(&state_path).context("--state")?;
     // Not into an input's tree either (the plot replaced a run's own loss.svg, exit 0).
     let inputs = runs

@@ -38,11 +38,16 @@ pub struct SafetyArgs {
     json: bool,
 }
 
+/// Shortest eye relief (cm) the point-source model takes: 1 mm.
+pub const MIN_EYE_RELIEF_CM: f64 = 0.1;
+
 /// I_max (mW/sr) for ambient irradiance `ambient` (mW/cm²) at eye relief `d` (cm).
 pub fn max_intensity_mw_sr(ambient: f64, d: f64) -> Result<f64> {
     check_ambient("--ambient-mw-cm2", ambient)?;
-    if !(d.is_finite() && d > 0.0 && d <= 1000.0) {
-        bail!("--eye-relief-cm: must lie in (0, 1000], got {d}");
+    // From 1 mm: I/d² treats the LED as a point, which an emitter of a few hundred µm is not
+    // closer; at 1e-300 cm I_max printed as 0 beside a saturating glint (a helper's audit).
+    if !(d.is_finite() && (MIN_EYE_RELIEF_CM..=1000.0).contains(&d)) {
+        bail!("--eye-relief-cm: must lie in [{MIN_EYE_RELIEF_CM}, 1000], got {d}");
     }
     Ok((E_LIMIT_MW_CM2 - ambient) * d * d)
 }
@@ -261,6 +266,11 @@ mod tests {
         assert!(max_intensity_mw_sr(10.0, 1.6).is_err());
         assert!(max_intensity_mw_sr(f64::NAN, 1.6).is_err());
         assert!(max_intensity_mw_sr(1.0, 0.0).is_err());
+        // Closer than 1 mm the LED is no point source (1e-300 cm printed I_max 0 beside a
+        // saturating glint); 1 mm itself is taken.
+        assert!(max_intensity_mw_sr(0.0, 1e-300).is_err());
+        assert!(max_intensity_mw_sr(0.0, 0.099).is_err());
+        assert!((max_intensity_mw_sr(0.0, 0.1).unwrap() - 0.1).abs() < 1e-12);
     }
 
     /// Glint signal scales with the LED's intensity (linear radiometry); with the whole

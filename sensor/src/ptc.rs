@@ -173,11 +173,18 @@ pub fn photon_transfer(
     {
         // All flat fields read the same DN (the gain is too small for the ADC step to see any
         // shot noise, or the signal is too weak): the line is not determined.
+        // Without rounding no ADC step is to blame: the DN carry too little of the noise
+        // (the message named the ADC step under --no-quantize; a helper's audit).
         return Err(SensorError::InvalidParameter {
             name: "gain_dn_per_e",
             value: g,
-            why: "the flat fields show no measurable variance in DN, so the photon-transfer \
-                  line is undetermined (gain too small for the ADC step)",
+            why: if cfg.quantize {
+                "the flat fields show no measurable variance in DN, so the photon-transfer \
+                 line is undetermined (gain too small for the ADC step)"
+            } else {
+                "the flat fields show no measurable variance in DN, so the photon-transfer \
+                 line is undetermined (gain too small for the noise to show in the f32 DN)"
+            },
         });
     }
     Ok(PtcResult {
