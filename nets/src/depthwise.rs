@@ -21,6 +21,8 @@ use rayon::prelude::*;
 mod channels;
 #[cfg(target_arch = "x86_64")]
 mod rows16;
+#[cfg(target_arch = "x86_64")]
+mod rows8;
 
 /// Output lanes accumulated in registers per block of an output row.
 const LANES: usize = 16;
@@ -822,6 +824,11 @@ pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
         return;
     }
     #[cfg(target_arch = "x86_64")]
+    if rows8::takes(g) {
+        rows8::forward(g, c, x, w, y);
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
     if channels::takes(g, c) {
         channels::forward(g, c, x, w, y);
         return;
@@ -885,6 +892,57 @@ pub(crate) fn backward(
             let _ = fma;
             backward_plane::<false>(g, xp, wk, g_, sc, dxp, dwp)
         });
+}
+
+/// Checks a 3×3 stride-2 forward path for planes `w` wide against the plane path, bit for
+/// bit: planes of 1–40 rows (odd and even, fewer rows than the kernel), values of both signs
+/// and zeros, two images of three channels through `fwd`, the path's entry point.
+#[cfg(all(test, target_arch = "x86_64"))]
+fn assert_plane_path_bits(w: usize, seed: u64, fwd: fn(&Geom, usize, &[f32], &[f32], &mut [f32])) {
+    use crate::conv::out_size;
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut sc = Scratch::default();
+    for h in 1..41 {
+        let g = Geom {
+            h,
+            w,
+            ho: out_size(h, 3, 2),
+            wo: out_size(w, 3, 2),
+            k: 3,
+            s: 2,
+        };
+        let (n, c) = (2, 3);
+        let (hw, howo) = (w * h, g.wo * g.ho);
+        let x: Vec<f32> = (0..n * c * hw)
+            .map(|i| {
+                if i % 7 == 0 {
+                    0.0
+                } else {
+                    rng.random_range(-1.0..1.0)
+                }
+            })
+            .collect();
+        let wk: Vec<f32> = (0..c * 9).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let mut y = vec![f32::NAN; n * c * howo];
+        fwd(&g, c, &x, &wk, &mut y);
+        for p in 0..n * c {
+            let mut y0 = vec![f32::NAN; howo];
+            // SAFETY: the callers run only where has_fma() holds.
+            unsafe {
+                forward_plane_fma(
+                    &g,
+                    &x[p * hw..][..hw],
+                    &wk[(p % c) * 9..][..9],
+                    &mut sc,
+                    &mut y0,
+                )
+            };
+            for (i, (a, b)) in y[p * howo..][..howo].iter().zip(&y0).enumerate() {
+                assert_eq!(a.to_bits(), b.to_bits(), "y[{p}][{i}] {a} vs {b}, h {h}");
+            }
+        }
+    }
 }
 
 #[cfg(test)]

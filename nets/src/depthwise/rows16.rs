@@ -89,61 +89,15 @@ unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [f32]) 
 
 #[cfg(test)]
 mod tests {
-    use super::super::{Scratch, forward_plane_fma};
     use super::*;
-    use crate::conv::out_size;
-    use rand::{Rng, SeedableRng, rngs::StdRng};
 
-    /// Planes of 16 columns and 1–40 rows (odd and even, fewer rows than the kernel), values
-    /// of both signs and zeros, through the entry point with several planes and channels: y
-    /// bit for bit the plane path's.
+    /// Planes of 16 columns through the entry point: y bit for bit the plane path's
+    /// (`assert_plane_path_bits`: 1–40 rows, several planes and channels).
     #[test]
     fn rows_of_16_give_the_plane_paths_bits() {
         if !has_fma() {
             return;
         }
-        let mut rng = StdRng::seed_from_u64(16);
-        let mut sc = Scratch::default();
-        for h in 1..41 {
-            let g = Geom {
-                h,
-                w: 16,
-                ho: out_size(h, 3, 2),
-                wo: out_size(16, 3, 2),
-                k: 3,
-                s: 2,
-            };
-            assert!(takes(&g));
-            let (n, c) = (2, 3);
-            let (hw, howo) = (16 * h, 8 * g.ho);
-            let x: Vec<f32> = (0..n * c * hw)
-                .map(|i| {
-                    if i % 7 == 0 {
-                        0.0
-                    } else {
-                        rng.random_range(-1.0..1.0)
-                    }
-                })
-                .collect();
-            let wk: Vec<f32> = (0..c * 9).map(|_| rng.random_range(-1.0..1.0)).collect();
-            let mut y = vec![f32::NAN; n * c * howo];
-            forward(&g, c, &x, &wk, &mut y);
-            for p in 0..n * c {
-                let mut y0 = vec![f32::NAN; howo];
-                // SAFETY: has_fma() checked the CPU.
-                unsafe {
-                    forward_plane_fma(
-                        &g,
-                        &x[p * hw..][..hw],
-                        &wk[(p % c) * 9..][..9],
-                        &mut sc,
-                        &mut y0,
-                    )
-                };
-                for (i, (a, b)) in y[p * howo..][..howo].iter().zip(&y0).enumerate() {
-                    assert_eq!(a.to_bits(), b.to_bits(), "y[{p}][{i}] {a} vs {b}, h {h}");
-                }
-            }
-        }
+        super::super::assert_plane_path_bits(16, 16, forward);
     }
 }
