@@ -870,6 +870,16 @@ pub(crate) fn backward(
         return;
     }
     #[cfg(target_arch = "x86_64")]
+    if rows16::takes(g) {
+        rows16::backward(g, c, (x, w, dy), dx, dw_planes);
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if rows8::takes(g) {
+        rows8::backward(g, c, (x, w, dy), dx, dw_planes);
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
     if channels::takes(g, c) {
         channels::backward(g, c, x, w, dy, dx, dw_planes);
         return;
@@ -940,6 +950,72 @@ fn assert_plane_path_bits(w: usize, seed: u64, fwd: fn(&Geom, usize, &[f32], &[f
             };
             for (i, (a, b)) in y[p * howo..][..howo].iter().zip(&y0).enumerate() {
                 assert_eq!(a.to_bits(), b.to_bits(), "y[{p}][{i}] {a} vs {b}, h {h}");
+            }
+        }
+    }
+}
+
+/// A 3×3 stride-2 backward path, `bwd(g, c, (x, w, dy), dx, dw_planes)`, for planes `w` wide
+/// against the plane path: planes of 1–40 rows, two images of three channels, values of both
+/// signs and zeros. Its sums run in other orders, so dL/dx must agree to 1e-6 (values are
+/// sums of at most four products of numbers in [−1, 1]) and each plane's dL/dw to 1e-6 ×
+/// (1 + Σ|dy|), the round-off of summing that many terms.
+#[cfg(all(test, target_arch = "x86_64"))]
+#[allow(clippy::type_complexity)]
+fn assert_plane_path_backward(
+    w: usize,
+    seed: u64,
+    bwd: fn(&Geom, usize, (&[f32], &[f32], &[f32]), &mut [f32], &mut [f32]),
+) {
+    use crate::conv::out_size;
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut sc = Scratch::default();
+    let mut value = |i: usize| {
+        if i % 7 == 0 {
+            0.0
+        } else {
+            rng.random_range(-1.0f32..1.0)
+        }
+    };
+    for h in 1..41 {
+        let g = Geom {
+            h,
+            w,
+            ho: out_size(h, 3, 2),
+            wo: out_size(w, 3, 2),
+            k: 3,
+            s: 2,
+        };
+        let (n, c) = (2, 3);
+        let (hw, howo) = (w * h, g.wo * g.ho);
+        let x: Vec<f32> = (0..n * c * hw).map(&mut value).collect();
+        let dy: Vec<f32> = (0..n * c * howo).map(&mut value).collect();
+        let wk: Vec<f32> = (0..c * 9).map(&mut value).collect();
+        let mut dx = vec![f32::NAN; n * c * hw];
+        let mut dw = vec![f32::NAN; n * c * 9];
+        bwd(&g, c, (&x, &wk, &dy), &mut dx, &mut dw);
+        for p in 0..n * c {
+            let (mut dx0, mut dw0) = (vec![f32::NAN; hw], vec![f32::NAN; 9]);
+            let dyp = &dy[p * howo..][..howo];
+            // SAFETY: the callers run only where has_fma() holds.
+            unsafe {
+                backward_plane_fma(
+                    &g,
+                    &x[p * hw..][..hw],
+                    &wk[(p % c) * 9..][..9],
+                    dyp,
+                    &mut sc,
+                    &mut dx0,
+                    &mut dw0,
+                )
+            };
+            for (i, (a, b)) in dx[p * hw..][..hw].iter().zip(&dx0).enumerate() {
+                assert!((a - b).abs() <= 1e-6, "dx[{p}][{i}] {a} vs {b}, h {h}");
+            }
+            let tol = 1e-6 * (1.0 + dyp.iter().map(|v| v.abs()).sum::<f32>());
+            for (t, (a, b)) in dw[p * 9..][..9].iter().zip(&dw0).enumerate() {
+                assert!((a - b).abs() <= tol, "dw[{p}][{t}] {a} vs {b}, h {h}");
             }
         }
     }

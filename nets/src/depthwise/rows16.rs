@@ -87,6 +87,107 @@ unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [f32]) 
     }
 }
 
+/// Backward over all planes (as [`super::backward`]): dL/dx into `dx`, each plane's nine
+/// weight gradients into `dw_planes` (overwritten); panics unless `takes(g)`.
+pub(super) fn backward(
+    g: &Geom,
+    c: usize,
+    (x, w, dy): (&[f32], &[f32], &[f32]),
+    dx: &mut [f32],
+    dw_planes: &mut [f32],
+) {
+    assert!(takes(g), "rows of 16 for {g:?}");
+    let (hw, howo) = (g.h * g.w, g.ho * g.wo);
+    assert!(x.len() == dx.len() && x.len() / hw == dy.len() / howo && w.len() == 9 * c);
+    assert!(dw_planes.len() == 9 * (x.len() / hw));
+    dx.par_chunks_mut(hw)
+        .zip(dw_planes.par_chunks_mut(9))
+        .enumerate()
+        .with_min_len(g.planes_per_task())
+        .for_each(|(idx, (dxp, dwp))| {
+            let xp = &x[idx * hw..][..hw];
+            let dyp = &dy[idx * howo..][..howo];
+            let wk: &[f32; 9] = w[(idx % c) * 9..][..9].try_into().expect("nine taps");
+            let dwp: &mut [f32; 9] = dwp.try_into().expect("nine gradients");
+            // SAFETY: `takes` checked AVX2 and FMA on this CPU.
+            unsafe { plane_backward(g.h, g.ho, (xp, wk, dyp), dxp, dwp) };
+        });
+}
+
+/// One 16-wide plane's backward: `x` h·16 values, `dy` ho·8, into `dx` (h·16, overwritten)
+/// and `dw` (the nine taps' gradients, overwritten). As the 8-wide path's
+/// ([`super::rows8`]): dL/dw from the forward's tap registers against each output row,
+/// reduced across lanes at the end; dL/dx row by row as its even and odd columns,
+/// interleaved. Sums in other orders than the plane path's (test
+/// `rows_of_16_backward_is_the_plane_paths`).
+///
+/// # Safety
+/// The CPU has AVX2 and FMA; the slices are as long as stated.
+#[target_feature(enable = "avx2,fma")]
+unsafe fn plane_backward(
+    h: usize,
+    ho: usize,
+    (x, wk, dy): (&[f32], &[f32; 9], &[f32]),
+    dx: &mut [f32],
+    dw: &mut [f32; 9],
+) {
+    assert!(x.len() >= h * 16 && dx.len() >= h * 16 && dy.len() >= ho * 8);
+    let mut acc = [_mm256_setzero_ps(); 9];
+    let mut top = taps(x, h, -1);
+    for m in 0..ho {
+        let mid = taps(x, h, 2 * m as isize);
+        let bottom = taps(x, h, 2 * m as isize + 1);
+        // SAFETY: output row m holds eight values.
+        let d = unsafe { _mm256_loadu_ps(dy.as_ptr().add(8 * m)) };
+        for (ky, row) in [&top, &mid, &bottom].into_iter().enumerate() {
+            for (kx, v) in row.iter().enumerate() {
+                acc[3 * ky + kx] = _mm256_fmadd_ps(d, *v, acc[3 * ky + kx]);
+            }
+        }
+        top = bottom;
+    }
+    for (g, a) in dw.iter_mut().zip(acc) {
+        *g = super::rows8::lane_sum(a);
+    }
+    let w = |t: usize| _mm256_set1_ps(wk[t]);
+    let next = _mm256_setr_epi32(1, 2, 3, 4, 5, 6, 7, 7);
+    // Output row m (zero past the last) and the same shifted left by one value.
+    let row = |m: usize| -> (__m256, __m256) {
+        if m >= ho {
+            return (_mm256_setzero_ps(), _mm256_setzero_ps());
+        }
+        // SAFETY: row m < ho holds eight values.
+        let v = unsafe { _mm256_loadu_ps(dy.as_ptr().add(8 * m)) };
+        let shifted = _mm256_permutevar8x32_ps(v, next);
+        (v, _mm256_blend_ps::<0x80>(shifted, _mm256_setzero_ps()))
+    };
+    for r in 0..h {
+        let (even, odd) = if r % 2 == 0 {
+            let (a, a1) = row(r / 2);
+            let e = _mm256_mul_ps(w(4), a);
+            (e, _mm256_fmadd_ps(w(3), a1, _mm256_mul_ps(w(5), a)))
+        } else {
+            let ((a, a1), (b, b1)) = (row(r / 2), row(r / 2 + 1));
+            let e = _mm256_fmadd_ps(w(1), b, _mm256_mul_ps(w(7), a));
+            let o = _mm256_fmadd_ps(w(6), a1, _mm256_mul_ps(w(8), a));
+            let o = _mm256_fmadd_ps(w(0), b1, _mm256_fmadd_ps(w(2), b, o));
+            (e, o)
+        };
+        // Within each 128-bit lane [e0 o0 e1 o1] and [e2 o2 e3 o3]: columns 0–7 are the low
+        // lanes of both, columns 8–15 the high lanes.
+        let (lo, hi) = (_mm256_unpacklo_ps(even, odd), _mm256_unpackhi_ps(even, odd));
+        let dst = &mut dx[16 * r..][..16];
+        // SAFETY: `dst` holds sixteen values: two stores of eight.
+        unsafe {
+            _mm256_storeu_ps(dst.as_mut_ptr(), _mm256_permute2f128_ps::<0x20>(lo, hi));
+            _mm256_storeu_ps(
+                dst.as_mut_ptr().add(8),
+                _mm256_permute2f128_ps::<0x31>(lo, hi),
+            );
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -99,5 +200,15 @@ mod tests {
             return;
         }
         super::super::assert_plane_path_bits(16, 16, forward);
+    }
+
+    /// The backward through the entry point against the plane path's, planes of 1–40 rows:
+    /// dL/dx and dL/dw equal to round-off (other summation orders).
+    #[test]
+    fn rows_of_16_backward_is_the_plane_paths() {
+        if !has_fma() {
+            return;
+        }
+        super::super::assert_plane_path_backward(16, 1616, backward);
     }
 }

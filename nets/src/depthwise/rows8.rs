@@ -104,6 +104,123 @@ unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [f32]) 
     }
 }
 
+/// Backward over all planes (as [`super::backward`]): dL/dx into `dx`, each plane's nine
+/// weight gradients into `dw_planes` (overwritten); panics unless `takes(g)`.
+pub(super) fn backward(
+    g: &Geom,
+    c: usize,
+    (x, w, dy): (&[f32], &[f32], &[f32]),
+    dx: &mut [f32],
+    dw_planes: &mut [f32],
+) {
+    assert!(takes(g), "rows of 8 for {g:?}");
+    let (hw, howo) = (g.h * g.w, g.ho * g.wo);
+    assert!(x.len() == dx.len() && x.len() / hw == dy.len() / howo && w.len() == 9 * c);
+    assert!(dw_planes.len() == 9 * (x.len() / hw));
+    dx.par_chunks_mut(hw)
+        .zip(dw_planes.par_chunks_mut(9))
+        .enumerate()
+        .with_min_len(g.planes_per_task())
+        .for_each(|(idx, (dxp, dwp))| {
+            let xp = &x[idx * hw..][..hw];
+            let dyp = &dy[idx * howo..][..howo];
+            let wk: &[f32; 9] = w[(idx % c) * 9..][..9].try_into().expect("nine taps");
+            let dwp: &mut [f32; 9] = dwp.try_into().expect("nine gradients");
+            // SAFETY: `takes` checked AVX2 and FMA on this CPU.
+            unsafe { plane_backward(g.h, g.ho, (xp, wk, dyp), dxp, dwp) };
+        });
+}
+
+/// The sum of a register's eight lanes.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+pub(super) fn lane_sum(v: __m256) -> f32 {
+    let s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
+    let s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+    _mm_cvtss_f32(_mm_add_ss(s, _mm_movehdup_ps(s)))
+}
+
+/// One 8-wide plane's backward: `x` h·8 values, `dy` ho·4, into `dx` (h·8, overwritten) and
+/// `dw` (the nine taps' gradients, overwritten).
+///
+/// dL/dw[ky, kx] is Σ dy ⊙ (the forward's tap register), two output rows per register as in
+/// the forward, reduced across lanes at the end. dL/dx row by row: an even input row 2m takes
+/// only ky = 1 of output row m, an odd row 2m + 1 ky = 2 of row m and ky = 0 of row m + 1;
+/// within a row, even column 2j takes kx = 1 of output j, odd column 2j + 1 kx = 2 of j and
+/// kx = 0 of j + 1 (output row shifted by one value). The even and odd columns are then
+/// interleaved into the row. Sums are in other orders than the plane path's: the same values
+/// to round-off (test `rows_of_8_backward_is_the_plane_paths`).
+///
+/// # Safety
+/// The CPU has AVX2 and FMA; the slices are as long as stated.
+#[target_feature(enable = "avx2,fma")]
+unsafe fn plane_backward(
+    h: usize,
+    ho: usize,
+    (x, wk, dy): (&[f32], &[f32; 9], &[f32]),
+    dx: &mut [f32],
+    dw: &mut [f32; 9],
+) {
+    assert!(x.len() >= h * 8 && dx.len() >= h * 8 && dy.len() >= ho * 4);
+    let mut acc = [_mm256_setzero_ps(); 9];
+    let mut m = 0;
+    while m < ho {
+        let r = 2 * m as isize;
+        // SAFETY: four values of row m, and of row m + 1 where it exists.
+        let d = unsafe {
+            let lo = _mm_loadu_ps(dy.as_ptr().add(4 * m));
+            let hi = if m + 1 < ho {
+                _mm_loadu_ps(dy.as_ptr().add(4 * m + 4))
+            } else {
+                _mm_setzero_ps()
+            };
+            _mm256_set_m128(hi, lo)
+        };
+        for ky in 0..3 {
+            let row = taps(x, h, r - 1 + ky as isize, r + 1 + ky as isize);
+            for (kx, v) in row.iter().enumerate() {
+                acc[3 * ky + kx] = _mm256_fmadd_ps(d, *v, acc[3 * ky + kx]);
+            }
+        }
+        m += 2;
+    }
+    for (g, a) in dw.iter_mut().zip(acc) {
+        *g = lane_sum(a);
+    }
+    let w = |t: usize| _mm_set1_ps(wk[t]);
+    // Output row m (zero past the last) and the same shifted left by one value.
+    let row = |m: usize| -> (__m128, __m128) {
+        if m >= ho {
+            return (_mm_setzero_ps(), _mm_setzero_ps());
+        }
+        // SAFETY: row m < ho holds four values.
+        let v = unsafe { _mm_loadu_ps(dy.as_ptr().add(4 * m)) };
+        (
+            v,
+            _mm_castsi128_ps(_mm_srli_si128::<4>(_mm_castps_si128(v))),
+        )
+    };
+    for r in 0..h {
+        let (even, odd) = if r % 2 == 0 {
+            let (a, a1) = row(r / 2);
+            let e = _mm_mul_ps(w(4), a);
+            (e, _mm_fmadd_ps(w(3), a1, _mm_mul_ps(w(5), a)))
+        } else {
+            let ((a, a1), (b, b1)) = (row(r / 2), row(r / 2 + 1));
+            let e = _mm_fmadd_ps(w(1), b, _mm_mul_ps(w(7), a));
+            let o = _mm_fmadd_ps(w(6), a1, _mm_mul_ps(w(8), a));
+            let o = _mm_fmadd_ps(w(0), b1, _mm_fmadd_ps(w(2), b, o));
+            (e, o)
+        };
+        let dst = &mut dx[8 * r..][..8];
+        // SAFETY: `dst` holds eight values: columns 0–3 and 4–7 of the row, interleaved.
+        unsafe {
+            _mm_storeu_ps(dst.as_mut_ptr(), _mm_unpacklo_ps(even, odd));
+            _mm_storeu_ps(dst.as_mut_ptr().add(4), _mm_unpackhi_ps(even, odd));
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -116,5 +233,15 @@ mod tests {
             return;
         }
         super::super::assert_plane_path_bits(8, 8, forward);
+    }
+
+    /// The backward through the entry point against the plane path's, planes of 1–40 rows:
+    /// dL/dx and dL/dw equal to round-off (other summation orders).
+    #[test]
+    fn rows_of_8_backward_is_the_plane_paths() {
+        if !has_fma() {
+            return;
+        }
+        super::super::assert_plane_path_backward(8, 88, backward);
     }
 }
