@@ -242,7 +242,7 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
         "init": init,
         "final": fin,
         "seconds": t0.elapsed().as_secs_f64(),
-        "seconds_per_step": step_s / (e.step() - step0).max(1) as f64,
+        "seconds_per_step": crate::util::per_step(step_s, e.step() - step0),
     });
     for k in ["loss", "crlb_slip_um", "crlb_gaze_deg"] {
         if !out["final"][k].as_f64().is_some_and(f64::is_finite) {

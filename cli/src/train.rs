@@ -669,8 +669,9 @@ pub fn train(a: TrainArgs) -> Result<()> {
         "pitch_um": t.pitch_um,
         "bn_batches": a.bn_batches,
         "seconds": t0.elapsed().as_secs_f64(),
-        // Wall time of the steps this invocation ran (checkpoints included), per step.
-        "seconds_per_step": train_s / (t.step - step0).max(1) as f64,
+        // Wall time of the steps this invocation ran (checkpoints included), per step; 0 when
+        // it ran none (a finished run's rerun printed 7.8e-7 s, a helper's audit).
+        "seconds_per_step": util::per_step(train_s, t.step - step0),
     });
     // Every number (max_subnet's and median_deg too): a NaN would print as null.
     if let Some(k) = util::first_null(&out, &[]) {

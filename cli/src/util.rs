@@ -422,6 +422,16 @@ pub fn first_null(v: &serde_json::Value, optional: &[&str]) -> Option<String> {
     }
 }
 
+/// Seconds per step of `steps` steps that took `seconds`; 0 where none ran (a rerun of a
+/// finished run), not that call's bookkeeping time as if it were one step's.
+pub fn per_step(seconds: f64, steps: usize) -> f64 {
+    if steps == 0 {
+        0.0
+    } else {
+        seconds / steps as f64
+    }
+}
+
 /// Memory the batches of a training may take together (estimated, bytes).
 const MAX_BATCH_BYTES: f64 = 48.0 * (1u64 << 30) as f64;
 
@@ -741,6 +751,14 @@ mod tests {
         check_output_target(&f).unwrap();
         check_output_target(&d.path().join("new.svg")).unwrap();
         check_output_target(Path::new("a/.b")).unwrap();
+    }
+
+    /// Seconds per step: the mean over the steps run, 0 where a call ran none (a finished
+    /// run's rerun printed its bookkeeping time as one step's).
+    #[test]
+    fn seconds_per_step_is_zero_without_steps() {
+        assert_eq!(per_step(6.0, 3), 2.0);
+        assert_eq!(per_step(0.25, 0), 0.0);
     }
 
     /// A record of inputs that is no JSON object is refused, not taken as recording nothing

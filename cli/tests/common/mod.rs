@@ -19,13 +19,13 @@ pub fn nanoeye(args: &[&str], cwd: &Path) -> Output {
         .expect("run nanoeye")
 }
 
-/// `datagen render` arguments of a 1-item (2-frame) ambiguity dataset at 80 × 50, 1 spp,
-/// written to `out`: the search jobs' smallest input.
+/// `datagen render` arguments of a 1-item (3-frame: anchor, slip, gaze) ambiguity dataset at
+/// 80 × 50, 1 spp, written to `out`: the search jobs' smallest input.
 pub fn tiny_dataset(out: &str) -> [&str; 14] {
     tiny_dataset_of(out, "1")
 }
 
-/// [`tiny_dataset`] with `items` ambiguity items (two frames each).
+/// [`tiny_dataset`] with `items` ambiguity items (three frames each).
 pub fn tiny_dataset_of<'a>(out: &'a str, items: &'a str) -> [&'a str; 14] {
     [
         "datagen",
