@@ -904,24 +904,85 @@ pub(crate) fn backward(
         });
 }
 
-/// Checks a 3×3 stride-2 forward path for planes `w` wide against the plane path, bit for
-/// bit: planes of 1–40 rows (odd and even, fewer rows than the kernel), values of both signs
-/// and zeros, two images of three channels through `fwd`, the path's entry point.
-#[cfg(all(test, target_arch = "x86_64"))]
-fn assert_plane_path_bits(w: usize, seed: u64, fwd: fn(&Geom, usize, &[f32], &[f32], &mut [f32])) {
-    use crate::conv::out_size;
-    use rand::{Rng, SeedableRng, rngs::StdRng};
-    let mut rng = StdRng::seed_from_u64(seed);
-    let mut sc = Scratch::default();
-    for h in 1..41 {
-        let g = Geom {
+/// A 3×3 forward over every plane of `x` (`c` channels) into `y`: `plane(h, ho, x, wk, out)`
+/// computes one plane's `ho` output rows from its `h` input rows and nine taps.
+#[cfg(target_arch = "x86_64")]
+fn k3_forward_planes(
+    g: &Geom,
+    c: usize,
+    (x, w): (&[f32], &[f32]),
+    y: &mut [f32],
+    plane: impl Fn(usize, usize, &[f32], &[f32; 9], &mut [f32]) + Sync,
+) {
+    let (hw, howo) = (g.h * g.w, g.ho * g.wo);
+    assert!(g.k == 3 && x.len() / hw == y.len() / howo && w.len() == 9 * c);
+    y.par_chunks_mut(howo)
+        .enumerate()
+        .with_min_len(g.planes_per_task())
+        .for_each(|(idx, out)| {
+            let xp = &x[idx * hw..][..hw];
+            let wk: &[f32; 9] = w[(idx % c) * 9..][..9].try_into().expect("nine taps");
+            plane(g.h, g.ho, xp, wk, out);
+        });
+}
+
+/// One plane's 3×3 backward: (h, ho, (x, taps, dy), dx, dw).
+#[cfg(target_arch = "x86_64")]
+type K3BackwardPlane<'a> =
+    dyn Fn(usize, usize, (&[f32], &[f32; 9], &[f32]), &mut [f32], &mut [f32; 9]) + Sync + 'a;
+
+/// A 3×3 backward over every plane: dL/dx into `dx`, each plane's nine weight gradients into
+/// `dw_planes` (overwritten), `plane` doing one plane.
+#[cfg(target_arch = "x86_64")]
+fn k3_backward_planes(
+    g: &Geom,
+    c: usize,
+    (x, w, dy): (&[f32], &[f32], &[f32]),
+    (dx, dw_planes): (&mut [f32], &mut [f32]),
+    plane: &K3BackwardPlane<'_>,
+) {
+    let (hw, howo) = (g.h * g.w, g.ho * g.wo);
+    assert!(g.k == 3 && x.len() == dx.len() && x.len() / hw == dy.len() / howo);
+    assert!(w.len() == 9 * c && dw_planes.len() == 9 * (x.len() / hw));
+    dx.par_chunks_mut(hw)
+        .zip(dw_planes.par_chunks_mut(9))
+        .enumerate()
+        .with_min_len(g.planes_per_task())
+        .for_each(|(idx, (dxp, dwp))| {
+            let xp = &x[idx * hw..][..hw];
+            let dyp = &dy[idx * howo..][..howo];
+            let wk: &[f32; 9] = w[(idx % c) * 9..][..9].try_into().expect("nine taps");
+            let dwp: &mut [f32; 9] = dwp.try_into().expect("nine gradients");
+            plane(g.h, g.ho, (xp, wk, dyp), dxp, dwp);
+        });
+}
+
+#[cfg(test)]
+impl Geom {
+    /// A 3×3 kernel at stride 2 (padding 1) on planes of h × w.
+    fn k3_stride2(h: usize, w: usize) -> Geom {
+        use crate::conv::out_size;
+        Geom {
             h,
             w,
             ho: out_size(h, 3, 2),
             wo: out_size(w, 3, 2),
             k: 3,
             s: 2,
-        };
+        }
+    }
+}
+
+/// Checks a 3×3 stride-2 forward path for planes `w` wide against the plane path, bit for
+/// bit: planes of 1–40 rows (odd and even, fewer rows than the kernel), values of both signs
+/// and zeros, two images of three channels through `fwd`, the path's entry point.
+#[cfg(all(test, target_arch = "x86_64"))]
+fn assert_plane_path_bits(w: usize, seed: u64, fwd: fn(&Geom, usize, &[f32], &[f32], &mut [f32])) {
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut sc = Scratch::default();
+    for h in 1..41 {
+        let g = Geom::k3_stride2(h, w);
         let (n, c) = (2, 3);
         let (hw, howo) = (w * h, g.wo * g.ho);
         let x: Vec<f32> = (0..n * c * hw)
@@ -967,7 +1028,6 @@ fn assert_plane_path_backward(
     seed: u64,
     bwd: fn(&Geom, usize, (&[f32], &[f32], &[f32]), &mut [f32], &mut [f32]),
 ) {
-    use crate::conv::out_size;
     use rand::{Rng, SeedableRng, rngs::StdRng};
     let mut rng = StdRng::seed_from_u64(seed);
     let mut sc = Scratch::default();
@@ -979,14 +1039,7 @@ fn assert_plane_path_backward(
         }
     };
     for h in 1..41 {
-        let g = Geom {
-            h,
-            w,
-            ho: out_size(h, 3, 2),
-            wo: out_size(w, 3, 2),
-            k: 3,
-            s: 2,
-        };
+        let g = Geom::k3_stride2(h, w);
         let (n, c) = (2, 3);
         let (hw, howo) = (w * h, g.wo * g.ho);
         let x: Vec<f32> = (0..n * c * hw).map(&mut value).collect();

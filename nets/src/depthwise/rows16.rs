@@ -9,8 +9,7 @@
 //! from zero, as the plane path does, so y is the plane path's bits (test
 //! `rows_of_16_give_the_plane_paths_bits`).
 
-use super::{Geom, has_fma};
-use rayon::prelude::*;
+use super::{Geom, has_fma, k3_backward_planes, k3_forward_planes};
 use std::arch::x86_64::*;
 
 /// Whether a layer with this geometry goes through this path.
@@ -22,17 +21,10 @@ pub(super) fn takes(g: &Geom) -> bool {
 pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     // The planes below run AVX2 and FMA code on that check alone.
     assert!(takes(g), "rows of 16 for {g:?}");
-    let (hw, howo) = (g.h * g.w, g.ho * g.wo);
-    assert!(x.len() / hw == y.len() / howo && w.len() == 9 * c);
-    y.par_chunks_mut(howo)
-        .enumerate()
-        .with_min_len(g.planes_per_task())
-        .for_each(|(idx, out)| {
-            let xp = &x[idx * hw..][..hw];
-            let wk: &[f32; 9] = w[(idx % c) * 9..][..9].try_into().expect("nine taps");
-            // SAFETY: `takes` checked AVX2 and FMA on this CPU.
-            unsafe { plane(g.h, g.ho, xp, wk, out) };
-        });
+    // SAFETY: `takes` checked AVX2 and FMA on this CPU.
+    k3_forward_planes(g, c, (x, w), y, |h, ho, x, wk, out| unsafe {
+        plane(h, ho, x, wk, out)
+    });
 }
 
 /// One input row `r` (−1 and `h` are the zero padding) as its (left, centre, right) taps for
@@ -92,26 +84,19 @@ unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [f32]) 
 pub(super) fn backward(
     g: &Geom,
     c: usize,
-    (x, w, dy): (&[f32], &[f32], &[f32]),
+    inputs: (&[f32], &[f32], &[f32]),
     dx: &mut [f32],
     dw_planes: &mut [f32],
 ) {
     assert!(takes(g), "rows of 16 for {g:?}");
-    let (hw, howo) = (g.h * g.w, g.ho * g.wo);
-    assert!(x.len() == dx.len() && x.len() / hw == dy.len() / howo && w.len() == 9 * c);
-    assert!(dw_planes.len() == 9 * (x.len() / hw));
-    dx.par_chunks_mut(hw)
-        .zip(dw_planes.par_chunks_mut(9))
-        .enumerate()
-        .with_min_len(g.planes_per_task())
-        .for_each(|(idx, (dxp, dwp))| {
-            let xp = &x[idx * hw..][..hw];
-            let dyp = &dy[idx * howo..][..howo];
-            let wk: &[f32; 9] = w[(idx % c) * 9..][..9].try_into().expect("nine taps");
-            let dwp: &mut [f32; 9] = dwp.try_into().expect("nine gradients");
-            // SAFETY: `takes` checked AVX2 and FMA on this CPU.
-            unsafe { plane_backward(g.h, g.ho, (xp, wk, dyp), dxp, dwp) };
-        });
+    // SAFETY: `takes` checked AVX2 and FMA on this CPU.
+    k3_backward_planes(
+        g,
+        c,
+        inputs,
+        (dx, dw_planes),
+        &|h, ho, xwd, dx, dw| unsafe { plane_backward(h, ho, xwd, dx, dw) },
+    );
 }
 
 /// One 16-wide plane's backward: `x` h·16 values, `dy` ho·8, into `dx` (h·16, overwritten)
