@@ -14,6 +14,8 @@
 //! carries enough work to pay for the scheduling. Output planes of at most 256 values (the
 //! low-resolution stages), where a plane's fixed costs outweigh its multiply–adds, go through
 //! blocks of eight channels instead ([`channels`]), which give the same y and dL/dx bits.
+//! 3×3 layers at stride 2 on planes 8 or 16 wide run in registers ([`rows8`], [`rows16`]):
+//! the same y bits; their backward sums in other orders (equal to round-off).
 
 use rayon::prelude::*;
 
@@ -1018,9 +1020,11 @@ fn assert_plane_path_bits(w: usize, seed: u64, fwd: fn(&Geom, usize, &[f32], &[f
 
 /// A 3×3 stride-2 backward path, `bwd(g, c, (x, w, dy), dx, dw_planes)`, for planes `w` wide
 /// against the plane path: planes of 1–40 rows, two images of three channels, values of both
-/// signs and zeros. Its sums run in other orders, so dL/dx must agree to 1e-6 (values are
-/// sums of at most four products of numbers in [−1, 1]) and each plane's dL/dw to 1e-6 ×
-/// (1 + Σ|dy|), the round-off of summing that many terms.
+/// signs and zeros. Its sums run in other orders, so each path carries its own round-off:
+/// dL/dx is a sum of at most four products of numbers in [−1, 1], ≤ 4·γ₄ ≈ 9.5e-7 off in
+/// each, so the two agree to 2e-6; dL/dw sums a plane's ho·wo·(taps) products in chains of at
+/// most 27 operations, so they agree to 4e-6 × (1 + Σ|dy|) (a misplaced term, ~0.25, is far
+/// beyond both).
 #[cfg(all(test, target_arch = "x86_64"))]
 #[allow(clippy::type_complexity)]
 fn assert_plane_path_backward(
@@ -1064,9 +1068,9 @@ fn assert_plane_path_backward(
                 )
             };
             for (i, (a, b)) in dx[p * hw..][..hw].iter().zip(&dx0).enumerate() {
-                assert!((a - b).abs() <= 1e-6, "dx[{p}][{i}] {a} vs {b}, h {h}");
+                assert!((a - b).abs() <= 2e-6, "dx[{p}][{i}] {a} vs {b}, h {h}");
             }
-            let tol = 1e-6 * (1.0 + dyp.iter().map(|v| v.abs()).sum::<f32>());
+            let tol = 4e-6 * (1.0 + dyp.iter().map(|v| v.abs()).sum::<f32>());
             for (t, (a, b)) in dw[p * 9..][..9].iter().zip(&dw0).enumerate() {
                 assert!((a - b).abs() <= tol, "dw[{p}][{t}] {a} vs {b}, h {h}");
             }

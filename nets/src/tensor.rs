@@ -44,7 +44,9 @@ impl Tensor {
 
     /// Wraps `data`; fails when its length is not n·c·h·w.
     pub fn from_vec(n: usize, c: usize, h: usize, w: usize, data: Vec<f32>) -> Result<Self> {
-        if data.len() != n * c * h * w {
+        // Checked: a wrapped product let a shape of 2⁶³ + 1 rows hold eight values (a review).
+        let len = [c, h, w].iter().try_fold(n, |a, &b| a.checked_mul(b));
+        if len != Some(data.len()) {
             return Err(NetsError::Shape(format!(
                 "data of length {} cannot hold ({n},{c},{h},{w})",
                 data.len()
@@ -146,5 +148,19 @@ impl Param {
     /// Sets the gradient to zero.
     pub fn zero_grad(&mut self) {
         self.grad.iter_mut().for_each(|g| *g = 0.0);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A shape whose element count overflows is refused, not wrapped onto a short buffer
+    /// ((2⁶³ + 1) × 8 wrapped to 8 and took eight values as 2⁶³ + 1 rows).
+    #[test]
+    fn a_shape_past_usize_is_refused() {
+        assert!(Tensor::from_vec(1, 1, (1usize << 63) + 1, 8, vec![0.0; 8]).is_err());
+        assert!(Tensor::from_vec(1 << 32, 1 << 32, 1, 1, vec![]).is_err());
+        assert!(Tensor::from_vec(2, 1, 2, 2, vec![0.0; 8]).is_ok());
     }
 }

@@ -122,8 +122,10 @@ unsafe fn plane_backward(
     for m in 0..ho {
         let mid = taps(x, h, 2 * m as isize);
         let bottom = taps(x, h, 2 * m as isize + 1);
-        // SAFETY: output row m holds eight values.
-        let d = unsafe { _mm256_loadu_ps(dy.as_ptr().add(8 * m)) };
+        // A slice, not the assert above alone, bounds the read: ho·8 wraps for absurd ho.
+        let r = &dy[8 * m..][..8];
+        // SAFETY: `r` holds eight values.
+        let d = unsafe { _mm256_loadu_ps(r.as_ptr()) };
         for (ky, row) in [&top, &mid, &bottom].into_iter().enumerate() {
             for (kx, v) in row.iter().enumerate() {
                 acc[3 * ky + kx] = _mm256_fmadd_ps(d, *v, acc[3 * ky + kx]);
@@ -141,8 +143,9 @@ unsafe fn plane_backward(
         if m >= ho {
             return (_mm256_setzero_ps(), _mm256_setzero_ps());
         }
-        // SAFETY: row m < ho holds eight values.
-        let v = unsafe { _mm256_loadu_ps(dy.as_ptr().add(8 * m)) };
+        let r = &dy[8 * m..][..8];
+        // SAFETY: `r` holds eight values.
+        let v = unsafe { _mm256_loadu_ps(r.as_ptr()) };
         let shifted = _mm256_permutevar8x32_ps(v, next);
         (v, _mm256_blend_ps::<0x80>(shifted, _mm256_setzero_ps()))
     };

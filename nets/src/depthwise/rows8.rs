@@ -151,15 +151,13 @@ unsafe fn plane_backward(
     let mut m = 0;
     while m < ho {
         let r = 2 * m as isize;
-        // SAFETY: four values of row m, and of row m + 1 where it exists.
+        // Slices, not the assert above alone, bound these reads: ho·4 wraps for absurd ho.
+        let lo = &dy[4 * m..][..4];
+        let hi = (m + 1 < ho).then(|| &dy[4 * m + 4..][..4]);
+        // SAFETY: four values each.
         let d = unsafe {
-            let lo = _mm_loadu_ps(dy.as_ptr().add(4 * m));
-            let hi = if m + 1 < ho {
-                _mm_loadu_ps(dy.as_ptr().add(4 * m + 4))
-            } else {
-                _mm_setzero_ps()
-            };
-            _mm256_set_m128(hi, lo)
+            let hi = hi.map_or(_mm_setzero_ps(), |r| _mm_loadu_ps(r.as_ptr()));
+            _mm256_set_m128(hi, _mm_loadu_ps(lo.as_ptr()))
         };
         for ky in 0..3 {
             let row = taps(x, h, r - 1 + ky as isize, r + 1 + ky as isize);
@@ -178,8 +176,9 @@ unsafe fn plane_backward(
         if m >= ho {
             return (_mm_setzero_ps(), _mm_setzero_ps());
         }
-        // SAFETY: row m < ho holds four values.
-        let v = unsafe { _mm_loadu_ps(dy.as_ptr().add(4 * m)) };
+        let r = &dy[4 * m..][..4];
+        // SAFETY: `r` holds four values.
+        let v = unsafe { _mm_loadu_ps(r.as_ptr()) };
         (
             v,
             _mm_castsi128_ps(_mm_srli_si128::<4>(_mm_castps_si128(v))),
