@@ -827,10 +827,17 @@ fn blueprint_cmd(a: BlueprintArgs) -> Result<()> {
     };
     opt.validate().map_err(blueprint_flag)?;
     a.solver.wavelength_m()?;
+    // --out a file, or a directory where an output goes, refused before the library's
+    // solves (a helper's audit: a directory at OUT/diameters.npy was found after 161 cells
+    // were solved into OUT/library_sweep; a file as --out failed naming library_sweep).
+    if a.out.exists() && !a.out.is_dir() {
+        bail!("--out {}: exists and is not a directory", a.out.display());
+    }
     // No output over an input, before any work (a helper's audit: --phase OUT/diameters.npy
     // was replaced by the blueprint's diameters, exit 0).
     for name in BLUEPRINT_OUTPUTS {
         let o = a.out.join(name);
+        sweep::check_output_target(&o).context("--out")?;
         for (flag, p) in [
             ("--phase", Some(&a.phase)),
             ("--library-csv", a.library_csv.as_ref()),

@@ -39,8 +39,8 @@ pub struct ChainArgs {
     /// Dataset directory written by `nanoeye datagen render`.
     #[arg(long)]
     pub dataset: PathBuf,
-    /// Effective pixel pitch p̂ (µm), between the dataset's pitch and the sensor size
-    /// [default: 9].
+    /// Effective pixel pitch p̂ (µm), between the dataset's pitch and the sensor size, and at
+    /// most 1000 (the rig's largest plausible pixel) [default: 9].
     #[arg(long)]
     pub pitch_um: Option<f64>,
     #[command(flatten)]

@@ -1034,6 +1034,17 @@ fn blueprint_validates_everything_before_writing() {
     let err = refused(&swept, "--out", p);
     assert!(err.contains("--height-nm"), "{err}");
     assert_eq!(entries(&p.join("bq")), ["library_sweep"]);
+    // A directory where an output goes, or a file as --out: refused before the slice is
+    // swept (a helper's audit: 161 cells were solved into OUT/library_sweep first).
+    std::fs::create_dir_all(p.join("bd/diameters.npy")).unwrap();
+    swept[9] = "bd";
+    let err = refused(&swept, "--out", p);
+    assert!(err.contains("diameters.npy"), "{err}");
+    assert_eq!(entries(&p.join("bd")), ["diameters.npy"]);
+    std::fs::write(p.join("bf"), b"").unwrap();
+    swept[9] = "bf";
+    let err = refused(&swept, "--out", p);
+    assert!(err.contains("not a directory"), "{err}");
     let ok = nanoeye(&base, p);
     assert!(
         ok.status.success(),
