@@ -188,6 +188,9 @@ fn check_job(job: &Job, root: &Path) -> PathBuf {
             &job.timing,
             &format!("{} killed at {killed:.2?} of {wall:.2?}", job.name),
         );
+        // Compared: gone, so the test holds two runs on disk at a time, not one per kill
+        // (the main job's runs hold their checkpoints and datasets).
+        std::fs::remove_dir_all(&b).unwrap();
     }
     eprintln!(
         "{}: uninterrupted {wall:.2?}; killed at {landed:?} and resumed to the same bytes",
@@ -220,7 +223,10 @@ fn killed_run(
         match kill_after(job.args, &b, delay) {
             Ok(()) => return (b, Some(delay)),
             Err(_) if attempt == 2 => return (b, None),
-            Err(own) => delay = own.mul_f64(fraction),
+            Err(own) => {
+                std::fs::remove_dir_all(&b).unwrap();
+                delay = own.mul_f64(fraction)
+            }
         }
     }
     unreachable!()
