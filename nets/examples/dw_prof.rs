@@ -10,12 +10,14 @@ use std::hint::black_box;
 use std::time::Instant;
 
 /// Channels, input height and width, stride.
-const SHAPES: [(usize, usize, usize, usize); 13] = [
+const SHAPES: [(usize, usize, usize, usize); 15] = [
     (240, 16, 16, 1),
     (240, 16, 16, 2),
     (480, 8, 8, 1),
     (480, 8, 8, 2),
     (672, 4, 4, 1),
+    (24, 100, 160, 1),
+    (96, 44, 70, 1),
     (96, 44, 70, 2),
     (192, 22, 35, 1),
     (192, 22, 35, 2),

@@ -15,7 +15,9 @@
 //! low-resolution stages), where a plane's fixed costs outweigh its multiply–adds, go through
 //! blocks of eight channels instead ([`channels`]), which give the same y and dL/dx bits.
 //! 3×3 layers at stride 2 on planes 8 or 16 wide run in registers ([`rows8`], [`rows16`]):
-//! the same y bits; their backward sums in other orders (equal to round-off).
+//! the same y bits; their backward sums in other orders (equal to round-off). The other 3×3
+//! forwards at stride 1 read the plane itself, without the padded copy ([`stride1`]): the
+//! same y bits.
 
 use rayon::prelude::*;
 
@@ -25,6 +27,8 @@ mod channels;
 mod rows16;
 #[cfg(target_arch = "x86_64")]
 mod rows8;
+#[cfg(target_arch = "x86_64")]
+mod stride1;
 
 /// Output lanes accumulated in registers per block of an output row.
 const LANES: usize = 16;
@@ -350,6 +354,8 @@ pub(crate) struct Scratch {
     offs: Vec<usize>,
     /// The kernel turned by 180° (stride-1 dL/dx) or one phase's sub-kernel (strided dL/dx).
     flip: Vec<f32>,
+    /// A row of zeros, the padding rows of [`stride1`]'s dL/dx.
+    zeros: Vec<f32>,
 }
 
 #[inline(always)]
@@ -591,6 +597,16 @@ fn backward_plane<const FMA: bool>(
         // rows instead of a scatter that loads and stores dL/dx once per tap.
         sc.flip.clear();
         sc.flip.extend(wk.iter().rev());
+        #[cfg(target_arch = "x86_64")]
+        if FMA && stride1::takes(g) {
+            // The same sums in the same order, read from dL/dy itself: no padded copy.
+            sc.zeros.resize(g.w, 0.0);
+            let flip: &[f32; 9] = sc.flip[..].try_into().expect("3×3 at stride 1");
+            // SAFETY: FMA = true only inside the avx2+fma entry points; dy and dx hold h·w
+            // values at stride 1 with same padding.
+            unsafe { stride1::plane(g.h, g.w, dy, flip, &sc.zeros, dx) };
+            return;
+        }
         fill::<FMA>(g, dy, &mut sc.buf, &mut sc.shape);
         forward_padded::<FMA>(g, &sc.buf, &sc.offs, &sc.flip, dx);
         return;
@@ -835,6 +851,11 @@ pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
         channels::forward(g, c, x, w, y);
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if stride1::takes(g) {
+        stride1::forward(g, c, x, w, y);
+        return;
+    }
     let fma = has_fma();
     y.par_chunks_mut(howo)
         .enumerate()
@@ -963,28 +984,38 @@ fn k3_backward_planes(
 impl Geom {
     /// A 3×3 kernel at stride 2 (padding 1) on planes of h × w.
     fn k3_stride2(h: usize, w: usize) -> Geom {
+        Geom::k3(h, w, 2)
+    }
+
+    /// A 3×3 kernel at stride `s` (padding 1) on planes of h × w.
+    fn k3(h: usize, w: usize, s: usize) -> Geom {
         use crate::conv::out_size;
         Geom {
             h,
             w,
-            ho: out_size(h, 3, 2),
-            wo: out_size(w, 3, 2),
+            ho: out_size(h, 3, s),
+            wo: out_size(w, 3, s),
             k: 3,
-            s: 2,
+            s,
         }
     }
 }
 
-/// Checks a 3×3 stride-2 forward path for planes `w` wide against the plane path, bit for
+/// Checks a 3×3 forward path at stride `s` for planes `w` wide against the plane path, bit for
 /// bit: planes of 1–40 rows (odd and even, fewer rows than the kernel), values of both signs
 /// and zeros, two images of three channels through `fwd`, the path's entry point.
 #[cfg(all(test, target_arch = "x86_64"))]
-fn assert_plane_path_bits(w: usize, seed: u64, fwd: fn(&Geom, usize, &[f32], &[f32], &mut [f32])) {
+fn assert_plane_path_bits(
+    w: usize,
+    s: usize,
+    seed: u64,
+    fwd: fn(&Geom, usize, &[f32], &[f32], &mut [f32]),
+) {
     use rand::{Rng, SeedableRng, rngs::StdRng};
     let mut rng = StdRng::seed_from_u64(seed);
     let mut sc = Scratch::default();
     for h in 1..41 {
-        let g = Geom::k3_stride2(h, w);
+        let g = Geom::k3(h, w, s);
         let (n, c) = (2, 3);
         let (hw, howo) = (w * h, g.wo * g.ho);
         let x: Vec<f32> = (0..n * c * hw)

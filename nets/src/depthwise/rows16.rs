@@ -187,7 +187,7 @@ mod tests {
         if !has_fma() {
             return;
         }
-        super::super::assert_plane_path_bits(16, 16, forward);
+        super::super::assert_plane_path_bits(16, 2, 16, forward);
     }
 
     /// The backward through the entry point against the plane path's, planes of 1–40 rows:

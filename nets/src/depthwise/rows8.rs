@@ -216,7 +216,7 @@ mod tests {
         if !has_fma() {
             return;
         }
-        super::super::assert_plane_path_bits(8, 8, forward);
+        super::super::assert_plane_path_bits(8, 2, 8, forward);
     }
 
     /// The backward through the entry point against the plane path's, planes of 1–40 rows:
