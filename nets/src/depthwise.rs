@@ -16,8 +16,8 @@
 //! blocks of eight channels instead ([`channels`]), which give the same y and dL/dx bits.
 //! 3×3 layers at stride 2 on planes 8 or 16 wide run in registers ([`rows8`], [`rows16`]):
 //! the same y bits; their backward sums in other orders (equal to round-off). The other 3×3
-//! forwards at stride 1 read the plane itself, without the padded copy ([`stride1`]): the
-//! same y bits.
+//! layers at stride 1 read the plane itself, without the padded copy ([`stride1`]), for y
+//! and for dL/dx (dL/dy correlated with the turned kernel): the same bits.
 
 use rayon::prelude::*;
 

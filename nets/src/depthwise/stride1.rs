@@ -1,15 +1,12 @@
 //! Depthwise 3×3 at stride 1, forward, read straight from the plane in registers.
 //!
-//! The plane path copies every plane into a zero-padded scratch before its sweep; on the main
-//! job's 44×70 maps that copy was about a quarter of the forward's samples (`perf` of
-//! `dw_prof 150 96x44x70/s1/k3` on one thread: the sweep's blocks 23 %, the copy's memmove
-//! 9.5 % of a run whose forward is about a third). Here the padding is never written: the
-//! rows above and below the plane read a row of zeros, and the register blocks at the left and
-//! right edges load with lane masks, whose masked lanes read as zero. Four output rows at a
-//! time share each input row's three shifted loads (six rows: 18 loads for 36 fused
-//! multiply–adds), and every output sums its nine taps from zero in (ky, kx) order, padding
-//! included, as the plane path does, so y is the plane path's bits (test
-//! `stride_1_gives_the_plane_paths_bits`).
+//! The plane path copies every plane into a zero-padded scratch before its sweep: one more
+//! pass over the plane than the convolution needs. Here the padding is never written: the rows
+//! above and below the plane read a row of zeros, and the register blocks at the left and right
+//! edges load with lane masks, whose masked lanes read as zero. Four output rows at a time
+//! share each input row's three shifted loads (six rows: 18 loads for 36 fused multiply–adds),
+//! and every output sums its nine taps from zero in (ky, kx) order, padding included, as the
+//! plane path does, so y is the plane path's bits (test `stride_1_gives_the_plane_paths_bits`).
 
 use super::{Geom, HALF, has_fma, k3_forward_planes};
 use std::arch::x86_64::*;
@@ -41,10 +38,7 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     });
 }
 
-/// Lanes `i` with `0 ≤ start + i < w`, all bits set.
-///
-/// # Safety
-/// The CPU must have AVX2.
+/// Lanes `i` with `0 ≤ start + i < w`, all bits set (callable where AVX2 is enabled).
 #[target_feature(enable = "avx2")]
 fn inside(start: isize, w: usize) -> __m256i {
     let idx = _mm256_add_epi32(
@@ -71,7 +65,9 @@ pub(super) unsafe fn plane(
     zeros: &[f32],
     out: &mut [f32],
 ) {
-    assert!(x.len() == h * w && out.len() == h * w && zeros.len() >= w);
+    // Checked without wrapping: the blocks below trust h·w.
+    let hw = h.checked_mul(w).expect("plane size overflows");
+    assert!(x.len() == hw && out.len() == hw && zeros.len() >= w);
     let taps: [__m256; 9] = std::array::from_fn(|t| _mm256_set1_ps(wk[t]));
     let mut m = 0;
     // SAFETY (all three): rows m .. m + R < h, the slices' lengths checked above.
