@@ -17,7 +17,8 @@
 //! 3×3 layers at stride 2 on planes 8 or 16 wide run in registers ([`rows8`], [`rows16`]):
 //! the same y bits; their backward sums in other orders (equal to round-off). The other 3×3
 //! layers at stride 1 read the plane itself, without the padded copy ([`stride1`]), for y
-//! and for dL/dx (dL/dy correlated with the turned kernel): the same bits.
+//! and for dL/dx (dL/dy correlated with the turned kernel): the same bits; so do the other
+//! 3×3 forwards at stride 2 ([`stride2`]), again the same y bits.
 
 use rayon::prelude::*;
 
@@ -29,6 +30,8 @@ mod rows16;
 mod rows8;
 #[cfg(target_arch = "x86_64")]
 mod stride1;
+#[cfg(target_arch = "x86_64")]
+mod stride2;
 
 /// Output lanes accumulated in registers per block of an output row.
 const LANES: usize = 16;
@@ -854,6 +857,11 @@ pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
     if stride1::takes(g) {
         stride1::forward(g, c, x, w, y);
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if stride2::takes(g) {
+        stride2::forward(g, c, x, w, y);
         return;
     }
     let fma = has_fma();
