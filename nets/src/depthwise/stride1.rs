@@ -38,9 +38,10 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     });
 }
 
-/// Lanes `i` with `0 ≤ start + i < w`, all bits set (callable where AVX2 is enabled).
+/// Lanes `i` with `0 ≤ start + i < w`, all bits set (callable where AVX2 is enabled); the
+/// masks of both register paths' edge blocks.
 #[target_feature(enable = "avx2")]
-fn inside(start: isize, w: usize) -> __m256i {
+pub(super) fn inside(start: isize, w: usize) -> __m256i {
     let idx = _mm256_add_epi32(
         _mm256_set1_epi32(start as i32),
         _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7),

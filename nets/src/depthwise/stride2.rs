@@ -10,14 +10,16 @@
 //! store with lane masks (masked lanes read as zero). Every output sums its nine taps from
 //! zero in (ky, kx) order, padding included, as the plane path does, so y is the plane path's
 //! bits (test `stride_2_gives_the_plane_paths_bits`). Planes 8 and 16 wide keep their own paths
-//! ([`super::rows8`], [`super::rows16`]), small output planes the channel blocks.
+//! ([`super::rows8`], [`super::rows16`]), small output planes of channels in multiples of eight
+//! the channel blocks.
 
+use super::stride1::inside;
 use super::{Geom, HALF, has_fma, k3_forward_planes};
 use std::arch::x86_64::*;
 
 /// Whether a layer with this geometry goes through this path.
 pub(super) fn takes(g: &Geom) -> bool {
-    // Column indices (up to 2·w) fit the lane masks' 32-bit integers.
+    // Column indices (below w + 2·HALF) fit the lane masks' 32-bit integers.
     g.k == 3
         && g.s == 2
         && g.h > 0
@@ -38,19 +40,6 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     k3_forward_planes(g, c, (x, w), y, |h, ho, x, wk, out| unsafe {
         plane(h, width, (ho, wo), x, wk, out)
     });
-}
-
-/// Lanes `i` with `0 ≤ start + i < n`, all bits set (callable where AVX2 is enabled).
-#[target_feature(enable = "avx2")]
-fn inside(start: isize, n: usize) -> __m256i {
-    let idx = _mm256_add_epi32(
-        _mm256_set1_epi32(start as i32),
-        _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7),
-    );
-    _mm256_and_si256(
-        _mm256_cmpgt_epi32(idx, _mm256_set1_epi32(-1)),
-        _mm256_cmpgt_epi32(_mm256_set1_epi32(n as i32), idx),
-    )
 }
 
 /// Where a block of eight outputs reads its input row: unmasked, or with the masks of the four
@@ -76,7 +65,7 @@ unsafe fn taps(row: Option<&[f32]>, x0: usize, reach: Reach) -> [__m256; 3] {
     let p = row.as_ptr();
     let c = 2 * x0;
     // SAFETY: inside the row by the contract, or masked (masked lanes are neither read nor
-    // faulted on; wrapping arithmetic: the address one before the row is never dereferenced).
+    // faulted on; wrapping arithmetic: addresses before or past the row are never dereferenced).
     let [l0, l1, e0, e1] = unsafe {
         match reach {
             Reach::Inside => [
