@@ -18,7 +18,7 @@
 //! the same y bits; their backward sums in other orders (equal to round-off). The other 3×3
 //! layers at stride 1 read the plane itself, without the padded copy ([`stride1`]), for y
 //! and for dL/dx (dL/dy correlated with the turned kernel): the same bits; so do the other
-//! 3×3 forwards at stride 2 ([`stride2`]), again the same y bits.
+//! 3×3 layers at stride 2 ([`stride2`]), forward and backward, again the same bits.
 
 use rayon::prelude::*;
 
@@ -915,6 +915,11 @@ pub(crate) fn backward(
         channels::backward(g, c, x, w, dy, dx, dw_planes);
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if stride2::takes(g) {
+        stride2::backward(g, c, (x, w, dy), dx, dw_planes);
+        return;
+    }
     let fma = has_fma();
     dx.par_chunks_mut(hw)
         .zip(dw_planes.par_chunks_mut(kk))
@@ -990,11 +995,6 @@ fn k3_backward_planes(
 
 #[cfg(test)]
 impl Geom {
-    /// A 3×3 kernel at stride 2 (padding 1) on planes of h × w.
-    fn k3_stride2(h: usize, w: usize) -> Geom {
-        Geom::k3(h, w, 2)
-    }
-
     /// A 3×3 kernel at stride `s` (padding 1) on planes of h × w.
     fn k3(h: usize, w: usize, s: usize) -> Geom {
         use crate::conv::out_size;
@@ -1057,18 +1057,19 @@ fn assert_plane_path_bits(
     }
 }
 
-/// A 3×3 stride-2 backward path, `bwd(g, c, (x, w, dy), dx, dw_planes)`, for planes `w` wide
-/// against the plane path: planes of 1–40 rows, two images of three channels, values of both
-/// signs and zeros. Its sums run in other orders, so each path carries its own round-off:
-/// dL/dx is a sum of at most four products of numbers in [−1, 1], ≤ 4·γ₄ ≈ 9.5e-7 off in
-/// each, so the two agree to 2e-6; dL/dw sums a plane's ho·wo·(taps) products in chains of at
-/// most 27 operations, so they agree to 4e-6 × (1 + Σ|dy|) (a misplaced term, ~0.25, is far
-/// beyond both).
+/// A 3×3 backward path at stride `s`, `bwd(g, c, (x, w, dy), dx, dw_planes)`, for planes `w`
+/// wide against the plane path: planes of 1–40 rows, two images of three channels, values of
+/// both signs and zeros. `exact`: the same bits. Otherwise its sums run in other orders, so
+/// each path carries its own round-off: dL/dx is a sum of at most four products of numbers in
+/// [−1, 1], ≤ 4·γ₄ ≈ 9.5e-7 off in each, so the two agree to 2e-6; dL/dw sums a plane's
+/// ho·wo·(taps) products in chains of at most 27 operations, so they agree to
+/// 4e-6 × (1 + Σ|dy|) (a misplaced term, ~0.25, is far beyond both).
 #[cfg(all(test, target_arch = "x86_64"))]
 #[allow(clippy::type_complexity)]
 fn assert_plane_path_backward(
-    w: usize,
+    (w, s): (usize, usize),
     seed: u64,
+    exact: bool,
     bwd: fn(&Geom, usize, (&[f32], &[f32], &[f32]), &mut [f32], &mut [f32]),
 ) {
     use rand::{Rng, SeedableRng, rngs::StdRng};
@@ -1082,7 +1083,7 @@ fn assert_plane_path_backward(
         }
     };
     for h in 1..41 {
-        let g = Geom::k3_stride2(h, w);
+        let g = Geom::k3(h, w, s);
         let (n, c) = (2, 3);
         let (hw, howo) = (w * h, g.wo * g.ho);
         let x: Vec<f32> = (0..n * c * hw).map(&mut value).collect();
@@ -1106,6 +1107,18 @@ fn assert_plane_path_backward(
                     &mut dw0,
                 )
             };
+            if exact {
+                let first = |a: &[f32], b: &[f32]| {
+                    a.iter()
+                        .zip(b)
+                        .position(|(a, b)| a.to_bits() != b.to_bits())
+                };
+                let i = first(&dx[p * hw..][..hw], &dx0);
+                assert!(i.is_none(), "dx[{p}][{i:?}] differs, h {h}");
+                let t = first(&dw[p * 9..][..9], &dw0);
+                assert!(t.is_none(), "dw[{p}][{t:?}] differs, h {h}");
+                continue;
+            }
             for (i, (a, b)) in dx[p * hw..][..hw].iter().zip(&dx0).enumerate() {
                 assert!((a - b).abs() <= 2e-6, "dx[{p}][{i}] {a} vs {b}, h {h}");
             }

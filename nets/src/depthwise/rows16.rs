@@ -197,6 +197,6 @@ mod tests {
         if !has_fma() {
             return;
         }
-        super::super::assert_plane_path_backward(16, 1616, backward);
+        super::super::assert_plane_path_backward((16, 2), 1616, false, backward);
     }
 }

@@ -226,6 +226,6 @@ mod tests {
         if !has_fma() {
             return;
         }
-        super::super::assert_plane_path_backward(8, 88, backward);
+        super::super::assert_plane_path_backward((8, 2), 88, false, backward);
     }
 }
