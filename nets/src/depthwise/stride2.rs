@@ -214,7 +214,7 @@ unsafe fn plane_backward(
 /// dL/dw of one plane: per tap, lane sums of dL/dy times the forward's tap registers over the
 /// rows and blocks in the plane path's order (row by row, blocks left to right, lane l holding
 /// the columns ≡ l mod 8), the lanes then summed in column order as the plane path does: its
-/// bits. The blocks past the last output column multiply zeros by zeros, as its masked loads do.
+/// bits. The lanes past the last output column multiply zeros by zeros, as its masked loads do.
 ///
 /// # Safety
 /// AVX2 and FMA; `x` holds h·w values, `dy` ho·wo, ho = ⌈h/2⌉, wo = ⌈w/2⌉.
@@ -250,8 +250,8 @@ unsafe fn weight_grads(
             };
             let g = swap_quarters(g);
             // Taps of the lanes past wo read real columns (2·wo − 1 when w is even): zeroed,
-            // so that they add the plane path's exact +0 (a product with such a value could
-            // be −0, or NaN from an infinite input).
+            // as the plane path's masked loads are (times the zero of dL/dy, an infinite
+            // input there would make NaN; finite ones change nothing).
             let keep = keep.map(|mask| swap_quarters(_mm256_castsi256_ps(mask)));
             for (ky, r) in rows.iter().enumerate() {
                 // SAFETY: every row `row` gives holds w values; `reach` is Inside only where
@@ -369,7 +369,8 @@ mod tests {
         }
     }
 
-    /// The backward through the entry point, the same widths and 1–40 rows: dL/dx and dL/dw
+    /// The backward through the entry point, the same widths and those whose last block holds
+    /// seven outputs, 1–40 rows, finite values and then infinities among them: dL/dx and dL/dw
     /// bit for bit the plane path's (padding taps and the lanes past the last output column
     /// summed as its zeros are).
     #[test]
@@ -378,7 +379,7 @@ mod tests {
             return;
         }
         for w in [
-            1, 2, 3, 7, 8, 9, 15, 16, 17, 18, 31, 32, 33, 35, 70, 87, 139,
+            1, 2, 3, 7, 8, 9, 13, 14, 15, 16, 17, 18, 29, 30, 31, 32, 33, 35, 70, 87, 139,
         ] {
             super::super::assert_plane_path_backward((w, 2), 300 + w as u64, true, backward);
         }
