@@ -1186,6 +1186,22 @@ mod tests {
         (y, dx, dw)
     }
 
+    /// The register paths for planes 8 and 16 wide take only their own output height: a
+    /// geometry claiming another goes to the plane path (their loops trust ho = ⌈h/2⌉).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn rows_paths_take_only_their_output_height() {
+        if !has_fma() {
+            return;
+        }
+        for w in [8, 16] {
+            let g = Geom::k3(10, w, 2);
+            assert!(rows8::takes(&g) || rows16::takes(&g));
+            let other = Geom { ho: 3, ..g };
+            assert!(!rows8::takes(&other) && !rows16::takes(&other));
+        }
+    }
+
     /// Both code paths (plain and, where the CPU has it, FMA) against the direct definition
     /// on random shapes: tiny planes smaller than the kernel, odd and even sizes, rows shorter
     /// and longer than a register block, strides 1–3.

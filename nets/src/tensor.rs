@@ -31,14 +31,17 @@ pub(crate) fn zeroed(len: usize) -> Vec<f32> {
 }
 
 impl Tensor {
-    /// An all-zero tensor of the given shape.
+    /// An all-zero tensor of the given shape; panics when n·c·h·w overflows `usize` (a wrapped
+    /// product would give a tensor whose shape claims more values than it holds).
     pub fn zeros(n: usize, c: usize, h: usize, w: usize) -> Self {
+        let len = [c, h, w].iter().try_fold(n, |a, &b| a.checked_mul(b));
+        let len = len.unwrap_or_else(|| panic!("tensor shape ({n},{c},{h},{w}) overflows usize"));
         Self {
             n,
             c,
             h,
             w,
-            data: zeroed(n * c * h * w),
+            data: zeroed(len),
         }
     }
 
@@ -162,5 +165,13 @@ mod tests {
         assert!(Tensor::from_vec(1, 1, (1usize << 63) + 1, 8, vec![0.0; 8]).is_err());
         assert!(Tensor::from_vec(1 << 32, 1 << 32, 1, 1, vec![]).is_err());
         assert!(Tensor::from_vec(2, 1, 2, 2, vec![0.0; 8]).is_ok());
+    }
+
+    /// `zeros` of such a shape panics naming it: 2³² × 2³² wrapped to an empty tensor that
+    /// claimed 2⁶⁴ values.
+    #[test]
+    #[should_panic(expected = "overflows usize")]
+    fn zeros_of_a_shape_past_usize_panics() {
+        let _ = Tensor::zeros(1 << 32, 1 << 32, 1, 1);
     }
 }

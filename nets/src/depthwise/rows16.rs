@@ -14,7 +14,13 @@ use std::arch::x86_64::*;
 
 /// Whether a layer with this geometry goes through this path.
 pub(super) fn takes(g: &Geom) -> bool {
-    g.k == 3 && g.s == 2 && g.w == 16 && g.wo == 8 && g.h > 0 && has_fma()
+    g.k == 3
+        && g.s == 2
+        && g.w == 16
+        && g.wo == 8
+        && g.h > 0
+        && g.ho == g.h.div_ceil(2)
+        && has_fma()
 }
 
 /// Forward over all planes (as [`super::forward`]); panics unless `takes(g)`.
