@@ -83,6 +83,19 @@ enum Reach {
     Masked([__m256i; 4]),
 }
 
+/// How the block of eight outputs from column x₀ reads its input rows (w wide), and the lane
+/// mask of its outputs (wo of them) where it is not wholly inside: Inside needs columns
+/// 2x₀ − 1 .. 2x₀ + 16 of the row, which also puts x₀ + 8 ≤ w/2 ≤ wo.
+#[target_feature(enable = "avx2")]
+fn block_reach(x0: usize, w: usize, wo: usize) -> (Reach, Option<__m256i>) {
+    if x0 >= 1 && 2 * x0 + 2 * HALF <= w {
+        return (Reach::Inside, None);
+    }
+    let c = 2 * x0 as isize;
+    let m = [c - 1, c + 7, c, c + 8].map(|s| inside(s, w));
+    (Reach::Masked(m), Some(inside(x0 as isize, wo)))
+}
+
 /// Input row `row` (None: the zero padding) as the (left, centre, right) taps of the eight
 /// outputs from `x0`, in the lane order 0 1 4 5 2 3 6 7.
 ///
@@ -149,13 +162,7 @@ unsafe fn plane(
         let dst = out[m * wo..][..wo].as_mut_ptr();
         let mut x0 = 0;
         while x0 < wo {
-            let c = 2 * x0 as isize;
-            let (reach, store) = if x0 >= 1 && 2 * x0 + 2 * HALF <= w {
-                (Reach::Inside, None)
-            } else {
-                let m = [c - 1, c + 7, c, c + 8].map(|s| inside(s, w));
-                (Reach::Masked(m), Some(inside(x0 as isize, wo)))
-            };
+            let (reach, store) = block_reach(x0, w, wo);
             let mut acc = _mm256_setzero_ps();
             for (ky, r) in rows.iter().enumerate() {
                 // SAFETY: every row `row` gives holds w values; `reach` is Inside only where
@@ -234,13 +241,7 @@ unsafe fn weight_grads(
         let d = dy[m * wo..][..wo].as_ptr();
         let mut x0 = 0;
         while x0 < wo {
-            let c = 2 * x0 as isize;
-            let (reach, keep) = if x0 >= 1 && 2 * x0 + 2 * HALF <= w {
-                (Reach::Inside, None)
-            } else {
-                let m = [c - 1, c + 7, c, c + 8].map(|s| inside(s, w));
-                (Reach::Masked(m), Some(inside(x0 as isize, wo)))
-            };
+            let (reach, keep) = block_reach(x0, w, wo);
             // SAFETY: unmasked, x0 + 8 ≤ w / 2 ≤ wo; masked lanes are not read.
             let g = unsafe {
                 match keep {
