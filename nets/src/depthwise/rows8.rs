@@ -129,11 +129,11 @@ pub(super) fn lane_sum(v: __m256) -> f32 {
 /// `dw` (the nine taps' gradients, overwritten).
 ///
 /// dL/dw[ky, kx] is Σ dy ⊙ (the forward's tap register), two output rows per register as in
-/// the forward, reduced across lanes at the end. dL/dx row by row: an even input row 2m takes
-/// only ky = 1 of output row m, an odd row 2m + 1 ky = 2 of row m and ky = 0 of row m + 1;
-/// within a row, even column 2j takes kx = 1 of output j, odd column 2j + 1 kx = 2 of j and
-/// kx = 0 of j + 1 (output row shifted by one value). The even and odd columns are then
-/// interleaved into the row. Sums are in other orders than the plane path's: the same values
+/// the forward, reduced across lanes at the end. dL/dx two input rows per register: an even
+/// input row 2m takes only ky = 1 of output row m, an odd row 2m + 1 ky = 2 of row m and
+/// ky = 0 of row m + 1; within a row, even column 2j takes kx = 1 of output j, odd column
+/// 2j + 1 kx = 2 of j and kx = 0 of j + 1 (output row shifted by one value). The even and odd
+/// columns are then interleaved into the rows. Sums are in other orders than the plane path's: the same values
 /// to round-off (test `rows_of_8_backward_is_the_plane_paths`).
 ///
 /// # Safety
@@ -170,37 +170,42 @@ unsafe fn plane_backward(
     for (g, a) in dw.iter_mut().zip(acc) {
         *g = lane_sum(a);
     }
-    let w = |t: usize| _mm_set1_ps(wk[t]);
-    // Output row m (zero past the last) and the same shifted left by one value.
-    let row = |m: usize| -> (__m128, __m128) {
+    // Input rows 2m and 2m + 1 at once, row 2m in the low lane and 2m + 1 in the high one:
+    // with a = output row m in both lanes and b = row m + 1 in the high lane only (zeros
+    // below), e = (w4 | w7)·a + (· | w1)·b and o = (w5 | w8)·a + (w3 | w6)·a' + (· | w2)·b +
+    // (· | w0)·b' (' = shifted left by one value): each lane's sum in the order of the row at
+    // a time this replaces, the low lane's extra terms multiplying zeros.
+    let pair = |lo: usize, hi: usize| _mm256_setr_m128(_mm_set1_ps(wk[lo]), _mm_set1_ps(wk[hi]));
+    let (we_a, we_b) = (pair(4, 7), _mm256_set1_ps(wk[1]));
+    let (wo_a, wo_a1) = (pair(5, 8), pair(3, 6));
+    let (wo_b, wo_b1) = (_mm256_set1_ps(wk[2]), _mm256_set1_ps(wk[0]));
+    // Output row m (zero past the last) as four values.
+    let row = |m: usize| -> __m128 {
         if m >= ho {
-            return (_mm_setzero_ps(), _mm_setzero_ps());
+            return _mm_setzero_ps();
         }
         let r = &dy[4 * m..][..4];
         // SAFETY: `r` holds four values.
-        let v = unsafe { _mm_loadu_ps(r.as_ptr()) };
-        (
-            v,
-            _mm_castsi128_ps(_mm_srli_si128::<4>(_mm_castps_si128(v))),
-        )
+        unsafe { _mm_loadu_ps(r.as_ptr()) }
     };
-    for r in 0..h {
-        let (even, odd) = if r % 2 == 0 {
-            let (a, a1) = row(r / 2);
-            let e = _mm_mul_ps(w(4), a);
-            (e, _mm_fmadd_ps(w(3), a1, _mm_mul_ps(w(5), a)))
-        } else {
-            let ((a, a1), (b, b1)) = (row(r / 2), row(r / 2 + 1));
-            let e = _mm_fmadd_ps(w(1), b, _mm_mul_ps(w(7), a));
-            let o = _mm_fmadd_ps(w(6), a1, _mm_mul_ps(w(8), a));
-            let o = _mm_fmadd_ps(w(0), b1, _mm_fmadd_ps(w(2), b, o));
-            (e, o)
-        };
-        let dst = &mut dx[8 * r..][..8];
-        // SAFETY: `dst` holds eight values: columns 0–3 and 4–7 of the row, interleaved.
-        unsafe {
-            _mm_storeu_ps(dst.as_mut_ptr(), _mm_unpacklo_ps(even, odd));
-            _mm_storeu_ps(dst.as_mut_ptr().add(4), _mm_unpackhi_ps(even, odd));
+    let shifted = |v: __m256| _mm256_castsi256_ps(_mm256_srli_si256::<4>(_mm256_castps_si256(v)));
+    for m in 0..h.div_ceil(2) {
+        let v = row(m);
+        let a = _mm256_setr_m128(v, v);
+        let b = _mm256_setr_m128(_mm_setzero_ps(), row(m + 1));
+        let e = _mm256_fmadd_ps(we_b, b, _mm256_mul_ps(we_a, a));
+        let o = _mm256_fmadd_ps(wo_a1, shifted(a), _mm256_mul_ps(wo_a, a));
+        let o = _mm256_fmadd_ps(wo_b1, shifted(b), _mm256_fmadd_ps(wo_b, b, o));
+        // Per lane [e0 o0 e1 o1] and [e2 o2 e3 o3]: row 2m is the two low lanes, row 2m + 1
+        // the two high ones.
+        let (lo, hi) = (_mm256_unpacklo_ps(e, o), _mm256_unpackhi_ps(e, o));
+        let dst = &mut dx[16 * m..][..8];
+        // SAFETY: `dst` holds eight values, input row 2m.
+        unsafe { _mm256_storeu_ps(dst.as_mut_ptr(), _mm256_permute2f128_ps::<0x20>(lo, hi)) };
+        if 2 * m + 1 < h {
+            let dst = &mut dx[16 * m + 8..][..8];
+            // SAFETY: `dst` holds eight values, input row 2m + 1.
+            unsafe { _mm256_storeu_ps(dst.as_mut_ptr(), _mm256_permute2f128_ps::<0x31>(lo, hi)) };
         }
     }
 }
