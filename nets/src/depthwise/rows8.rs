@@ -133,8 +133,8 @@ pub(super) fn lane_sum(v: __m256) -> f32 {
 /// input row 2m takes only ky = 1 of output row m, an odd row 2m + 1 ky = 2 of row m and
 /// ky = 0 of row m + 1; within a row, even column 2j takes kx = 1 of output j, odd column
 /// 2j + 1 kx = 2 of j and kx = 0 of j + 1 (output row shifted by one value). The even and odd
-/// columns are then interleaved into the rows. Sums are in other orders than the plane path's: the same values
-/// to round-off (test `rows_of_8_backward_is_the_plane_paths`).
+/// columns are then interleaved into the rows. Sums are in other orders than the plane path's:
+/// the same values to round-off (test `rows_of_8_backward_is_the_plane_paths`).
 ///
 /// # Safety
 /// The CPU has AVX2 and FMA; the slices are as long as stated.
@@ -174,7 +174,8 @@ unsafe fn plane_backward(
     // with a = output row m in both lanes and b = row m + 1 in the high lane only (zeros
     // below), e = (w4 | w7)·a + (· | w1)·b and o = (w5 | w8)·a + (w3 | w6)·a' + (· | w2)·b +
     // (· | w0)·b' (' = shifted left by one value): each lane's sum in the order of the row at
-    // a time this replaces, the low lane's extra terms multiplying zeros.
+    // a time this replaces, the low lane's extra terms multiplying zeros (with finite weights,
+    // its values up to a zero's sign; an infinite w0, w1 or w2 makes them NaN).
     let pair = |lo: usize, hi: usize| _mm256_setr_m128(_mm_set1_ps(wk[lo]), _mm_set1_ps(wk[hi]));
     let (we_a, we_b) = (pair(4, 7), _mm256_set1_ps(wk[1]));
     let (wo_a, wo_a1) = (pair(5, 8), pair(3, 6));
