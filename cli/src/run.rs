@@ -167,6 +167,10 @@ pub struct RunConfig {
     /// Fine-tuning steps of the selected subnet behind each lens before the protocol (S16's
     /// inner loop, run longer: the deployed model; the baselines' lenses stay fixed).
     pub final_steps: usize,
+    /// The learned lens's phase rate in that fine-tune, as a fraction of `lr_phase_rad`
+    /// (0.25, the fine-tune's fraction of every rate; 0 keeps φ where training left it while
+    /// the network and p̂ fine-tune; docs/run.md).
+    pub final_phase_lr_scale: f64,
     /// MAC budget of the search.
     pub budget_macs: u64,
     /// Budget penalty γ.
@@ -250,6 +254,7 @@ impl Default for RunConfig {
             rea_tournament: 2,
             rea_epochs: 0.1,
             final_steps: 40,
+            final_phase_lr_scale: FINAL_LR_SCALE,
             budget_macs: 40_000_000,
             gamma: 10.0,
             aperture_step_um: 1.5,
@@ -520,6 +525,13 @@ fn check(cfg: &RunConfig) -> Result<()> {
     }
     if cfg.final_steps > 1_000_000 {
         bail!("--config: final_steps must be at most 1000000");
+    }
+    let f = cfg.final_phase_lr_scale;
+    if !(0.0..=1.0).contains(&f) {
+        bail!(
+            "--config: final_phase_lr_scale must lie in [0, 1] (a fraction of lr_phase_rad), \
+             got {f:?}"
+        );
     }
     crate::fisher::check_init_budget(
         cfg.fisher_iterations,
@@ -1078,7 +1090,12 @@ pub fn run(a: RunArgs) -> Result<()> {
                 if failed.load(Ordering::Relaxed) {
                     return Ok(());
                 }
-                tr.finetune_step(&best.arch, &rc.budget(), FINAL_LR_SCALE)?;
+                tr.finetune_step_phase_at(
+                    &best.arch,
+                    &rc.budget(),
+                    FINAL_LR_SCALE,
+                    cfg.final_phase_lr_scale,
+                )?;
             }
             tr.save(&sel)?;
             tr

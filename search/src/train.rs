@@ -1027,12 +1027,24 @@ impl<'a> Trainer<'a> {
         budget: &Budget,
         lr_scale: f64,
     ) -> Result<(f64, u64)> {
+        // The inner loop fine-tunes φ at `lr_scale` times its rate whatever the sandwich
+        // schedule did (S16).
+        self.finetune_step_phase_at(arch, budget, lr_scale, lr_scale)
+    }
+
+    /// [`Trainer::finetune_step`] with φ's rate at `phase_scale` times `lr_phase_rad` instead
+    /// of `lr_scale` times (0: φ kept as it is, the network and p̂ fine-tuned alone).
+    pub fn finetune_step_phase_at(
+        &mut self,
+        arch: &Arch,
+        budget: &Budget,
+        lr_scale: f64,
+        phase_scale: f64,
+    ) -> Result<(f64, u64)> {
         if budget.fit_pitch {
             self.fit_pitch_to_budget(arch, budget.macs)?;
         }
-        // The inner loop fine-tunes φ at `lr_scale` times its rate whatever the sandwich
-        // schedule did (S16).
-        let lr_phase = self.phase_rate(lr_scale);
+        let lr_phase = self.phase_rate(phase_scale);
         let s = self.chain_step_with(self.step, lr_phase > 0.0)?;
         self.net.zero_grad();
         let (l, task) = task_loss(

@@ -636,6 +636,65 @@ fn a_fitted_pitch_is_the_budgets_edge_and_fine_tuning_keeps_it_inside() {
     }
 }
 
+/// Every learnable value of `t`'s network, as bits, in `visit` order.
+fn weight_bits(t: &mut Trainer) -> Vec<u32> {
+    let mut v = Vec::new();
+    t.net
+        .visit(&mut |_, p| v.extend(p.value.iter().map(|x| x.to_bits())));
+    v
+}
+
+#[test]
+fn a_fine_tune_with_phi_at_rate_zero_moves_the_network_and_pitch_alone() {
+    use nanoeye_search::Budget;
+    let d = tempfile::tempdir().unwrap();
+    let ds = dataset(d.path(), 5);
+    let c = chain(&ds);
+    let arch = Arch::min();
+    let budget = Budget {
+        macs: 0,
+        lambda: 0.0,
+        fit_pitch: false,
+    };
+    let lr_phase = cfg(2).lr_phase_rad;
+    let mut frozen = Trainer::new(&c, &ds, cfg(2), phase0(&c)).unwrap();
+    let mut moving = Trainer::new(&c, &ds, cfg(2), phase0(&c)).unwrap();
+    let (phi0, p0, w0) = (
+        frozen.phase.clone(),
+        frozen.pitch_um,
+        weight_bits(&mut frozen),
+    );
+    let (lf, _) = frozen
+        .finetune_step_phase_at(&arch, &budget, 1.0, 0.0)
+        .unwrap();
+    let (lm, _) = moving.finetune_step(&arch, &budget, 1.0).unwrap();
+    // The same batch through the same optics: the loss does not see φ's rate.
+    assert_eq!(lf.to_bits(), lm.to_bits());
+    // φ keeps its bits; with the rate on, Adam's first step moves the samples with the
+    // largest gradient by nearly the whole rate and none by more.
+    assert_eq!(frozen.phase, phi0);
+    let dphi = (0..phi0.nrows())
+        .flat_map(|i| (0..phi0.ncols()).map(move |j| (i, j)))
+        .map(|(i, j)| (moving.phase[(i, j)] - phi0[(i, j)]).abs())
+        .fold(0.0f64, f64::max);
+    assert!(
+        dphi > 0.5 * lr_phase && dphi <= lr_phase * (1.0 + 1e-9),
+        "max |Δφ| {dphi} rad at rate {lr_phase}"
+    );
+    // The network and p̂ take the same step either way: ∂L/∂p̂ without S1's PSF adjoint is the
+    // same number as with it.
+    let wf = weight_bits(&mut frozen);
+    assert_ne!(wf, w0, "the network did not move");
+    assert_eq!(wf, weight_bits(&mut moving));
+    assert!(frozen.pitch_um != p0, "p̂ did not move");
+    assert!(
+        (frozen.pitch_um - moving.pitch_um).abs() <= 1e-12 * p0,
+        "p̂ {} vs {}",
+        frozen.pitch_um,
+        moving.pitch_um
+    );
+}
+
 /// Evaluates up to `slots` candidates "at once" and hands back the newest first, as a pool of
 /// remote workers may.
 struct NewestFirst<'a> {
