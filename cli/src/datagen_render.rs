@@ -125,6 +125,16 @@ pub fn run(args: RenderArgs) -> Result<()> {
         layers: LayerSpec::default(),
         blink_fraction: args.blink_fraction,
     };
+    // A disk that cannot hold the frames' arrays is refused before anything is written (an
+    // estimate that fails leaves the error to the writer, which names the flag).
+    if let Ok(bytes) = nanoeye_datagen::render::dataset::dataset_array_bytes(&opts) {
+        crate::util::check_disk(
+            "datagen render",
+            &args.out,
+            bytes,
+            "lower --n or --width × --height",
+        )?;
+    }
     // Temporary files of a killed run (frames/ is written by the renderer only).
     crate::util::remove_stale_temps_under(&args.out);
     let w = crate::dist::world();

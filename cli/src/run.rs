@@ -754,10 +754,22 @@ fn protocol_summary(errs: &[Option<f64>]) -> serde_json::Value {
 fn render(
     dir: &Path,
     set: RenderSet,
-    (n, seed, blink_fraction): (usize, u64, f64),
+    items: (usize, u64, f64),
     cfg: &RunConfig,
 ) -> Result<Dataset> {
-    write_dataset(&DatasetOptions {
+    write_dataset(&set_options(dir, set, items, cfg))
+        .with_context(|| format!("rendering {}", dir.display()))?;
+    Ok(Dataset::open(dir)?)
+}
+
+/// The options [`render`] renders set `set` into `dir` with.
+fn set_options(
+    dir: &Path,
+    set: RenderSet,
+    (n, seed, blink_fraction): (usize, u64, f64),
+    cfg: &RunConfig,
+) -> DatasetOptions {
+    DatasetOptions {
         set,
         n,
         seed,
@@ -770,9 +782,66 @@ fn render(
         progress: std::io::stderr().is_terminal(),
         layers: LayerSpec::default(),
         blink_fraction,
-    })
-    .with_context(|| format!("rendering {}", dir.display()))?;
-    Ok(Dataset::open(dir)?)
+    }
+}
+
+/// The rendered sets of the job under `out`, in the order it renders them: (directory, set,
+/// (items, seed, blink fraction)).
+fn job_sets(out: &Path, cfg: &RunConfig) -> Vec<(PathBuf, RenderSet, (usize, u64, f64))> {
+    let kind = match cfg.train_set {
+        TrainSet::Envelope => RenderSet::Envelope,
+        TrainSet::Ambiguity => RenderSet::Ambiguity,
+    };
+    let mut sets = vec![
+        (
+            out.join("data/train"),
+            kind,
+            (cfg.train_items, cfg.seed, cfg.train_blink_fraction),
+        ),
+        // V must measure what the protocol measures: a validation set of the training set's
+        // kind.
+        (
+            out.join("data/val"),
+            kind,
+            (cfg.val_items, cfg.seed + 1, 0.0),
+        ),
+        (
+            out.join("data/protocol"),
+            RenderSet::Protocol,
+            (cfg.protocol_subjects, cfg.seed + 2, 0.0),
+        ),
+        (
+            out.join("data/sequence"),
+            RenderSet::Sequence,
+            (cfg.sequence_frames.max(1), cfg.seed + 3, 0.0),
+        ),
+    ];
+    if cfg.learned_lens != LearnedLens::Trained {
+        sets.push((
+            out.join("data/triplets"),
+            RenderSet::Variational,
+            (cfg.embed_triplets, cfg.seed + 4, 0.0),
+        ));
+    }
+    sets
+}
+
+/// Refuses the job when its rendered sets' arrays cannot fit on `out`'s disk (and warns when
+/// they may not: [`util::check_disk`]), before anything is written.
+fn check_job_disk(out: &Path, cfg: &RunConfig) -> Result<()> {
+    let mut bytes = (0u64, 0u64);
+    for (dir, set, items) in job_sets(out, cfg) {
+        let (lo, hi) = nanoeye_datagen::render::dataset::dataset_array_bytes(&set_options(
+            &dir, set, items, cfg,
+        ))?;
+        bytes = (bytes.0.saturating_add(lo), bytes.1.saturating_add(hi));
+    }
+    util::check_disk(
+        "nanoeye run's rendered sets",
+        out,
+        bytes,
+        "lower train_items, val_items, protocol_subjects, sequence_frames or width_px × height_px",
+    )
 }
 
 /// Runs the main job.
@@ -810,6 +879,7 @@ pub fn run(a: RunArgs) -> Result<()> {
         .clone()
         .unwrap_or_else(|| PathBuf::from(format!("nanoeye-run-{}", cfg.seed)));
     util::check_not_dataset(&out)?;
+    check_job_disk(&out, &cfg)?;
     std::fs::create_dir_all(&out).with_context(|| format!("--out {}", out.display()))?;
     let cpath = out.join("config.json");
     if let Some(text) = util::read_record(&cpath, util::MAX_RECORD_BYTES).context("--out")? {
@@ -898,46 +968,16 @@ pub fn run(a: RunArgs) -> Result<()> {
     // 1. Data.
     let t = Instant::now();
     note("rendering the training, validation and protocol sets");
-    let train = render(
-        &out.join("data/train"),
-        match cfg.train_set {
-            TrainSet::Envelope => RenderSet::Envelope,
-            TrainSet::Ambiguity => RenderSet::Ambiguity,
-        },
-        (cfg.train_items, cfg.seed, cfg.train_blink_fraction),
-        &cfg,
-    )?;
-    // V must measure what the protocol measures: a validation set of the training set's kind.
-    let val = render(
-        &out.join("data/val"),
-        match cfg.train_set {
-            TrainSet::Envelope => RenderSet::Envelope,
-            TrainSet::Ambiguity => RenderSet::Ambiguity,
-        },
-        (cfg.val_items, cfg.seed + 1, 0.0),
-        &cfg,
-    )?;
-    let proto = render(
-        &out.join("data/protocol"),
-        RenderSet::Protocol,
-        (cfg.protocol_subjects, cfg.seed + 2, 0.0),
-        &cfg,
-    )?;
-    let seq = render(
-        &out.join("data/sequence"),
-        RenderSet::Sequence,
-        (cfg.sequence_frames.max(1), cfg.seed + 3, 0.0),
-        &cfg,
-    )?;
-    let triplets = match cfg.learned_lens {
-        LearnedLens::Embedding | LearnedLens::Joint => Some(render(
-            &out.join("data/triplets"),
-            RenderSet::Variational,
-            (cfg.embed_triplets, cfg.seed + 4, 0.0),
-            &cfg,
-        )?),
-        LearnedLens::Trained => None,
-    };
+    let sets = job_sets(&out, &cfg);
+    let set = |(dir, set, items): &(PathBuf, RenderSet, _)| render(dir, *set, *items, &cfg);
+    let (train, val, proto, seq) = (
+        set(&sets[0])?,
+        set(&sets[1])?,
+        set(&sets[2])?,
+        set(&sets[3])?,
+    );
+    // The variational triplets, rendered for the embedding objective only.
+    let triplets = sets.get(4).map(set).transpose()?;
     stage("render", t.elapsed().as_secs_f64(), &mut stages)?;
 
     let chain_cfg = chain_config(&cfg, train.manifest.rig.camera.pixel_pitch_m);

@@ -530,6 +530,96 @@ pub fn check_memory(what: &str, need: u64, fix: &str) -> Result<()> {
     Ok(())
 }
 
+/// Environment variable that caps the disk space (bytes) a command counts as free where it
+/// writes: to leave room on a shared disk (and for the tests).
+pub const DISK_ENV: &str = "NANOEYE_DISK_BYTES";
+
+/// Bytes an unprivileged writer may still write on the file system that holds `path` (or its
+/// nearest existing ancestor), capped by [`DISK_ENV`]; None where neither is known.
+pub fn disk_free(path: &Path) -> Result<Option<u64>> {
+    let cap = match std::env::var(DISK_ENV) {
+        Ok(v) => Some(
+            v.trim()
+                .parse::<f64>()
+                .ok()
+                .filter(|b| b.is_finite() && *b >= 0.0)
+                .with_context(|| format!("{DISK_ENV}: expected a number of bytes ≥ 0, got '{v}'"))?
+                as u64,
+        ),
+        Err(_) => None,
+    };
+    Ok([cap, fs_free(path)].into_iter().flatten().min())
+}
+
+/// `statvfs`'s blocks available to unprivileged users × fragment size, for `path`'s nearest
+/// existing ancestor.
+#[cfg(unix)]
+#[allow(clippy::unnecessary_cast)] // statvfs's field widths differ between targets
+fn fs_free(path: &Path) -> Option<u64> {
+    use std::os::unix::ffi::OsStrExt;
+    let abs = std::path::absolute(path).ok()?;
+    let dir = abs.ancestors().find(|a| a.exists())?;
+    let c = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
+    // SAFETY: `c` is a NUL-terminated path and `st` a valid, writable statvfs for the call.
+    let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+    if unsafe { libc::statvfs(c.as_ptr(), &mut st) } != 0 {
+        return None;
+    }
+    Some((st.f_bavail as u64).saturating_mul(st.f_frsize as u64))
+}
+
+#[cfg(not(unix))]
+fn fs_free(_: &Path) -> Option<u64> {
+    None
+}
+
+/// Bytes of the regular files under `dir` (0 where it does not exist); links are not followed.
+pub fn bytes_under(dir: &Path) -> u64 {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    entries
+        .flatten()
+        .map(|e| match e.file_type() {
+            Ok(t) if t.is_dir() => bytes_under(&e.path()),
+            Ok(t) if t.is_file() => e.metadata().map_or(0, |m| m.len()),
+            _ => 0,
+        })
+        .sum()
+}
+
+/// Refuses a job that will write at least `least` bytes under `out` when its disk has less
+/// free (what `out` already holds counts as written: a resume reuses it), and warns when the
+/// most it may write, `most`, does not fit: `what` names the job, `fix` what makes it smaller.
+pub fn check_disk(what: &str, out: &Path, (least, most): (u64, u64), fix: &str) -> Result<()> {
+    let Some(free) = disk_free(out)? else {
+        return Ok(());
+    };
+    let there = bytes_under(out);
+    let gb = |b: u64| b as f64 / 1e9;
+    if least.saturating_sub(there) > free {
+        bail!(
+            "{what}: writes at least {:.2} GB under {} ({:.2} GB of it there already), but \
+             {:.2} GB are free there; free space, choose another --out, or {fix}",
+            gb(least),
+            out.display(),
+            gb(there),
+            gb(free)
+        );
+    }
+    if most.saturating_sub(there) > free {
+        eprintln!(
+            "warning: {what} may write up to {:.2} GB under {} ({:.2} GB of it there already), \
+             more than the {:.2} GB free there; it stops with an error if the disk fills ({fix})",
+            gb(most),
+            out.display(),
+            gb(there),
+            gb(free)
+        );
+    }
+    Ok(())
+}
+
 /// Largest small JSON input read (a subnet's arch, a rig, a state, a run's configuration): a
 /// few hundred bytes in practice.
 pub const MAX_ARCH_BYTES: u64 = 1 << 20;

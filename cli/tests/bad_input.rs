@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{nanoeye, npy_f64, tiny_dataset};
+use common::{nanoeye, npy_f64, tiny_dataset, tiny_dataset_of};
 use std::path::Path;
 
 /// Runs `args`, expects a clean refusal that names `flag`.
@@ -3527,4 +3527,79 @@ fn a_bad_value_in_a_rig_or_state_is_named_by_its_path() {
     .unwrap();
     let args = ["datagen", "export", "--state", "s.json", "--out", "s.glb"];
     refused(&args, "--state: key 'slip_m': invalid length 4", p);
+}
+
+/// `nanoeye args` in `cwd` with the free disk space capped at `bytes`.
+fn with_disk(args: &[&str], bytes: &str, cwd: &Path) -> std::process::Output {
+    std::process::Command::new(common::BIN)
+        .args(args)
+        .current_dir(cwd)
+        .env("NANOEYE_DISK_BYTES", bytes)
+        .output()
+        .expect("run nanoeye")
+}
+
+/// The main job writes about 4.4 GB at its defaults (session 56's CI failed on a full disk):
+/// a disk that cannot hold its rendered sets' arrays is refused before anything is written,
+/// and what --out already holds counts as written (a resume reuses it).
+#[test]
+fn run_refuses_a_disk_its_rendered_sets_cannot_fit() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    // The defaults' sets: (240 + 96 + 343 + 60) frames × 4 planes × 320 × 200 × 4 bytes.
+    let least = 739.0 * 4.0 * 320.0 * 200.0 * 4.0 / 1e9;
+    let out = with_disk(&["run", "--out", "r"], "1e6", p);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains(&format!(
+            "writes at least {least:.2} GB under r (0.00 GB of it there"
+        )),
+        "{err}"
+    );
+    assert!(err.contains("0.00 GB are free there"), "{err}");
+    assert!(err.contains("protocol_subjects"), "{err}");
+    assert!(!p.join("r").exists(), "a refused run wrote something");
+    // 0.70 GB already under --out (a sparse file: its length counts, not its blocks) and
+    // 0.02 GB free: still 0.037 GB short. At 0.75 GB it fits, and the next check speaks: the
+    // file is named `runs`, which --out may not hold without a configuration.
+    std::fs::create_dir_all(p.join("r2")).unwrap();
+    let pad = std::fs::File::create(p.join("r2/runs")).unwrap();
+    pad.set_len(700_000_000).unwrap();
+    let out = with_disk(&["run", "--out", "r2"], "2e7", p);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(err.contains("(0.70 GB of it there already)"), "{err}");
+    pad.set_len(750_000_000).unwrap();
+    let out = with_disk(&["run", "--out", "r2"], "2e7", p);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(!err.contains("GB are free"), "{err}");
+    // With all eight depth layers of every frame kept they would not: a warning.
+    let most = 739.0 * 20.0 * 320.0 * 200.0 * 4.0 / 1e9;
+    assert!(
+        err.contains(&format!("may write up to {most:.2} GB under r2")),
+        "{err}"
+    );
+    assert!(
+        err.contains("holds a run's `runs` but no config.json"),
+        "{err}"
+    );
+    assert!(
+        !p.join("r2/config.json").exists(),
+        "a refused run wrote its configuration"
+    );
+    // `datagen render` too: 200 ambiguity items are 600 frames of 4 planes at 80 × 50.
+    let out = with_disk(&tiny_dataset_of("ds", "200"), "1e6", p);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("datagen render: writes at least 0.04 GB under ds"),
+        "{err}"
+    );
+    assert!(!p.join("ds").exists(), "a refused render wrote something");
+    // A cap that is no number is named.
+    let out = with_disk(&["run", "--out", "r3"], "lots", p);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("NANOEYE_DISK_BYTES"));
 }

@@ -252,3 +252,51 @@ fn a_refused_render_writes_nothing_and_the_corrected_one_runs() {
     write_dataset(&opts(&out, 1)).unwrap();
     assert!(out.join("dataset.json").is_file());
 }
+
+/// Bytes of an NPY file's payload: its length less the preamble (version 1 or 2/3).
+fn npy_payload(bytes: &[u8]) -> u64 {
+    let header = match bytes[6] {
+        1 => 10 + u16::from_le_bytes([bytes[8], bytes[9]]) as usize,
+        _ => 12 + u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+    };
+    (bytes.len() - header) as u64
+}
+
+#[test]
+fn the_array_bytes_estimate_is_what_the_writer_writes() {
+    use nanoeye_datagen::render::dataset::dataset_array_bytes;
+    let d = tempfile::tempdir().unwrap();
+    let o = DatasetOptions {
+        set: RenderSet::Envelope,
+        n: 3,
+        ..opts(d.path(), 2)
+    };
+    let (least, most) = dataset_array_bytes(&o).unwrap();
+    write_dataset(&o).unwrap();
+    let all = files(d.path());
+    let written: u64 = all
+        .iter()
+        .filter(|(p, _)| p.ends_with(".npy"))
+        .map(|(_, b)| npy_payload(b))
+        .sum();
+    // Exactly the least plus two planes per kept layer, as the frames' records list them.
+    let kept: usize = all
+        .iter()
+        .filter(|(p, _)| p.starts_with("frames/") && p.ends_with(".json"))
+        .map(|(_, b)| {
+            let r: serde_json::Value = serde_json::from_slice(b).unwrap();
+            r["layers"].as_array().unwrap().len()
+        })
+        .sum();
+    assert!(kept > 0, "no layer kept");
+    let plane = 64 * 40 * 4;
+    assert_eq!(written, least + 2 * plane * kept as u64);
+    assert!(
+        least < written && written <= most,
+        "{least} {written} {most}"
+    );
+    assert_eq!(
+        most - least,
+        3 * 2 * plane * LayerSpec::default().count as u64
+    );
+}

@@ -514,6 +514,21 @@ pub fn manifest_for(opts: &DatasetOptions) -> Result<DatasetManifest, RenderErro
     })
 }
 
+/// Bytes of array data (NPY payloads, headers excluded) `write_dataset` writes for `opts`, as
+/// (least, most): every frame writes its radiance, depth and two masks (four f32 planes) and
+/// its non-empty depth layers (two f32 planes each): least with none kept, most with all
+/// `layers.count`. Previews, mask PNGs and records add about 1 % at the default size.
+pub fn dataset_array_bytes(opts: &DatasetOptions) -> Result<(u64, u64), RenderError> {
+    let m = manifest_for(opts)?;
+    let plane = (m.rig.camera.width_px as u64)
+        .saturating_mul(m.rig.camera.height_px as u64)
+        .saturating_mul(4);
+    let frames = m.frames as u64;
+    let least = frames.saturating_mul(plane.saturating_mul(4));
+    let layers = frames.saturating_mul(plane.saturating_mul(2 * opts.layers.count as u64));
+    Ok((least, least.saturating_add(layers)))
+}
+
 /// FNV-1a over the mesh's vertex bits and classes: identifies the geometry a dataset used.
 fn mesh_hash(m: &Mesh) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
