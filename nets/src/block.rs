@@ -297,16 +297,23 @@ impl MbBlock {
             )));
         }
         let mid = self.mid_for(e);
-        // Each batch norm applies the activation after it in the same pass (`forward_act`).
-        let a1 = match &self.expand {
-            Some(w1) => {
-                let u1 = pointwise_forward(x, &w1.value[..mid * self.cin], mid, None)?;
-                Some(self.bn1.forward_act(u1, mode, self.act)?)
-            }
-            None => None,
-        };
-        let (kernel, c25, c9) =
-            elastic_kernel(&self.dw.value, &self.t5.value, &self.t3.value, mid, k);
+        let (cin, act) = (self.cin, self.act);
+        // The elastic kernel does not depend on x: its small serial GEMMs run beside the
+        // expansion, which would otherwise leave the pool's other thread idle for them.
+        let (a1, (kernel, c25, c9)) = rayon::join(
+            // Each batch norm applies the activation after it in the same pass (`forward_act`).
+            || -> Result<Option<Tensor>> {
+                match &self.expand {
+                    Some(w1) => {
+                        let u1 = pointwise_forward(x, &w1.value[..mid * cin], mid, None)?;
+                        Ok(Some(self.bn1.forward_act(u1, mode, act)?))
+                    }
+                    None => Ok(None),
+                }
+            },
+            || elastic_kernel(&self.dw.value, &self.t5.value, &self.t3.value, mid, k),
+        );
+        let a1 = a1?;
         let u2 = depthwise_forward(a1.as_ref().unwrap_or(x), &kernel, k, self.stride)?;
         let a2 = self.bn2.forward_act(u2, mode, self.act)?;
         let se = match &self.se {
@@ -401,26 +408,36 @@ impl MbBlock {
         let mut dk = vec![0.0f32; c.kernel.len()];
         let a1 = c.a1.as_ref().unwrap_or(&c.x);
         let da1 = depthwise_vjp(a1, &c.kernel, c.k, self.stride, &du2, &mut dk)?;
-        elastic_kernel_vjp(
-            &self.t5.value,
-            &self.t3.value,
-            &c.c25,
-            &c.c9,
-            mid,
-            c.k,
-            &dk,
-            &mut self.dw.grad,
-            &mut self.t5.grad,
-            &mut self.t3.grad,
+        let cin = self.cin;
+        // The elastic kernel's VJP (small serial GEMMs) beside the expansion's backward: the
+        // two touch disjoint parameters.
+        let (dx, ()) = rayon::join(
+            || -> Result<Tensor> {
+                match (&mut self.expand, &c.a1) {
+                    (Some(w1), Some(_)) => {
+                        let du1 = self.bn1.backward_owned(da1)?;
+                        let (wv, wg) = (&w1.value[..mid * cin], &mut w1.grad[..mid * cin]);
+                        pointwise_vjp(&c.x, wv, mid, &du1, wg, None)
+                    }
+                    _ => Ok(da1),
+                }
+            },
+            || {
+                elastic_kernel_vjp(
+                    &self.t5.value,
+                    &self.t3.value,
+                    &c.c25,
+                    &c.c9,
+                    mid,
+                    c.k,
+                    &dk,
+                    &mut self.dw.grad,
+                    &mut self.t5.grad,
+                    &mut self.t3.grad,
+                )
+            },
         );
-        let mut dx = match (&mut self.expand, &c.a1) {
-            (Some(w1), Some(_)) => {
-                let du1 = self.bn1.backward_owned(da1)?;
-                let (wv, wg) = (&w1.value[..mid * self.cin], &mut w1.grad[..mid * self.cin]);
-                pointwise_vjp(&c.x, wv, mid, &du1, wg, None)?
-            }
-            _ => da1,
-        };
+        let mut dx = dx?;
         if self.residual() {
             dx.add_assign(dy);
         }

@@ -189,7 +189,7 @@ impl Supernet {
         let mut h = self.stem_bn.forward_act(u0, mode, Act::HSwish)?;
         h = self.blocks[0].forward(&h, 3, 1, mode)?;
         let f2 = h.clone();
-        let mut f8 = h.clone();
+        let mut f8 = None;
         let mut active = Vec::new();
         for s in 0..N_STAGES {
             for b in 0..arch.depth[s] {
@@ -198,9 +198,11 @@ impl Supernet {
                 active.push((1 + l, s));
             }
             if s == 1 {
-                f8 = h.clone();
+                f8 = Some(h.clone());
             }
         }
+        // Stage 1's output, which the loop above always reaches.
+        let f8 = f8.ok_or_else(|| NetsError::Shape("the supernet has no stage 1".into()))?;
         let f32_ = h;
         // Perception decoder.
         let p32 = self.dec[0].forward(&f32_)?;
