@@ -467,18 +467,7 @@ pub const MEMORY_ENV: &str = "NANOEYE_MEMORY_BYTES";
 /// `MemAvailable`, what the memory control groups allow and what the address-space limit
 /// (`ulimit -v`) leaves this process; None where none of them is known.
 pub fn memory_budget() -> Result<Option<u64>> {
-    let cap = match std::env::var(MEMORY_ENV) {
-        Ok(v) => Some(
-            v.trim()
-                .parse::<f64>()
-                .ok()
-                .filter(|b| b.is_finite() && *b >= 1.0)
-                .with_context(|| {
-                    format!("{MEMORY_ENV}: expected a number of bytes ≥ 1, got '{v}'")
-                })? as u64,
-        ),
-        Err(_) => None,
-    };
+    let cap = env_bytes(MEMORY_ENV, 1.0)?;
     let have = nanoeye_datagen::render::dataset::available_memory().map(|b| b as u64);
     Ok([cap, have, address_space_left()]
         .into_iter()
@@ -537,18 +526,24 @@ pub const DISK_ENV: &str = "NANOEYE_DISK_BYTES";
 /// Bytes an unprivileged writer may still write on the file system that holds `path` (or its
 /// nearest existing ancestor), capped by [`DISK_ENV`]; None where neither is known.
 pub fn disk_free(path: &Path) -> Result<Option<u64>> {
-    let cap = match std::env::var(DISK_ENV) {
-        Ok(v) => Some(
+    let cap = env_bytes(DISK_ENV, 0.0)?;
+    Ok([cap, fs_free(path)].into_iter().flatten().min())
+}
+
+/// The byte count environment variable `name` holds (a number ≥ `least`), None where unset.
+fn env_bytes(name: &str, least: f64) -> Result<Option<u64>> {
+    match std::env::var(name) {
+        Ok(v) => Ok(Some(
             v.trim()
                 .parse::<f64>()
                 .ok()
-                .filter(|b| b.is_finite() && *b >= 0.0)
-                .with_context(|| format!("{DISK_ENV}: expected a number of bytes ≥ 0, got '{v}'"))?
-                as u64,
-        ),
-        Err(_) => None,
-    };
-    Ok([cap, fs_free(path)].into_iter().flatten().min())
+                .filter(|b| b.is_finite() && *b >= least)
+                .with_context(|| {
+                    format!("{name}: expected a number of bytes ≥ {least}, got '{v}'")
+                })? as u64,
+        )),
+        Err(_) => Ok(None),
+    }
 }
 
 /// `statvfs`'s blocks available to unprivileged users × fragment size, for `path`'s nearest

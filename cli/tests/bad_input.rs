@@ -2673,14 +2673,19 @@ fn select_marks_a_pair_of_the_sweep_and_writes_no_null() {
     }
 }
 
-/// `nanoeye args` in `cwd` with the memory budget capped at `bytes`.
-fn with_memory(args: &[&str], bytes: &str, cwd: &Path) -> std::process::Output {
+/// `nanoeye args` in `cwd` with environment variable `var` set to `bytes`.
+fn with_env(var: &str, args: &[&str], bytes: &str, cwd: &Path) -> std::process::Output {
     std::process::Command::new(common::BIN)
         .args(args)
         .current_dir(cwd)
-        .env("NANOEYE_MEMORY_BYTES", bytes)
+        .env(var, bytes)
         .output()
         .expect("run nanoeye")
+}
+
+/// `nanoeye args` in `cwd` with the memory budget capped at `bytes`.
+fn with_memory(args: &[&str], bytes: &str, cwd: &Path) -> std::process::Output {
+    with_env("NANOEYE_MEMORY_BYTES", args, bytes, cwd)
 }
 
 /// Under `ulimit -v` a plan may take half what the limit leaves: the allocator reserves
@@ -3531,12 +3536,7 @@ fn a_bad_value_in_a_rig_or_state_is_named_by_its_path() {
 
 /// `nanoeye args` in `cwd` with the free disk space capped at `bytes`.
 fn with_disk(args: &[&str], bytes: &str, cwd: &Path) -> std::process::Output {
-    std::process::Command::new(common::BIN)
-        .args(args)
-        .current_dir(cwd)
-        .env("NANOEYE_DISK_BYTES", bytes)
-        .output()
-        .expect("run nanoeye")
+    with_env("NANOEYE_DISK_BYTES", args, bytes, cwd)
 }
 
 /// The main job writes about 4.4 GB at its defaults (session 56's CI failed on a full disk):
