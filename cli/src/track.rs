@@ -383,6 +383,18 @@ enum FrameError {
     Solve(String),
 }
 
+/// Slippage (m, the estimate's length) past which a frame's estimate is marked out of range:
+/// the supplement's datasets slip at most 25 mm (Table S2: the anchor's ≤ 20 mm along the
+/// bridge plus slip+'s ≤ 5 mm) and the main job's training envelope at most about 25.6 mm
+/// (20 mm along the bridge plus the stage's box, x ±2.5 mm and z ±5 mm). Past 30 mm the frame
+/// is unlike anything the network learned from (noise frames gave estimates of kilometres).
+const SLIP_RANGE_M: f64 = 0.030;
+
+/// Whether slippage estimate `s` (m) lies within [`SLIP_RANGE_M`] (false for a NaN).
+fn slip_in_range(s: &[f64]) -> bool {
+    s.iter().map(|v| v * v).sum::<f64>().sqrt() <= SLIP_RANGE_M
+}
+
 fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, FrameError> {
     let (h, w) = m.shape;
     if let Some(e) = off_grid((img.nrows(), img.ncols()), m.shape) {
@@ -428,6 +440,7 @@ fn track_one(m: &mut Model, img: &Mat<f32>) -> Result<serde_json::Value, FrameEr
         "gaze": sol.gaze,
         "pupil_px": sol.pupil_px,
         "slip_m": slip,
+        "slip_in_range": slip_in_range(&slip),
         "confidence": conf,
         "fallback": sol.fallback,
     }))
@@ -558,6 +571,16 @@ pub fn track(a: TrackArgs) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Table S2's largest slip (25 mm) is in range, kilometres and NaN are not.
+    #[test]
+    fn slippage_past_30_mm_is_out_of_range() {
+        assert!(slip_in_range(&[0.0, -0.020, 0.005]));
+        assert!(slip_in_range(&[0.018, 0.0, -0.0239]));
+        assert!(!slip_in_range(&[0.018, 0.0, -0.0241]));
+        assert!(!slip_in_range(&[2e3, 0.0, 0.0]));
+        assert!(!slip_in_range(&[f64::NAN, 0.0, 0.0]));
+    }
 
     /// A raw frame: header with `reserved` in its fourth field, then w·h DN values.
     fn raw(w: u32, h: u32, reserved: u32, dn: f32) -> Vec<u8> {

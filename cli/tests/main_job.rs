@@ -316,6 +316,10 @@ fn the_main_job_runs_end_to_end_on_a_tiny_config() {
         let n = g.iter().map(|v| v * v).sum::<f64>().sqrt();
         assert!((n - 1.0).abs() < 1e-9, "{l}");
         assert!(l["latency_us"].as_u64().is_some());
+        // The slippage estimate is marked in or out of the 30 mm range by its length.
+        let s: Vec<f64> = serde_json::from_value(l["slip_m"].clone()).unwrap();
+        let len = s.iter().map(|v| v * v).sum::<f64>().sqrt();
+        assert_eq!(l["slip_in_range"].as_bool(), Some(len <= 0.030), "{l}");
     }
     assert!(
         lines[3]["error"].as_str().unwrap().contains("b.npy"),
