@@ -879,9 +879,13 @@ pub fn run(a: RunArgs) -> Result<()> {
         .clone()
         .unwrap_or_else(|| PathBuf::from(format!("nanoeye-run-{}", cfg.seed)));
     util::check_not_dataset(&out)?;
-    check_job_disk(&out, &cfg)?;
-    std::fs::create_dir_all(&out).with_context(|| format!("--out {}", out.display()))?;
     let cpath = out.join("config.json");
+    // A new run's disk is checked before anything is written: a configuration left behind by
+    // a refused run would refuse the smaller one its message asks for.
+    if !cpath.exists() {
+        check_job_disk(&out, &cfg)?;
+    }
+    std::fs::create_dir_all(&out).with_context(|| format!("--out {}", out.display()))?;
     if let Some(text) = util::read_record(&cpath, util::MAX_RECORD_BYTES).context("--out")? {
         let old: RunConfig = serde_json::from_str(&text)
             .with_context(|| format!("--out: {} is not a run configuration", cpath.display()))?;
@@ -908,6 +912,11 @@ pub fn run(a: RunArgs) -> Result<()> {
                 out.display(),
                 differing_keys(&serde_json::to_value(&old)?, &now)
             );
+        }
+        // A resumed run needs the disk for what it has not written; a finished one is only
+        // reported again.
+        if !out.join("result.json").exists() {
+            check_job_disk(&out, &cfg)?;
         }
     } else {
         // Without its configuration a run's results and checkpoints cannot be told apart from

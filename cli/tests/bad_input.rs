@@ -3589,6 +3589,23 @@ fn run_refuses_a_disk_its_rendered_sets_cannot_fit() {
         !p.join("r2/config.json").exists(),
         "a refused run wrote its configuration"
     );
+    // A resume is checked after its configuration: another configuration is named as such,
+    // and the same one is refused for the disk it still needs.
+    let printed = nanoeye(&["run", "--print-config", "--set", "seed=5"], p);
+    assert!(printed.status.success());
+    std::fs::create_dir_all(p.join("r4")).unwrap();
+    std::fs::write(p.join("r4/config.json"), &printed.stdout).unwrap();
+    let out = with_disk(&["run", "--out", "r4"], "1e6", p);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("another configuration") && err.contains("seed"),
+        "{err}"
+    );
+    let out = with_disk(&["run", "--out", "r4", "--set", "seed=5"], "1e6", p);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(err.contains("0.00 GB are free there"), "{err}");
     // `datagen render` too: 200 ambiguity items are 600 frames of 4 planes at 80 × 50.
     let out = with_disk(&tiny_dataset_of("ds", "200"), "1e6", p);
     let err = String::from_utf8_lossy(&out.stderr);
