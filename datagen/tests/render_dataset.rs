@@ -253,15 +253,6 @@ fn a_refused_render_writes_nothing_and_the_corrected_one_runs() {
     assert!(out.join("dataset.json").is_file());
 }
 
-/// Bytes of an NPY file's payload: its length less the preamble (version 1 or 2/3).
-fn npy_payload(bytes: &[u8]) -> u64 {
-    let header = match bytes[6] {
-        1 => 10 + u16::from_le_bytes([bytes[8], bytes[9]]) as usize,
-        _ => 12 + u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
-    };
-    (bytes.len() - header) as u64
-}
-
 #[test]
 fn the_array_bytes_estimate_is_what_the_writer_writes() {
     use nanoeye_datagen::render::dataset::dataset_array_bytes;
@@ -277,7 +268,10 @@ fn the_array_bytes_estimate_is_what_the_writer_writes() {
     let written: u64 = all
         .iter()
         .filter(|(p, _)| p.ends_with(".npy"))
-        .map(|(_, b)| npy_payload(b))
+        .map(|(_, b)| {
+            let c = nanoeye_npy::claim(b, b.len() as u64).unwrap().unwrap();
+            c.data_bytes as u64
+        })
         .sum();
     // Exactly the least plus two planes per kept layer, as the frames' records list them.
     let kept: usize = all
