@@ -459,6 +459,7 @@ pub fn track(a: TrackArgs) -> Result<()> {
     // many): the tracker goes on past them, then exits non-zero.
     let mut invalid: Option<(usize, String, String)> = None;
     let mut n_invalid = 0usize;
+    let mut far = SlipTally::default();
     let mut emit = |i: usize, name: &str, f: std::result::Result<Mat<f32>, String>| -> Result<()> {
         let t = Instant::now();
         let ran = f.is_ok();
@@ -477,6 +478,7 @@ pub fn track(a: TrackArgs) -> Result<()> {
         });
         let line = match r {
             Ok(mut v) => {
+                far.note(i, &v);
                 v["frame"] = i.into();
                 v["source"] = name.into();
                 v["latency_us"] = us.into();
@@ -559,6 +561,9 @@ pub fn track(a: TrackArgs) -> Result<()> {
         }
     }
     out.flush()?;
+    if let Some(w) = far.warning() {
+        eprintln!("{w}");
+    }
     if let Some((i, name, e)) = invalid {
         let e = e.strip_prefix(&format!("{name}: ")).unwrap_or(&e);
         bail!(
@@ -568,9 +573,58 @@ pub fn track(a: TrackArgs) -> Result<()> {
     Ok(())
 }
 
+/// Tracked frames whose slippage estimate left [`SLIP_RANGE_M`]: how many, of how many, and
+/// the first one's index, for one line on stderr after the stream (each frame's line says it
+/// too, but a reader of a long stream should not have to scan for it).
+#[derive(Default)]
+struct SlipTally {
+    tracked: usize,
+    far: usize,
+    first: Option<usize>,
+}
+
+impl SlipTally {
+    /// Counts frame `i`'s result line `v`.
+    fn note(&mut self, i: usize, v: &serde_json::Value) {
+        self.tracked += 1;
+        if v["slip_in_range"] == false {
+            self.far += 1;
+            self.first.get_or_insert(i);
+        }
+    }
+
+    /// The warning, when any tracked frame's slippage was out of range.
+    fn warning(&self) -> Option<String> {
+        let first = self.first?;
+        Some(format!(
+            "warning: {} of {} tracked frames estimated a slippage beyond {:.0} mm (first: frame \
+             {first}), outside what the model was trained on; their gaze is an extrapolation",
+            self.far,
+            self.tracked,
+            SLIP_RANGE_M * 1e3
+        ))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The stream's warning counts the frames out of range and names the first; none is
+    /// printed when every frame is in range.
+    #[test]
+    fn the_tally_counts_frames_with_slippage_out_of_range() {
+        let mut t = SlipTally::default();
+        t.note(0, &serde_json::json!({"slip_in_range": true}));
+        t.note(1, &serde_json::json!({"slip_in_range": true}));
+        assert_eq!(t.warning(), None);
+        t.note(2, &serde_json::json!({"slip_in_range": false}));
+        t.note(3, &serde_json::json!({"slip_in_range": true}));
+        t.note(4, &serde_json::json!({"slip_in_range": false}));
+        let w = t.warning().expect("a warning");
+        assert!(w.contains("2 of 5 tracked frames"), "{w}");
+        assert!(w.contains("beyond 30 mm (first: frame 2)"), "{w}");
+    }
 
     /// Table S2's largest slip (25 mm) is in range, kilometres and NaN are not.
     #[test]
