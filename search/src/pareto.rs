@@ -151,24 +151,32 @@ pub fn seed_differences(a: &[LensFrames], b: &[LensFrames]) -> Option<Vec<f64>> 
 
 /// The mean of `d` (one value per training seed, degrees) with its Student's t central 90 %
 /// interval, mean ± t₀.₉₅,ₙ₋₁·s/√n with s the sample standard deviation: how far the seeds
-/// place the mean. None for fewer than two values or a value not finite.
+/// place the mean. None for fewer than two values, a value not finite, or an interval past
+/// f64's range.
 pub fn seed_interval(d: &[f64]) -> Option<Interval> {
     use statrs::distribution::{ContinuousCDF, StudentsT};
     let n = d.len();
     if n < 2 || d.iter().any(|v| !v.is_finite()) {
         return None;
     }
-    let mean = d.iter().sum::<f64>() / n as f64;
-    let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    // The sums run on d / 2^e with 2^e near the largest |d|, so that neither Σd nor the squares
+    // overflow for finite values near f64::MAX (they gave ±∞ and NaN); scaling by a power of
+    // two is exact, so ordinary values get the unscaled formula's bits.
+    let top = d.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let e = if top > 0.0 {
+        (top.log2().floor() as i64).clamp(-1022, 1023)
+    } else {
+        0
+    };
+    let scale = f64::from_bits(((e + 1023) as u64) << 52);
+    let mean = d.iter().map(|v| v / scale).sum::<f64>() / n as f64;
+    let var = d.iter().map(|v| (v / scale - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
     let t = StudentsT::new(0.0, 1.0, (n - 1) as f64)
         .ok()?
         .inverse_cdf(0.95);
     let half = t * (var / n as f64).sqrt();
-    Some(Interval {
-        value: mean,
-        lo: mean - half,
-        hi: mean + half,
-    })
+    let (value, lo, hi) = (mean * scale, (mean - half) * scale, (mean + half) * scale);
+    (value.is_finite() && lo.is_finite() && hi.is_finite()).then_some(Interval { value, lo, hi })
 }
 
 /// An estimate with its central 90 % bootstrap interval (degrees).
@@ -582,5 +590,122 @@ mod tests {
         let mut bad = a.clone();
         bad.errors_deg[1][2] = f64::NAN;
         assert!(bootstrap(&[a, bad], &c, 10, 0).is_err());
+    }
+}
+
+/// Extreme but legal inputs: MACs over the whole u64 range, V over every finite magnitude (and
+/// NaN and infinities where a caller might pass them), ties in both.
+#[cfg(test)]
+mod props {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// A V: mostly degrees, sometimes extreme, equal or not finite.
+    fn v_deg() -> impl Strategy<Value = f64> {
+        prop_oneof![
+            6 => 0.0..180.0f64,
+            2 => -1e300..1e300f64,
+            1 => prop::sample::select(vec![0.0, 1.0, f64::MAX, -f64::MAX, f64::MIN_POSITIVE]),
+            1 => prop::sample::select(vec![f64::NAN, f64::INFINITY, f64::NEG_INFINITY]),
+        ]
+    }
+
+    fn points() -> impl Strategy<Value = Vec<Point>> {
+        let macs = prop_oneof![0..64u64, any::<u64>()];
+        prop::collection::vec((macs, v_deg()), 0..40).prop_map(|v| {
+            v.into_iter()
+                .map(|(macs, v_deg)| Point { macs, v_deg })
+                .collect()
+        })
+    }
+
+    /// `p` at most as costly and as wrong as `q`, and better in one.
+    fn beats(p: &Point, q: &Point) -> bool {
+        p.macs <= q.macs && p.v_deg <= q.v_deg && (p.macs < q.macs || p.v_deg < q.v_deg)
+    }
+
+    proptest! {
+        /// The front holds finite input points, strictly cheaper and strictly better in
+        /// turn; no input point beats one of them, and each finite input point is matched or
+        /// beaten by one of them.
+        #[test]
+        fn the_front_is_what_nothing_beats(pts in points()) {
+            let f = front(&pts);
+            for w in f.windows(2) {
+                prop_assert!(w[0].macs < w[1].macs && w[0].v_deg > w[1].v_deg, "{f:?}");
+            }
+            for q in &f {
+                prop_assert!(q.v_deg.is_finite() && pts.contains(q));
+                prop_assert!(!pts.iter().filter(|p| p.v_deg.is_finite()).any(|p| beats(p, q)));
+            }
+            for p in pts.iter().filter(|p| p.v_deg.is_finite()) {
+                prop_assert!(f.iter().any(|q| q.macs <= p.macs && q.v_deg <= p.v_deg), "{p:?}");
+            }
+        }
+
+        /// Dominance is irreflexive and antisymmetric, and a front shifted to a lower V at the
+        /// same MACs dominates the original.
+        #[test]
+        fn dominance_is_a_strict_order(a in points(), b in points()) {
+            let (fa, fb) = (front(&a), front(&b));
+            prop_assert!(!dominates(&fa, &fa));
+            prop_assert!(!(dominates(&fa, &fb) && dominates(&fb, &fa)));
+            let lower: Vec<Point> = fa
+                .iter()
+                .map(|p| Point { macs: p.macs, v_deg: p.v_deg - 1.0f64.max(p.v_deg.abs() * 1e-9) })
+                .collect();
+            if !fa.is_empty() && lower.iter().all(|p| p.v_deg.is_finite()) {
+                prop_assert!(dominates(&lower, &fa) && !dominates(&fa, &lower));
+            }
+        }
+
+        /// Any finite seeds' differences up to 1e300 give a finite interval around their
+        /// mean, the mean inside their range (to its round-off); near f64::MAX a finite
+        /// interval or none, never ±∞ or NaN.
+        #[test]
+        fn the_seed_interval_is_finite_and_holds_the_mean(
+            d in prop::collection::vec(-1e300..1e300f64, 0..12),
+            edge in prop::collection::vec(
+                prop::sample::select(vec![f64::MAX, -f64::MAX, 1e308, -1e308, 0.0]),
+                2..6,
+            ),
+        ) {
+            match seed_interval(&d) {
+                None => prop_assert!(d.len() < 2),
+                Some(i) => {
+                    prop_assert!(i.value.is_finite() && i.lo.is_finite() && i.hi.is_finite());
+                    prop_assert!(i.lo <= i.value && i.value <= i.hi, "{i:?}");
+                    let (lo, hi) = d.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+                        (l.min(v), h.max(v))
+                    });
+                    // The mean of equal values can round an ulp past them.
+                    let ulps = 4.0 * f64::EPSILON * lo.abs().max(hi.abs());
+                    prop_assert!(
+                        lo - ulps <= i.value && i.value <= hi + ulps,
+                        "{i:?} outside {lo}..{hi}"
+                    );
+                }
+            }
+            if let Some(i) = seed_interval(&edge) {
+                prop_assert!(i.value.is_finite() && i.lo.is_finite() && i.hi.is_finite());
+            }
+        }
+
+        /// Differences of angles get the unscaled formula's bits: the scaling is exact.
+        #[test]
+        fn the_seed_interval_of_angles_is_the_plain_formulas(
+            d in prop::collection::vec(-180.0..180.0f64, 2..12),
+        ) {
+            use statrs::distribution::{ContinuousCDF, StudentsT};
+            let n = d.len() as f64;
+            let mean = d.iter().sum::<f64>() / n;
+            let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
+            let t = StudentsT::new(0.0, 1.0, n - 1.0).unwrap().inverse_cdf(0.95);
+            let half = t * (var / n).sqrt();
+            let i = seed_interval(&d).unwrap();
+            prop_assert_eq!(i.value.to_bits(), mean.to_bits());
+            prop_assert_eq!(i.lo.to_bits(), (mean - half).to_bits());
+            prop_assert_eq!(i.hi.to_bits(), (mean + half).to_bits());
+        }
     }
 }
