@@ -713,8 +713,92 @@ impl<'a> Rea<'a> {
 /// earlier individual.
 pub fn pick_best(evaluated: &[Individual], budget_macs: u64) -> Option<&Individual> {
     fn argmax<'a>(it: impl Iterator<Item = &'a Individual>) -> Option<&'a Individual> {
-        it.reduce(|a, b| if b.fitness > a.fitness { b } else { a })
+        // A NaN fitness ranks below every number: first in the list it would have beaten all
+        // (no comparison with NaN is true).
+        let key = |i: &Individual| {
+            if i.fitness.is_nan() {
+                f64::NEG_INFINITY
+            } else {
+                i.fitness
+            }
+        };
+        it.reduce(|a, b| if key(b) > key(a) { b } else { a })
     }
     let fits = |i: &&Individual| budget_macs == 0 || i.macs <= budget_macs;
     argmax(evaluated.iter().filter(fits)).or_else(|| argmax(evaluated.iter()))
+}
+
+#[cfg(test)]
+mod props {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn individual(id: usize, macs: u64, fitness: f64) -> Individual {
+        Individual {
+            id,
+            arch: Arch::min(),
+            macs,
+            v: -fitness,
+            fitness,
+            pitch_um: 14.0,
+            metrics: Metrics {
+                v_deg: -fitness,
+                median_deg: 0.0,
+                failures: 0,
+                dice: 0.0,
+                slip_mse: 0.0,
+                frames: 1,
+            },
+        }
+    }
+
+    proptest! {
+        /// Any MACs, fitnesses (infinities and NaN among them) and budget: the pick fits the
+        /// budget when any individual does; no individual it considers has a higher fitness,
+        /// a NaN is never picked over a number, and ties go to the earliest.
+        #[test]
+        fn the_pick_is_the_fittest_within_the_budget(
+            v in prop::collection::vec(
+                (
+                    prop_oneof![0..100u64, any::<u64>()],
+                    prop_oneof![
+                        4 => -180.0..0.0f64,
+                        1 => prop::sample::select(vec![
+                            f64::NAN, f64::INFINITY, f64::NEG_INFINITY, -f64::MAX, -10.0,
+                        ]),
+                    ],
+                ),
+                0..30,
+            ),
+            budget in prop_oneof![Just(0u64), 0..100u64, any::<u64>()],
+        ) {
+            let ind: Vec<Individual> =
+                v.iter().enumerate().map(|(i, &(m, f))| individual(i, m, f)).collect();
+            let Some(p) = pick_best(&ind, budget) else {
+                prop_assert!(ind.is_empty());
+                return Ok(());
+            };
+            let fits = |i: &Individual| budget == 0 || i.macs <= budget;
+            let pool: Vec<&Individual> = if ind.iter().any(fits) {
+                prop_assert!(fits(p));
+                ind.iter().filter(|i| fits(i)).collect()
+            } else {
+                ind.iter().collect()
+            };
+            for i in &pool {
+                prop_assert!(
+                    i.fitness.partial_cmp(&p.fitness) != Some(std::cmp::Ordering::Greater),
+                    "{} beats the pick {}",
+                    i.fitness,
+                    p.fitness
+                );
+                if p.fitness.is_nan() {
+                    prop_assert!(i.fitness.is_nan());
+                }
+                if i.fitness == p.fitness {
+                    prop_assert!(p.id <= i.id);
+                }
+            }
+        }
+    }
 }
