@@ -713,16 +713,15 @@ impl<'a> Rea<'a> {
 /// earlier individual.
 pub fn pick_best(evaluated: &[Individual], budget_macs: u64) -> Option<&Individual> {
     fn argmax<'a>(it: impl Iterator<Item = &'a Individual>) -> Option<&'a Individual> {
-        // A NaN fitness ranks below every number: first in the list it would have beaten all
-        // (no comparison with NaN is true).
-        let key = |i: &Individual| {
-            if i.fitness.is_nan() {
-                f64::NEG_INFINITY
-            } else {
-                i.fitness
-            }
+        // A NaN fitness ranks below every number, −∞ included: first in the list it would
+        // have beaten all (no comparison with NaN is true).
+        let beats = |b: &Individual, a: &Individual| match (a.fitness.is_nan(), b.fitness.is_nan())
+        {
+            (_, true) => false,
+            (true, false) => true,
+            (false, false) => b.fitness > a.fitness,
         };
-        it.reduce(|a, b| if key(b) > key(a) { b } else { a })
+        it.reduce(|a, b| if beats(b, a) { b } else { a })
     }
     let fits = |i: &&Individual| budget_macs == 0 || i.macs <= budget_macs;
     argmax(evaluated.iter().filter(fits)).or_else(|| argmax(evaluated.iter()))
@@ -750,6 +749,18 @@ mod props {
                 frames: 1,
             },
         }
+    }
+
+    /// The cases a NaN first in the list decided: it now loses to any number, −∞ included.
+    #[test]
+    fn a_nan_fitness_loses_to_any_number() {
+        for f in [f64::NEG_INFINITY, -f64::MAX, -3.0, 0.0] {
+            let ind = [individual(0, 5, f64::NAN), individual(1, 5, f)];
+            assert_eq!(pick_best(&ind, 0).map(|i| i.id), Some(1), "{f}");
+            assert_eq!(pick_best(&ind, 10).map(|i| i.id), Some(1), "{f}");
+        }
+        let nan = [individual(0, 5, f64::NAN), individual(1, 5, f64::NAN)];
+        assert_eq!(pick_best(&nan, 0).map(|i| i.id), Some(0));
     }
 
     proptest! {
