@@ -265,14 +265,14 @@ fn export(
                 lid_closure: 1.0,
                 ..state
             })?;
-            if let (Some(given), Some(known)) = (given.as_object(), known.as_object()) {
-                if let Some(k) = given.keys().find(|k| !known.contains_key(*k)) {
-                    let keys: Vec<&str> = known.keys().map(String::as_str).collect();
-                    bail!(
-                        "--state: unknown key '{k}'; a state has {}",
-                        keys.join(", ")
-                    );
-                }
+            if let (Some(given), Some(known)) = (given.as_object(), known.as_object())
+                && let Some(k) = given.keys().find(|k| !known.contains_key(*k))
+            {
+                let keys: Vec<&str> = known.keys().map(String::as_str).collect();
+                bail!(
+                    "--state: unknown key '{k}'; a state has {}",
+                    keys.join(", ")
+                );
             }
             state
         }

@@ -130,14 +130,14 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
     // file:OUT/phase.npy` was replaced by the run's own phase map).
     for name in OUTPUTS {
         util::check_output_target(&a.out.join(name)).with_context(|| format!("--out {name}"))?;
-        if let LensSpec::File(f) = &spec {
-            if util::same_file(&a.out.join(name), f) {
-                bail!(
-                    "--out: its {name} is --lens {}; give another --out (or copy the lens \
+        if let LensSpec::File(f) = &spec
+            && util::same_file(&a.out.join(name), f)
+        {
+            bail!(
+                "--out: its {name} is --lens {}; give another --out (or copy the lens \
                      out of it first)",
-                    f.display()
-                );
-            }
+                f.display()
+            );
         }
     }
     let ck = a.out.join("checkpoint.bin");

@@ -616,13 +616,13 @@ fn compare(a: CompareArgs) -> Result<()> {
     }
     // The montage replaces its path whole: a lens file there (an NPY named .png) was lost.
     for spec in &specs {
-        if let Some(f) = spec.strip_prefix("file:") {
-            if crate::util::same_file(&a.montage, Path::new(f)) {
-                bail!(
-                    "--montage: '{}' is the lens {spec}; give another path",
-                    a.montage.display()
-                );
-            }
+        if let Some(f) = spec.strip_prefix("file:")
+            && crate::util::same_file(&a.montage, Path::new(f))
+        {
+            bail!(
+                "--montage: '{}' is the lens {spec}; give another path",
+                a.montage.display()
+            );
         }
     }
     if specs.len() > MAX_LIST {

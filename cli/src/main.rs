@@ -246,12 +246,13 @@ fn short_numbers(msg: &str) -> String {
         }
         let long = if frac { i - start > 21 } else { i - start > 39 };
         let next_is_word = i < b.len() && (b[i].is_ascii_alphabetic() || b[i] == b'_');
-        if long && !next_is_word {
-            if let Ok(v) = msg[start..i].parse::<f64>() {
-                out.push_str(&msg[last..start]);
-                out.push_str(&format!("{v:e}"));
-                last = i;
-            }
+        if long
+            && !next_is_word
+            && let Ok(v) = msg[start..i].parse::<f64>()
+        {
+            out.push_str(&msg[last..start]);
+            out.push_str(&format!("{v:e}"));
+            last = i;
         }
     }
     out.push_str(&msg[last..]);

@@ -345,10 +345,10 @@ fn load_config(p: Option<&Path>) -> Result<RunConfig> {
             p.display()
         );
     } else {
-        if let Ok(v) = serde_json::from_str::<serde_json::Value>(text) {
-            if let Some(m) = util::array_for_object(&config_template()?, &v) {
-                bail!("--config {}: {m}", p.display());
-            }
+        if let Ok(v) = serde_json::from_str::<serde_json::Value>(text)
+            && let Some(m) = util::array_for_object(&config_template()?, &v)
+        {
+            bail!("--config {}: {m}", p.display());
         }
         serde_json::from_str(text).map_err(|e| match bad_json_key(text, &e) {
             Some(k) => anyhow::anyhow!("--config {}: key \"{k}\": {e}", p.display()),

@@ -945,7 +945,7 @@ pub fn rea(a: ReaArgs) -> Result<()> {
         )
         .map_err(io)?;
         bar.set_position((s.evaluated.len()) as u64);
-        if !tty && s.evaluated.len() % (total / 10).max(1) == 0 {
+        if !tty && s.evaluated.len().is_multiple_of((total / 10).max(1)) {
             eprintln!(
                 "evaluated {}/{total}, {:.0} s",
                 s.evaluated.len(),

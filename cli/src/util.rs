@@ -505,16 +505,16 @@ fn address_space_left() -> Option<u64> {
 /// out-of-memory kill would end it instead of an error): `what` names the settings that set
 /// the size, `fix` says which way to move them.
 pub fn check_memory(what: &str, need: u64, fix: &str) -> Result<()> {
-    if let Some(have) = memory_budget()? {
-        if need > have {
-            let gib = (1u64 << 30) as f64;
-            bail!(
-                "{what}: needs about {:.2} GiB, more than the {:.2} GiB this process may use \
+    if let Some(have) = memory_budget()?
+        && need > have
+    {
+        let gib = (1u64 << 30) as f64;
+        bail!(
+            "{what}: needs about {:.2} GiB, more than the {:.2} GiB this process may use \
                  (the least of {MEMORY_ENV}, MemAvailable, the cgroup limit and half what ulimit -v leaves); {fix}",
-                need as f64 / gib,
-                have as f64 / gib
-            );
-        }
+            need as f64 / gib,
+            have as f64 / gib
+        );
     }
     Ok(())
 }

@@ -954,10 +954,10 @@ fn mutate(valid: &Value, edits: &[JsonEdit]) -> String {
             JsonEdit::Scale(i, f) => {
                 let p = pick(i);
                 let t = v.pointer_mut(&p).unwrap();
-                if let Some(x) = t.as_f64() {
-                    if let Some(n) = serde_json::Number::from_f64(x * f) {
-                        *t = Value::Number(n);
-                    }
+                if let Some(x) = t.as_f64()
+                    && let Some(n) = serde_json::Number::from_f64(x * f)
+                {
+                    *t = Value::Number(n);
                 }
             }
             JsonEdit::Remove(i) => {

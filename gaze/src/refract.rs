@@ -502,11 +502,11 @@ mod tests {
             for el in (-80i32..=80).step_by(8) {
                 let g = eye::gaze_from_angles((az as f64).to_radians(), (el as f64).to_radians());
                 let p = geom::scale(g, rig.pupil_sphere_radius_m);
-                if let Ok(px) = project(c, &pose, p) {
-                    if let Ok(a) = r.solve_pixel(px, [0.0; 3]) {
-                        assert!(!a.fallback, "{az} {el}");
-                        solved += 1;
-                    }
+                if let Ok(px) = project(c, &pose, p)
+                    && let Ok(a) = r.solve_pixel(px, [0.0; 3])
+                {
+                    assert!(!a.fallback, "{az} {el}");
+                    solved += 1;
                 }
             }
         }

@@ -159,13 +159,13 @@ pub fn from_bytes(net: &mut Supernet, bytes: &[u8]) -> Result<()> {
                 v[i]
             )));
         }
-        if name.ends_with(".running_var") {
-            if let Some(i) = v.iter().position(|&x| x < 0.0) {
-                return Err(NetsError::Checkpoint(format!(
-                    "tensor '{name}' holds the negative variance {} at index {i}",
-                    v[i]
-                )));
-            }
+        if name.ends_with(".running_var")
+            && let Some(i) = v.iter().position(|&x| x < 0.0)
+        {
+            return Err(NetsError::Checkpoint(format!(
+                "tensor '{name}' holds the negative variance {} at index {i}",
+                v[i]
+            )));
         }
         loaded.push(v);
     }

@@ -1079,10 +1079,10 @@ fn assert_plane_path_backward(
     // of zero padding or of a masked lane with one is NaN, so a zero the path skips or a lane
     // it leaves unmasked shows, where with finite values adding ±0 to a sum changes nothing.
     let mut value = |i: usize, inf: bool| {
-        if i % 7 == 0 {
+        if i.is_multiple_of(7) {
             0.0
         } else if inf && rng.random_range(0..40) == 0 {
-            if i % 2 == 0 {
+            if i.is_multiple_of(2) {
                 f32::INFINITY
             } else {
                 f32::NEG_INFINITY

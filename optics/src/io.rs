@@ -124,13 +124,13 @@ pub fn write_stack_npy<W: Write>(stack: &PsfStack, w: W) -> std::io::Result<()> 
 /// Writes the stack to `path` atomically (temporary file in the same directory, then rename).
 pub fn save_stack_npy(stack: &PsfStack, path: &Path) -> Result<()> {
     // Renaming over a symlink, pipe, device or directory would replace that node silently.
-    if let Ok(m) = std::fs::symlink_metadata(path) {
-        if !m.file_type().is_file() {
-            return Err(io_err(
-                path,
-                std::io::Error::other("exists and is not a regular file; refusing to replace it"),
-            ));
-        }
+    if let Ok(m) = std::fs::symlink_metadata(path)
+        && !m.file_type().is_file()
+    {
+        return Err(io_err(
+            path,
+            std::io::Error::other("exists and is not a regular file; refusing to replace it"),
+        ));
     }
     let dir = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,

@@ -63,10 +63,10 @@ impl<T> Pool<T> {
 
     /// Keeps `v` unless `max` are kept already.
     fn give(&self, v: T) {
-        if let Ok(mut items) = self.items.lock() {
-            if items.len() < self.max {
-                items.push(v);
-            }
+        if let Ok(mut items) = self.items.lock()
+            && items.len() < self.max
+        {
+            items.push(v);
         }
     }
 }

@@ -242,7 +242,7 @@ pub fn fast_fft_size(n: usize) -> usize {
     loop {
         let mut r = m;
         for p in [2, 3, 5, 7] {
-            while r % p == 0 {
+            while r.is_multiple_of(p) {
                 r /= p;
             }
         }
@@ -1026,14 +1026,14 @@ impl AsmPsf {
     ) -> Result<Vec<Option<Mat<f64>>>> {
         self.check_map(map)?;
         Self::check_depths(depths_m)?;
-        if let Some(a) = active {
-            if a.len() != depths_m.len() {
-                return Err(OpticsError::Shape(format!(
-                    "active has {} flags for {} depths",
-                    a.len(),
-                    depths_m.len()
-                )));
-            }
+        if let Some(a) = active
+            && a.len() != depths_m.len()
+        {
+            return Err(OpticsError::Shape(format!(
+                "active has {} flags for {} depths",
+                a.len(),
+                depths_m.len()
+            )));
         }
         let samples = self.samples(map);
         let used = (0..depths_m.len())

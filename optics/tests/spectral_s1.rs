@@ -15,7 +15,11 @@ fn img(h: usize, w: usize, s: usize) -> Mat<f32> {
 fn alpha(h: usize, w: usize, s: usize) -> Mat<f32> {
     Mat::from_fn(h, w, |i, j| {
         let v = ((i * 3 + j * 11 + s) % 9) as f32 / 8.0;
-        if (i + j + s) % 5 == 0 { 0.0 } else { v }
+        if (i + j + s).is_multiple_of(5) {
+            0.0
+        } else {
+            v
+        }
     })
 }
 

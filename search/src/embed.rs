@@ -202,7 +202,7 @@ fn objective(
     grad: bool,
 ) -> Result<(EmbedEval, Option<Backward>)> {
     w.validate()?;
-    if frames.is_empty() || frames.len() % 3 != 0 {
+    if frames.is_empty() || !frames.len().is_multiple_of(3) {
         return Err(param(
             "frames",
             format!("need three per triplet, got {}", frames.len()),

@@ -362,16 +362,16 @@ fn io_err(path: &Path, source: std::io::Error) -> RenderError {
 /// Writes `bytes` to `path` atomically (temporary file in the same directory, then rename).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RenderError> {
     // Renaming over a symlink, pipe, device or directory would replace that node silently.
-    if let Ok(m) = std::fs::symlink_metadata(path) {
-        if !m.file_type().is_file() {
-            return Err(RenderError::Invalid {
-                what: "out",
-                reason: format!(
-                    "'{}' exists and is not a regular file; refusing to replace it",
-                    path.display()
-                ),
-            });
-        }
+    if let Ok(m) = std::fs::symlink_metadata(path)
+        && !m.file_type().is_file()
+    {
+        return Err(RenderError::Invalid {
+            what: "out",
+            reason: format!(
+                "'{}' exists and is not a regular file; refusing to replace it",
+                path.display()
+            ),
+        });
     }
     let dir = path.parent().unwrap_or(Path::new("."));
     // Named `.nanoeye-tmp-<pid>-…`: the CLI removes those a killed process left behind.

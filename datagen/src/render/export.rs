@@ -68,7 +68,7 @@ struct Builder {
 
 impl Builder {
     fn view(&mut self, bytes: &[u8], target: u32) -> usize {
-        while self.bin.len() % 4 != 0 {
+        while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
         }
         let offset = self.bin.len();
@@ -361,10 +361,10 @@ fn analytic_node(b: &mut Builder, nodes: &mut Vec<Value>, p: &Prim) -> usize {
 /// GLB container: 12-byte header, JSON chunk (space-padded), BIN chunk (zero-padded).
 fn glb(doc: &Value, mut bin: Vec<u8>) -> Vec<u8> {
     let mut js = doc.to_string().into_bytes();
-    while js.len() % 4 != 0 {
+    while !js.len().is_multiple_of(4) {
         js.push(b' ');
     }
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let total = 12 + 8 + js.len() + 8 + bin.len();

@@ -345,12 +345,12 @@ fn trace_sample(scene: &Scene, ray: &Ray, rng: &mut Rng64) -> Sample {
         radiance += f * diffuse(scene, &refl, &h2, rng);
     }
     let mut seen = None;
-    if let Some(inner) = inner {
-        if let Some(h2) = scene.closest(&inner, f64::INFINITY, LAYER_EYE) {
-            seen = Some(scene.material(h2.prim).kind);
-            // Radiance crossing the interface twice: the n² factors cancel, (1 − F) remains.
-            radiance += (1.0 - f) * diffuse(scene, &inner, &h2, rng);
-        }
+    if let Some(inner) = inner
+        && let Some(h2) = scene.closest(&inner, f64::INFINITY, LAYER_EYE)
+    {
+        seen = Some(scene.material(h2.prim).kind);
+        // Radiance crossing the interface twice: the n² factors cancel, (1 − F) remains.
+        radiance += (1.0 - f) * diffuse(scene, &inner, &h2, rng);
     }
     Sample {
         radiance,

@@ -27,7 +27,7 @@ const TASK_MACS: usize = 1 << 16;
 
 /// Whether a layer of `c` channels with this geometry goes through channel blocks.
 pub(super) fn takes(g: &Geom, c: usize) -> bool {
-    c % CB == 0 && g.ho * g.wo <= SMALL && g.ho * g.wo > 0 && has_fma()
+    c.is_multiple_of(CB) && g.ho * g.wo <= SMALL && g.ho * g.wo > 0 && has_fma()
 }
 
 /// Blocks of eight planes per rayon task.
