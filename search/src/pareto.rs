@@ -161,7 +161,9 @@ pub fn seed_interval(d: &[f64]) -> Option<Interval> {
     }
     // The sums run on d / 2^e with 2^e near the largest |d|, so that neither Σd nor the squares
     // overflow for finite values near f64::MAX (they gave ±∞ and NaN); scaling by a power of
-    // two is exact, so ordinary values get the unscaled formula's bits.
+    // two is exact, so values that stay normal once scaled get the unscaled formula's bits
+    // (a subnormal one loses low bits; values below ~1e-154, whose squares underflowed to a
+    // zero width before, now get their width).
     let top = d.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     let e = if top > 0.0 {
         (top.log2().floor() as i64).clamp(-1022, 1023)

@@ -663,7 +663,15 @@ impl<'a> Rea<'a> {
                 // argmax of fitness; ties go to the earlier tournament member.
                 let parent = *tour
                     .iter()
-                    .reduce(|a, b| if fitness(*b) > fitness(*a) { b } else { a })
+                    .reduce(|a, b| {
+                        // An unevaluated member (none is, once the cycle is ready) ranks last.
+                        let up = match (fitness(*b), fitness(*a)) {
+                            (Some(fb), Some(fa)) => fitter(fb, fa),
+                            (Some(_), None) => true,
+                            (None, _) => false,
+                        };
+                        if up { b } else { a }
+                    })
                     .expect("k ≥ 1");
                 let parent_arch = match self.state.evaluated.get(parent) {
                     Some(i) => &i.arch,
@@ -705,6 +713,16 @@ impl<'a> Rea<'a> {
     }
 }
 
+/// Whether fitness `b` ranks strictly above `a`: as numbers, with a NaN below every number, −∞
+/// included (first in a list, a NaN would otherwise beat all: no comparison with it is true).
+fn fitter(b: f64, a: f64) -> bool {
+    match (a.is_nan(), b.is_nan()) {
+        (_, true) => false,
+        (true, false) => true,
+        (false, false) => b > a,
+    }
+}
+
 /// The individual a search deploys: the best S19 fitness among those within `budget_macs`
 /// (C ≤ C_budget; every one when the budget is 0, none), so the lowest V there; only when
 /// none fits, the best fitness overall. S19's penalty γ steers the parents, but a subnet over
@@ -713,15 +731,7 @@ impl<'a> Rea<'a> {
 /// earlier individual.
 pub fn pick_best(evaluated: &[Individual], budget_macs: u64) -> Option<&Individual> {
     fn argmax<'a>(it: impl Iterator<Item = &'a Individual>) -> Option<&'a Individual> {
-        // A NaN fitness ranks below every number, −∞ included: first in the list it would
-        // have beaten all (no comparison with NaN is true).
-        let beats = |b: &Individual, a: &Individual| match (a.fitness.is_nan(), b.fitness.is_nan())
-        {
-            (_, true) => false,
-            (true, false) => true,
-            (false, false) => b.fitness > a.fitness,
-        };
-        it.reduce(|a, b| if beats(b, a) { b } else { a })
+        it.reduce(|a, b| if fitter(b.fitness, a.fitness) { b } else { a })
     }
     let fits = |i: &&Individual| budget_macs == 0 || i.macs <= budget_macs;
     argmax(evaluated.iter().filter(fits)).or_else(|| argmax(evaluated.iter()))
