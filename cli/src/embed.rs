@@ -135,7 +135,7 @@ pub fn embed(a: EmbedArgs) -> Result<()> {
         {
             bail!(
                 "--out: its {name} is --lens {}; give another --out (or copy the lens \
-                     out of it first)",
+                 out of it first)",
                 f.display()
             );
         }

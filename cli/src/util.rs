@@ -511,7 +511,7 @@ pub fn check_memory(what: &str, need: u64, fix: &str) -> Result<()> {
         let gib = (1u64 << 30) as f64;
         bail!(
             "{what}: needs about {:.2} GiB, more than the {:.2} GiB this process may use \
-                 (the least of {MEMORY_ENV}, MemAvailable, the cgroup limit and half what ulimit -v leaves); {fix}",
+             (the least of {MEMORY_ENV}, MemAvailable, the cgroup limit and half what ulimit -v leaves); {fix}",
             need as f64 / gib,
             have as f64 / gib
         );
