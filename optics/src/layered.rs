@@ -15,6 +15,8 @@ use rustfft::{Fft, FftNum, FftPlanner};
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
 
+mod tiled;
+
 /// Columns per block in the column pass of the 2-D FFT. A block of 32 columns of S1's
 /// 864-row paper-size grid is 442 KB, and the backward pass's two blocks stay in a 1 MB L2;
 /// each row then yields 512 contiguous bytes to the strided gather instead of 256 (16 columns:
@@ -121,6 +123,46 @@ fn adjoint_pixel(gain: f64, gv: f32, p: f32, o: f32, above: f32) -> (f64, f32, f
     (g * conv, (gain * g) as f32, -gv * p, gv * (1.0 - o))
 }
 
+/// One row of the PSF adjoint's pass ([`adjoint_pixel`] per pixel): the gradient's complex
+/// values into `gs`, ∂L/∂I⁽ᵏ⁻¹⁾ over `gi` in place, the dot product into `dots`, in
+/// [`DOT_LANES`] partial sums so that the pass vectorises (one running sum is a chain of
+/// dependent scalar adds).
+#[inline]
+fn adjoint_row(
+    gain: f64,
+    gi: &mut [f32],
+    prev: &[f32],
+    o: &[f32],
+    above: &[f32],
+    gs: &mut [c32],
+    dots: &mut [f64; DOT_LANES],
+) {
+    let w = gi.len();
+    let body = w - w % DOT_LANES;
+    for ((((gv, p), oo), ab), gs) in gi[..body]
+        .chunks_exact_mut(DOT_LANES)
+        .zip(prev[..body].chunks_exact(DOT_LANES))
+        .zip(o[..body].chunks_exact(DOT_LANES))
+        .zip(above[..body].chunks_exact(DOT_LANES))
+        .zip(gs[..body].chunks_exact_mut(DOT_LANES))
+    {
+        // Element-wise into arrays first, interleaved into the complex row after: with the
+        // store inside, the loop stays scalar.
+        let (mut re, mut im) = ([0.0f32; DOT_LANES], [0.0f32; DOT_LANES]);
+        for j in 0..DOT_LANES {
+            let (d, r, i, g) = adjoint_pixel(gain, gv[j], p[j], oo[j], ab[j]);
+            (dots[j], re[j], im[j], gv[j]) = (dots[j] + d, r, i, g);
+        }
+        for j in 0..DOT_LANES {
+            gs[j] = c32::new(re[j], im[j]);
+        }
+    }
+    for i in body..w {
+        let (d, r, im, g) = adjoint_pixel(gain, gi[i], prev[i], o[i], above[i]);
+        (dots[0], gs[i], gi[i]) = (dots[0] + d, c32::new(r, im), g);
+    }
+}
+
 /// Visits every (r, c) of an h × w matrix tile by tile, so that a column-major and a
 /// row-major array both stay within a few pages while they are copied into each other.
 #[inline]
@@ -209,6 +251,9 @@ pub struct LayeredImager {
     /// frame's accumulator needs one per kernel, 19 MB each at 1280×800, and fresh ones were
     /// most of the page faults of a backward pass.
     spare: Pool<Vec<c32>>,
+    /// The tiled spectral path's geometry, plans and work spaces, when it is used
+    /// ([`Self::with_tiles`]).
+    tiling: Option<tiled::Tiling>,
 }
 
 /// Per layer kept for the VJP: the image below it I⁽ᵏ⁻¹⁾ and its occlusion α∗P.
@@ -233,8 +278,46 @@ struct Buffers {
 }
 
 impl LayeredImager {
-    /// Imager for H×W images and W_p×W_p PSFs.
+    /// Imager for H×W images and W_p×W_p PSFs; its spectral path runs on tiles when the
+    /// padded grid is large (docs/optics.md, "Tiles"), else on the whole grid.
     pub fn new(height: usize, width: usize, psf_px: usize) -> Result<Self> {
+        let mut im = Self::whole(height, width, psf_px)?;
+        if let Some(t) = tiled::auto_tile(height, width, psf_px, im.ny * im.nx) {
+            im.tiling = Some(tiled::Tiling::new(height, width, psf_px, t));
+        }
+        Ok(im)
+    }
+
+    /// Imager whose spectral path runs on tiles of at least `tile`×`tile` pixels (widened
+    /// to fill the tiles' transform; at most the image's longer side), or on the whole
+    /// padded grid for `None`.
+    pub fn with_tiles(
+        height: usize,
+        width: usize,
+        psf_px: usize,
+        tile: Option<usize>,
+    ) -> Result<Self> {
+        let mut im = Self::whole(height, width, psf_px)?;
+        if let Some(t) = tile {
+            let most = height.max(width);
+            if t == 0 || t > most {
+                return Err(OpticsError::param(
+                    "tile",
+                    format!("must be 1..={most} pixels (the image's longer side), got {t}"),
+                ));
+            }
+            im.tiling = Some(tiled::Tiling::new(height, width, psf_px, t));
+        }
+        Ok(im)
+    }
+
+    /// The side of the tiles its spectral path runs on (`None`: the whole padded grid).
+    pub fn tile(&self) -> Option<usize> {
+        self.tiling.as_ref().map(|t| t.t)
+    }
+
+    /// Imager whose spectral path runs on the whole padded grid.
+    fn whole(height: usize, width: usize, psf_px: usize) -> Result<Self> {
         for (name, v) in [("height", height), ("width", width), ("psf_px", psf_px)] {
             if v == 0 || v > 16384 {
                 return Err(OpticsError::param(
@@ -255,6 +338,7 @@ impl LayeredImager {
             p32: Plans::new(ny, nx),
             pool: Pool::new(POOL_MAX),
             spare: Pool::new(SPARE_MAX),
+            tiling: None,
         })
     }
 
@@ -610,11 +694,17 @@ impl<'a> SpectralLayer<'a> {
                     .fold(m, |m, (&x, &y)| m.max((x * y).abs())),
             };
         }
-        if m > 0.0 && m.is_finite() {
-            2f32.powi((m.log2().ceil() as i32).clamp(-126, 127))
-        } else {
-            1.0
-        }
+        scale_of(m)
+    }
+}
+
+/// The power of two s ≥ `m` (1 when `m` is 0 or not finite): a layer's radiance scale from
+/// the largest |α·w·L| ([`SpectralLayer::radiance_scale`]).
+fn scale_of(m: f32) -> f32 {
+    if m > 0.0 && m.is_finite() {
+        2f32.powi((m.log2().ceil() as i32).clamp(-126, 127))
+    } else {
+        1.0
     }
 }
 
@@ -658,19 +748,28 @@ pub struct LayerSpectra {
     scales: Vec<f32>,
     nx: usize,
     ny: usize,
+    /// The tiles' side on the tiled path (0: the whole padded grid).
+    tile: usize,
+    /// On the tiled path, per layer the tiles it covers (row-major tile index), whose
+    /// spectra its entry holds one after the other; empty on the whole-grid path.
+    tiles: Vec<Vec<u32>>,
 }
 
 impl LayerSpectra {
     /// Bytes held.
     pub fn bytes(&self) -> usize {
-        let per = self.nx * self.ny * std::mem::size_of::<c32>();
-        per * self.layers.iter().flatten().count()
+        let n: usize = self.layers.iter().flatten().map(Vec::len).sum();
+        n * std::mem::size_of::<c32>()
     }
 
-    /// Padded-grid bytes of one covered layer's spectrum for an imager (what
-    /// [`Self::bytes`] counts per layer).
+    /// Bytes of one covered layer's spectrum for an imager: on the whole grid exactly what
+    /// [`Self::bytes`] counts per layer, on tiles the most (every tile covered).
     pub fn layer_bytes(im: &LayeredImager) -> usize {
-        im.nx * im.ny * std::mem::size_of::<c32>()
+        let points = match &im.tiling {
+            Some(t) => t.rows * t.cols * t.n * t.n,
+            None => im.nx * im.ny,
+        };
+        points * std::mem::size_of::<c32>()
     }
 }
 
@@ -697,23 +796,30 @@ impl LayeredImager {
     /// FFTs of the kernels (`None`: unused, skipped), each stored column by column (the
     /// layout the fused column pass reads).
     pub fn kernel_spectra(&self, kernels: &[Option<&Mat<f32>>]) -> Result<KernelSpectra> {
+        for (j, m) in kernels.iter().enumerate() {
+            if let Some(m) = m
+                && (m.nrows() != self.wp || m.ncols() != self.wp)
+            {
+                return Err(OpticsError::Shape(format!(
+                    "kernel {j} is {}×{}, expected {}×{}",
+                    m.nrows(),
+                    m.ncols(),
+                    self.wp,
+                    self.wp
+                )));
+            }
+        }
+        if let Some(t) = &self.tiling {
+            return self.tiled_kernel_spectra(t, kernels);
+        }
         let mut sb = self.spectral_buffers();
         let (nx, ny) = (self.nx, self.ny);
         let mut spec = Vec::with_capacity(kernels.len());
         let norm = 1.0 / (ny * nx) as f32;
-        for (j, k) in kernels.iter().enumerate() {
+        for k in kernels {
             match k {
                 None => spec.push(None),
                 Some(m) => {
-                    if m.nrows() != self.wp || m.ncols() != self.wp {
-                        return Err(OpticsError::Shape(format!(
-                            "kernel {j} is {}×{}, expected {}×{}",
-                            m.nrows(),
-                            m.ncols(),
-                            self.wp,
-                            self.wp
-                        )));
-                    }
                     let rows = 0..self.wp;
                     for r in rows.clone() {
                         let row = &mut sb.a[r * nx..(r + 1) * nx];
@@ -755,29 +861,55 @@ impl LayeredImager {
     /// Shapes and kernels; finiteness is checked where the layers are packed.
     fn check_spectral(&self, layers: &[SpectralLayer], ks: &KernelSpectra) -> Result<()> {
         self.check_layers(layers)?;
+        let (nx, ny, _) = self.spectral_grid();
         for (k, l) in layers.iter().enumerate() {
-            if ks.spec.get(l.kernel).is_none_or(Option::is_none) {
-                return Err(OpticsError::param(
-                    "kernel",
-                    format!("layer {k} uses kernel {} which was not computed", l.kernel),
-                ));
+            match ks.spec.get(l.kernel) {
+                Some(Some(p)) if p.len() == nx * ny => {}
+                Some(Some(p)) => {
+                    return Err(OpticsError::Shape(format!(
+                        "kernel {} has a spectrum of {} values, this imager's spectral grid \
+                         {}×{} (kernel spectra of another imager?)",
+                        l.kernel,
+                        p.len(),
+                        ny,
+                        nx
+                    )));
+                }
+                _ => {
+                    return Err(OpticsError::param(
+                        "kernel",
+                        format!("layer {k} uses kernel {} which was not computed", l.kernel),
+                    ));
+                }
             }
         }
         Ok(())
     }
 
+    /// The spectral path's transform grid (nx, ny) and tile side (0: the whole grid).
+    fn spectral_grid(&self) -> (usize, usize, usize) {
+        match &self.tiling {
+            Some(t) => (t.n, t.n, t.t),
+            None => (self.nx, self.ny, 0),
+        }
+    }
+
     /// Spectra given with `layers` belong to this imager's grid and to as many layers.
     fn check_spectra(&self, layers: &[SpectralLayer], s: Option<&LayerSpectra>) -> Result<()> {
+        let (nx, ny, tile) = self.spectral_grid();
         match s {
-            Some(s) if (s.nx, s.ny, s.layers.len()) != (self.nx, self.ny, layers.len()) => {
+            Some(s) if (s.nx, s.ny, s.tile, s.layers.len()) != (nx, ny, tile, layers.len()) => {
                 Err(OpticsError::Shape(format!(
-                    "layer spectra of {} layers on a {}×{} grid, for {} layers on {}×{}",
+                    "layer spectra of {} layers on a {}×{} grid (tiles of {}), for {} layers \
+                     on {}×{} (tiles of {})",
                     s.layers.len(),
                     s.ny,
                     s.nx,
+                    s.tile,
                     layers.len(),
-                    self.ny,
-                    self.nx
+                    ny,
+                    nx,
+                    tile
                 )))
             }
             _ => Ok(()),
@@ -817,6 +949,22 @@ impl LayeredImager {
         Ok(())
     }
 
+    /// The spectral path's row-major H×W image as a matrix, refused when not finite.
+    fn finished(&self, image: &[f32]) -> Result<Mat<f32>> {
+        let (h, w) = (self.h, self.w);
+        let mut m = Mat::<f32>::zeros(h, w);
+        tiles(h, w, |r, c| m[(r, c)] = image[r * w + c]);
+        // A layer's image beyond f32's range stays infinite, or turns NaN where a layer in
+        // front covers it: either way the image is not finite.
+        if !m.col_iter().all(|c| c.iter().all(|v| v.is_finite())) {
+            return Err(OpticsError::param(
+                "layers",
+                "the image exceeds f32's range (gain × weighted radiance too large)",
+            ));
+        }
+        Ok(m)
+    }
+
     /// Layer `k` of the call, which uses kernel `kernel` (a caller that reorders its layers
     /// names them by kernel, e.g. a depth slab).
     fn non_finite(k: usize, kernel: usize) -> OpticsError {
@@ -846,7 +994,8 @@ impl LayeredImager {
 
     /// An empty spectrum with room for the padded grid, reused when one was given back.
     fn spare_spectrum(&self) -> Vec<c32> {
-        let n = self.ny * self.nx;
+        let (nx, ny, _) = self.spectral_grid();
+        let n = ny * nx;
         match self.spare.take() {
             Some(mut v) => {
                 v.clear();
@@ -993,6 +1142,9 @@ impl LayeredImager {
     /// finiteness errors as a forward pass.
     pub fn layer_spectra(&self, layers: &[SpectralLayer]) -> Result<LayerSpectra> {
         self.check_layers(layers)?;
+        if let Some(t) = &self.tiling {
+            return self.tiled_layer_spectra(t, layers);
+        }
         let (nx, ny) = (self.nx, self.ny);
         let mut sb = self.spectral_buffers();
         let mut out = Vec::with_capacity(layers.len());
@@ -1019,6 +1171,8 @@ impl LayeredImager {
             scales,
             nx,
             ny,
+            tile: 0,
+            tiles: Vec::new(),
         })
     }
 
@@ -1082,6 +1236,9 @@ impl LayeredImager {
     ) -> Result<(Mat<f32>, Option<S1Tape>)> {
         self.check_spectral(layers, ks)?;
         self.check_spectra(layers, spectra)?;
+        if let Some(t) = &self.tiling {
+            return self.tiled_spectral(t, layers, ks, spectra, keep);
+        }
         let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);
         let (cy, cx) = (self.wp / 2, self.wp / 2);
         // The image so far, I⁽ᵏ⁻¹⁾ (I⁽⁻¹⁾ = 0), row-major like the grid rows it is composed
@@ -1176,21 +1333,14 @@ impl LayeredImager {
             }
         }
         self.pool.give(sb);
-        let mut m = Mat::<f32>::zeros(h, w);
-        tiles(h, w, |r, c| m[(r, c)] = prev[r * w + c]);
-        // A layer's image beyond f32's range stays infinite, or turns NaN where a layer in
-        // front covers it: either way the image is not finite.
-        if !m.col_iter().all(|c| c.iter().all(|v| v.is_finite())) {
-            return Err(OpticsError::param(
-                "layers",
-                "the image exceeds f32's range (gain × weighted radiance too large)",
-            ));
-        }
+        let m = self.finished(&prev)?;
         let spectra = record.map(|layers| LayerSpectra {
             layers,
             scales: scales.clone(),
             nx,
             ny,
+            tile: 0,
+            tiles: Vec::new(),
         });
         let tape = keep.then_some(S1Tape {
             saved,
@@ -1228,6 +1378,9 @@ impl LayeredImager {
         self.check_layers(layers)?;
         let spectra = spectra.or(tape.spectra.as_ref());
         self.check_spectra(layers, spectra)?;
+        if let Some(t) = &self.tiling {
+            return self.tiled_vjp_kernels(t, layers, tape, grad, acc, spectra);
+        }
         let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);
         let (cy, cx) = (self.wp / 2, self.wp / 2);
         // ∂L/∂I⁽ᵏ⁾ in f32, as the tape's images: each layer multiplies it by (1 − o) and rounds
@@ -1270,36 +1423,15 @@ impl LayeredImager {
                 row[..cx].fill(c32::new(0.0, 0.0));
                 row[cx + w..].fill(c32::new(0.0, 0.0));
                 let span = r * w..(r + 1) * w;
-                let (gi, prev, o, above) = (
+                adjoint_row(
+                    gain,
                     &mut gi[span.clone()],
                     &prev[span.clone()],
                     &o[span.clone()],
                     &above[span],
+                    &mut row[cx..cx + w],
+                    &mut dots,
                 );
-                let gs = &mut row[cx..cx + w];
-                let body = w - w % DOT_LANES;
-                for ((((gv, p), oo), ab), gs) in gi[..body]
-                    .chunks_exact_mut(DOT_LANES)
-                    .zip(prev[..body].chunks_exact(DOT_LANES))
-                    .zip(o[..body].chunks_exact(DOT_LANES))
-                    .zip(above[..body].chunks_exact(DOT_LANES))
-                    .zip(gs[..body].chunks_exact_mut(DOT_LANES))
-                {
-                    // Element-wise into arrays first, interleaved into the complex row
-                    // after: with the store inside, the loop stays scalar.
-                    let (mut re, mut im) = ([0.0f32; DOT_LANES], [0.0f32; DOT_LANES]);
-                    for j in 0..DOT_LANES {
-                        let (d, r, i, g) = adjoint_pixel(gain, gv[j], p[j], oo[j], ab[j]);
-                        (dots[j], re[j], im[j], gv[j]) = (dots[j] + d, r, i, g);
-                    }
-                    for j in 0..DOT_LANES {
-                        gs[j] = c32::new(re[j], im[j]);
-                    }
-                }
-                for i in body..w {
-                    let (d, r, im, g) = adjoint_pixel(gain, gi[i], prev[i], o[i], above[i]);
-                    (dots[0], gs[i], gi[i]) = (dots[0] + d, c32::new(r, im), g);
-                }
                 self.p32.fx.process_with_scratch(row, &mut sb.scratch);
             }
             let dot: f64 = dots.iter().sum();
@@ -1369,6 +1501,9 @@ impl LayeredImager {
     /// ∂loss/∂P_j (W_p×W_p) from an accumulator: one inverse FFT per kernel that got gradient
     /// (all columns, then only the W_p rows that are kept).
     pub fn kernel_grads(&self, acc: KernelGradAccumulator) -> Vec<Mat<f64>> {
+        if let Some(t) = &self.tiling {
+            return self.tiled_kernel_grads(t, acc);
+        }
         let (nx, ny, wp) = (self.nx, self.ny, self.wp);
         let mut sb = self.spectral_buffers();
         let mut row = vec![c32::new(0.0, 0.0); nx];

@@ -25,8 +25,15 @@ fn alpha(h: usize, w: usize, s: usize) -> Mat<f32> {
 
 #[test]
 fn spectral_path_matches_the_reference_forward_and_psf_gradient() {
+    // On the whole padded grid, then on tiles.
+    for tile in [None, Some(4), Some(9)] {
+        spectral_path_matches_the_reference_forward_and_psf_gradient_on(tile);
+    }
+}
+
+fn spectral_path_matches_the_reference_forward_and_psf_gradient_on(tile: Option<usize>) {
     let (h, w, wp) = (23, 31, 7);
-    let im = LayeredImager::new(h, w, wp).unwrap();
+    let im = LayeredImager::with_tiles(h, w, wp, tile).unwrap();
     let psfs: Vec<Mat<f32>> = (0..3)
         .map(|s| Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + ((i + s) * (j + 1)) as f32)))
         .collect();
@@ -186,7 +193,11 @@ fn spectral_run(
         .iter()
         .filter(|l| l.alpha.col_iter().any(|c| c.iter().any(|&a| a != 0.0)))
         .count();
-    assert_eq!(spectra.bytes(), covered * LayerSpectra::layer_bytes(im));
+    // On the whole grid a covered layer holds one grid; on tiles, at most every tile.
+    match im.tile() {
+        None => assert_eq!(spectra.bytes(), covered * LayerSpectra::layer_bytes(im)),
+        Some(_) => assert!(spectra.bytes() <= covered * LayerSpectra::layer_bytes(im)),
+    }
     // `given`: spectra passed in; else the tape's, taken off it when `!on_tape`.
     let run = |given: Option<&LayerSpectra>, on_tape: bool| {
         let (img, mut tape) = im.forward_spectral(layers, &ks, given).unwrap();
@@ -224,10 +235,17 @@ fn spectral_run(
 
 #[test]
 fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
+    // On the whole padded grid, then on tiles.
+    for tile in [None, Some(16)] {
+        rows_without_data_are_skipped_and_reused_work_spaces_change_nothing_on(tile);
+    }
+}
+
+fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing_on(tile: Option<usize>) {
     // 300 rows: three 128-row packing bands, the last one partial; data in a few rows of
     // each layer only, one layer's rows crossing two band edges.
     let (h, w, wp) = (300, 19, 5);
-    let im = LayeredImager::new(h, w, wp).unwrap();
+    let im = LayeredImager::with_tiles(h, w, wp, tile).unwrap();
     let psfs: Vec<Mat<f32>> = (0..2)
         .map(|s| Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + ((i + s) * (j + 2)) as f32)))
         .collect();
@@ -291,7 +309,7 @@ fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
     assert_eq!(kg, kg2);
     assert_eq!(scale, scale2);
     // And on a fresh imager, whose work spaces are new.
-    let fresh = LayeredImager::new(h, w, wp).unwrap();
+    let fresh = LayeredImager::with_tiles(h, w, wp, tile).unwrap();
     let (got3, kg3, _) = spectral_run(&fresh, &spectral, &psfs, &g);
     assert_eq!(got, got3);
     assert_eq!(kg, kg3);
@@ -302,8 +320,15 @@ fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing() {
 /// VJP packing the layers again; planes of two layouts in one layer are refused.
 #[test]
 fn row_major_layers_give_the_column_major_bits() {
+    // On the whole padded grid, then on tiles.
+    for tile in [None, Some(10)] {
+        row_major_layers_give_the_column_major_bits_on(tile);
+    }
+}
+
+fn row_major_layers_give_the_column_major_bits_on(tile: Option<usize>) {
     let (h, w, wp) = (131, 37, 5);
-    let im = LayeredImager::new(h, w, wp).unwrap();
+    let im = LayeredImager::with_tiles(h, w, wp, tile).unwrap();
     let psfs: Vec<Mat<f32>> = (0..2)
         .map(|k| Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i * j + k) as f32)))
         .collect();
@@ -375,8 +400,19 @@ fn row_major_layers_give_the_column_major_bits() {
 /// and PSF gradient), and what they make non-finite is refused like a non-finite radiance.
 #[test]
 fn gain_scales_the_convolution_weight_is_the_prescaled_radiance_and_overflow_is_refused() {
+    // On the whole padded grid, then on tiles.
+    for tile in [None, Some(6)] {
+        gain_scales_the_convolution_weight_is_the_prescaled_radiance_and_overflow_is_refused_on(
+            tile,
+        );
+    }
+}
+
+fn gain_scales_the_convolution_weight_is_the_prescaled_radiance_and_overflow_is_refused_on(
+    tile: Option<usize>,
+) {
     let (h, w, wp) = (19, 26, 5);
-    let im = LayeredImager::new(h, w, wp).unwrap();
+    let im = LayeredImager::with_tiles(h, w, wp, tile).unwrap();
     let psf = Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i * j) as f32));
     let ks = im.kernel_spectra(&[Some(&psf)]).unwrap();
     let rad: Vec<Mat<f32>> = (0..2).map(|s| img(h, w, s)).collect();
@@ -496,8 +532,15 @@ fn gain_scales_the_convolution_weight_is_the_prescaled_radiance_and_overflow_is_
 /// is bright.
 #[test]
 fn bright_layers_keep_the_occlusion_at_f32_precision() {
+    // On the whole padded grid, then on tiles.
+    for tile in [None, Some(12)] {
+        bright_layers_keep_the_occlusion_at_f32_precision_on(tile);
+    }
+}
+
+fn bright_layers_keep_the_occlusion_at_f32_precision_on(tile: Option<usize>) {
     let (h, w, wp) = (40, 56, 9);
-    let im = LayeredImager::new(h, w, wp).unwrap();
+    let im = LayeredImager::with_tiles(h, w, wp, tile).unwrap();
     let psf = Mat::from_fn(wp, wp, |i, j| {
         let (y, x) = (i as f32 - 4.0, j as f32 - 4.0);
         (-(x * x + y * y) / 6.0).exp() / 18.85
@@ -559,8 +602,8 @@ fn bright_layers_keep_the_occlusion_at_f32_precision() {
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(48))]
 
-    /// Any plane size (one row or one column included), kernel width and radiance magnitude:
-    /// row-major planes give the column-major path's result bit for bit, or the same refusal
+    /// Any plane size (one row or one column included), kernel width, radiance magnitude and
+    /// tile side (or the whole grid): row-major planes give the column-major path's result bit for bit, or the same refusal
     /// (an image beyond f32's range).
     #[test]
     fn row_and_column_major_layers_agree(
@@ -569,9 +612,10 @@ proptest! {
         half in 0usize..3,
         seed in 0usize..1000,
         mag in -30i32..30,
+        tile in prop::option::of(1usize..12),
     ) {
         let wp = 2 * half + 1;
-        let im = LayeredImager::new(h, w, wp).unwrap();
+        let im = LayeredImager::with_tiles(h, w, wp, tile.map(|t| t.min(h.max(w)))).unwrap();
         let psf = Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i + 2 * j + seed % 3) as f32));
         let ks = im.kernel_spectra(&[Some(&psf)]).unwrap();
         let big = 10f32.powi(mag);
@@ -604,4 +648,93 @@ proptest! {
             (a, b) => prop_assert!(false, "{:?} against {:?}", a.is_ok(), b.is_ok()),
         }
     }
+}
+
+/// On tiles, a layer costs only the tiles its α touches: one covered tile holds one tile
+/// grid of spectrum, the image and ∂L/∂P still match the f64 reference, a tile whose α is
+/// zero but whose neighbour's light reaches it gets that light, and spectra or kernel spectra
+/// of the whole-grid imager are refused rather than read on the wrong grid.
+#[test]
+fn tiles_without_coverage_are_skipped() {
+    let (h, w, wp) = (40, 44, 5);
+    let im = LayeredImager::with_tiles(h, w, wp, Some(12)).unwrap();
+    // 12 + 5 − 1 = 16, a fast size: tiles of 12, 4 × 4 of them.
+    assert_eq!(im.tile(), Some(12));
+    let psf = Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i * 2 + j) as f32));
+    let ks = im.kernel_spectra(&[Some(&psf)]).unwrap();
+    let rad = img(h, w, 1);
+    let ones = Mat::from_fn(h, w, |_, _| 1.0f32);
+    // A 3×3 patch inside tile (1, 2), against its right edge: its blur crosses into (1, 3).
+    let patch = Mat::from_fn(h, w, |i, j| {
+        if (14..17).contains(&i) && (33..36).contains(&j) {
+            0.8
+        } else {
+            0.0
+        }
+    });
+    let layers = [
+        SpectralLayer::new(rad.as_ref(), ones.as_ref(), 0),
+        SpectralLayer::new(rad.as_ref(), patch.as_ref(), 0),
+    ];
+    let spectra = im.layer_spectra(&layers).unwrap();
+    let tile_bytes = 16 * 16 * 8;
+    assert_eq!(spectra.bytes(), (16 + 1) * tile_bytes);
+    let reference = [
+        Layer {
+            radiance: &rad,
+            alpha: &ones,
+            psf: &psf,
+        },
+        Layer {
+            radiance: &rad,
+            alpha: &patch,
+            psf: &psf,
+        },
+    ];
+    let want = im.forward_f64_image(&reference).unwrap();
+    let (got, tape) = im.forward_spectral(&layers, &ks, None).unwrap();
+    for i in 0..h {
+        for j in 0..w {
+            assert!(
+                (got[(i, j)] as f64 - want[(i, j)]).abs() < 1e-5 * (1.0 + want[(i, j)].abs()),
+                "({i},{j}): {} vs {}",
+                got[(i, j)],
+                want[(i, j)]
+            );
+        }
+    }
+    // The patch's blur reaches column 37, in tile (1, 3), which it does not cover.
+    assert!((got[(15, 37)] as f64 - want[(15, 37)]).abs() < 1e-5 * want[(15, 37)].abs());
+    let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
+    let mut acc = im.kernel_grad_accumulator(1);
+    im.vjp_kernels(&layers, &tape, &g, &mut acc, None).unwrap();
+    let kg = im.kernel_grads(acc);
+    let lg = im.vjp(&reference, &g).unwrap();
+    for i in 0..wp {
+        for j in 0..wp {
+            let want = lg.psf[0][(i, j)] + lg.psf[1][(i, j)];
+            assert!(
+                (kg[0][(i, j)] - want).abs() < 1e-4 * (1.0 + want.abs()),
+                "({i},{j}): {} vs {want}",
+                kg[0][(i, j)]
+            );
+        }
+    }
+    let whole = LayeredImager::with_tiles(h, w, wp, None).unwrap();
+    assert_eq!(whole.tile(), None);
+    let whole_spectra = whole.layer_spectra(&layers).unwrap();
+    let err = im
+        .forward_spectral(&layers, &ks, Some(&whole_spectra))
+        .err()
+        .expect("refused");
+    assert!(err.to_string().contains("tiles of"), "{err}");
+    let whole_ks = whole.kernel_spectra(&[Some(&psf)]).unwrap();
+    let err = im
+        .forward_spectral(&layers, &whole_ks, None)
+        .err()
+        .expect("refused");
+    assert!(err.to_string().contains("another imager"), "{err}");
+    assert!(LayeredImager::with_tiles(h, w, wp, Some(0)).is_err());
+    assert!(LayeredImager::with_tiles(h, w, wp, Some(45)).is_err());
+    assert!(LayeredImager::with_tiles(h, w, wp, Some(44)).is_ok());
 }

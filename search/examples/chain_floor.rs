@@ -44,6 +44,29 @@ fn main() {
     let t_fft = time(10 * reps, &mut fft32);
     let t_fft64 = time(10 * reps, &mut bare_fft2::<f64>(ny, nx));
     let t_fft_t = time(10 * reps, &mut fft_t);
+    // On tiles (docs/optics.md), the floor is a bare 2-D FFT of a tile's N×N grid per covered
+    // tile (α ≠ 0 somewhere in it); its 0.4 MB grid stays in cache, so it is timed back to
+    // back.
+    let tiles = chain.s1_tile().map(|t| {
+        let n = nanoeye_optics::psf::fast_fft_size(t + chain.psf_px() - 1);
+        let covered: usize = frames
+            .iter()
+            .flat_map(|f| &f.data.layers)
+            .map(|l| {
+                let a = l.alpha();
+                let mut hit = vec![false; h.div_ceil(t) * w.div_ceil(t)];
+                for r in 0..h {
+                    for c in 0..w {
+                        if a[(r, c)] != 0.0 {
+                            hit[(r / t) * w.div_ceil(t) + c / t] = true;
+                        }
+                    }
+                }
+                hit.iter().filter(|&&x| x).count()
+            })
+            .sum();
+        (t, n, covered, time(10 * reps, &mut bare_fft2::<f32>(n, n)))
+    });
     let mut psfs = None;
     let t_psf = time(reps, &mut || {
         psfs = Some(chain.psfs(&map, &active).expect("psfs"))
@@ -95,6 +118,15 @@ fn main() {
         "first forward of the frames (computes and keeps their layer spectra): {:.1} ms per frame",
         t_first / n * 1e3
     );
+    if let Some((t, nt, covered, tf)) = tiles {
+        println!(
+            "S1 on tiles of {t} px ({nt}x{nt} grids): {:.1} covered tiles per frame; one bare \
+             2-D FFT of a tile's grid {:.3}, {:.3} ms",
+            covered as f64 / n,
+            tf.0 * 1e3,
+            tf.1 * 1e3
+        );
+    }
     // The kept-spectra backward, which the PSF VJP's time below is taken against.
     let mut t_bwd_kept = None;
     // Kept spectra: forward one inverse FFT per layer, backward the gradient's spectrum per
@@ -164,6 +196,17 @@ fn main() {
                 t.0 / n / floor(tr.0),
                 t.1 / n / floor(tr.1)
             );
+            if let Some((_, _, covered, tf)) = tiles {
+                let floor = |t: f64| ffts * covered as f64 / n * t;
+                println!(
+                    "    on tiles: FFT floor ({ffts} per covered tile) {:.1}, {:.1} ms; ratio \
+                     {:.2}, {:.2}",
+                    floor(tf.0) * 1e3,
+                    floor(tf.1) * 1e3,
+                    t.0 / n / floor(tf.0),
+                    t.1 / n / floor(tf.1)
+                );
+            }
         }
     }
     let fwd = chain

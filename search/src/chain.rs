@@ -463,6 +463,12 @@ impl CameraChain {
         self.psf.config().window_px
     }
 
+    /// Side in native pixels of the tiles S1's spectral path runs on (`None`: the whole
+    /// padded grid; docs/optics.md, "Tiles").
+    pub fn s1_tile(&self) -> Option<usize> {
+        self.imager.tile()
+    }
+
     /// The PSF model.
     pub fn psf_model(&self) -> &AsmPsf {
         &self.psf

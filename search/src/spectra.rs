@@ -25,9 +25,10 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 
-/// Most bytes of layer spectra kept in one process, all stores together: 14 frames of 8
-/// covered layers at the paper's 1280×800 (9.3 MB per layer), about 230 at the default
-/// job's 320×200 (0.58 MB per layer). 2 GiB filled by every forward took the default job's
+/// Most bytes of layer spectra kept in one process, all stores together: about 230 frames at
+/// the default job's 320×200 (0.58 MB per covered layer); at the paper's 1280×800, whose S1
+/// runs on tiles, the admission counts every tile of a covered layer (16.1 MB), 8 frames of
+/// 8 layers. 2 GiB filled by every forward took the default job's
 /// peak RSS from 4.2 to 7.4 GB for no gain in its time.
 pub const LAYER_SPECTRA_BYTES: usize = 1 << 30;
 

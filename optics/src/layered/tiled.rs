@@ -1,0 +1,661 @@
+//! S1's spectral path on tiles. A large frame's layers cover a fraction of it (a depth slab of
+//! an eye: 36 % of the 160×160 tiles of the paper-size frames, docs/bench/chain.md), yet the
+//! whole-grid path transforms the whole padded grid per layer. Here each covered T×T tile is
+//! transformed on its own N×N grid (N ≥ T + W_p − 1, so the linear convolution of the tile
+//! does not wrap), multiplied by the kernel's N×N spectrum and added back into the layer's
+//! convolution (overlap-add, exact up to round-off); the PSF adjoint correlates each covered
+//! tile with its N×N window of the gradient and accumulates the products per kernel on the
+//! N×N grid, so ∂loss/∂P needs one N×N inverse per kernel. A tile's grid (400 KB at N = 224)
+//! stays in cache through its transforms, where the paper-size grid (9.3 MB) does not.
+//!
+//! Spectra are kept transposed (kx major, ky minor): the row transform, one transposition and
+//! a second row transform give them, and the inverse runs the same steps back.
+
+use super::*;
+use crate::psf::fast_fft_size;
+
+/// Padded grid points from which [`LayeredImager::new`] considers tiles: below it (4 MiB of
+/// f32 complex values) the whole grid stays in the last-level cache, and the whole-grid path
+/// skips the rows without data already.
+const AUTO_GRID_POINTS: usize = 1 << 19;
+
+/// Side of the blocks of the transpositions: 16 complex values of each of 16 rows, 2 KB read
+/// and written per block, well inside L1.
+const TB: usize = 16;
+
+/// The tile side [`LayeredImager::new`] uses for an H×W image with W_p×W_p kernels whose
+/// padded grid has `grid_points` points, `None` for the whole grid: tiles of about
+/// 2.5 (W_p − 1) (160 for the paper's 65-pixel window: 5 × 8 tiles of 1280×800 on a 224²
+/// grid) when the grid is beyond [`AUTO_GRID_POINTS`], the image holds at least 2 × 2 of them
+/// and transforming every tile would cost at most twice the whole grid's points (so that a
+/// layer covering under half the tiles gains).
+pub(super) fn auto_tile(h: usize, w: usize, wp: usize, grid_points: usize) -> Option<usize> {
+    if grid_points < AUTO_GRID_POINTS {
+        return None;
+    }
+    let t0 = (5 * (wp - 1) / 2).max(32);
+    let n = fast_fft_size(t0 + wp - 1);
+    let t = n + 1 - wp;
+    let tiles = h.div_ceil(t) * w.div_ceil(t);
+    (h >= 2 * t && w >= 2 * t && tiles * n * n <= 2 * grid_points).then_some(t0)
+}
+
+/// Geometry, plans and work spaces of the tiled path.
+pub(super) struct Tiling {
+    /// Tile side (image pixels).
+    pub(super) t: usize,
+    /// Side of a tile's transform grid, T + W_p − 1 rounded up to a fast FFT size.
+    pub(super) n: usize,
+    /// Tiles down.
+    pub(super) rows: usize,
+    /// Tiles across.
+    pub(super) cols: usize,
+    h: usize,
+    w: usize,
+    fwd: Arc<dyn Fft<f32>>,
+    inv: Arc<dyn Fft<f32>>,
+    pool: Pool<TileBuffers>,
+}
+
+/// Work space of the tiled path: three tile grids, FFT scratch and an H×W complex plane (the
+/// layer's convolution in the forward pass, the gradient in the adjoint; empty until needed).
+struct TileBuffers {
+    a: Vec<c32>,
+    b: Vec<c32>,
+    c: Vec<c32>,
+    scratch: Vec<c32>,
+    plane: Vec<c32>,
+}
+
+/// Dst[c·n + r] = src[r·n + c] for r in `rows`, c in `cols` (n×n row-major grids).
+fn transpose(src: &[c32], dst: &mut [c32], n: usize, rows: Range<usize>, cols: Range<usize>) {
+    for r0 in rows.clone().step_by(TB) {
+        let r1 = (r0 + TB).min(rows.end);
+        for c0 in cols.clone().step_by(TB) {
+            let c1 = (c0 + TB).min(cols.end);
+            for r in r0..r1 {
+                for c in c0..c1 {
+                    dst[c * n + r] = src[r * n + c];
+                }
+            }
+        }
+    }
+}
+
+impl Tiling {
+    /// Tiles of at least `t_min` pixels for H×W images and W_p×W_p kernels: the side is
+    /// widened to fill the fast transform size that holds its convolution.
+    pub(super) fn new(h: usize, w: usize, wp: usize, t_min: usize) -> Self {
+        let n = fast_fft_size(t_min + wp - 1);
+        let t = n + 1 - wp;
+        let mut pl = FftPlanner::<f32>::new();
+        Self {
+            t,
+            n,
+            rows: h.div_ceil(t),
+            cols: w.div_ceil(t),
+            h,
+            w,
+            fwd: pl.plan_fft_forward(n),
+            inv: pl.plan_fft_inverse(n),
+            pool: Pool::new(POOL_MAX),
+        }
+    }
+
+    /// A finished call's work space, or a new one.
+    fn buffers(&self) -> TileBuffers {
+        if let Some(tb) = self.pool.take() {
+            return tb;
+        }
+        let z = c32::new(0.0, 0.0);
+        let s = [&self.fwd, &self.inv]
+            .iter()
+            .map(|f| f.get_inplace_scratch_len())
+            .max()
+            .unwrap_or(0);
+        let nn = self.n * self.n;
+        TileBuffers {
+            a: vec![z; nn],
+            b: vec![z; nn],
+            c: vec![z; nn],
+            scratch: vec![z; s],
+            plane: Vec::new(),
+        }
+    }
+
+    /// Top-left pixel (y₀, x₀) and extent (rows, columns) of tile `tile` (row-major index).
+    fn origin(&self, tile: u32) -> (usize, usize, usize, usize) {
+        let (bi, bj) = (tile as usize / self.cols, tile as usize % self.cols);
+        let (y0, x0) = (bi * self.t, bj * self.t);
+        (y0, x0, self.t.min(self.h - y0), self.t.min(self.w - x0))
+    }
+
+    /// 2-D DFT of the row-major n×n grid `a`, whose rows outside `live` are zero, into `b`
+    /// transposed; `a` is left holding its row transforms.
+    fn fft2(&self, a: &mut [c32], live: Range<usize>, b: &mut [c32], scratch: &mut [c32]) {
+        let n = self.n;
+        if !live.is_empty() {
+            self.fwd
+                .process_with_scratch(&mut a[live.start * n..live.end * n], scratch);
+        }
+        for row in b.chunks_exact_mut(n) {
+            row[..live.start].fill(c32::new(0.0, 0.0));
+            row[live.end..].fill(c32::new(0.0, 0.0));
+        }
+        transpose(a, b, n, live, 0..n);
+        self.fwd.process_with_scratch(b, scratch);
+    }
+
+    /// Inverse 2-D DFT (unnormalised) of the transposed spectrum `b` (overwritten) into the
+    /// rows `out` of the row-major grid `a`; its other rows are not written.
+    fn ifft2(&self, b: &mut [c32], out: Range<usize>, a: &mut [c32], scratch: &mut [c32]) {
+        let n = self.n;
+        self.inv.process_with_scratch(b, scratch);
+        transpose(b, a, n, 0..n, out.clone());
+        if !out.is_empty() {
+            self.inv
+                .process_with_scratch(&mut a[out.start * n..out.end * n], scratch);
+        }
+    }
+
+    /// Marks the tiles (as output blocks of the H×W plane) that rows `ys` × columns `xs`
+    /// touch live, zeroing the plane over each one the first time.
+    fn open(&self, live: &mut [bool], plane: &mut [c32], ys: &Range<usize>, xs: &Range<usize>) {
+        let (t, w) = (self.t, self.w);
+        for bi in ys.start / t..=(ys.end - 1) / t {
+            for bj in xs.start / t..=(xs.end - 1) / t {
+                let b = bi * self.cols + bj;
+                if !live[b] {
+                    live[b] = true;
+                    let (y0, x0, th, tw) = self.origin(b as u32);
+                    for r in y0..y0 + th {
+                        plane[r * w + x0..r * w + x0 + tw].fill(c32::new(0.0, 0.0));
+                    }
+                }
+            }
+        }
+    }
+
+    /// Calls `f(start, len)` for every row segment (offset into an H×W row-major plane) of
+    /// the live blocks.
+    fn live_rows(&self, live: &[bool], mut f: impl FnMut(usize, usize)) {
+        for (b, _) in live.iter().enumerate().filter(|(_, l)| **l) {
+            let (y0, x0, th, tw) = self.origin(b as u32);
+            for r in y0..y0 + th {
+                f(r * self.w + x0, tw);
+            }
+        }
+    }
+}
+
+impl LayeredImager {
+    /// [`Self::kernel_spectra`] on the tiles' N×N grid (transposed).
+    pub(super) fn tiled_kernel_spectra(
+        &self,
+        t: &Tiling,
+        kernels: &[Option<&Mat<f32>>],
+    ) -> Result<KernelSpectra> {
+        let (n, wp) = (t.n, self.wp);
+        let mut tb = t.buffers();
+        let norm = 1.0 / (n * n) as f32;
+        let mut spec = Vec::with_capacity(kernels.len());
+        for k in kernels {
+            let Some(m) = k else {
+                spec.push(None);
+                continue;
+            };
+            for r in 0..wp {
+                let row = &mut tb.a[r * n..(r + 1) * n];
+                for (c, v) in row.iter_mut().enumerate() {
+                    *v = c32::new(if c < wp { m[(r, c)] } else { 0.0 }, 0.0);
+                }
+            }
+            t.fft2(&mut tb.a, 0..wp, &mut tb.b, &mut tb.scratch);
+            spec.push(Some(tb.b.iter().map(|p| p * norm).collect()));
+        }
+        t.pool.give(tb);
+        Ok(KernelSpectra { spec })
+    }
+
+    /// One pass over a layer's planes: the tiles it covers (α ≠ 0 somewhere in them,
+    /// row-major index) and its radiance scale ([`SpectralLayer::radiance_scale`]'s value),
+    /// `None` for a layer without coverage; a non-finite α or weighted L, or a product of
+    /// them that is not finite, is refused as the whole-grid path refuses it.
+    fn scan(&self, t: &Tiling, l: &SpectralLayer, k: usize) -> Result<Option<(Vec<u32>, f32)>> {
+        let (by, al, rad, wt) = l.lines();
+        let mut covered = vec![false; t.rows * t.cols];
+        // Largest |α| and |α·w·L| as bit patterns: for non-negative floats the patterns order
+        // as the values do, ∞ is 0x7f80_0000 and every NaN lies above it, so one integer
+        // maximum (which vectorises, where f32::max's does not) gives the largest value, the
+        // finiteness of all of them, and for α whether any is non-zero (NaN included, as
+        // `x != 0.0` counts it).
+        let (mut mv, mut mx) = (0u32, 0u32);
+        let abs = |v: f32| v.to_bits() & 0x7fff_ffff;
+        for (i, (a, r)) in al.iter().zip(&rad).enumerate() {
+            let w = wt.as_ref().map(|wt| wt[i]);
+            for (j, s0) in (0..a.len()).step_by(t.t).enumerate() {
+                let span = s0..(s0 + t.t).min(a.len());
+                let (x, y) = (&a[span.clone()], &r[span.clone()]);
+                let (sx, sv) = match w {
+                    Some(w) => x
+                        .iter()
+                        .zip(y)
+                        .zip(&w[span])
+                        .fold((0, 0), |(sx, sv), ((&x, &y), &s)| {
+                            (sx.max(abs(x)), sv.max(abs(x * (s * y))))
+                        }),
+                    None => x.iter().zip(y).fold((0, 0), |(sx, sv), (&x, &y)| {
+                        (sx.max(abs(x)), sv.max(abs(x * y)))
+                    }),
+                };
+                if sx != 0 {
+                    covered[match by {
+                        Layout::Rows => (i / t.t) * t.cols + j,
+                        Layout::Cols => j * t.cols + i / t.t,
+                    }] = true;
+                }
+                (mx, mv) = (mx.max(sx), mv.max(sv));
+            }
+        }
+        if mx.max(mv) >= f32::INFINITY.to_bits() {
+            return Err(Self::non_finite(k, l.kernel));
+        }
+        let m = f32::from_bits(mv);
+        let tiles: Vec<u32> = (0..covered.len() as u32)
+            .filter(|&b| covered[b as usize])
+            .collect();
+        Ok((!tiles.is_empty()).then(|| (tiles, scale_of(m))))
+    }
+
+    /// Packs αL/s + iα of tile `tile` of a layer into the top-left of the n×n grid `a` (zero
+    /// beyond its columns), the same values the whole-grid path packs; returns its rows.
+    fn pack_tile(
+        &self,
+        t: &Tiling,
+        l: &SpectralLayer,
+        tile: u32,
+        scale: f32,
+        a: &mut [c32],
+    ) -> Range<usize> {
+        let n = t.n;
+        let (y0, x0, th, tw) = t.origin(tile);
+        let inv = 1.0 / scale;
+        let pack = |x: f32, y: f32| c32::new(x * y * inv, x);
+        let (by, al, rad, wt) = l.lines();
+        for row in a[..th * n].chunks_exact_mut(n) {
+            row[tw..].fill(c32::new(0.0, 0.0));
+        }
+        match by {
+            Layout::Rows => {
+                for (r, row) in a[..th * n].chunks_exact_mut(n).enumerate() {
+                    let span = x0..x0 + tw;
+                    let (al, rad) = (&al[y0 + r][span.clone()], &rad[y0 + r][span.clone()]);
+                    match &wt {
+                        Some(wt) => {
+                            for (o, ((&x, &y), &s)) in row
+                                .iter_mut()
+                                .zip(al.iter().zip(rad).zip(&wt[y0 + r][span]))
+                            {
+                                *o = pack(x, s * y);
+                            }
+                        }
+                        None => {
+                            for (o, (&x, &y)) in row.iter_mut().zip(al.iter().zip(rad)) {
+                                *o = pack(x, y);
+                            }
+                        }
+                    }
+                }
+            }
+            Layout::Cols => {
+                for c in 0..tw {
+                    let span = y0..y0 + th;
+                    let (al, rad) = (&al[x0 + c][span.clone()], &rad[x0 + c][span.clone()]);
+                    match &wt {
+                        Some(wt) => {
+                            for (r, ((&x, &y), &s)) in
+                                al.iter().zip(rad).zip(&wt[x0 + c][span]).enumerate()
+                            {
+                                a[r * n + c] = pack(x, s * y);
+                            }
+                        }
+                        None => {
+                            for (r, (&x, &y)) in al.iter().zip(rad).enumerate() {
+                                a[r * n + c] = pack(x, y);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        0..th
+    }
+
+    /// The rows (or columns, with x₀ and W) of a tile's N×N grid that land in the image and
+    /// hold its linear convolution: grid index m is image index y₀ + m − c.
+    fn window(&self, t: &Tiling, y0: usize, th: usize, h: usize) -> Range<usize> {
+        let c = self.wp / 2;
+        c.saturating_sub(y0)..t.n.min(h + c - y0).min(th + self.wp - 1)
+    }
+
+    /// [`Self::layer_spectra`] on tiles.
+    pub(super) fn tiled_layer_spectra(
+        &self,
+        t: &Tiling,
+        layers: &[SpectralLayer],
+    ) -> Result<LayerSpectra> {
+        let nn = t.n * t.n;
+        let mut tb = t.buffers();
+        let (mut out, mut scales, mut all) = (Vec::new(), Vec::new(), Vec::new());
+        for (k, l) in layers.iter().enumerate() {
+            let Some((tiles, scale)) = self.scan(t, l, k)? else {
+                out.push(None);
+                scales.push(1.0);
+                all.push(Vec::new());
+                continue;
+            };
+            let mut spec = Vec::with_capacity(tiles.len() * nn);
+            for &tile in &tiles {
+                let rows = self.pack_tile(t, l, tile, scale, &mut tb.a);
+                t.fft2(&mut tb.a, rows, &mut tb.b, &mut tb.scratch);
+                spec.extend_from_slice(&tb.b);
+            }
+            out.push(Some(spec));
+            scales.push(scale);
+            all.push(tiles);
+        }
+        t.pool.give(tb);
+        Ok(LayerSpectra {
+            layers: out,
+            scales,
+            nx: t.n,
+            ny: t.n,
+            tile: t.t,
+            tiles: all,
+        })
+    }
+
+    /// [`Self::spectral`] on tiles: per covered tile its transform (or its given spectrum)
+    /// times P̂, the inverse, and the sum into the layer's convolution; then the composition
+    /// over the blocks the convolution reaches (elsewhere I⁽ᵏ⁾ = I⁽ᵏ⁻¹⁾ exactly: α∗P is 0).
+    pub(super) fn tiled_spectral(
+        &self,
+        t: &Tiling,
+        layers: &[SpectralLayer],
+        ks: &KernelSpectra,
+        spectra: Option<&LayerSpectra>,
+        keep: bool,
+    ) -> Result<(Mat<f32>, Option<S1Tape>)> {
+        let (h, w, n) = (self.h, self.w, t.n);
+        let (cy, cx) = (self.wp / 2, self.wp / 2);
+        let nn = n * n;
+        let mut prev = vec![0.0f32; h * w];
+        let mut saved = Vec::with_capacity(layers.len());
+        let mut record = (keep && spectra.is_none()).then(|| (Vec::new(), Vec::new()));
+        let mut scales = Vec::with_capacity(layers.len());
+        let mut tb = t.buffers();
+        let mut plane = std::mem::take(&mut tb.plane);
+        plane.resize(h * w, c32::new(0.0, 0.0));
+        let mut live = vec![false; t.rows * t.cols];
+        for (k, l) in layers.iter().enumerate() {
+            let p = ks.spec[l.kernel].as_ref().expect("checked");
+            let scanned;
+            let (tiles, scale, given): (&[u32], f32, Option<&[c32]>) = match spectra {
+                Some(s) => match s.layers[k].as_deref() {
+                    Some(sp) => (&s.tiles[k], s.scales[k], Some(sp)),
+                    None => {
+                        saved.push(None);
+                        scales.push(1.0);
+                        continue;
+                    }
+                },
+                None => {
+                    scanned = self.scan(t, l, k)?;
+                    match &scanned {
+                        Some((tiles, scale)) => (tiles, *scale, None),
+                        None => {
+                            saved.push(None);
+                            scales.push(1.0);
+                            if let Some((r, tl)) = record.as_mut() {
+                                r.push(None);
+                                tl.push(Vec::new());
+                            }
+                            continue;
+                        }
+                    }
+                }
+            };
+            live.fill(false);
+            let mut rec = record
+                .as_ref()
+                .map(|_| Vec::with_capacity(tiles.len() * nn));
+            for (i, &tile) in tiles.iter().enumerate() {
+                match given {
+                    Some(s) => {
+                        tb.b.iter_mut()
+                            .zip(&s[i * nn..(i + 1) * nn])
+                            .zip(p)
+                            .for_each(|((b, &s), p)| *b = s * p)
+                    }
+                    None => {
+                        let rows = self.pack_tile(t, l, tile, scale, &mut tb.a);
+                        t.fft2(&mut tb.a, rows, &mut tb.b, &mut tb.scratch);
+                        if let Some(rec) = rec.as_mut() {
+                            rec.extend_from_slice(&tb.b);
+                        }
+                        tb.b.iter_mut().zip(p).for_each(|(b, p)| *b *= p);
+                    }
+                }
+                let (y0, x0, th, tw) = t.origin(tile);
+                let (ys, xs) = (self.window(t, y0, th, h), self.window(t, x0, tw, w));
+                t.ifft2(&mut tb.b, ys.clone(), &mut tb.a, &mut tb.scratch);
+                let gy = y0 + ys.start - cy..y0 + ys.end - cy;
+                let gx = x0 + xs.start - cx..x0 + xs.end - cx;
+                t.open(&mut live, &mut plane, &gy, &gx);
+                for (m, y) in ys.zip(gy) {
+                    let src = &tb.a[m * n + xs.start..m * n + xs.end];
+                    let dst = &mut plane[y * w + gx.start..y * w + gx.end];
+                    dst.iter_mut().zip(src).for_each(|(d, s)| *d += s);
+                }
+            }
+            if let Some((r, tl)) = record.as_mut() {
+                r.push(rec);
+                tl.push(tiles.to_vec());
+            }
+            scales.push(scale);
+            // The whole-grid path's composition, pixel for pixel (see there).
+            let gain = l.gain as f64 * scale as f64;
+            let compose = move |v: c32, p: f32| (gain * v.re as f64) as f32 + (1.0 - v.im) * p;
+            if keep {
+                // Row by row, each value written once: the composition in live blocks, a copy
+                // of I⁽ᵏ⁻¹⁾ (and α∗P = 0) elsewhere.
+                let (mut cur, mut o) = (Vec::with_capacity(h * w), Vec::with_capacity(h * w));
+                for r in 0..h {
+                    for bj in 0..t.cols {
+                        let x0 = bj * t.t;
+                        let span = r * w + x0..r * w + (x0 + t.t).min(w);
+                        let p = &prev[span.clone()];
+                        if live[(r / t.t) * t.cols + bj] {
+                            let v = &plane[span];
+                            o.extend(v.iter().map(|v| v.im));
+                            cur.extend(v.iter().zip(p).map(|(&v, &p)| compose(v, p)));
+                        } else {
+                            o.resize(o.len() + p.len(), 0.0);
+                            cur.extend_from_slice(p);
+                        }
+                    }
+                }
+                saved.push(Some((std::mem::replace(&mut prev, cur), o)));
+            } else {
+                t.live_rows(&live, |s, len| {
+                    let span = s..s + len;
+                    prev[span.clone()]
+                        .iter_mut()
+                        .zip(&plane[span])
+                        .for_each(|(p, &v)| *p = compose(v, *p));
+                });
+            }
+        }
+        tb.plane = plane;
+        t.pool.give(tb);
+        let m = self.finished(&prev)?;
+        let spectra = record.map(|(layers, tiles)| LayerSpectra {
+            layers,
+            scales: scales.clone(),
+            nx: n,
+            ny: n,
+            tile: t.t,
+            tiles,
+        });
+        let tape = keep.then_some(S1Tape {
+            saved,
+            image: prev,
+            scales,
+            spectra,
+        });
+        Ok((m, tape))
+    }
+
+    /// [`Self::vjp_kernels`] on tiles: the adjoint's pass over the whole image as on the
+    /// whole grid, then per covered tile the transform of its N×N window of the gradient times
+    /// the tile's conjugate spectrum, into the kernel's N×N accumulator.
+    pub(super) fn tiled_vjp_kernels(
+        &self,
+        t: &Tiling,
+        layers: &[SpectralLayer],
+        tape: &S1Tape,
+        grad: &Mat<f64>,
+        acc: &mut KernelGradAccumulator,
+        spectra: Option<&LayerSpectra>,
+    ) -> Result<()> {
+        let (h, w, n) = (self.h, self.w, t.n);
+        let (cy, cx) = (self.wp / 2, self.wp / 2);
+        let nn = n * n;
+        let norm = 1.0 / nn as f32;
+        let mut gi = vec![0.0f32; h * w];
+        tiles(h, w, |r, c| gi[r * w + c] = grad[(r, c)] as f32);
+        let mut tb = t.buffers();
+        let mut plane = std::mem::take(&mut tb.plane);
+        plane.resize(h * w, c32::new(0.0, 0.0));
+        let mut above: &[f32] = &tape.image;
+        for k in (0..layers.len()).rev() {
+            let Some((prev, o)) = &tape.saved[k] else {
+                continue;
+            };
+            let l = &layers[k];
+            let gain = l.gain as f64 * tape.scales[k] as f64;
+            let mut dots = [0.0f64; DOT_LANES];
+            for r in 0..h {
+                let span = r * w..(r + 1) * w;
+                adjoint_row(
+                    gain,
+                    &mut gi[span.clone()],
+                    &prev[span.clone()],
+                    &o[span.clone()],
+                    &above[span.clone()],
+                    &mut plane[span],
+                    &mut dots,
+                );
+            }
+            let dot: f64 = dots.iter().sum();
+            let scanned;
+            let (tiles, spec): (&[u32], Option<&[c32]>) =
+                match spectra.map(|s| (s.layers[k].as_deref(), &s.tiles[k])) {
+                    Some((None, _)) => {
+                        return Err(OpticsError::Shape(format!(
+                            "layer {k} has no spectrum but was imaged: spectra of other layers"
+                        )));
+                    }
+                    Some((Some(s), tiles)) => (tiles, Some(s)),
+                    None => {
+                        scanned = self.scan(t, l, k)?;
+                        match &scanned {
+                            Some((tiles, _)) => (tiles, None),
+                            None => {
+                                return Err(OpticsError::Shape(format!(
+                                    "layer {k} has no coverage but was imaged: other layers"
+                                )));
+                            }
+                        }
+                    }
+                };
+            let mut fresh = acc.spec[l.kernel].is_none();
+            let slot = acc.spec[l.kernel].get_or_insert_with(|| self.spare_spectrum());
+            for (i, &tile) in tiles.iter().enumerate() {
+                let a: &[c32] = match spec {
+                    Some(s) => &s[i * nn..(i + 1) * nn],
+                    None => {
+                        let rows = self.pack_tile(t, l, tile, tape.scales[k], &mut tb.a);
+                        t.fft2(&mut tb.a, rows, &mut tb.c, &mut tb.scratch);
+                        &tb.c
+                    }
+                };
+                let (y0, x0, th, tw) = t.origin(tile);
+                let (ys, xs) = (self.window(t, y0, th, h), self.window(t, x0, tw, w));
+                let gx = x0 + xs.start - cx..x0 + xs.end - cx;
+                for m in ys.clone() {
+                    let row = &mut tb.a[m * n..(m + 1) * n];
+                    row[..xs.start].fill(c32::new(0.0, 0.0));
+                    row[xs.end..].fill(c32::new(0.0, 0.0));
+                    let y = y0 + m - cy;
+                    row[xs.clone()].copy_from_slice(&plane[y * w + gx.start..y * w + gx.end]);
+                }
+                t.fft2(&mut tb.a, ys, &mut tb.b, &mut tb.scratch);
+                accumulate(
+                    slot,
+                    fresh,
+                    0..nn,
+                    tb.b.iter().zip(a).map(|(g, a)| g * a.conj() * norm),
+                );
+                fresh = false;
+            }
+            acc.radiance_scale[l.kernel] += dot;
+            above = prev;
+        }
+        tb.plane = plane;
+        t.pool.give(tb);
+        Ok(())
+    }
+
+    /// [`Self::kernel_grads`] on tiles: one N×N inverse per kernel, of the W_p rows kept.
+    pub(super) fn tiled_kernel_grads(
+        &self,
+        t: &Tiling,
+        acc: KernelGradAccumulator,
+    ) -> Vec<Mat<f64>> {
+        let (n, wp) = (t.n, self.wp);
+        let mut tb = t.buffers();
+        let grads = acc
+            .spec
+            .into_iter()
+            .map(|s| match s {
+                None => Mat::zeros(wp, wp),
+                Some(mut v) => {
+                    t.ifft2(&mut v, 0..wp, &mut tb.a, &mut tb.scratch);
+                    self.spare.give(v);
+                    Mat::from_fn(wp, wp, |r, c| tb.a[r * n + c].re as f64)
+                }
+            })
+            .collect();
+        t.pool.give(tb);
+        grads
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_paper_size_frame_gets_tiles_the_default_job_the_whole_grid() {
+        // 1280×800 at 3 µm with the 65-pixel window: 160-pixel tiles on 224² grids, 5 × 8.
+        let im = LayeredImager::new(800, 1280, 65).unwrap();
+        let t = im.tiling.as_ref().expect("tiled");
+        assert_eq!((t.t, t.n, t.rows, t.cols), (160, 224, 5, 8));
+        // The default job's 320×200 at 12 µm (17-pixel window): 0.07 M grid points.
+        assert!(LayeredImager::new(200, 320, 17).unwrap().tile().is_none());
+        // A grid beyond the threshold with a window as wide as the image: a tile's grid
+        // would not pay.
+        assert!(LayeredImager::new(800, 1280, 801).unwrap().tile().is_none());
+    }
+}
