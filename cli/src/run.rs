@@ -826,20 +826,36 @@ fn job_sets(out: &Path, cfg: &RunConfig) -> Vec<(PathBuf, RenderSet, (usize, u64
     sets
 }
 
-/// Refuses the job when its rendered sets' arrays cannot fit on `out`'s disk (and warns when
-/// they may not: [`util::check_disk`]), before anything is written.
+/// Bytes the lenses' models under runs/ take at least: per lens two trainer checkpoints
+/// (checkpoint.bin, selected.bin: the supernet's weights and BN statistics, and Adam's two
+/// moments at 4 bytes per parameter each) and three tracker networks (weights and statistics:
+/// the selected, min and max subnets'). 0.80 GB for the default configuration.
+fn runs_bytes(cfg: &RunConfig) -> Result<u64> {
+    let mut net = nanoeye_nets::Supernet::new(train_config(cfg, false, 0.0).supernet, 0)?;
+    let weights = nanoeye_nets::checkpoint::to_bytes(&mut net)?.len() as u64;
+    let moments = 2 * 4 * net.num_params() as u64;
+    Ok(LENSES.len() as u64 * (2 * (weights + moments) + 3 * weights))
+}
+
+/// Refuses the job when its rendered sets' arrays and its models cannot fit on `out`'s disk
+/// (and warns when they may not: [`util::check_disk`]), before anything is written.
 fn check_job_disk(out: &Path, cfg: &RunConfig) -> Result<()> {
-    let mut bytes = (0u64, 0u64);
+    let mut sets = (0u64, 0u64);
     for (dir, set, items) in job_sets(out, cfg) {
         let (lo, hi) = nanoeye_datagen::render::dataset::dataset_array_bytes(&set_options(
             &dir, set, items, cfg,
         ))?;
-        bytes = (bytes.0.saturating_add(lo), bytes.1.saturating_add(hi));
+        sets = (sets.0.saturating_add(lo), sets.1.saturating_add(hi));
     }
+    let runs = runs_bytes(cfg)?;
     util::check_disk(
-        "nanoeye run's rendered sets",
+        &format!(
+            "nanoeye run's rendered sets (at least {:.2} GB) and models ({:.2} GB)",
+            sets.0 as f64 / 1e9,
+            runs as f64 / 1e9
+        ),
         out,
-        bytes,
+        (sets.0.saturating_add(runs), sets.1.saturating_add(runs)),
         "lower train_items, val_items, protocol_subjects, sequence_frames or width_px × height_px",
     )
 }

@@ -3540,47 +3540,70 @@ fn with_disk(args: &[&str], bytes: &str, cwd: &Path) -> std::process::Output {
 }
 
 /// The main job writes about 4.4 GB at its defaults (session 56's CI failed on a full disk):
-/// a disk that cannot hold its rendered sets' arrays is refused before anything is written,
-/// and what --out already holds counts as written (a resume reuses it).
+/// a disk that cannot hold its rendered sets' arrays and its models is refused before
+/// anything is written, and what --out already holds counts as written (a resume reuses it).
 #[test]
 fn run_refuses_a_disk_its_rendered_sets_cannot_fit() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
     // The defaults' sets: (240 + 96 + 343 + 60) frames × 4 planes × 320 × 200 × 4 bytes.
-    let least = 739.0 * 4.0 * 320.0 * 200.0 * 4.0 / 1e9;
+    let sets = 739.0 * 4.0 * 320.0 * 200.0 * 4.0 / 1e9;
     let out = with_disk(&["run", "--out", "r"], "1e6", p);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
     assert!(
         err.contains(&format!(
-            "writes at least {least:.2} GB under r (0.00 GB of it there"
+            "rendered sets (at least {sets:.2} GB) and models ("
         )),
         "{err}"
     );
+    // The models: two trainer checkpoints and three tracker networks per lens, 0.80 GB of
+    // runs/ on disk after the sixtieth session's default job (the estimate leaves out the
+    // small files).
+    let models: f64 = err
+        .split("models (")
+        .nth(1)
+        .and_then(|r| r.split(" GB)").next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{err}"));
+    assert!((0.6..=0.8).contains(&models), "{err}");
+    let least = err
+        .split("writes at least ")
+        .nth(1)
+        .and_then(|r| r.split(" GB under r (0.00 GB of it there").next())
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("{err}"));
+    assert!((least - (sets + models)).abs() <= 0.011, "{err}");
     assert!(err.contains("0.00 GB are free there"), "{err}");
     assert!(err.contains("protocol_subjects"), "{err}");
     assert!(!p.join("r").exists(), "a refused run wrote something");
-    // 0.70 GB already under --out (a sparse file: its length counts, not its blocks) and
-    // 0.02 GB free: still 0.037 GB short. At 0.75 GB it fits, and the next check speaks: the
-    // file is named `runs`, which --out may not hold without a configuration.
+    // `least` − 0.06 GB already under --out (a sparse file: its length counts, not its
+    // blocks) and 0.02 GB free: still short. At `least` it fits, and the next check speaks:
+    // the file is named `runs`, which --out may not hold without a configuration.
     std::fs::create_dir_all(p.join("r2")).unwrap();
     let pad = std::fs::File::create(p.join("r2/runs")).unwrap();
-    pad.set_len(700_000_000).unwrap();
+    pad.set_len(((least - 0.06) * 1e9) as u64).unwrap();
     let out = with_disk(&["run", "--out", "r2"], "2e7", p);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
-    assert!(err.contains("(0.70 GB of it there already)"), "{err}");
-    pad.set_len(750_000_000).unwrap();
+    assert!(
+        err.contains(&format!("({:.2} GB of it there already)", least - 0.06)),
+        "{err}"
+    );
+    pad.set_len((least * 1e9) as u64).unwrap();
     let out = with_disk(&["run", "--out", "r2"], "2e7", p);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
     assert!(!err.contains("GB are free"), "{err}");
     // With all eight depth layers of every frame kept they would not: a warning.
-    let most = 739.0 * 20.0 * 320.0 * 200.0 * 4.0 / 1e9;
-    assert!(
-        err.contains(&format!("may write up to {most:.2} GB under r2")),
-        "{err}"
-    );
+    let most = 739.0 * 20.0 * 320.0 * 200.0 * 4.0 / 1e9 + (least - sets);
+    let said = err
+        .split("may write up to ")
+        .nth(1)
+        .and_then(|r| r.split(" GB under r2").next())
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("{err}"));
+    assert!((said - most).abs() <= 0.011, "{err}");
     assert!(
         err.contains("holds a run's `runs` but no config.json"),
         "{err}"
