@@ -3539,6 +3539,15 @@ fn with_disk(args: &[&str], bytes: &str, cwd: &Path) -> std::process::Output {
     with_env("NANOEYE_DISK_BYTES", args, bytes, cwd)
 }
 
+/// The number `text` prints between `before` and `after` (a panic naming the text if none).
+fn number_between(text: &str, before: &str, after: &str) -> f64 {
+    text.split(before)
+        .nth(1)
+        .and_then(|r| r.split(after).next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no number between {before:?} and {after:?} in: {text}"))
+}
+
 /// The main job writes about 4.4 GB at its defaults (session 56's CI failed on a full disk):
 /// a disk that cannot hold its rendered sets' arrays and its models is refused before
 /// anything is written, and what --out already holds counts as written (a resume reuses it).
@@ -3560,19 +3569,9 @@ fn run_refuses_a_disk_its_rendered_sets_cannot_fit() {
     // The models: two trainer checkpoints and three tracker networks per lens, 0.80 GB of
     // runs/ on disk after the sixtieth session's default job (the estimate leaves out the
     // small files).
-    let models: f64 = err
-        .split("models (")
-        .nth(1)
-        .and_then(|r| r.split(" GB)").next())
-        .and_then(|v| v.parse().ok())
-        .unwrap_or_else(|| panic!("{err}"));
+    let models = number_between(&err, "models (", " GB)");
     assert!((0.6..=0.8).contains(&models), "{err}");
-    let least = err
-        .split("writes at least ")
-        .nth(1)
-        .and_then(|r| r.split(" GB under r (0.00 GB of it there").next())
-        .and_then(|v| v.parse::<f64>().ok())
-        .unwrap_or_else(|| panic!("{err}"));
+    let least = number_between(&err, "writes at least ", " GB under r (0.00 GB of it there");
     assert!((least - (sets + models)).abs() <= 0.011, "{err}");
     assert!(err.contains("0.00 GB are free there"), "{err}");
     assert!(err.contains("protocol_subjects"), "{err}");
@@ -3597,12 +3596,7 @@ fn run_refuses_a_disk_its_rendered_sets_cannot_fit() {
     assert!(!err.contains("GB are free"), "{err}");
     // With all eight depth layers of every frame kept they would not: a warning.
     let most = 739.0 * 20.0 * 320.0 * 200.0 * 4.0 / 1e9 + (least - sets);
-    let said = err
-        .split("may write up to ")
-        .nth(1)
-        .and_then(|r| r.split(" GB under r2").next())
-        .and_then(|v| v.parse::<f64>().ok())
-        .unwrap_or_else(|| panic!("{err}"));
+    let said = number_between(&err, "may write up to ", " GB under r2");
     assert!((said - most).abs() <= 0.011, "{err}");
     assert!(
         err.contains("holds a run's `runs` but no config.json"),

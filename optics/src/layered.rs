@@ -1333,18 +1333,36 @@ impl LayeredImager {
             }
         }
         self.pool.give(sb);
-        let m = self.finished(&prev)?;
-        let spectra = record.map(|layers| LayerSpectra {
+        let record = record.map(|layers| (layers, Vec::new()));
+        self.finish_pass(prev, saved, scales, record, keep)
+    }
+
+    /// A spectral forward pass's result from its final image I (row-major H×W): the image as
+    /// a matrix (refused when not finite) and, when `keep`, the tape — the per-layer planes,
+    /// radiance scales and the spectra recorded on the way (with their tiles on the tiled
+    /// path), on this imager's spectral grid.
+    #[allow(clippy::type_complexity)]
+    fn finish_pass(
+        &self,
+        image: Vec<f32>,
+        saved: Vec<Option<(Vec<f32>, Vec<f32>)>>,
+        scales: Vec<f32>,
+        record: Option<(Vec<Option<Vec<c32>>>, Vec<Vec<u32>>)>,
+        keep: bool,
+    ) -> Result<(Mat<f32>, Option<S1Tape>)> {
+        let m = self.finished(&image)?;
+        let (nx, ny, tile) = self.spectral_grid();
+        let spectra = record.map(|(layers, tiles)| LayerSpectra {
             layers,
             scales: scales.clone(),
             nx,
             ny,
-            tile: 0,
-            tiles: Vec::new(),
+            tile,
+            tiles,
         });
         let tape = keep.then_some(S1Tape {
             saved,
-            image: prev,
+            image,
             scales,
             spectra,
         });

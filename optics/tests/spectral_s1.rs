@@ -23,6 +23,21 @@ fn alpha(h: usize, w: usize, s: usize) -> Mat<f32> {
     })
 }
 
+/// The spectral path's f32 image within 1e-5 (relative, or absolute below 1) of the f64
+/// reference's, pixel by pixel.
+fn assert_image_close(got: &Mat<f32>, want: &Mat<f64>) {
+    for i in 0..want.nrows() {
+        for j in 0..want.ncols() {
+            assert!(
+                (got[(i, j)] as f64 - want[(i, j)]).abs() < 1e-5 * (1.0 + want[(i, j)].abs()),
+                "({i},{j}): {} vs {}",
+                got[(i, j)],
+                want[(i, j)]
+            );
+        }
+    }
+}
+
 #[test]
 fn spectral_path_matches_the_reference_forward_and_psf_gradient() {
     // On the whole padded grid, then on tiles.
@@ -73,11 +88,7 @@ fn spectral_path_matches_the_reference_forward_and_psf_gradient_on(tile: Option<
         .unwrap();
     let want = im.forward_f64_image(&reference).unwrap();
     let (got, tape) = im.forward_spectral(&spectral, &ks, None).unwrap();
-    for i in 0..h {
-        for j in 0..w {
-            assert!((got[(i, j)] as f64 - want[(i, j)]).abs() < 1e-5 * (1.0 + want[(i, j)].abs()));
-        }
-    }
+    assert_image_close(&got, &want);
     let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
     let lg = im.vjp(&reference, &g).unwrap();
     let mut acc = im.kernel_grad_accumulator(3);
@@ -275,16 +286,7 @@ fn rows_without_data_are_skipped_and_reused_work_spaces_change_nothing_on(tile: 
     spectral_run(&im, &dense, &psfs, &g);
     let (got, kg, scale) = spectral_run(&im, &spectral, &psfs, &g);
     let want = im.forward_f64_image(&reference).unwrap();
-    for i in 0..h {
-        for j in 0..w {
-            assert!(
-                (got[(i, j)] as f64 - want[(i, j)]).abs() < 1e-5 * (1.0 + want[(i, j)].abs()),
-                "({i},{j}): {} vs {}",
-                got[(i, j)],
-                want[(i, j)]
-            );
-        }
-    }
+    assert_image_close(&got, &want);
     let lg = im.vjp(&reference, &g).unwrap();
     for k in 0..2 {
         for i in 0..wp {
@@ -693,16 +695,7 @@ fn tiles_without_coverage_are_skipped() {
     ];
     let want = im.forward_f64_image(&reference).unwrap();
     let (got, tape) = im.forward_spectral(&layers, &ks, None).unwrap();
-    for i in 0..h {
-        for j in 0..w {
-            assert!(
-                (got[(i, j)] as f64 - want[(i, j)]).abs() < 1e-5 * (1.0 + want[(i, j)].abs()),
-                "({i},{j}): {} vs {}",
-                got[(i, j)],
-                want[(i, j)]
-            );
-        }
-    }
+    assert_image_close(&got, &want);
     // The patch's blur reaches column 37, in tile (1, 3), which it does not cover.
     assert!((got[(15, 37)] as f64 - want[(15, 37)]).abs() < 1e-5 * want[(15, 37)].abs());
     let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);

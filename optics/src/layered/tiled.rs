@@ -498,22 +498,7 @@ impl LayeredImager {
         }
         tb.plane = plane;
         t.pool.give(tb);
-        let m = self.finished(&prev)?;
-        let spectra = record.map(|(layers, tiles)| LayerSpectra {
-            layers,
-            scales: scales.clone(),
-            nx: n,
-            ny: n,
-            tile: t.t,
-            tiles,
-        });
-        let tape = keep.then_some(S1Tape {
-            saved,
-            image: prev,
-            scales,
-            spectra,
-        });
-        Ok((m, tape))
+        self.finish_pass(prev, saved, scales, record, keep)
     }
 
     /// [`Self::vjp_kernels`] on tiles: the adjoint's pass over the whole image as on the
