@@ -750,6 +750,9 @@ pub struct LayerSpectra {
     ny: usize,
     /// The tiles' side on the tiled path (0: the whole padded grid).
     tile: usize,
+    /// The image's H×W: spectra of another imager's frames are refused even where the grids
+    /// agree.
+    image: (usize, usize),
     /// On the tiled path, per layer the tiles it covers (row-major tile index), whose
     /// spectra its entry holds one after the other; empty on the whole-grid path.
     tiles: Vec<Vec<u32>>,
@@ -897,16 +900,21 @@ impl LayeredImager {
     /// Spectra given with `layers` belong to this imager's grid and to as many layers.
     fn check_spectra(&self, layers: &[SpectralLayer], s: Option<&LayerSpectra>) -> Result<()> {
         let (nx, ny, tile) = self.spectral_grid();
+        let here = (self.h, self.w, nx, ny, tile, layers.len());
         match s {
-            Some(s) if (s.nx, s.ny, s.tile, s.layers.len()) != (nx, ny, tile, layers.len()) => {
+            Some(s) if (s.image.0, s.image.1, s.nx, s.ny, s.tile, s.layers.len()) != here => {
                 Err(OpticsError::Shape(format!(
-                    "layer spectra of {} layers on a {}×{} grid (tiles of {}), for {} layers \
-                     on {}×{} (tiles of {})",
+                    "layer spectra of {} layers of {}×{} on a {}×{} grid (tiles of {}), for {} \
+                     layers of {}×{} on {}×{} (tiles of {})",
                     s.layers.len(),
+                    s.image.0,
+                    s.image.1,
                     s.ny,
                     s.nx,
                     s.tile,
                     layers.len(),
+                    self.h,
+                    self.w,
                     ny,
                     nx,
                     tile
@@ -1173,6 +1181,7 @@ impl LayeredImager {
             ny,
             tile: 0,
             tiles: Vec::new(),
+            image: (self.h, self.w),
         })
     }
 
@@ -1359,6 +1368,7 @@ impl LayeredImager {
             ny,
             tile,
             tiles,
+            image: (self.h, self.w),
         });
         let tape = keep.then_some(S1Tape {
             saved,

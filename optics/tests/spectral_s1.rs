@@ -727,6 +727,17 @@ fn tiles_without_coverage_are_skipped() {
         .err()
         .expect("refused");
     assert!(err.to_string().contains("another imager"), "{err}");
+    // Spectra of a tiled imager of another image size (the same tiles and grids): refused,
+    // not read out of its tiles' range.
+    let taller = LayeredImager::with_tiles(h + 40, w, wp, Some(12)).unwrap();
+    let (tr, ta) = (img(h + 40, w, 1), alpha(h + 40, w, 1));
+    let tall = [SpectralLayer::new(tr.as_ref(), ta.as_ref(), 0); 2];
+    let tall_spectra = taller.layer_spectra(&tall).unwrap();
+    let err = im
+        .forward_spectral(&layers, &ks, Some(&tall_spectra))
+        .err()
+        .expect("refused");
+    assert!(err.to_string().contains("of 80×44"), "{err}");
     assert!(LayeredImager::with_tiles(h, w, wp, Some(0)).is_err());
     assert!(LayeredImager::with_tiles(h, w, wp, Some(45)).is_err());
     assert!(LayeredImager::with_tiles(h, w, wp, Some(44)).is_ok());

@@ -372,6 +372,7 @@ impl LayeredImager {
             ny: t.n,
             tile: t.t,
             tiles: all,
+            image: (self.h, self.w),
         })
     }
 
