@@ -112,6 +112,15 @@ fn lines<'a>(m: MatRef<'a, f32>, by: Layout) -> Vec<&'a [f32]> {
     }
 }
 
+/// A layer's planes as lines in their shared layout: the layout, α's, L's and the weight's
+/// ([`SpectralLayer::lines`]).
+type Lines<'a> = (
+    Layout,
+    Vec<&'a [f32]>,
+    Vec<&'a [f32]>,
+    Option<Vec<&'a [f32]>>,
+);
+
 /// One pixel of the PSF adjoint's pass over a layer, for ∂L/∂I⁽ᵏ⁾ = `gv`, I⁽ᵏ⁻¹⁾ = `p`,
 /// α∗P = `o` and I⁽ᵏ⁾ = `above`: gv times the convolved radiance (the radiance scale's
 /// gradient term), the gradient's complex value (real: radiance channel, imaginary: occlusion
@@ -634,15 +643,7 @@ impl<'a> SpectralLayer<'a> {
     }
 
     /// Its planes' lines (rows or columns) in their shared layout: α, L and the weight's.
-    #[allow(clippy::type_complexity)]
-    fn lines(
-        &self,
-    ) -> (
-        Layout,
-        Vec<&'a [f32]>,
-        Vec<&'a [f32]>,
-        Option<Vec<&'a [f32]>>,
-    ) {
+    fn lines(&self) -> Lines<'a> {
         let by = self.layout().expect("layouts checked by check_layers");
         (
             by,

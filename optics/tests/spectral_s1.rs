@@ -5,7 +5,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use faer::Mat;
-use nanoeye_optics::{Layer, LayerSpectra, LayeredImager, SpectralLayer};
+use nanoeye_optics::{KernelSpectra, Layer, LayerSpectra, LayeredImager, SpectralLayer};
 use proptest::prelude::*;
 
 fn img(h: usize, w: usize, s: usize) -> Mat<f32> {
@@ -715,29 +715,25 @@ fn tiles_without_coverage_are_skipped() {
     }
     let whole = LayeredImager::with_tiles(h, w, wp, None).unwrap();
     assert_eq!(whole.tile(), None);
+    // The forward pass's refusal of other spectra, as text.
+    let refused = |ks: &KernelSpectra, spectra: Option<&LayerSpectra>| {
+        let err = im.forward_spectral(&layers, ks, spectra).err();
+        err.expect("refused").to_string()
+    };
     let whole_spectra = whole.layer_spectra(&layers).unwrap();
-    let err = im
-        .forward_spectral(&layers, &ks, Some(&whole_spectra))
-        .err()
-        .expect("refused");
-    assert!(err.to_string().contains("tiles of"), "{err}");
+    let err = refused(&ks, Some(&whole_spectra));
+    assert!(err.contains("tiles of"), "{err}");
     let whole_ks = whole.kernel_spectra(&[Some(&psf)]).unwrap();
-    let err = im
-        .forward_spectral(&layers, &whole_ks, None)
-        .err()
-        .expect("refused");
-    assert!(err.to_string().contains("another imager"), "{err}");
+    let err = refused(&whole_ks, None);
+    assert!(err.contains("another imager"), "{err}");
     // Spectra of a tiled imager of another image size (the same tiles and grids): refused,
     // not read out of its tiles' range.
     let taller = LayeredImager::with_tiles(h + 40, w, wp, Some(12)).unwrap();
     let (tr, ta) = (img(h + 40, w, 1), alpha(h + 40, w, 1));
     let tall = [SpectralLayer::new(tr.as_ref(), ta.as_ref(), 0); 2];
     let tall_spectra = taller.layer_spectra(&tall).unwrap();
-    let err = im
-        .forward_spectral(&layers, &ks, Some(&tall_spectra))
-        .err()
-        .expect("refused");
-    assert!(err.to_string().contains("of 80×44"), "{err}");
+    let err = refused(&ks, Some(&tall_spectra));
+    assert!(err.contains("of 80×44"), "{err}");
     assert!(LayeredImager::with_tiles(h, w, wp, Some(0)).is_err());
     assert!(LayeredImager::with_tiles(h, w, wp, Some(45)).is_err());
     assert!(LayeredImager::with_tiles(h, w, wp, Some(44)).is_ok());

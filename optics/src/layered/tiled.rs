@@ -267,12 +267,13 @@ impl LayeredImager {
         Ok((!tiles.is_empty()).then(|| (tiles, scale_of(m))))
     }
 
-    /// Packs αL/s + iα of tile `tile` of a layer into the top-left of the n×n grid `a` (zero
-    /// beyond its columns), the same values the whole-grid path packs; returns its rows.
+    /// Packs αL/s + iα of tile `tile` of a layer (its `lines`, taken once per layer) into
+    /// the top-left of the n×n grid `a` (zero beyond its columns), the same values the
+    /// whole-grid path packs; returns its rows.
     fn pack_tile(
         &self,
         t: &Tiling,
-        l: &SpectralLayer,
+        lines: &Lines,
         tile: u32,
         scale: f32,
         a: &mut [c32],
@@ -281,7 +282,7 @@ impl LayeredImager {
         let (y0, x0, th, tw) = t.origin(tile);
         let inv = 1.0 / scale;
         let pack = |x: f32, y: f32| c32::new(x * y * inv, x);
-        let (by, al, rad, wt) = l.lines();
+        let (by, al, rad, wt) = lines;
         for row in a[..th * n].chunks_exact_mut(n) {
             row[tw..].fill(c32::new(0.0, 0.0));
         }
@@ -355,8 +356,9 @@ impl LayeredImager {
                 continue;
             };
             let mut spec = Vec::with_capacity(tiles.len() * nn);
+            let lines = l.lines();
             for &tile in &tiles {
-                let rows = self.pack_tile(t, l, tile, scale, &mut tb.a);
+                let rows = self.pack_tile(t, &lines, tile, scale, &mut tb.a);
                 t.fft2(&mut tb.a, rows, &mut tb.b, &mut tb.scratch);
                 spec.extend_from_slice(&tb.b);
             }
@@ -430,6 +432,7 @@ impl LayeredImager {
             let mut rec = record
                 .as_ref()
                 .map(|_| Vec::with_capacity(tiles.len() * nn));
+            let lines = given.is_none().then(|| l.lines());
             for (i, &tile) in tiles.iter().enumerate() {
                 match given {
                     Some(s) => {
@@ -439,7 +442,8 @@ impl LayeredImager {
                             .for_each(|((b, &s), p)| *b = s * p)
                     }
                     None => {
-                        let rows = self.pack_tile(t, l, tile, scale, &mut tb.a);
+                        let lines = lines.as_ref().expect("taken when not given");
+                        let rows = self.pack_tile(t, lines, tile, scale, &mut tb.a);
                         t.fft2(&mut tb.a, rows, &mut tb.b, &mut tb.scratch);
                         if let Some(rec) = rec.as_mut() {
                             rec.extend_from_slice(&tb.b);
@@ -567,11 +571,13 @@ impl LayeredImager {
                 };
             let mut fresh = acc.spec[l.kernel].is_none();
             let slot = acc.spec[l.kernel].get_or_insert_with(|| self.spare_spectrum());
+            let lines = spec.is_none().then(|| l.lines());
             for (i, &tile) in tiles.iter().enumerate() {
-                let a: &[c32] = match spec {
-                    Some(s) => &s[i * nn..(i + 1) * nn],
-                    None => {
-                        let rows = self.pack_tile(t, l, tile, tape.scales[k], &mut tb.a);
+                let a: &[c32] = match (spec, &lines) {
+                    (Some(s), _) => &s[i * nn..(i + 1) * nn],
+                    (None, lines) => {
+                        let lines = lines.as_ref().expect("taken when not given");
+                        let rows = self.pack_tile(t, lines, tile, tape.scales[k], &mut tb.a);
                         t.fft2(&mut tb.a, rows, &mut tb.c, &mut tb.scratch);
                         &tb.c
                     }
