@@ -129,13 +129,21 @@ type Lines<'a> = (
 fn adjoint_pixel(gain: f64, gv: f32, p: f32, o: f32, above: f32) -> (f64, f32, f32, f32) {
     let (g, p64, o64) = (gv as f64, p as f64, o as f64);
     let conv = above as f64 - (1.0 - o64) * p64;
-    (g * conv, (gain * g) as f32, -gv * p, gv * (1.0 - o))
+    let v = gradient_value(gain, gv, p);
+    (g * conv, v.re, v.im, gv * (1.0 - o))
+}
+
+/// The gradient's complex value at one pixel for ∂L/∂I⁽ᵏ⁾ = `gv` and I⁽ᵏ⁻¹⁾ = `p` (real:
+/// radiance channel, imaginary: occlusion channel), as [`adjoint_pixel`] gives it.
+#[inline(always)]
+fn gradient_value(gain: f64, gv: f32, p: f32) -> c32 {
+    c32::new((gain * gv as f64) as f32, -gv * p)
 }
 
 /// One row of the PSF adjoint's pass ([`adjoint_pixel`] per pixel): the gradient's complex
-/// values into `gs`, ∂L/∂I⁽ᵏ⁻¹⁾ over `gi` in place, the dot product into `dots`, in
-/// [`DOT_LANES`] partial sums so that the pass vectorises (one running sum is a chain of
-/// dependent scalar adds).
+/// values into `gs` (when given: the tiled path takes them window by window instead),
+/// ∂L/∂I⁽ᵏ⁻¹⁾ over `gi` in place, the dot product into `dots`, in [`DOT_LANES`] partial sums
+/// so that the pass vectorises (one running sum is a chain of dependent scalar adds).
 #[inline]
 fn adjoint_row(
     gain: f64,
@@ -143,17 +151,17 @@ fn adjoint_row(
     prev: &[f32],
     o: &[f32],
     above: &[f32],
-    gs: &mut [c32],
+    mut gs: Option<&mut [c32]>,
     dots: &mut [f64; DOT_LANES],
 ) {
     let w = gi.len();
     let body = w - w % DOT_LANES;
-    for ((((gv, p), oo), ab), gs) in gi[..body]
+    for (c, (((gv, p), oo), ab)) in gi[..body]
         .chunks_exact_mut(DOT_LANES)
         .zip(prev[..body].chunks_exact(DOT_LANES))
         .zip(o[..body].chunks_exact(DOT_LANES))
         .zip(above[..body].chunks_exact(DOT_LANES))
-        .zip(gs[..body].chunks_exact_mut(DOT_LANES))
+        .enumerate()
     {
         // Element-wise into arrays first, interleaved into the complex row after: with the
         // store inside, the loop stays scalar.
@@ -162,13 +170,19 @@ fn adjoint_row(
             let (d, r, i, g) = adjoint_pixel(gain, gv[j], p[j], oo[j], ab[j]);
             (dots[j], re[j], im[j], gv[j]) = (dots[j] + d, r, i, g);
         }
-        for j in 0..DOT_LANES {
-            gs[j] = c32::new(re[j], im[j]);
+        if let Some(gs) = gs.as_deref_mut() {
+            let gs = &mut gs[c * DOT_LANES..(c + 1) * DOT_LANES];
+            for j in 0..DOT_LANES {
+                gs[j] = c32::new(re[j], im[j]);
+            }
         }
     }
     for i in body..w {
         let (d, r, im, g) = adjoint_pixel(gain, gi[i], prev[i], o[i], above[i]);
-        (dots[0], gs[i], gi[i]) = (dots[0] + d, c32::new(r, im), g);
+        (dots[0], gi[i]) = (dots[0] + d, g);
+        if let Some(gs) = gs.as_deref_mut() {
+            gs[i] = c32::new(r, im);
+        }
     }
 }
 
@@ -1458,7 +1472,7 @@ impl LayeredImager {
                     &prev[span.clone()],
                     &o[span.clone()],
                     &above[span],
-                    &mut row[cx..cx + w],
+                    Some(&mut row[cx..cx + w]),
                     &mut dots,
                 );
                 self.p32.fx.process_with_scratch(row, &mut sb.scratch);
