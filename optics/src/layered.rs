@@ -121,6 +121,25 @@ type Lines<'a> = (
     Option<Vec<&'a [f32]>>,
 );
 
+/// A value type ∂loss/∂I may be given in to [`LayeredImager::vjp_kernels`], which runs its
+/// pass in f32: an f32 gradient (the sensor's) goes in without a widened copy.
+pub trait GradValue: Copy {
+    /// The value rounded to f32.
+    fn to_f32(self) -> f32;
+}
+
+impl GradValue for f32 {
+    fn to_f32(self) -> f32 {
+        self
+    }
+}
+
+impl GradValue for f64 {
+    fn to_f32(self) -> f32 {
+        self as f32
+    }
+}
+
 /// One pixel of the PSF adjoint's pass over a layer, for ∂L/∂I⁽ᵏ⁾ = `gv`, I⁽ᵏ⁻¹⁾ = `p`,
 /// α∗P = `o` and I⁽ᵏ⁾ = `above`: gv times the convolved radiance (the radiance scale's
 /// gradient term), the gradient's complex value (real: radiance channel, imaginary: occlusion
@@ -1395,15 +1414,15 @@ impl LayeredImager {
     }
 
     /// Adds ∂loss/∂P (in the frequency domain) and ∂loss/∂(radiance scale) of one frame into
-    /// `acc`, for ∂loss/∂I = `grad`. Two FFTs per non-empty layer (one with the layers'
-    /// `spectra`, given or on the tape); no input gradients. The column transforms of the
-    /// gradient and of the layer and their product run block by block, so neither full
-    /// spectrum is ever stored.
-    pub fn vjp_kernels(
+    /// `acc`, for ∂loss/∂I = `grad` (f32 or f64: the pass rounds it to f32). Two FFTs per
+    /// non-empty layer (one with the layers' `spectra`, given or on the tape); no input
+    /// gradients. The column transforms of the gradient and of the layer and their product
+    /// run block by block, so neither full spectrum is ever stored.
+    pub fn vjp_kernels<G: GradValue>(
         &self,
         layers: &[SpectralLayer],
         tape: &S1Tape,
-        grad: &Mat<f64>,
+        grad: &Mat<G>,
         acc: &mut KernelGradAccumulator,
         spectra: Option<&LayerSpectra>,
     ) -> Result<()> {
@@ -1421,16 +1440,16 @@ impl LayeredImager {
         self.check_layers(layers)?;
         let spectra = spectra.or(tape.spectra.as_ref());
         self.check_spectra(layers, spectra)?;
-        if let Some(t) = &self.tiling {
-            return self.tiled_vjp_kernels(t, layers, tape, grad, acc, spectra);
-        }
         let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);
-        let (cy, cx) = (self.wp / 2, self.wp / 2);
         // ∂L/∂I⁽ᵏ⁾ in f32, as the tape's images: each layer multiplies it by (1 − o) and rounds
         // once (6e-8 relative), and the pass moves half the bytes; the dot product with the
         // convolved radiance stays in f64.
         let mut gi = vec![0.0f32; h * w];
-        tiles(h, w, |r, c| gi[r * w + c] = grad[(r, c)] as f32);
+        tiles(h, w, |r, c| gi[r * w + c] = grad[(r, c)].to_f32());
+        if let Some(t) = &self.tiling {
+            return self.tiled_vjp_kernels(t, layers, tape, gi, acc, spectra);
+        }
+        let (cy, cx) = (self.wp / 2, self.wp / 2);
         let mut sb = self.spectral_buffers();
         // Rows cy .. cy + H are written for every layer before they are read, the others
         // never read: a reused grid needs no clearing.

@@ -14,8 +14,8 @@ pub mod stats;
 pub use error::{OpticsError, Result};
 pub use grid::ApertureGrid;
 pub use layered::{
-    KernelGradAccumulator, KernelSpectra, Layer, LayerGrads, LayerSpectra, LayeredImager, S1Tape,
-    SpectralLayer,
+    GradValue, KernelGradAccumulator, KernelSpectra, Layer, LayerGrads, LayerSpectra,
+    LayeredImager, S1Tape, SpectralLayer,
 };
 pub use profile::{DoubleHelix, FreeForm, Hyperbolic, PhaseMap, PhaseProfile, PillarQuantized};
 pub use psf::{AsmPsf, PhaseMapGrad, PsfConfig, PsfModel, PsfStack, PsfUsage};

@@ -96,6 +96,13 @@ fn spectral_path_matches_the_reference_forward_and_psf_gradient_on(tile: Option<
         .unwrap();
     let scale = acc.radiance_scale.clone();
     let kg = im.kernel_grads(acc);
+    // The sensor's gradient comes in f32: the same values give the same bits.
+    let g32 = Mat::from_fn(h, w, |i, j| g[(i, j)] as f32);
+    let mut acc32 = im.kernel_grad_accumulator(3);
+    im.vjp_kernels(&spectral, &tape, &g32, &mut acc32, None)
+        .unwrap();
+    assert_eq!(acc32.radiance_scale, scale);
+    assert!(im.kernel_grads(acc32) == kg, "f32 and f64 gradients differ");
     for k in 0..2 {
         for i in 0..wp {
             for j in 0..wp {

@@ -904,12 +904,9 @@ impl CameraChain {
                     let layers = self.spectral_layers(f, psfs);
                     // Kept ones, or (None) those on the tape when the forward recorded them.
                     let spectra = self.kept_spectra(f);
-                    let gimg = Mat::from_fn(sg.d_image.nrows(), sg.d_image.ncols(), |i, j| {
-                        sg.d_image[(i, j)] as f64
-                    });
                     let mut local = self.imager.kernel_grad_accumulator(self.spec.count);
                     self.imager
-                        .vjp_kernels(&layers, s1, &gimg, &mut local, spectra.as_deref())
+                        .vjp_kernels(&layers, s1, &sg.d_image, &mut local, spectra.as_deref())
                         .map_err(|e| Self::frame_error(f, e))?;
                     Ok((sg.d_p_hat, Some(local)))
                 })

@@ -484,15 +484,16 @@ impl LayeredImager {
         self.finish_pass(prev, saved, scales, record, keep)
     }
 
-    /// [`Self::vjp_kernels`] on tiles: the adjoint's pass over the whole image as on the
-    /// whole grid, then per covered tile the transform of its N×N window of the gradient times
-    /// the tile's conjugate spectrum, into the kernel's N×N accumulator.
+    /// [`Self::vjp_kernels`] on tiles for ∂loss/∂I = `gi` (row-major): per covered tile the
+    /// transform of its N×N window of the gradient times the tile's conjugate spectrum, into
+    /// the kernel's N×N accumulator, then the adjoint's pass over the whole image as on the
+    /// whole grid.
     pub(super) fn tiled_vjp_kernels(
         &self,
         t: &Tiling,
         layers: &[SpectralLayer],
         tape: &S1Tape,
-        grad: &Mat<f64>,
+        mut gi: Vec<f32>,
         acc: &mut KernelGradAccumulator,
         spectra: Option<&LayerSpectra>,
     ) -> Result<()> {
@@ -500,8 +501,6 @@ impl LayeredImager {
         let (cy, cx) = (self.wp / 2, self.wp / 2);
         let nn = n * n;
         let norm = 1.0 / nn as f32;
-        let mut gi = vec![0.0f32; h * w];
-        tiles(h, w, |r, c| gi[r * w + c] = grad[(r, c)] as f32);
         let mut tb = t.buffers();
         let mut above: &[f32] = &tape.image;
         for k in (0..layers.len()).rev() {
