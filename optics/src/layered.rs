@@ -887,6 +887,13 @@ impl LayeredImager {
         Ok(KernelSpectra { spec })
     }
 
+    /// Most bytes a [`KernelGradAccumulator`] of `n` kernels comes to hold: one spectrum of
+    /// S1's grid (a tile's grid on tiles) per kernel.
+    pub fn kernel_grad_bytes(&self, n: usize) -> usize {
+        let (nx, ny, _) = self.spectral_grid();
+        n.saturating_mul(nx * ny * std::mem::size_of::<c32>())
+    }
+
     /// A zeroed accumulator for `n` kernels.
     pub fn kernel_grad_accumulator(&self, n: usize) -> KernelGradAccumulator {
         KernelGradAccumulator {

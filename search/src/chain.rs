@@ -273,9 +273,16 @@ pub struct PsfGradAccumulator {
     p_hat: f64,
 }
 
-/// Frames whose S1 adjoints run at once: their per-frame accumulators are merged in frame
-/// order, so the sum does not depend on the thread count, and memory stays bounded.
+/// Frames whose S1 adjoints run at once, at least: their per-frame accumulators are merged
+/// in frame order, so the sum depends neither on the thread count nor on the chunk, and
+/// memory stays bounded.
 const BACKWARD_CHUNK: usize = 4;
+
+/// Bytes of per-frame accumulators a backward keeps alive at once: more frames than
+/// [`BACKWARD_CHUNK`] run together where they fit, since each chunk ends with a wait for its
+/// slowest frame (on tiles, 3.2 MB a paper-size frame: a batch of 16 in one chunk; the
+/// whole grid's 74 MB a frame: chunks of four).
+const BACKWARD_BYTES: usize = 64 << 20;
 
 impl PsfGradAccumulator {
     /// ∂L/∂p̂ accumulated so far (per metre).
@@ -882,8 +889,10 @@ impl CameraChain {
         scfg.noise = NoiseMode::None;
         let sensor = CmosSensor::new(scfg)?;
         let psf_grad = acc.kernels.is_some();
-        for c0 in (0..frames.len()).step_by(BACKWARD_CHUNK) {
-            let c1 = (c0 + BACKWARD_CHUNK).min(frames.len());
+        let per = self.imager.kernel_grad_bytes(self.spec.count).max(1);
+        let chunk = (BACKWARD_BYTES / per).max(BACKWARD_CHUNK);
+        for c0 in (0..frames.len()).step_by(chunk) {
+            let c1 = (c0 + chunk).min(frames.len());
             let per: Vec<Result<_>> = (c0..c1)
                 .into_par_iter()
                 .map(|b| {
