@@ -287,10 +287,10 @@ pub struct LayeredImager {
     /// a pixel's shot noise.
     p32: Plans<f32>,
     /// Work spaces of finished spectral calls, taken by the next ones: a padded grid is
-    /// 19 MB at 1280×800, and allocating and zeroing two per frame showed in profiles.
+    /// 9.3 MB at 1280×800 (f32), and allocating and zeroing two per frame showed in profiles.
     pool: Pool<SpectralBuffers>,
     /// Spectra of merged or finished gradient accumulators (ny·nx each, contents stale): a
-    /// frame's accumulator needs one per kernel, 19 MB each at 1280×800, and fresh ones were
+    /// frame's accumulator needs one per kernel, 9.3 MB each at 1280×800, and fresh ones were
     /// most of the page faults of a backward pass.
     spare: Pool<Vec<c32>>,
     /// The tiled spectral path's geometry, plans and work spaces, when it is used

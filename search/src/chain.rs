@@ -889,8 +889,8 @@ impl CameraChain {
         scfg.noise = NoiseMode::None;
         let sensor = CmosSensor::new(scfg)?;
         let psf_grad = acc.kernels.is_some();
-        let per = self.imager.kernel_grad_bytes(self.spec.count).max(1);
-        let chunk = (BACKWARD_BYTES / per).max(BACKWARD_CHUNK);
+        let frame_bytes = self.imager.kernel_grad_bytes(self.spec.count).max(1);
+        let chunk = (BACKWARD_BYTES / frame_bytes).max(BACKWARD_CHUNK);
         for c0 in (0..frames.len()).step_by(chunk) {
             let c1 = (c0 + chunk).min(frames.len());
             let per: Vec<Result<_>> = (c0..c1)

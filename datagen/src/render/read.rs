@@ -175,8 +175,9 @@ fn read_planes(
     };
     check_npy_file(path)?;
     let file = std::fs::File::open(path).map_err(io)?;
-    // A buffer for the header: the planes' reads of READ_ROWS rows are larger, so they go
-    // from the kernel straight into `buf` instead of through a second copy.
+    // A buffer for the header: the planes' reads of READ_ROWS rows are larger for planes 128
+    // or more values wide, so they go from the kernel straight into `buf` instead of through
+    // a second copy (after the few bytes read with the header).
     let mut rd = std::io::BufReader::with_capacity(1 << 14, file);
     let npy = npyz::NpyFile::new(&mut rd).map_err(|e| invalid(path, e))?;
     let shape = c_order_shape(path, &npy)?;

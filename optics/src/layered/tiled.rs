@@ -2,10 +2,10 @@
 //! an eye: 36 % of the 160×160 tiles of the paper-size frames, docs/bench/chain.md), yet the
 //! whole-grid path transforms the whole padded grid per layer. Here each covered T×T tile is
 //! transformed on its own N×N grid (N ≥ T + W_p − 1, so the linear convolution of the tile
-//! does not wrap), multiplied by the kernel's N×N spectrum and added back into the layer's
-//! convolution (overlap-add, exact up to round-off); the PSF adjoint correlates each covered
-//! tile with its N×N window of the gradient and accumulates the products per kernel on the
-//! N×N grid, so ∂loss/∂P needs one N×N inverse per kernel. A tile's grid (400 KB at N = 224)
+//! does not wrap), multiplied by the kernel's N×N spectrum, inverse-transformed and its part
+//! of the composition added into I⁽ᵏ⁾ and α∗P (overlap-add, exact up to round-off); the PSF
+//! adjoint correlates each covered tile with its N×N window of the gradient and accumulates
+//! the products per kernel on the N×N grid, so ∂loss/∂P needs one N×N inverse per kernel. A tile's grid (400 KB at N = 224)
 //! stays in cache through its transforms, where the paper-size grid (9.3 MB) does not.
 //!
 //! Spectra are kept transposed (kx major, ky minor): the row transform, one transposition and
