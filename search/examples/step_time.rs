@@ -2,9 +2,11 @@
 //! the network forward + backward of N_max, N_min and n random subnets, the chain backward and
 //! the one PSF VJP — the parts of `Trainer::train_step`, timed apart. Usage:
 //! `cargo run --release -p nanoeye-search --example step_time -- DATASET [PITCH_UM] [BATCH]
-//! [N_RANDOM] [REPS] [learned|fixed] [sandwich|min]` (docs/run.md, "Time per step and per
-//! candidate"; `min`: the smallest subnet alone, issue 13's batch through optics + sensor +
-//! N_min, docs/bench/chain.md). With
+//! [N_RANDOM] [REPS] [learned|fixed] [sandwich|min] [WARMUP]` (docs/run.md, "Time per step and
+//! per candidate"; `min`: the smallest subnet alone, issue 13's batch through optics + sensor +
+//! N_min, docs/bench/chain.md; WARMUP untimed passes first, 1 by default: on a VM whose memory
+//! the process has not touched yet the second and third passes still fault pages in that
+//! training's later steps reuse, docs/bench/chain.md). With
 //! `learned` (the default) the phase map moves by a small step each pass, as the learned
 //! lens's does in training, so the chain's kept PSF stack is never reused; with `fixed` it is
 //! (a fixed lens's training), and the chain's backward is the sensor's alone (no PSF adjoint,
@@ -25,7 +27,7 @@ fn main() {
     let args: Vec<String> = std::env::args().collect();
     let Some(dir) = args.get(1) else {
         eprintln!(
-            "usage: step_time DATASET [PITCH_UM] [BATCH] [N_RANDOM] [REPS] [learned|fixed] [sandwich|min]"
+            "usage: step_time DATASET [PITCH_UM] [BATCH] [N_RANDOM] [REPS] [learned|fixed] [sandwich|min] [WARMUP]"
         );
         std::process::exit(2);
     };
@@ -33,6 +35,7 @@ fn main() {
     let batch: usize = arg(&args, 3, 4);
     let n_random: usize = arg(&args, 4, 2);
     let reps: usize = arg(&args, 5, 3);
+    let warmup: usize = arg(&args, 8, 1);
     // The binary's allocator and its settings, so these times are the CLI's.
     nanoeye_alloc::like_cli();
     let learned = args.get(6).is_none_or(|s| s != "fixed");
@@ -56,7 +59,7 @@ fn main() {
     // [load, psf stack, chain forward, network, chain backward, psf vjp]
     let mut t = [0.0f64; 6];
     let mut shape = (0, 0);
-    for rep in 0..=reps {
+    for rep in 0..warmup + reps {
         let mut lap = [0.0f64; 6];
         let mut clock = Instant::now();
         let mut tick = |k: usize, clock: &mut Instant| {
@@ -114,8 +117,8 @@ fn main() {
             std::hint::black_box(g);
         }
         tick(5, &mut clock);
-        // The first pass warms caches and plans.
-        if rep > 0 {
+        // The first passes warm caches, plans and the process's pages.
+        if rep >= warmup {
             t.iter_mut()
                 .zip(lap)
                 .for_each(|(a, b)| *a += b / reps as f64);
@@ -125,7 +128,7 @@ fn main() {
     let total: f64 = t.iter().sum();
     println!(
         "native {w}x{h} at {:.1} um, p_hat {pitch_um} um -> network input {}x{}, batch {batch}, \
-         {} subnets, {} depth slabs, {} lens",
+         {} subnets, {} depth slabs, {} lens, mean of {reps} passes after {warmup} untimed",
         chain.native().pitch_m() * 1e6,
         shape.1,
         shape.0,

@@ -704,6 +704,18 @@ impl<'a> Trainer<'a> {
         lr_scale: f64,
         window: Option<bool>,
     ) -> Result<f64> {
+        // A diverged network can keep a finite loss while its gradient w.r.t. the image
+        // overflows f32: refused here, naming the rates, before the sensor refuses it.
+        if [&task.input, &task.mask]
+            .iter()
+            .any(|t| t.data.iter().any(|v| !v.is_finite()))
+        {
+            return Err(param(
+                "lr_net",
+                "the loss's gradient w.r.t. the camera image is not finite: training diverged; \
+                 lower the learning rates",
+            ));
+        }
         // A step that does not move φ needs ∂L/∂p̂ only: the chain skips S1's PSF adjoint.
         let moves_phase = lr_phase > 0.0;
         let mut acc = if moves_phase {
