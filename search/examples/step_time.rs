@@ -2,11 +2,11 @@
 //! the network forward + backward of N_max, N_min and n random subnets, the chain backward and
 //! the one PSF VJP — the parts of `Trainer::train_step`, timed apart. Usage:
 //! `cargo run --release -p nanoeye-search --example step_time -- DATASET [PITCH_UM] [BATCH]
-//! [N_RANDOM] [REPS] [learned|fixed] [sandwich|min] [WARMUP]` (docs/run.md, "Time per step and
-//! per candidate"; `min`: the smallest subnet alone, issue 13's batch through optics + sensor +
-//! N_min, docs/bench/chain.md; WARMUP untimed passes first, 1 by default: on a VM whose memory
-//! the process has not touched yet the second and third passes still fault pages in that
-//! training's later steps reuse, docs/bench/chain.md). With
+//! [N_RANDOM] [REPS] [learned|fixed] [sandwich|min] [WARMUP]` (docs/bench/chain.md, "Sandwich
+//! step and REA candidate: default and paper sizes"; `min`: the smallest subnet alone, issue
+//! 13's batch through optics + sensor + N_min; WARMUP untimed passes first, 1 by default as in
+//! earlier sessions' figures: at paper size the second pass still faults in ~30,000 pages that later steps reuse,
+//! each costly on a VM whose memory is fresh, docs/bench/chain.md). With
 //! `learned` (the default) the phase map moves by a small step each pass, as the learned
 //! lens's does in training, so the chain's kept PSF stack is never reused; with `fixed` it is
 //! (a fixed lens's training), and the chain's backward is the sensor's alone (no PSF adjoint,
@@ -36,6 +36,10 @@ fn main() {
     let n_random: usize = arg(&args, 4, 2);
     let reps: usize = arg(&args, 5, 3);
     let warmup: usize = arg(&args, 8, 1);
+    if reps == 0 {
+        eprintln!("step_time: REPS must be at least 1 (the passes timed)");
+        std::process::exit(2);
+    }
     // The binary's allocator and its settings, so these times are the CLI's.
     nanoeye_alloc::like_cli();
     let learned = args.get(6).is_none_or(|s| s != "fixed");

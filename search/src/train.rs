@@ -712,8 +712,8 @@ impl<'a> Trainer<'a> {
         {
             return Err(param(
                 "lr_net",
-                "the loss's gradient w.r.t. the camera image is not finite: training diverged; \
-                 lower the learning rates",
+                "the loss's gradient w.r.t. the camera image or its mask target is not finite: \
+                 training diverged; lower the learning rates",
             ));
         }
         // A step that does not move φ needs ∂L/∂p̂ only: the chain skips S1's PSF adjoint.

@@ -1,4 +1,4 @@
-//! Deterministic random streams: one ChaCha stream per (seed, index, row), so results do not
+//! Deterministic random streams: one ChaCha stream per (seed, index, column), so results do not
 //! depend on the number of threads.
 
 use rand::{Rng, SeedableRng};
