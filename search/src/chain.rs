@@ -899,10 +899,11 @@ impl CameraChain {
                     let f = &frames[b];
                     let gi = d_input.image(b);
                     let g_dn = Mat::from_fn(h, w, |i, j| gi[i * w + j] * inv_span);
-                    let sg = sensor.vjp(&fwd.tapes[b], &g_dn)?;
+                    // A fixed lens's step needs ∂L/∂p̂ alone: no image gradient is formed.
                     if !psf_grad {
-                        return Ok((sg.d_p_hat, None));
+                        return Ok((sensor.pitch_vjp(&fwd.tapes[b], &g_dn)?, None));
                     }
+                    let sg = sensor.vjp(&fwd.tapes[b], &g_dn)?;
                     let Some(s1) = &fwd.s1[b] else {
                         return Err(param(
                             "acc",

@@ -225,6 +225,29 @@ impl CmosSensor {
         let dd = Mat::from_fn(mr, mc, |i, j| cols[j].1[i]);
         (dn, dd)
     }
+
+    /// ∂L/∂p̂ alone (per metre): [`Sensor::vjp`]'s `d_p_hat`, without the image gradient a
+    /// fixed lens's training does not use.
+    pub fn pitch_vjp(&self, tape: &SensorTape, grad_dn: &Mat<f32>) -> Result<f64, SensorError> {
+        let g = Self::photon_grad(tape, grad_dn)?;
+        tape.integrator.pitch_vjp(&tape.image, &g)
+    }
+
+    /// ∂L/∂photons per effective pixel for ∂L/∂DN `grad_dn` (shape and values checked).
+    fn photon_grad(tape: &SensorTape, grad_dn: &Mat<f32>) -> Result<Mat<f32>, SensorError> {
+        let shape = (tape.ddn_dphot.nrows(), tape.ddn_dphot.ncols());
+        if (grad_dn.nrows(), grad_dn.ncols()) != shape {
+            return Err(SensorError::Shape {
+                name: "grad_dn",
+                expected: shape,
+                got: (grad_dn.nrows(), grad_dn.ncols()),
+            });
+        }
+        check_image("grad_dn", grad_dn, true)?;
+        Ok(Mat::from_fn(shape.0, shape.1, |i, j| {
+            grad_dn[(i, j)] * tape.ddn_dphot[(i, j)]
+        }))
+    }
 }
 
 impl Sensor for CmosSensor {
@@ -267,18 +290,7 @@ impl Sensor for CmosSensor {
     }
 
     fn vjp(&self, tape: &SensorTape, grad_dn: &Mat<f32>) -> Result<SensorGrad, SensorError> {
-        let shape = (tape.ddn_dphot.nrows(), tape.ddn_dphot.ncols());
-        if (grad_dn.nrows(), grad_dn.ncols()) != shape {
-            return Err(SensorError::Shape {
-                name: "grad_dn",
-                expected: shape,
-                got: (grad_dn.nrows(), grad_dn.ncols()),
-            });
-        }
-        check_image("grad_dn", grad_dn, true)?;
-        let g = Mat::from_fn(shape.0, shape.1, |i, j| {
-            grad_dn[(i, j)] * tape.ddn_dphot[(i, j)]
-        });
+        let g = Self::photon_grad(tape, grad_dn)?;
         let r = tape.integrator.vjp(&tape.image, &g)?;
         Ok(SensorGrad {
             d_image: r.d_image,

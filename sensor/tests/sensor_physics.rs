@@ -130,6 +130,33 @@ fn vjp_matches_finite_differences_through_reparameterized_noise() {
 }
 
 #[test]
+fn the_pitch_only_vjp_gives_the_vjps_bits() {
+    // A non-integer pitch (fractional box edges) and a gradient with zeros (the skipped
+    // terms): ∂L/∂p̂ alone is the full VJP's, bit for bit, and refuses what it refuses.
+    let s = CmosSensor::new(SensorConfig {
+        noise: NoiseMode::Gaussian,
+        quantize: false,
+        ..SensorConfig::default()
+    })
+    .unwrap();
+    let img = Mat::from_fn(23, 19, |i, j| 200.0 + 37.0 * ((i * 7 + j * 3) % 11) as f32);
+    let (dn, tape) = s.forward(&img, 1e-6, 2.7e-6, 5, 6).unwrap();
+    let w = Mat::from_fn(dn.nrows(), dn.ncols(), |i, j| {
+        ((i * 5 + j) % 4) as f32 * 0.3 - 0.45
+    });
+    let g = s.vjp(&tape, &w).unwrap();
+    assert!(g.d_p_hat != 0.0);
+    assert_eq!(
+        s.pitch_vjp(&tape, &w).unwrap().to_bits(),
+        g.d_p_hat.to_bits()
+    );
+    let bad = Mat::<f32>::zeros(dn.nrows() + 1, dn.ncols());
+    assert!(s.vjp(&tape, &bad).is_err() && s.pitch_vjp(&tape, &bad).is_err());
+    let nan = Mat::from_fn(dn.nrows(), dn.ncols(), |_, _| f32::NAN);
+    assert!(s.vjp(&tape, &nan).is_err() && s.pitch_vjp(&tape, &nan).is_err());
+}
+
+#[test]
 fn errors_name_the_parameter() {
     let bad = SensorConfig {
         quantum_efficiency: 1.5,
