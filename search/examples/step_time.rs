@@ -19,8 +19,16 @@ use nanoeye_sensor::NoiseMode;
 use rand::SeedableRng;
 use std::time::Instant;
 
-fn arg<T: std::str::FromStr>(args: &[String], i: usize, default: T) -> T {
-    args.get(i).and_then(|s| s.parse().ok()).unwrap_or(default)
+/// Argument `i` (`name` in messages), `default` when absent; a value that does not parse is
+/// refused (exit 2) rather than replaced by the default, so a typo cannot time another run.
+fn arg<T: std::str::FromStr>(args: &[String], i: usize, name: &str, default: T) -> T {
+    match args.get(i) {
+        None => default,
+        Some(s) => s.parse().unwrap_or_else(|_| {
+            eprintln!("step_time: {name} must be a non-negative number in range, got {s:?}");
+            std::process::exit(2);
+        }),
+    }
 }
 
 fn main() {
@@ -31,13 +39,17 @@ fn main() {
         );
         std::process::exit(2);
     };
-    let pitch_um: f64 = arg(&args, 2, 14.0);
-    let batch: usize = arg(&args, 3, 4);
-    let n_random: usize = arg(&args, 4, 2);
-    let reps: usize = arg(&args, 5, 3);
-    let warmup: usize = arg(&args, 8, 1);
+    let pitch_um: f64 = arg(&args, 2, "PITCH_UM", 14.0);
+    let batch: usize = arg(&args, 3, "BATCH", 4);
+    let n_random: usize = arg(&args, 4, "N_RANDOM", 2);
+    let reps: usize = arg(&args, 5, "REPS", 3);
+    let warmup: usize = arg(&args, 8, "WARMUP", 1);
     if reps == 0 {
         eprintln!("step_time: REPS must be at least 1 (the passes timed)");
+        std::process::exit(2);
+    }
+    if !(pitch_um.is_finite() && pitch_um > 0.0) || batch == 0 {
+        eprintln!("step_time: PITCH_UM must be a positive number and BATCH at least 1");
         std::process::exit(2);
     }
     // The binary's allocator and its settings, so these times are the CLI's.
