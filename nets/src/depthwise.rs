@@ -916,7 +916,7 @@ pub(crate) fn backward(
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if stride2::takes(g) {
+    if stride2::takes_backward(g) {
         stride2::backward(g, c, (x, w, dy), dx, dw_planes);
         return;
     }
@@ -940,24 +940,25 @@ pub(crate) fn backward(
         });
 }
 
-/// A 3×3 forward over every plane of `x` (`c` channels) into `y`: `plane(h, ho, x, wk, out)`
-/// computes one plane's `ho` output rows from its `h` input rows and nine taps.
+/// A k×k forward (KK = k² taps) over every plane of `x` (`c` channels) into `y`:
+/// `plane(h, ho, x, wk, out)` computes one plane's `ho` output rows from its `h` input rows
+/// and k² taps.
 #[cfg(target_arch = "x86_64")]
-fn k3_forward_planes(
+fn forward_planes<const KK: usize>(
     g: &Geom,
     c: usize,
     (x, w): (&[f32], &[f32]),
     y: &mut [f32],
-    plane: impl Fn(usize, usize, &[f32], &[f32; 9], &mut [f32]) + Sync,
+    plane: impl Fn(usize, usize, &[f32], &[f32; KK], &mut [f32]) + Sync,
 ) {
     let (hw, howo) = (g.h * g.w, g.ho * g.wo);
-    assert!(g.k == 3 && x.len() / hw == y.len() / howo && w.len() == 9 * c);
+    assert!(g.k * g.k == KK && x.len() / hw == y.len() / howo && w.len() == KK * c);
     y.par_chunks_mut(howo)
         .enumerate()
         .with_min_len(g.planes_per_task())
         .for_each(|(idx, out)| {
             let xp = &x[idx * hw..][..hw];
-            let wk: &[f32; 9] = w[(idx % c) * 9..][..9].try_into().expect("nine taps");
+            let wk: &[f32; KK] = w[(idx % c) * KK..][..KK].try_into().expect("k² taps");
             plane(g.h, g.ho, xp, wk, out);
         });
 }
@@ -997,33 +998,37 @@ fn k3_backward_planes(
 impl Geom {
     /// A 3×3 kernel at stride `s` (padding 1) on planes of h × w.
     fn k3(h: usize, w: usize, s: usize) -> Geom {
+        Geom::kxk(h, w, 3, s)
+    }
+    /// A k×k kernel at stride `s` (padding k/2) on planes of h × w.
+    fn kxk(h: usize, w: usize, k: usize, s: usize) -> Geom {
         use crate::conv::out_size;
         Geom {
             h,
             w,
-            ho: out_size(h, 3, s),
-            wo: out_size(w, 3, s),
-            k: 3,
+            ho: out_size(h, k, s),
+            wo: out_size(w, k, s),
+            k,
             s,
         }
     }
 }
 
-/// Checks a 3×3 forward path at stride `s` for planes `w` wide against the plane path, bit for
+/// Checks a k×k forward path at stride `s` for planes `w` wide against the plane path, bit for
 /// bit: planes of 1–40 rows (odd and even, fewer rows than the kernel), values of both signs
 /// and zeros, two images of three channels through `fwd`, the path's entry point.
 #[cfg(all(test, target_arch = "x86_64"))]
 fn assert_plane_path_bits(
-    w: usize,
-    s: usize,
+    (w, k, s): (usize, usize, usize),
     seed: u64,
     fwd: fn(&Geom, usize, &[f32], &[f32], &mut [f32]),
 ) {
     use rand::{Rng, SeedableRng, rngs::StdRng};
     let mut rng = StdRng::seed_from_u64(seed);
     let mut sc = Scratch::default();
+    let kk = k * k;
     for h in 1..41 {
-        let g = Geom::k3(h, w, s);
+        let g = Geom::kxk(h, w, k, s);
         let (n, c) = (2, 3);
         let (hw, howo) = (w * h, g.wo * g.ho);
         let x: Vec<f32> = (0..n * c * hw)
@@ -1035,7 +1040,7 @@ fn assert_plane_path_bits(
                 }
             })
             .collect();
-        let wk: Vec<f32> = (0..c * 9).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let wk: Vec<f32> = (0..c * kk).map(|_| rng.random_range(-1.0..1.0)).collect();
         let mut y = vec![f32::NAN; n * c * howo];
         fwd(&g, c, &x, &wk, &mut y);
         for p in 0..n * c {
@@ -1045,13 +1050,17 @@ fn assert_plane_path_bits(
                 forward_plane_fma(
                     &g,
                     &x[p * hw..][..hw],
-                    &wk[(p % c) * 9..][..9],
+                    &wk[(p % c) * kk..][..kk],
                     &mut sc,
                     &mut y0,
                 )
             };
             for (i, (a, b)) in y[p * howo..][..howo].iter().zip(&y0).enumerate() {
-                assert_eq!(a.to_bits(), b.to_bits(), "y[{p}][{i}] {a} vs {b}, h {h}");
+                assert_eq!(
+                    a.to_bits(),
+                    b.to_bits(),
+                    "y[{p}][{i}] {a} vs {b}, h {h}, w {w}, k {k}"
+                );
             }
         }
     }

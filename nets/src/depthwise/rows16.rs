@@ -9,7 +9,7 @@
 //! from zero, as the plane path does, so y is the plane path's bits (test
 //! `rows_of_16_give_the_plane_paths_bits`).
 
-use super::{Geom, has_fma, k3_backward_planes, k3_forward_planes};
+use super::{Geom, forward_planes, has_fma, k3_backward_planes};
 use std::arch::x86_64::*;
 
 /// Whether a layer with this geometry goes through this path.
@@ -28,7 +28,7 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     // The planes below run AVX2 and FMA code on that check alone.
     assert!(takes(g), "rows of 16 for {g:?}");
     // SAFETY: `takes` checked AVX2 and FMA on this CPU.
-    k3_forward_planes(g, c, (x, w), y, |h, ho, x, wk, out| unsafe {
+    forward_planes(g, c, (x, w), y, |h, ho, x, wk, out| unsafe {
         plane(h, ho, x, wk, out)
     });
 }
@@ -193,7 +193,7 @@ mod tests {
         if !has_fma() {
             return;
         }
-        super::super::assert_plane_path_bits(16, 2, 16, forward);
+        super::super::assert_plane_path_bits((16, 3, 2), 16, forward);
     }
 
     /// The backward through the entry point against the plane path's, planes of 1–40 rows:

@@ -8,7 +8,7 @@
 //! and every output sums its nine taps from zero in (ky, kx) order, padding included, as the
 //! plane path does, so y is the plane path's bits (test `stride_1_gives_the_plane_paths_bits`).
 
-use super::{Geom, HALF, has_fma, k3_forward_planes};
+use super::{Geom, HALF, forward_planes, has_fma};
 use std::arch::x86_64::*;
 
 /// Whether a layer with this geometry goes through this path.
@@ -33,7 +33,7 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     let width = g.w;
     // SAFETY: `takes` checked AVX2 and FMA on this CPU; the driver hands each plane its h·w
     // inputs and outputs.
-    k3_forward_planes(g, c, (x, w), y, |h, _, x, wk, out| unsafe {
+    forward_planes(g, c, (x, w), y, |h, _, x, wk, out| unsafe {
         plane(h, width, x, wk, &zeros, out)
     });
 }
@@ -205,7 +205,7 @@ mod tests {
             return;
         }
         for w in [1, 2, 7, 8, 9, 10, 15, 16, 17, 18, 35, 70, 139] {
-            super::super::assert_plane_path_bits(w, 1, 100 + w as u64, forward);
+            super::super::assert_plane_path_bits((w, 3, 1), 100 + w as u64, forward);
         }
     }
 

@@ -1,16 +1,19 @@
-//! Depthwise 3×3 at stride 2, forward and backward, read straight from the plane in registers,
-//! any width.
+//! Depthwise 3×3 and 5×5 at stride 2, forward (both) and backward (3×3), read straight from
+//! the plane in registers, any width.
 //!
 //! The plane path splits every plane's columns by parity into a padded scratch before its
-//! sweep. Here eight outputs of a row take their three taps from registers: the input columns
-//! 2j, 2j + 1 (two loads from column 2x₀, split into even and odd by one in-lane shuffle each)
-//! and 2j − 1 (two loads from column 2x₀ − 1, their even half). The shuffles leave the eight
-//! outputs in the lane order 0 1 4 5 2 3 6 7 in every tap alike, so the multiply–adds run in
-//! that order and one 64-bit permute puts the sum back in column order before its store. Rows
-//! above and below the plane are zero taps, and the blocks at the left and right edges load and
-//! store with lane masks (masked lanes read as zero). Every output sums its nine taps from
-//! zero in (ky, kx) order, padding included, as the plane path does, so y is the plane path's
-//! bits (test `stride_2_gives_the_plane_paths_bits`).
+//! sweep. Here eight outputs of a row take their k taps from registers: pairs of loads of
+//! sixteen columns from 2x₀ − 2, 2x₀ (and 2x₀ + 2 for k = 5), each split into its even and odd
+//! columns by one in-lane shuffle — tap kx of output j is column 2j + kx − k/2. The shuffles
+//! leave the eight outputs in the lane order 0 1 4 5 2 3 6 7 in every tap alike, so the
+//! multiply–adds run in that order and one 64-bit permute puts the sum back in column order
+//! before its store. The forward goes four output rows at a time, two blocks of eight
+//! outputs wide where the row allows: each input row's taps, kx by kx, go into every output
+//! row they reach, eight independent sums in flight (one block's k² multiply–adds as a single
+//! chain waited on their latency). Rows above and below the plane are zero taps, and the
+//! blocks at the left and right edges load and store with lane masks (masked lanes read as
+//! zero). Every output sums its k² taps from zero in (ky, kx) order, padding included, as the
+//! plane path does, so y is the plane path's bits (test `stride_2_gives_the_plane_paths_bits`).
 //!
 //! The backward needs no phase-split copies either. dL/dw takes the forward's tap registers
 //! against each block of dL/dy (put in the same lane order), one accumulator per tap, row by
@@ -25,13 +28,13 @@
 //! the channel blocks.
 
 use super::stride1::inside;
-use super::{Geom, HALF, LANES, has_fma, k3_backward_planes, k3_forward_planes};
+use super::{Geom, HALF, LANES, forward_planes, has_fma, k3_backward_planes};
 use std::arch::x86_64::*;
 
-/// Whether a layer with this geometry goes through this path.
+/// Whether a layer with this geometry goes through this path's forward (k = 3 or 5).
 pub(super) fn takes(g: &Geom) -> bool {
     // Column indices (below w + 2·HALF) fit the lane masks' 32-bit integers.
-    g.k == 3
+    (g.k == 3 || g.k == 5)
         && g.s == 2
         && g.h > 0
         && g.w > 0
@@ -41,6 +44,11 @@ pub(super) fn takes(g: &Geom) -> bool {
         && has_fma()
 }
 
+/// Whether a layer with this geometry goes through this path's backward (k = 3 only).
+pub(super) fn takes_backward(g: &Geom) -> bool {
+    g.k == 3 && takes(g)
+}
+
 /// Forward over all planes (as [`super::forward`]); panics unless `takes(g)`.
 pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     // The planes below run AVX2 and FMA code on that check alone.
@@ -48,13 +56,19 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     let (width, wo) = (g.w, g.wo);
     // SAFETY: `takes` checked AVX2 and FMA on this CPU; the driver hands each plane its h·w
     // inputs and ho·wo outputs.
-    k3_forward_planes(g, c, (x, w), y, |h, ho, x, wk, out| unsafe {
-        plane(h, width, (ho, wo), x, wk, out)
-    });
+    if g.k == 5 {
+        forward_planes(g, c, (x, w), y, |h, ho, x, wk, out| unsafe {
+            plane::<5, 25>(h, width, (ho, wo), x, wk, out)
+        });
+    } else {
+        forward_planes(g, c, (x, w), y, |h, ho, x, wk, out| unsafe {
+            plane::<3, 9>(h, width, (ho, wo), x, wk, out)
+        });
+    }
 }
 
 /// Backward over all planes (as [`super::backward`]): dL/dx into `dx`, each plane's nine
-/// weight gradients into `dw_planes` (overwritten); panics unless `takes(g)`.
+/// weight gradients into `dw_planes` (overwritten); panics unless `takes_backward(g)`.
 pub(super) fn backward(
     g: &Geom,
     c: usize,
@@ -62,9 +76,9 @@ pub(super) fn backward(
     dx: &mut [f32],
     dw_planes: &mut [f32],
 ) {
-    assert!(takes(g), "stride 2 for {g:?}");
+    assert!(takes_backward(g), "stride 2 backward for {g:?}");
     let (width, wo) = (g.w, g.wo);
-    // SAFETY: `takes` checked AVX2 and FMA on this CPU; the driver hands each plane its h·w
+    // SAFETY: `takes_backward` checked AVX2 and FMA on this CPU; the driver hands each plane its h·w
     // inputs and gradients, ho·wo output gradients.
     k3_backward_planes(
         g,
@@ -75,113 +89,260 @@ pub(super) fn backward(
     );
 }
 
-/// Where a block of eight outputs reads its input row: unmasked, or with the masks of the four
-/// loads (columns from 2x₀ − 1, 2x₀ + 7, 2x₀, 2x₀ + 8).
+/// Where a block of eight outputs reads its input row: unmasked, or with the masks of its
+/// loads (pairs of eight columns from 2x₀ − 2, 2x₀ and, for k = 5, 2x₀ + 2; first and second
+/// of each pair).
 #[derive(Clone, Copy)]
 enum Reach {
     Inside,
-    Masked([__m256i; 4]),
+    Masked([__m256i; 6]),
 }
 
-/// How the block of eight outputs from column x₀ reads its input rows (w wide), and the lane
-/// mask of its outputs (wo of them) where it is not wholly inside: Inside needs columns
-/// 2x₀ − 1 .. 2x₀ + 16 of the row, which also puts x₀ + 8 ≤ w/2 ≤ wo.
+/// Pairs of eight-column loads a block of eight outputs of a k×k kernel reads per input row.
+const fn pairs(k: usize) -> usize {
+    k / 2 + 1
+}
+
+/// How the block of eight outputs from column x₀ of a k×k kernel reads its input rows (w
+/// wide), and the lane mask of its outputs (wo of them) where it is not wholly inside: Inside
+/// needs columns 2x₀ − 2 .. 2x₀ + 2·pairs(k) + 12 of the row, which also puts x₀ + 8 ≤ w/2 ≤ wo.
 #[target_feature(enable = "avx2")]
-fn block_reach(x0: usize, w: usize, wo: usize) -> (Reach, Option<__m256i>) {
-    if x0 >= 1 && 2 * x0 + 2 * HALF <= w {
+fn block_reach<const K: usize>(x0: usize, w: usize, wo: usize) -> (Reach, Option<__m256i>) {
+    if x0 >= 1 && 2 * x0 + 2 * pairs(K) + 12 <= w {
         return (Reach::Inside, None);
     }
     let c = 2 * x0 as isize;
-    let m = [c - 1, c + 7, c, c + 8].map(|s| inside(s, w));
+    let m = std::array::from_fn(|i| {
+        if i < 2 * pairs(K) {
+            inside(c - 2 + 2 * (i / 2) as isize + 8 * (i % 2) as isize, w)
+        } else {
+            _mm256_setzero_si256()
+        }
+    });
     (Reach::Masked(m), Some(inside(x0 as isize, wo)))
 }
 
-/// Input row `row` (None: the zero padding) as the (left, centre, right) taps of the eight
-/// outputs from `x0`, in the lane order 0 1 4 5 2 3 6 7.
+/// Pair `i` of input row `row`'s loads for the eight outputs from `x0`: columns 2x₀ − 2 + 2i
+/// .. + 16 (zeros for the padding, None); its even and odd halves are the columns 2j − 2 + 2i
+/// and 2j − 1 + 2i of the eight outputs j, in the lane order 0 1 4 5 2 3 6 7.
 ///
 /// # Safety
-/// AVX2; `row` holds at least the columns `reach` lets through (all of 2x₀ − 1 .. 2x₀ + 16 when
-/// `Inside`).
+/// AVX2; `row` holds at least the columns `reach` lets through (all of 2x₀ − 2 + 2i ..
+/// 2x₀ + 2i + 14 when `Inside`).
 #[target_feature(enable = "avx2,fma")]
 #[inline]
-unsafe fn taps(row: Option<&[f32]>, x0: usize, reach: Reach) -> [__m256; 3] {
+unsafe fn pair_loads(row: Option<&[f32]>, x0: usize, i: usize, reach: Reach) -> (__m256, __m256) {
     let Some(row) = row else {
-        return [_mm256_setzero_ps(); 3];
+        return (_mm256_setzero_ps(), _mm256_setzero_ps());
     };
     let p = row.as_ptr();
-    let c = 2 * x0;
+    let at = (2 * x0 + 2 * i).wrapping_sub(2);
     // SAFETY: inside the row by the contract, or masked (masked lanes are neither read nor
-    // faulted on; wrapping arithmetic: addresses before or past the row are never dereferenced).
-    let [l0, l1, e0, e1] = unsafe {
+    // faulted on; wrapping arithmetic: addresses before or past the row are never
+    // dereferenced).
+    unsafe {
         match reach {
-            Reach::Inside => [
-                _mm256_loadu_ps(p.add(c - 1)),
-                _mm256_loadu_ps(p.add(c + 7)),
-                _mm256_loadu_ps(p.add(c)),
-                _mm256_loadu_ps(p.add(c + 8)),
-            ],
-            Reach::Masked(m) => [
-                _mm256_maskload_ps(p.wrapping_add(c).wrapping_sub(1), m[0]),
-                _mm256_maskload_ps(p.wrapping_add(c + 7), m[1]),
-                _mm256_maskload_ps(p.wrapping_add(c), m[2]),
-                _mm256_maskload_ps(p.wrapping_add(c + 8), m[3]),
-            ],
+            Reach::Inside => (_mm256_loadu_ps(p.add(at)), _mm256_loadu_ps(p.add(at + 8))),
+            Reach::Masked(m) => (
+                _mm256_maskload_ps(p.wrapping_add(at), m[2 * i]),
+                _mm256_maskload_ps(p.wrapping_add(at.wrapping_add(8)), m[2 * i + 1]),
+            ),
         }
-    };
+    }
+}
+
+/// Input row `row` (None: the zero padding) as the three taps of the 3×3 kernel for the eight
+/// outputs from `x0` (columns 2j − 1, 2j, 2j + 1 of output j), in the lane order 0 1 4 5 2 3 6 7.
+///
+/// # Safety
+/// AVX2 and FMA; as [`pair_loads`] for pairs 0 and 1.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn taps3(row: Option<&[f32]>, x0: usize, reach: Reach) -> [__m256; 3] {
+    // SAFETY: this function's contract.
+    let ((a0, b0), (a1, b1)) =
+        unsafe { (pair_loads(row, x0, 0, reach), pair_loads(row, x0, 1, reach)) };
     [
-        _mm256_shuffle_ps::<0x88>(l0, l1),
-        _mm256_shuffle_ps::<0x88>(e0, e1),
-        _mm256_shuffle_ps::<0xDD>(e0, e1),
+        _mm256_shuffle_ps::<0xDD>(a0, b0),
+        _mm256_shuffle_ps::<0x88>(a1, b1),
+        _mm256_shuffle_ps::<0xDD>(a1, b1),
     ]
 }
 
-/// One plane: `x` h·w values, `out` ho·wo.
+/// One plane of a k×k kernel (KK = k² taps): `x` h·w values, `out` ho·wo.
 ///
 /// # Safety
-/// The CPU must have AVX2 and FMA; ho = ⌈h/2⌉, wo = ⌈w/2⌉.
+/// The CPU must have AVX2 and FMA; ho = ⌈h/2⌉, wo = ⌈w/2⌉, k = 3 or 5.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn plane(
+unsafe fn plane<const K: usize, const KK: usize>(
     h: usize,
     w: usize,
     (ho, wo): (usize, usize),
     x: &[f32],
-    wk: &[f32; 9],
+    wk: &[f32; KK],
     out: &mut [f32],
 ) {
     // Checked without wrapping: the blocks below trust these sizes.
     let hw = h.checked_mul(w).expect("plane size overflows");
     let howo = ho.checked_mul(wo).expect("plane size overflows");
     assert!(x.len() == hw && out.len() == howo && ho == h.div_ceil(2) && wo == w.div_ceil(2));
-    let wv: [__m256; 9] = std::array::from_fn(|t| _mm256_set1_ps(wk[t]));
-    let row = |r: usize| (r < h).then(|| &x[r * w..][..w]);
-    // Row by row, left to right: the plane is read in address order. (A column of blocks at
-    // a time, reusing each row's taps for two output rows, was no faster than the plane path
-    // in a first measurement, beside other jobs.)
-    for m in 0..ho {
-        let rows = [row((2 * m).wrapping_sub(1)), row(2 * m), row(2 * m + 1)];
-        let dst = out[m * wo..][..wo].as_mut_ptr();
-        let mut x0 = 0;
-        while x0 < wo {
-            let (reach, store) = block_reach(x0, w, wo);
-            let mut acc = _mm256_setzero_ps();
-            for (ky, r) in rows.iter().enumerate() {
-                // SAFETY: every row `row` gives holds w values; `reach` is Inside only where
-                // columns 2x₀ − 1 .. 2x₀ + 16 lie inside it.
-                let t = unsafe { taps(*r, x0, reach) };
-                for (kx, v) in t.iter().enumerate() {
-                    acc = _mm256_fmadd_ps(wv[3 * ky + kx], *v, acc);
+    assert!(K * K == KK && (K == 3 || K == 5));
+    let wv: [__m256; KK] = std::array::from_fn(|t| _mm256_set1_ps(wk[t]));
+    // Four output rows at a time, left to right: each input row's taps serve every output
+    // row they reach (two or three of the four), and the sums of four rows by two blocks are
+    // independent chains. One row at a time, a block's k² fused multiply–adds formed one
+    // chain and waited on its latency (the 5×5 kernel ran 40 % slower than the plane path
+    // that way).
+    let mut m = 0;
+    // SAFETY (all three): rows m .. m + R ≤ ho; the rest is this function's contract.
+    while m + 4 <= ho {
+        unsafe { output_rows::<K, KK, 4>(m, h, w, wo, x, &wv, out) };
+        m += 4;
+    }
+    while m + 2 <= ho {
+        unsafe { output_rows::<K, KK, 2>(m, h, w, wo, x, &wv, out) };
+        m += 2;
+    }
+    if m < ho {
+        unsafe { output_rows::<K, KK, 1>(m, h, w, wo, x, &wv, out) };
+    }
+}
+
+/// Output rows m .. m + R of one plane (see [`plane`]): block by block, input rows 2m − k/2 ..
+/// 2(m + R − 1) + k/2 read top to bottom, so each output still sums its taps from zero in
+/// (ky, kx) order.
+///
+/// # Safety
+/// AVX2 and FMA; m + R ≤ ho = ⌈h/2⌉, wo = ⌈w/2⌉, `x` holds h·w values and `out` ho·wo.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+#[allow(clippy::too_many_arguments)]
+unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
+    m: usize,
+    h: usize,
+    w: usize,
+    wo: usize,
+    x: &[f32],
+    wv: &[__m256; KK],
+    out: &mut [f32],
+) {
+    // Input rows 2m − k/2 + i (at most 2·4 + 5 − 2 of them), sliced once for all blocks;
+    // rows above or below the plane (those above wrap past h) read as None.
+    let rows: [Option<&[f32]>; 11] = std::array::from_fn(|i| {
+        let r = (2 * m + i).wrapping_sub(K / 2);
+        (i < 2 * R + K - 2 && r < h).then(|| &x[r * w..][..w])
+    });
+    let dst = out[m * wo..][..R * wo].as_mut_ptr();
+    let rows = &rows[..2 * R + K - 2];
+    let mut x0 = 0;
+    while x0 < wo {
+        // Interior blocks apart, so that their loads and stores compile without masks, and
+        // two at a time where they can: R·V independent sums in flight.
+        let interior = |x0: usize| x0 >= 1 && 2 * x0 + 2 * pairs(K) + 12 <= w;
+        // SAFETY: x0 + 8(V − 1) < wo; the rest is this function's contract.
+        unsafe {
+            let inner = interior(x0) && interior(x0 + HALF);
+            // Edge blocks in pairs too for the 5×5 kernel (7 % faster at 96×44×70) but not
+            // for the 3×3 one (8 % slower; one thread, `dw_prof`).
+            if x0 + HALF < wo && (inner || K == 5) {
+                if inner {
+                    block::<K, KK, R, 2, false>(rows, x0, (w, wo), wv, dst);
+                } else {
+                    block::<K, KK, R, 2, true>(rows, x0, (w, wo), wv, dst);
+                }
+                x0 += 2 * HALF;
+            } else {
+                if interior(x0) {
+                    block::<K, KK, R, 1, false>(rows, x0, (w, wo), wv, dst);
+                } else {
+                    block::<K, KK, R, 1, true>(rows, x0, (w, wo), wv, dst);
+                }
+                x0 += HALF;
+            }
+        }
+    }
+}
+
+/// V blocks of eight outputs from column x₀ of output rows m .. m + R (`dst` from row m's
+/// start, rows wo apart), from input rows 2m − k/2 .. (`rows`, 2R + k − 2 of them, None the
+/// padding); `MASKED`: some block reaches past a row's edge (see [`block_reach`]). Each input
+/// row's taps go, kx by kx, into every output row they reach, so each output sums its taps
+/// from zero in (ky, kx) order.
+///
+/// # Safety
+/// AVX2 and FMA; every row in `rows` holds w values, `dst` R·wo; x0 + 8(V − 1) < wo; unless
+/// `MASKED`, x₀ ≥ 1 and 2(x₀ + 8(V − 1)) + 2·pairs(k) + 12 ≤ w.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn block<
+    const K: usize,
+    const KK: usize,
+    const R: usize,
+    const V: usize,
+    const MASKED: bool,
+>(
+    rows: &[Option<&[f32]>],
+    x0: usize,
+    (w, wo): (usize, usize),
+    wv: &[__m256; KK],
+    dst: *mut f32,
+) {
+    let reach: [(Reach, Option<__m256i>); V] = std::array::from_fn(|v| {
+        if MASKED {
+            block_reach::<K>(x0 + v * HALF, w, wo)
+        } else {
+            (Reach::Inside, None)
+        }
+    });
+    let mut acc = [[_mm256_setzero_ps(); V]; R];
+    for (i, row) in rows.iter().enumerate() {
+        for pair in 0..pairs(K) {
+            // SAFETY: every row in `rows` holds w values; `reach` is Inside only where the
+            // columns `pair_loads` reads lie inside it.
+            let ab: [(__m256, __m256); V] = std::array::from_fn(|v| unsafe {
+                pair_loads(*row, x0 + v * HALF, pair, reach[v].0)
+            });
+            for odd in [false, true] {
+                // The even (odd) half is column 2j − 2 + d of output j, d = 2·pair (+ 1): tap
+                // kx = d + k/2 − 2 where that is one of the kernel's.
+                let d = 2 * pair + odd as usize;
+                if d + K / 2 < 2 || d + K / 2 - 2 >= K {
+                    continue;
+                }
+                let kx = d + K / 2 - 2;
+                let t: [__m256; V] = std::array::from_fn(|v| {
+                    let (a, b) = ab[v];
+                    if odd {
+                        _mm256_shuffle_ps::<0xDD>(a, b)
+                    } else {
+                        _mm256_shuffle_ps::<0x88>(a, b)
+                    }
+                });
+                for (r, acc) in acc.iter_mut().enumerate() {
+                    // Output row m + r takes input row 2m − k/2 + i as its tap row ky = i − 2r.
+                    if i >= 2 * r && i - 2 * r < K {
+                        let wt = wv[K * (i - 2 * r) + kx];
+                        for (a, t) in acc.iter_mut().zip(&t) {
+                            *a = _mm256_fmadd_ps(wt, *t, *a);
+                        }
+                    }
                 }
             }
-            // Lanes 0 1 4 5 2 3 6 7 back to column order: 64-bit quarters 0 2 1 3.
-            let acc = _mm256_castpd_ps(_mm256_permute4x64_pd::<0xD8>(_mm256_castps_pd(acc)));
-            // SAFETY: output row m holds wo values; unmasked, x0 + 8 ≤ w / 2 ≤ wo.
+        }
+    }
+    for (r, acc) in acc.iter().enumerate() {
+        for (v, a) in acc.iter().enumerate() {
+            // Lanes 0 1 4 5 2 3 6 7 back to column order.
+            let a = swap_quarters(*a);
+            // SAFETY: output row m + r holds wo values; unmasked, x0 + 8V ≤ w / 2 ≤ wo;
+            // masked, no lane past the row is written.
             unsafe {
-                match store {
-                    None => _mm256_storeu_ps(dst.add(x0), acc),
-                    Some(mask) => _mm256_maskstore_ps(dst.add(x0), mask, acc),
+                let d = dst.add(r * wo + x0 + v * HALF);
+                match reach[v].1 {
+                    None => _mm256_storeu_ps(d, a),
+                    Some(mask) => _mm256_maskstore_ps(d, mask, a),
                 }
             }
-            x0 += HALF;
         }
     }
 }
@@ -241,7 +402,7 @@ unsafe fn weight_grads(
         let d = dy[m * wo..][..wo].as_ptr();
         let mut x0 = 0;
         while x0 < wo {
-            let (reach, keep) = block_reach(x0, w, wo);
+            let (reach, keep) = block_reach::<3>(x0, w, wo);
             // SAFETY: unmasked, x0 + 8 ≤ w / 2 ≤ wo; masked lanes are not read.
             let g = unsafe {
                 match keep {
@@ -256,8 +417,8 @@ unsafe fn weight_grads(
             let keep = keep.map(|mask| swap_quarters(_mm256_castsi256_ps(mask)));
             for (ky, r) in rows.iter().enumerate() {
                 // SAFETY: every row `row` gives holds w values; `reach` is Inside only where
-                // columns 2x₀ − 1 .. 2x₀ + 16 lie inside it.
-                let t = unsafe { taps(*r, x0, reach) };
+                // the columns `taps` reads lie inside it.
+                let t = unsafe { taps3(*r, x0, reach) };
                 for (kx, v) in t.iter().enumerate() {
                     let v = keep.map_or(*v, |k| _mm256_and_ps(*v, k));
                     acc[3 * ky + kx] = _mm256_fmadd_ps(g, v, acc[3 * ky + kx]);
@@ -366,7 +527,9 @@ mod tests {
         for w in [
             1, 2, 3, 7, 8, 9, 15, 16, 17, 18, 31, 32, 33, 35, 70, 87, 139,
         ] {
-            super::super::assert_plane_path_bits(w, 2, 200 + w as u64, forward);
+            for k in [3, 5] {
+                super::super::assert_plane_path_bits((w, k, 2), 200 + w as u64, forward);
+            }
         }
     }
 
