@@ -126,11 +126,25 @@ type Lines<'a> = (
 pub trait GradValue: Copy {
     /// The value rounded to f32.
     fn to_f32(self) -> f32;
+
+    /// The H×W matrix `m` rounded to f32, row-major into `out` (H·W values).
+    fn rows_into(m: &Mat<Self>, out: &mut [f32]) {
+        let w = m.ncols();
+        tiles(m.nrows(), w, |r, c| out[r * w + c] = m[(r, c)].to_f32());
+    }
 }
 
 impl GradValue for f32 {
     fn to_f32(self) -> f32 {
         self
+    }
+
+    fn rows_into(m: &Mat<f32>, out: &mut [f32]) {
+        let (h, w) = (m.nrows(), m.ncols());
+        assert!(out.len() == h * w);
+        // Column c of `m` is row c of a w×h row-major array with the matrix's column stride.
+        let cols: Vec<&[f32]> = (0..w).map(|c| m.col_as_slice(c)).collect();
+        transpose_f32(&cols, out, w, h);
     }
 }
 
@@ -201,6 +215,87 @@ fn adjoint_row(
         (dots[0], gi[i]) = (dots[0] + d, g);
         if let Some(gs) = gs.as_deref_mut() {
             gs[i] = c32::new(r, im);
+        }
+    }
+}
+
+/// `dst[c·h + r] = rows[r][c]` for the h rows `rows` (each at least w long) into the
+/// row-major w×h `dst`: tile by tile as [`tiles`], 8×8 blocks in registers where AVX2 is
+/// compiled in (the workspace builds for x86-64-v3), the tiles' edges one value at a time.
+fn transpose_f32(rows: &[&[f32]], dst: &mut [f32], h: usize, w: usize) {
+    // Checked once: the register blocks below read and write inside these bounds.
+    assert!(rows.len() == h && rows.iter().all(|r| r.len() >= w) && dst.len() == h * w);
+    for r0 in (0..h).step_by(TILE) {
+        let r1 = (r0 + TILE).min(h);
+        for c0 in (0..w).step_by(TILE) {
+            let c1 = (c0 + TILE).min(w);
+            #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+            let (r8, c8) = {
+                let (r8, c8) = (r1 - (r1 - r0) % 8, c1 - (c1 - c0) % 8);
+                for r in (r0..r8).step_by(8) {
+                    let src: [*const f32; 8] = std::array::from_fn(|i| rows[r + i].as_ptr());
+                    for c in (c0..c8).step_by(8) {
+                        // SAFETY: rows r .. r + 8 ≤ h hold at least c + 8 ≤ w values, and
+                        // dst rows c .. c + 8 of h values hold columns r .. r + 8 (asserted).
+                        unsafe { transpose8(src, c, dst.as_mut_ptr(), h, r) };
+                    }
+                }
+                (r8, c8)
+            };
+            #[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
+            let (r8, c8) = (r0, c0);
+            for (r, row) in rows.iter().enumerate().take(r1).skip(r0) {
+                let cs = if r < r8 { c8..c1 } else { c0..c1 };
+                for c in cs {
+                    dst[c * h + r] = row[c];
+                }
+            }
+        }
+    }
+}
+
+/// Values c .. c + 8 of the eight rows `src` into rows c .. c + 8, columns r .. r + 8 of the
+/// row-major `dst` of `h` columns: the 8×8 transposition by unpacks, shuffles and 128-bit
+/// permutes.
+///
+/// # Safety
+/// Each `src[i]` is valid for reads of c + 8 values; `dst` for writes at (c + j)·h + r + i,
+/// i, j < 8.
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+#[inline]
+unsafe fn transpose8(src: [*const f32; 8], c: usize, dst: *mut f32, h: usize, r: usize) {
+    use std::arch::x86_64::*;
+    // SAFETY: inside the rows and `dst` by the contract; unaligned loads and stores.
+    unsafe {
+        let v = src.map(|p| _mm256_loadu_ps(p.add(c)));
+        let t0 = _mm256_unpacklo_ps(v[0], v[1]);
+        let t1 = _mm256_unpackhi_ps(v[0], v[1]);
+        let t2 = _mm256_unpacklo_ps(v[2], v[3]);
+        let t3 = _mm256_unpackhi_ps(v[2], v[3]);
+        let t4 = _mm256_unpacklo_ps(v[4], v[5]);
+        let t5 = _mm256_unpackhi_ps(v[4], v[5]);
+        let t6 = _mm256_unpacklo_ps(v[6], v[7]);
+        let t7 = _mm256_unpackhi_ps(v[6], v[7]);
+        let u0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+        let u1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
+        let u2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+        let u3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
+        let u4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+        let u5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
+        let u6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+        let u7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
+        let out = [
+            _mm256_permute2f128_ps::<0x20>(u0, u4),
+            _mm256_permute2f128_ps::<0x20>(u1, u5),
+            _mm256_permute2f128_ps::<0x20>(u2, u6),
+            _mm256_permute2f128_ps::<0x20>(u3, u7),
+            _mm256_permute2f128_ps::<0x31>(u0, u4),
+            _mm256_permute2f128_ps::<0x31>(u1, u5),
+            _mm256_permute2f128_ps::<0x31>(u2, u6),
+            _mm256_permute2f128_ps::<0x31>(u3, u7),
+        ];
+        for (j, o) in out.into_iter().enumerate() {
+            _mm256_storeu_ps(dst.add((c + j) * h + r), o);
         }
     }
 }
@@ -1452,7 +1547,7 @@ impl LayeredImager {
         // once (6e-8 relative), and the pass moves half the bytes; the dot product with the
         // convolved radiance stays in f64.
         let mut gi = vec![0.0f32; h * w];
-        tiles(h, w, |r, c| gi[r * w + c] = grad[(r, c)].to_f32());
+        G::rows_into(grad, &mut gi);
         if let Some(t) = &self.tiling {
             return self.tiled_vjp_kernels(t, layers, tape, gi, acc, spectra);
         }
@@ -1606,6 +1701,42 @@ impl LayeredImager {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A column-major f32 matrix goes row-major value for value (the register blocks, the
+    /// tiles' edges and the tiles' own edges), as the f64 matrix's scalar path rounds it:
+    /// shapes around multiples of 8 and of the 32-value tiles.
+    #[test]
+    fn a_matrix_goes_row_major_value_for_value() {
+        for (h, w) in [
+            (1, 1),
+            (7, 9),
+            (8, 8),
+            (9, 17),
+            (33, 40),
+            (64, 31),
+            (65, 97),
+        ] {
+            let m = Mat::<f32>::from_fn(h, w, |r, c| (r * 1000 + c) as f32 + 0.25);
+            let m64 = Mat::<f64>::from_fn(h, w, |r, c| m[(r, c)] as f64);
+            let (mut out, mut out64) = (vec![f32::NAN; h * w], vec![f32::NAN; h * w]);
+            f32::rows_into(&m, &mut out);
+            f64::rows_into(&m64, &mut out64);
+            for r in 0..h {
+                for c in 0..w {
+                    assert_eq!(
+                        out[r * w + c].to_bits(),
+                        m[(r, c)].to_bits(),
+                        "{h}×{w} ({r}, {c})"
+                    );
+                    assert_eq!(
+                        out64[r * w + c].to_bits(),
+                        m[(r, c)].to_bits(),
+                        "{h}×{w} ({r}, {c})"
+                    );
+                }
+            }
+        }
+    }
 
     /// The 2-D FFT one column at a time, every row and every column.
     fn fft2_by_column(im: &LayeredImager, data: &mut [c64], inverse: bool) {
