@@ -18,7 +18,8 @@
 //! the same y bits; their backward sums in other orders (equal to round-off). The other 3×3
 //! layers at stride 1 read the plane itself, without the padded copy ([`stride1`]), for y
 //! and for dL/dx (dL/dy correlated with the turned kernel): the same bits; so do the other
-//! 3×3 layers at stride 2 ([`stride2`]), forward and backward, again the same bits.
+//! 3×3 layers at stride 2 ([`stride2`]), forward and backward, and the 5×5 layers at stride 2
+//! in their forward, again the same bits.
 
 use rayon::prelude::*;
 

@@ -862,6 +862,29 @@ impl S1Tape {
     }
 }
 
+/// Per layer of a frame, the tiles its coverage reaches and its radiance scale
+/// ([`SpectralLayer::radiance_scale`]'s value), as S1's tiled path finds them in a pass over
+/// the planes ([`LayeredImager::layer_cover`]). They depend on α, L and the weight alone — not
+/// on the PSFs or the gain — so a caller that images the same layers again (a frame at every
+/// training step) can skip that pass ([`LayeredImager::forward_spectral_covered`]). A few
+/// bytes per tile.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerCover {
+    layers: Vec<Option<(Vec<u32>, f32)>>,
+    /// The imager's image height and width, tile side and tile grid side it was made for.
+    grid: [usize; 4],
+}
+
+impl LayerCover {
+    /// Bytes it holds (about).
+    pub fn bytes(&self) -> usize {
+        self.layers
+            .iter()
+            .map(|l| std::mem::size_of_val(l) + l.as_ref().map_or(0, |(t, _)| 4 * t.len()))
+            .sum()
+    }
+}
+
 /// The spectra F{α·w·L/s + iα} of a frame's layers on S1's padded grid (s a power of two
 /// per layer, [`SpectralLayer::radiance_scale`]), column by column
 /// (`None` for a layer without coverage), from [`LayeredImager::layer_spectra`]. They hold
@@ -1356,8 +1379,69 @@ impl LayeredImager {
         ks: &KernelSpectra,
         spectra: Option<&LayerSpectra>,
     ) -> Result<(Mat<f32>, S1Tape)> {
-        let (m, tape) = self.spectral(layers, ks, spectra, true)?;
+        let (m, tape) = self.spectral(layers, ks, spectra, true, None)?;
         Ok((m, tape.expect("kept")))
+    }
+
+    /// [`Self::forward_spectral`] with the layers' cover from this imager's
+    /// [`Self::layer_cover`], computed once for these layers (their planes not changed since),
+    /// which spares the tiled path its pass over the planes: the same bits. The planes'
+    /// finiteness is then the cover's check, not checked again. A cover of another imager or
+    /// of another number of layers is refused.
+    pub fn forward_spectral_covered(
+        &self,
+        layers: &[SpectralLayer],
+        ks: &KernelSpectra,
+        spectra: Option<&LayerSpectra>,
+        cover: Option<&LayerCover>,
+    ) -> Result<(Mat<f32>, S1Tape)> {
+        if let Some(c) = cover {
+            if Some(c.grid) != self.cover_grid() {
+                let [h, w, t, n] = c.grid;
+                return Err(OpticsError::Shape(format!(
+                    "a layer cover of {h}×{w} images on tiles of {t} ({n}² grids) for this imager \
+                     of {}×{} ({}): make it with this imager's layer_cover",
+                    self.h,
+                    self.w,
+                    self.tiling
+                        .as_ref()
+                        .map_or("no tiles".into(), |t| format!("tiles of {}", t.t))
+                )));
+            }
+            if c.layers.len() != layers.len() {
+                return Err(OpticsError::Shape(format!(
+                    "a cover of {} layers for {} layers",
+                    c.layers.len(),
+                    layers.len()
+                )));
+            }
+        }
+        let (m, tape) = self.spectral(layers, ks, spectra, true, cover)?;
+        Ok((m, tape.expect("kept")))
+    }
+
+    /// The layers' cover (tiles reached and radiance scales) that the tiled path finds in its
+    /// pass over their planes, refusing what that pass refuses; `None` for an imager that
+    /// does not tile.
+    pub fn layer_cover(&self, layers: &[SpectralLayer]) -> Result<Option<LayerCover>> {
+        let Some(t) = &self.tiling else {
+            return Ok(None);
+        };
+        self.check_layers(layers)?;
+        let layers = layers
+            .iter()
+            .enumerate()
+            .map(|(k, l)| self.scan(t, l, k))
+            .collect::<Result<_>>()?;
+        Ok(Some(LayerCover {
+            layers,
+            grid: [self.h, self.w, t.t, t.n],
+        }))
+    }
+
+    /// What a layer cover made by this imager records of it (`None`: it makes none).
+    fn cover_grid(&self) -> Option<[usize; 4]> {
+        self.tiling.as_ref().map(|t| [self.h, self.w, t.t, t.n])
     }
 
     /// [`Self::forward_spectral`]'s image alone, the same bits, without the tape's per-layer
@@ -1368,7 +1452,7 @@ impl LayeredImager {
         ks: &KernelSpectra,
         spectra: Option<&LayerSpectra>,
     ) -> Result<Mat<f32>> {
-        Ok(self.spectral(layers, ks, spectra, false)?.0)
+        Ok(self.spectral(layers, ks, spectra, false, None)?.0)
     }
 
     /// S1 on the spectral path, with the tape when `keep`.
@@ -1378,11 +1462,12 @@ impl LayeredImager {
         ks: &KernelSpectra,
         spectra: Option<&LayerSpectra>,
         keep: bool,
+        cover: Option<&LayerCover>,
     ) -> Result<(Mat<f32>, Option<S1Tape>)> {
         self.check_spectral(layers, ks)?;
         self.check_spectra(layers, spectra)?;
         if let Some(t) = &self.tiling {
-            return self.tiled_spectral(t, layers, ks, spectra, keep);
+            return self.tiled_spectral(t, layers, ks, (spectra, cover), keep);
         }
         let (h, w, nx, ny) = (self.h, self.w, self.nx, self.ny);
         let (cy, cx) = (self.wp / 2, self.wp / 2);

@@ -14,7 +14,7 @@ pub mod stats;
 pub use error::{OpticsError, Result};
 pub use grid::ApertureGrid;
 pub use layered::{
-    GradValue, KernelGradAccumulator, KernelSpectra, Layer, LayerGrads, LayerSpectra,
+    GradValue, KernelGradAccumulator, KernelSpectra, Layer, LayerCover, LayerGrads, LayerSpectra,
     LayeredImager, S1Tape, SpectralLayer,
 };
 pub use profile::{DoubleHelix, FreeForm, Hyperbolic, PhaseMap, PhaseProfile, PillarQuantized};

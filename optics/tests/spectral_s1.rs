@@ -745,3 +745,85 @@ fn tiles_without_coverage_are_skipped() {
     assert!(LayeredImager::with_tiles(h, w, wp, Some(45)).is_err());
     assert!(LayeredImager::with_tiles(h, w, wp, Some(44)).is_ok());
 }
+
+/// A layer cover computed once (the tiles each layer reaches and its radiance scale) gives the
+/// forward the bits it gets from its own pass over the planes — image, recorded spectra and
+/// the PSF gradient through its tape — and is what the forward uses (another frame's cover
+/// changes the image); an untiled imager has none, a cover of another number of layers is
+/// refused, and a plane the forward would refuse is refused by `layer_cover` too.
+#[test]
+fn a_kept_layer_cover_gives_the_forward_its_bits() {
+    let (h, w, wp) = (40, 44, 5);
+    let im = LayeredImager::with_tiles(h, w, wp, Some(12)).unwrap();
+    let psf = Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i * 2 + j) as f32));
+    let ks = im.kernel_spectra(&[Some(&psf)]).unwrap();
+    let rad = img(h, w, 1);
+    let ones = Mat::from_fn(h, w, |_, _| 1.0f32);
+    let zeros = Mat::<f32>::zeros(h, w);
+    let patch = Mat::from_fn(h, w, |i, j| {
+        if (14..17).contains(&i) && (33..36).contains(&j) {
+            0.8
+        } else {
+            0.0
+        }
+    });
+    let layers = [
+        SpectralLayer::new(rad.as_ref(), ones.as_ref(), 0),
+        SpectralLayer::new(rad.as_ref(), zeros.as_ref(), 0),
+        SpectralLayer::new(rad.as_ref(), patch.as_ref(), 0),
+    ];
+    let cover = im.layer_cover(&layers).unwrap().expect("a tiled imager");
+    // Three layers' slots and the 16 + 0 + 1 tiles they reach, four bytes each.
+    let slot = std::mem::size_of::<Option<(Vec<u32>, f32)>>();
+    assert_eq!(cover.bytes(), 3 * slot + 4 * 17);
+    let (a, mut ta) = im.forward_spectral(&layers, &ks, None).unwrap();
+    let (b, mut tb) = im
+        .forward_spectral_covered(&layers, &ks, None, Some(&cover))
+        .unwrap();
+    assert!(a == b, "the image");
+    let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
+    let (mut acc_a, mut acc_b) = (im.kernel_grad_accumulator(1), im.kernel_grad_accumulator(1));
+    im.vjp_kernels(&layers, &ta, &g, &mut acc_a, None).unwrap();
+    im.vjp_kernels(&layers, &tb, &g, &mut acc_b, None).unwrap();
+    assert!(im.kernel_grads(acc_a) == im.kernel_grads(acc_b), "∂L/∂P");
+    assert_eq!(ta.take_spectra(), tb.take_spectra(), "the recorded spectra");
+    // Another frame's cover (the layers in another order): the forward follows it.
+    let other = im
+        .layer_cover(&[layers[2], layers[1], layers[0]])
+        .unwrap()
+        .unwrap();
+    let (c, _) = im
+        .forward_spectral_covered(&layers, &ks, None, Some(&other))
+        .unwrap();
+    assert!(c != a);
+    let err = im
+        .forward_spectral_covered(&layers[..2], &ks, None, Some(&cover))
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(err.contains("a cover of 3 layers for 2 layers"), "{err}");
+    let whole = LayeredImager::with_tiles(h, w, wp, None).unwrap();
+    assert!(whole.layer_cover(&layers).unwrap().is_none());
+    // The cover of another imager — untiled, or tiled otherwise with in-range tile indices —
+    // is refused, not read.
+    let whole_ks = whole.kernel_spectra(&[Some(&psf)]).unwrap();
+    let err = whole
+        .forward_spectral_covered(&layers, &whole_ks, None, Some(&cover))
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(err.contains("for this imager of 40×44 (no tiles)"), "{err}");
+    let finer = LayeredImager::with_tiles(h, w, wp, Some(8)).unwrap();
+    let finer_ks = finer.kernel_spectra(&[Some(&psf)]).unwrap();
+    let err = finer
+        .forward_spectral_covered(&layers, &finer_ks, None, Some(&cover))
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(err.contains("on tiles of 12 (16² grids)"), "{err}");
+    let mut bad = ones.clone();
+    bad[(3, 4)] = f32::NAN;
+    let nan = [SpectralLayer::new(rad.as_ref(), bad.as_ref(), 0)];
+    assert!(im.layer_cover(&nan).is_err());
+    assert!(im.forward_spectral(&nan, &ks, None).is_err());
+}

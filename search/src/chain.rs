@@ -632,9 +632,15 @@ impl CameraChain {
     pub fn optical_image(&self, f: &ChainFrame, psfs: &StepPsfs) -> Result<(Mat<f32>, S1Tape)> {
         let layers = self.spectral_layers(f, psfs);
         let kept = self.kept_spectra(f);
+        // Without kept spectra the tiled path packs every layer; its pass over the planes to
+        // find the tiles is done once per frame.
+        let cover = match kept {
+            None => self.frame_cover(f, &layers)?,
+            Some(_) => None,
+        };
         let (img, mut tape) = self
             .imager
-            .forward_spectral(&layers, &psfs.spectra, kept.as_deref())
+            .forward_spectral_covered(&layers, &psfs.spectra, kept.as_deref(), cover.as_deref())
             .map_err(|e| Self::frame_error(f, e))?;
         if let (None, Some(key)) = (&kept, f.source.map(|s| (s, f.id))) {
             let bytes = tape.spectra_bytes();
@@ -656,6 +662,31 @@ impl CameraChain {
             .image_spectral(&layers, &psfs.spectra, kept.as_deref())
             .map_err(|e| Self::frame_error(f, e))?;
         Ok(Self::clamped(img))
+    }
+
+    /// Frame `f`'s layer cover for S1's tiled path (`layers` its spectral layers), kept in
+    /// the store from its first computation on; `None` for an untiled imager or a frame of no
+    /// dataset.
+    fn frame_cover(
+        &self,
+        f: &ChainFrame,
+        layers: &[SpectralLayer],
+    ) -> Result<Option<Arc<nanoeye_optics::LayerCover>>> {
+        let Some(key) = f.source.map(|s| (s, f.id)) else {
+            return Ok(None);
+        };
+        if let Some(c) = self.spectra.cover(key) {
+            return Ok(Some(c));
+        }
+        let cover = self
+            .imager
+            .layer_cover(layers)
+            .map_err(|e| Self::frame_error(f, e))?;
+        Ok(cover.map(|c| {
+            let c = Arc::new(c);
+            self.spectra.keep_cover(key, c.clone());
+            c
+        }))
     }
 
     /// The kept layer spectra of a frame from a dataset.

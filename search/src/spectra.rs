@@ -13,6 +13,11 @@
 //! A frame beyond the budget keeps the spectra S1 recorded on its tape, for the backward of
 //! its own step.
 //!
+//! A store also keeps each frame's layer cover (the tiles S1's tiled path finds its layers
+//! reach, and their radiance scales: `LayeredImager::layer_cover`), a few hundred bytes a
+//! frame, for every dataset and up to [`LAYER_COVER_BYTES`]: a frame whose spectra are not
+//! kept then skips S1's pass over its planes.
+//!
 //! A dataset whose frames' spectra would not all fit the budget keeps none: keeping the first
 //! frames seen would spend the whole budget on a fraction budget/need of the visits — the
 //! default job's 240 training frames at 320×200 hold 1,903 covered layers, more than 1 GiB
@@ -20,7 +25,7 @@
 //! time it could measure — while every frame's backward already reads the spectra its
 //! forward recorded.
 
-use nanoeye_optics::LayerSpectra;
+use nanoeye_optics::{LayerCover, LayerSpectra};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Weak};
@@ -31,6 +36,12 @@ use std::sync::{Arc, Mutex, Weak};
 /// 8 layers. 2 GiB filled by every forward took the default job's
 /// peak RSS from 4.2 to 7.4 GB for no gain in its time.
 pub const LAYER_SPECTRA_BYTES: usize = 1 << 30;
+
+/// Most bytes of layer covers one store keeps (a paper-size frame's under 1.6 KB: 8 layers of
+/// at most 40 tiles; so over 40,000 frames): the tiles each layer reaches and its radiance
+/// scale, whose pass over the planes was 8–9 % of the chain's forward at batch 16 on
+/// paper-size frames (docs/bench/chain.md).
+pub const LAYER_COVER_BYTES: usize = 64 << 20;
 
 /// Bytes reserved by every live store.
 static IN_USE: AtomicUsize = AtomicUsize::new(0);
@@ -46,6 +57,15 @@ pub(crate) struct SpectraStore {
     admitted: Mutex<HashMap<u64, bool>>,
     /// Bytes this store holds or has reserved (released when it is dropped).
     bytes: AtomicUsize,
+    /// Frames' layer covers and their bytes (see [`LAYER_COVER_BYTES`]).
+    covers: Mutex<Covers>,
+}
+
+/// Layer covers of frames keyed by (dataset, frame id), and the bytes they hold.
+#[derive(Default)]
+struct Covers {
+    frames: HashMap<(u64, u64), Arc<LayerCover>>,
+    bytes: usize,
 }
 
 impl SpectraStore {
@@ -126,6 +146,25 @@ impl SpectraStore {
         IN_USE.fetch_sub(bytes, Ordering::AcqRel);
     }
 
+    /// The kept layer cover of frame `key`.
+    pub(crate) fn cover(&self, key: (u64, u64)) -> Option<Arc<LayerCover>> {
+        self.covers
+            .lock()
+            .ok()
+            .and_then(|c| c.frames.get(&key).cloned())
+    }
+
+    /// Keeps frame `key`'s layer cover while [`LAYER_COVER_BYTES`] has room (every admitted
+    /// dataset or not: a cover is small).
+    pub(crate) fn keep_cover(&self, key: (u64, u64), cover: Arc<LayerCover>) {
+        let mut c = self.covers.lock().unwrap_or_else(|e| e.into_inner());
+        let bytes = cover.bytes();
+        if c.bytes + bytes <= LAYER_COVER_BYTES && !c.frames.contains_key(&key) {
+            c.frames.insert(key, cover);
+            c.bytes += bytes;
+        }
+    }
+
     /// Frames kept.
     pub(crate) fn len(&self) -> usize {
         self.frames.lock().map(|m| m.len()).unwrap_or(0)
@@ -161,6 +200,37 @@ mod tests {
             .unwrap();
         let b = s.bytes();
         (s, b)
+    }
+
+    /// A frame's layer cover is kept for any dataset, admitted or not; the first kept for a
+    /// frame stays; the store stops keeping at its byte limit and counts what it holds.
+    #[test]
+    fn layer_covers_are_kept_first_come_within_their_limit() {
+        let im = LayeredImager::with_tiles(40, 44, 5, Some(12)).unwrap();
+        let (l, a) = (
+            Mat::from_fn(40, 44, |i, j| (i + j) as f32),
+            Mat::full(40, 44, 1.0f32),
+        );
+        let half = Mat::from_fn(40, 44, |i, _| if i < 20 { 1.0f32 } else { 0.0 });
+        let cover = |a: &Mat<f32>| {
+            let layer = [SpectralLayer::new(l.as_ref(), a.as_ref(), 0)];
+            Arc::new(im.layer_cover(&layer).unwrap().expect("tiled"))
+        };
+        let (whole, top) = (cover(&a), cover(&half));
+        assert_ne!(whole, top);
+        let store = SpectraStore::default();
+        assert!(store.cover((1, 0)).is_none());
+        store.keep_cover((1, 0), whole.clone());
+        store.keep_cover((1, 0), top.clone());
+        assert_eq!(store.cover((1, 0)).as_deref(), Some(&*whole));
+        store.keep_cover((2, 5), top.clone());
+        assert_eq!(store.cover((2, 5)).as_deref(), Some(&*top));
+        let held = store.covers.lock().unwrap().bytes;
+        assert_eq!(held, whole.bytes() + top.bytes());
+        // At the limit: counted as full, nothing more is kept.
+        store.covers.lock().unwrap().bytes = LAYER_COVER_BYTES - top.bytes() + 1;
+        store.keep_cover((3, 1), top.clone());
+        assert!(store.cover((3, 1)).is_none());
     }
 
     #[test]

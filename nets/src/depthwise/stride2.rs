@@ -78,8 +78,8 @@ pub(super) fn backward(
 ) {
     assert!(takes_backward(g), "stride 2 backward for {g:?}");
     let (width, wo) = (g.w, g.wo);
-    // SAFETY: `takes_backward` checked AVX2 and FMA on this CPU; the driver hands each plane its h·w
-    // inputs and gradients, ho·wo output gradients.
+    // SAFETY: `takes_backward` checked AVX2 and FMA on this CPU; the driver hands each plane
+    // its h·w inputs and gradients, ho·wo output gradients.
     k3_backward_planes(
         g,
         c,
@@ -216,7 +216,6 @@ unsafe fn plane<const K: usize, const KK: usize>(
 /// AVX2 and FMA; m + R ≤ ho = ⌈h/2⌉, wo = ⌈w/2⌉, `x` holds h·w values and `out` ho·wo.
 #[target_feature(enable = "avx2,fma")]
 #[inline]
-#[allow(clippy::too_many_arguments)]
 unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
     m: usize,
     h: usize,
@@ -243,7 +242,8 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
         unsafe {
             let inner = interior(x0) && interior(x0 + HALF);
             // Edge blocks in pairs too for the 5×5 kernel (7 % faster at 96×44×70) but not
-            // for the 3×3 one (8 % slower; one thread, `dw_prof`).
+            // for the 3×3 one (8 % slower; one thread, `dw_prof`). So a single unmasked block
+            // is the 3×3 kernel's only: an interior 5×5 block always has a partner.
             if x0 + HALF < wo && (inner || K == 5) {
                 if inner {
                     block::<K, KK, R, 2, false>(rows, x0, (w, wo), wv, dst);

@@ -258,7 +258,12 @@ impl LayeredImager {
     /// row-major index) and its radiance scale ([`SpectralLayer::radiance_scale`]'s value),
     /// `None` for a layer without coverage; a non-finite α or weighted L, or a product of
     /// them that is not finite, is refused as the whole-grid path refuses it.
-    fn scan(&self, t: &Tiling, l: &SpectralLayer, k: usize) -> Result<Option<(Vec<u32>, f32)>> {
+    pub(super) fn scan(
+        &self,
+        t: &Tiling,
+        l: &SpectralLayer,
+        k: usize,
+    ) -> Result<Option<(Vec<u32>, f32)>> {
         let (by, al, rad, wt) = l.lines();
         let mut covered = vec![false; t.rows * t.cols];
         // Largest |α| and |α·w·L| as bit patterns: for non-negative floats the patterns order
@@ -426,7 +431,7 @@ impl LayeredImager {
         t: &Tiling,
         layers: &[SpectralLayer],
         ks: &KernelSpectra,
-        spectra: Option<&LayerSpectra>,
+        (spectra, cover): (Option<&LayerSpectra>, Option<&LayerCover>),
         keep: bool,
     ) -> Result<(Mat<f32>, Option<S1Tape>)> {
         let (h, w, n) = (self.h, self.w, t.n);
@@ -452,8 +457,14 @@ impl LayeredImager {
                     }
                 },
                 None => {
-                    scanned = self.scan(t, l, k)?;
-                    match &scanned {
+                    let found = match cover {
+                        Some(c) => &c.layers[k],
+                        None => {
+                            scanned = self.scan(t, l, k)?;
+                            &scanned
+                        }
+                    };
+                    match found {
                         Some((tiles, scale)) => (tiles, *scale, None),
                         None => {
                             saved.push(None);
