@@ -659,20 +659,23 @@ proptest! {
     }
 }
 
-/// On tiles, a layer costs only the tiles its α touches: one covered tile holds one tile
-/// grid of spectrum, the image and ∂L/∂P still match the f64 reference, a tile whose α is
-/// zero but whose neighbour's light reaches it gets that light, and spectra or kernel spectra
-/// of the whole-grid imager are refused rather than read on the wrong grid.
-#[test]
-fn tiles_without_coverage_are_skipped() {
+/// A 40×44 imager on tiles of 12 (16² grids) with a 5×5 kernel, its kernel spectra, a radiance,
+/// full coverage and a 3×3 patch of coverage.
+struct TileScene {
+    size: (usize, usize, usize),
+    im: LayeredImager,
+    psf: Mat<f32>,
+    ks: KernelSpectra,
+    rad: Mat<f32>,
+    ones: Mat<f32>,
+    patch: Mat<f32>,
+}
+
+fn tile_scene() -> TileScene {
     let (h, w, wp) = (40, 44, 5);
     let im = LayeredImager::with_tiles(h, w, wp, Some(12)).unwrap();
-    // 12 + 5 − 1 = 16, a fast size: tiles of 12, 4 × 4 of them.
-    assert_eq!(im.tile(), Some(12));
     let psf = Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i * 2 + j) as f32));
     let ks = im.kernel_spectra(&[Some(&psf)]).unwrap();
-    let rad = img(h, w, 1);
-    let ones = Mat::from_fn(h, w, |_, _| 1.0f32);
     // A 3×3 patch inside tile (1, 2), against its right edge: its blur crosses into (1, 3).
     let patch = Mat::from_fn(h, w, |i, j| {
         if (14..17).contains(&i) && (33..36).contains(&j) {
@@ -681,6 +684,34 @@ fn tiles_without_coverage_are_skipped() {
             0.0
         }
     });
+    TileScene {
+        size: (h, w, wp),
+        im,
+        psf,
+        ks,
+        rad: img(h, w, 1),
+        ones: Mat::from_fn(h, w, |_, _| 1.0f32),
+        patch,
+    }
+}
+
+/// On tiles, a layer costs only the tiles its α touches: one covered tile holds one tile
+/// grid of spectrum, the image and ∂L/∂P still match the f64 reference, a tile whose α is
+/// zero but whose neighbour's light reaches it gets that light, and spectra or kernel spectra
+/// of the whole-grid imager are refused rather than read on the wrong grid.
+#[test]
+fn tiles_without_coverage_are_skipped() {
+    let TileScene {
+        size: (h, w, wp),
+        im,
+        psf,
+        ks,
+        rad,
+        ones,
+        patch,
+    } = tile_scene();
+    // 12 + 5 − 1 = 16, a fast size: tiles of 12, 4 × 4 of them.
+    assert_eq!(im.tile(), Some(12));
     let layers = [
         SpectralLayer::new(rad.as_ref(), ones.as_ref(), 0),
         SpectralLayer::new(rad.as_ref(), patch.as_ref(), 0),
@@ -753,20 +784,16 @@ fn tiles_without_coverage_are_skipped() {
 /// refused, and a plane the forward would refuse is refused by `layer_cover` too.
 #[test]
 fn a_kept_layer_cover_gives_the_forward_its_bits() {
-    let (h, w, wp) = (40, 44, 5);
-    let im = LayeredImager::with_tiles(h, w, wp, Some(12)).unwrap();
-    let psf = Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i * 2 + j) as f32));
-    let ks = im.kernel_spectra(&[Some(&psf)]).unwrap();
-    let rad = img(h, w, 1);
-    let ones = Mat::from_fn(h, w, |_, _| 1.0f32);
+    let TileScene {
+        size: (h, w, wp),
+        im,
+        psf,
+        ks,
+        rad,
+        ones,
+        patch,
+    } = tile_scene();
     let zeros = Mat::<f32>::zeros(h, w);
-    let patch = Mat::from_fn(h, w, |i, j| {
-        if (14..17).contains(&i) && (33..36).contains(&j) {
-            0.8
-        } else {
-            0.0
-        }
-    });
     let layers = [
         SpectralLayer::new(rad.as_ref(), ones.as_ref(), 0),
         SpectralLayer::new(rad.as_ref(), zeros.as_ref(), 0),

@@ -672,7 +672,8 @@ impl CameraChain {
         f: &ChainFrame,
         layers: &[SpectralLayer],
     ) -> Result<Option<Arc<nanoeye_optics::LayerCover>>> {
-        let Some(key) = f.source.map(|s| (s, f.id)) else {
+        // An untiled imager makes none: no lookup on its hot path.
+        let (Some(key), Some(_)) = (f.source.map(|s| (s, f.id)), self.imager.tile()) else {
             return Ok(None);
         };
         if let Some(c) = self.spectra.cover(key) {
