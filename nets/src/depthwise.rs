@@ -18,8 +18,8 @@
 //! the same y bits; their backward sums in other orders (equal to round-off). The other 3×3
 //! layers at stride 1 read the plane itself, without the padded copy ([`stride1`]), for y
 //! and for dL/dx (dL/dy correlated with the turned kernel): the same bits; so do the other
-//! 3×3 layers at stride 2 ([`stride2`]), forward and backward, and the 5×5 layers at stride 2
-//! in their forward, again the same bits.
+//! 3×3 and 5×5 layers at stride 2 ([`stride2`]), forward and backward (the 5×5 dL/dw by the
+//! plane path), again the same bits.
 
 use rayon::prelude::*;
 
@@ -592,9 +592,7 @@ fn backward_plane<const FMA: bool>(
     dx: &mut [f32],
     dw: &mut [f32],
 ) {
-    fill::<FMA>(g, x, &mut sc.buf, &mut sc.shape);
-    tap_offsets(g, &mut sc.offs);
-    weight_grad::<FMA>(g, &sc.buf, &sc.offs, dy, dw);
+    plane_weight_grad::<FMA>(g, x, dy, sc, dw);
     if g.s == 1 {
         // At stride 1 with same padding, dL/dx is dL/dy correlated with the kernel turned by
         // 180°, on the same geometry (ho = h, wo = w): the forward pass's register-blocked
@@ -616,6 +614,21 @@ fn backward_plane<const FMA: bool>(
         return;
     }
     strided_dx::<FMA>(g, wk, dy, sc, dx);
+}
+
+/// dL/dw of one plane's k² taps into `dw` (overwritten), from its input `x` padded into the
+/// scratch and dL/dy.
+#[inline(always)]
+fn plane_weight_grad<const FMA: bool>(
+    g: &Geom,
+    x: &[f32],
+    dy: &[f32],
+    sc: &mut Scratch,
+    dw: &mut [f32],
+) {
+    fill::<FMA>(g, x, &mut sc.buf, &mut sc.shape);
+    tap_offsets(g, &mut sc.offs);
+    weight_grad::<FMA>(g, &sc.buf, &sc.offs, dy, dw);
 }
 
 /// dL/dx of one plane at stride s ≥ 2, as s² stride-1 correlations of dL/dy, one per phase.
@@ -917,7 +930,7 @@ pub(crate) fn backward(
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if stride2::takes_backward(g) {
+    if stride2::takes(g) {
         stride2::backward(g, c, (x, w, dy), dx, dw_planes);
         return;
     }
@@ -964,34 +977,36 @@ fn forward_planes<const KK: usize>(
         });
 }
 
-/// One plane's 3×3 backward: (h, ho, (x, taps, dy), dx, dw).
+/// One plane's k×k backward (KK = k² taps): (h, ho, (x, taps, dy), dx, dw, scratch).
 #[cfg(target_arch = "x86_64")]
-type K3BackwardPlane<'a> =
-    dyn Fn(usize, usize, (&[f32], &[f32; 9], &[f32]), &mut [f32], &mut [f32; 9]) + Sync + 'a;
+type BackwardPlane<'a, const KK: usize> = dyn Fn(usize, usize, (&[f32], &[f32; KK], &[f32]), &mut [f32], &mut [f32; KK], &mut Scratch)
+    + Sync
+    + 'a;
 
-/// A 3×3 backward over every plane: dL/dx into `dx`, each plane's nine weight gradients into
-/// `dw_planes` (overwritten), `plane` doing one plane.
+/// A k×k backward (KK = k² taps) over every plane: dL/dx into `dx`, each plane's k² weight
+/// gradients into `dw_planes` (overwritten), `plane` doing one plane with a scratch of its
+/// task's (left empty by the paths that need none).
 #[cfg(target_arch = "x86_64")]
-fn k3_backward_planes(
+fn backward_planes<const KK: usize>(
     g: &Geom,
     c: usize,
     (x, w, dy): (&[f32], &[f32], &[f32]),
     (dx, dw_planes): (&mut [f32], &mut [f32]),
-    plane: &K3BackwardPlane<'_>,
+    plane: &BackwardPlane<'_, KK>,
 ) {
     let (hw, howo) = (g.h * g.w, g.ho * g.wo);
-    assert!(g.k == 3 && x.len() == dx.len() && x.len() / hw == dy.len() / howo);
-    assert!(w.len() == 9 * c && dw_planes.len() == 9 * (x.len() / hw));
+    assert!(g.k * g.k == KK && x.len() == dx.len() && x.len() / hw == dy.len() / howo);
+    assert!(w.len() == KK * c && dw_planes.len() == KK * (x.len() / hw));
     dx.par_chunks_mut(hw)
-        .zip(dw_planes.par_chunks_mut(9))
+        .zip(dw_planes.par_chunks_mut(KK))
         .enumerate()
         .with_min_len(g.planes_per_task())
-        .for_each(|(idx, (dxp, dwp))| {
+        .for_each_init(Scratch::default, |sc, (idx, (dxp, dwp))| {
             let xp = &x[idx * hw..][..hw];
             let dyp = &dy[idx * howo..][..howo];
-            let wk: &[f32; 9] = w[(idx % c) * 9..][..9].try_into().expect("nine taps");
-            let dwp: &mut [f32; 9] = dwp.try_into().expect("nine gradients");
-            plane(g.h, g.ho, (xp, wk, dyp), dxp, dwp);
+            let wk: &[f32; KK] = w[(idx % c) * KK..][..KK].try_into().expect("k² taps");
+            let dwp: &mut [f32; KK] = dwp.try_into().expect("k² gradients");
+            plane(g.h, g.ho, (xp, wk, dyp), dxp, dwp, sc);
         });
 }
 
@@ -1067,7 +1082,7 @@ fn assert_plane_path_bits(
     }
 }
 
-/// A 3×3 backward path at stride `s`, `bwd(g, c, (x, w, dy), dx, dw_planes)`, for planes `w`
+/// A k×k backward path at stride `s`, `bwd(g, c, (x, w, dy), dx, dw_planes)`, for planes `w`
 /// wide against the plane path: planes of 1–40 rows, two images of three channels, values of
 /// both signs and zeros. `exact`: the same bits. Otherwise its sums run in other orders, so
 /// each path carries its own round-off: dL/dx is a sum of at most four products of numbers in
@@ -1077,7 +1092,7 @@ fn assert_plane_path_bits(
 #[cfg(all(test, target_arch = "x86_64"))]
 #[allow(clippy::type_complexity)]
 fn assert_plane_path_backward(
-    (w, s): (usize, usize),
+    (w, k, s): (usize, usize, usize),
     seed: u64,
     exact: bool,
     bwd: fn(&Geom, usize, (&[f32], &[f32], &[f32]), &mut [f32], &mut [f32]),
@@ -1085,6 +1100,7 @@ fn assert_plane_path_backward(
     use rand::{Rng, SeedableRng, rngs::StdRng};
     let mut rng = StdRng::seed_from_u64(seed);
     let mut sc = Scratch::default();
+    let kk = k * k;
     // Exact paths get a second round with infinities among x and dy (one in 40): a product
     // of zero padding or of a masked lane with one is NaN, so a zero the path skips or a lane
     // it leaves unmasked shows, where with finite values adding ±0 to a sum changes nothing.
@@ -1107,24 +1123,24 @@ fn assert_plane_path_backward(
         &[false]
     };
     for (&inf, h) in rounds.iter().flat_map(|r| std::iter::repeat(r).zip(1..41)) {
-        let g = Geom::k3(h, w, s);
+        let g = Geom::kxk(h, w, k, s);
         let (n, c) = (2, 3);
         let (hw, howo) = (w * h, g.wo * g.ho);
         let x: Vec<f32> = (0..n * c * hw).map(|i| value(i, inf)).collect();
         let dy: Vec<f32> = (0..n * c * howo).map(|i| value(i, inf)).collect();
-        let wk: Vec<f32> = (0..c * 9).map(|i| value(i, false)).collect();
+        let wk: Vec<f32> = (0..c * kk).map(|i| value(i, false)).collect();
         let mut dx = vec![f32::NAN; n * c * hw];
-        let mut dw = vec![f32::NAN; n * c * 9];
+        let mut dw = vec![f32::NAN; n * c * kk];
         bwd(&g, c, (&x, &wk, &dy), &mut dx, &mut dw);
         for p in 0..n * c {
-            let (mut dx0, mut dw0) = (vec![f32::NAN; hw], vec![f32::NAN; 9]);
+            let (mut dx0, mut dw0) = (vec![f32::NAN; hw], vec![f32::NAN; kk]);
             let dyp = &dy[p * howo..][..howo];
             // SAFETY: the callers run only where has_fma() holds.
             unsafe {
                 backward_plane_fma(
                     &g,
                     &x[p * hw..][..hw],
-                    &wk[(p % c) * 9..][..9],
+                    &wk[(p % c) * kk..][..kk],
                     dyp,
                     &mut sc,
                     &mut dx0,
@@ -1140,12 +1156,12 @@ fn assert_plane_path_backward(
                 let i = first(&dx[p * hw..][..hw], &dx0);
                 assert!(
                     i.is_none(),
-                    "dx[{p}][{i:?}] differs, h {h}, infinities {inf}"
+                    "dx[{p}][{i:?}] differs, h {h}, w {w}, k {k}, infinities {inf}"
                 );
-                let t = first(&dw[p * 9..][..9], &dw0);
+                let t = first(&dw[p * kk..][..kk], &dw0);
                 assert!(
                     t.is_none(),
-                    "dw[{p}][{t:?}] differs, h {h}, infinities {inf}"
+                    "dw[{p}][{t:?}] differs, h {h}, w {w}, k {k}, infinities {inf}"
                 );
                 continue;
             }
@@ -1153,7 +1169,7 @@ fn assert_plane_path_backward(
                 assert!((a - b).abs() <= 2e-6, "dx[{p}][{i}] {a} vs {b}, h {h}");
             }
             let tol = 4e-6 * (1.0 + dyp.iter().map(|v| v.abs()).sum::<f32>());
-            for (t, (a, b)) in dw[p * 9..][..9].iter().zip(&dw0).enumerate() {
+            for (t, (a, b)) in dw[p * kk..][..kk].iter().zip(&dw0).enumerate() {
                 assert!((a - b).abs() <= tol, "dw[{p}][{t}] {a} vs {b}, h {h}");
             }
         }

@@ -10,7 +10,7 @@
 //! memory roofline). Each output sums its taps in (ky, kx) order from zero, as the plane path
 //! does, so y is the plane path's bits (test `rows_of_8_give_the_plane_paths_bits`).
 
-use super::{Geom, forward_planes, has_fma, k3_backward_planes};
+use super::{Geom, backward_planes, forward_planes, has_fma};
 use std::arch::x86_64::*;
 
 /// Whether a layer with this geometry goes through this path.
@@ -107,12 +107,12 @@ pub(super) fn backward(
 ) {
     assert!(takes(g), "rows of 8 for {g:?}");
     // SAFETY: `takes` checked AVX2 and FMA on this CPU.
-    k3_backward_planes(
+    backward_planes(
         g,
         c,
         inputs,
         (dx, dw_planes),
-        &|h, ho, xwd, dx, dw| unsafe { plane_backward(h, ho, xwd, dx, dw) },
+        &|h, ho, xwd, dx, dw, _| unsafe { plane_backward(h, ho, xwd, dx, dw) },
     );
 }
 
@@ -232,6 +232,6 @@ mod tests {
         if !has_fma() {
             return;
         }
-        super::super::assert_plane_path_backward((8, 2), 88, false, backward);
+        super::super::assert_plane_path_backward((8, 3, 2), 88, false, backward);
     }
 }

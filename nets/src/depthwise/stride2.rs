@@ -1,5 +1,5 @@
-//! Depthwise 3×3 and 5×5 at stride 2, forward (both) and backward (3×3), read straight from
-//! the plane in registers, any width.
+//! Depthwise 3×3 and 5×5 at stride 2, forward and backward, read straight from the plane in
+//! registers, any width.
 //!
 //! The plane path splits every plane's columns by parity into a padded scratch before its
 //! sweep. Here eight outputs of a row take their k taps from registers: pairs of loads of
@@ -15,20 +15,24 @@
 //! zero). Every output sums its k² taps from zero in (ky, kx) order, padding included, as the
 //! plane path does, so y is the plane path's bits (test `stride_2_gives_the_plane_paths_bits`).
 //!
-//! The backward needs no phase-split copies either. dL/dw takes the forward's tap registers
-//! against each block of dL/dy (put in the same lane order), one accumulator per tap, row by
-//! row and block by block as the plane path's chains run, so the lanes summed in column order
-//! at the end are its bits. dL/dx goes sixteen input columns at a time: their even columns take
-//! the centre taps of one block of dL/dy, their odd columns the left and right taps of that
-//! block and of the block one column on; the two halves are interleaved by unpack and
-//! 128-bit permutes. Each cell sums its taps from zero in (ky, kx) order, rows and columns
-//! of dL/dy past the plane read as zeros, as the plane path's phase sweeps do: the same bits
+//! The backward needs no phase-split copies either. The 3×3 kernel's dL/dw takes the forward's
+//! tap registers against each block of dL/dy (put in the same lane order), one accumulator per
+//! tap, row by row and block by block as the plane path's chains run, so the lanes summed in
+//! column order at the end are its bits; the 5×5 kernel's dL/dw is the plane path's (read
+//! from the plane this way it ran no faster). dL/dx goes two input rows and two blocks of
+//! sixteen columns at a time: a block's even columns take the taps kx ≡ k/2 (mod 2), its odd
+//! columns the others, each from a load of eight dL/dy columns offset by −1, 0 or +1; the two
+//! halves are interleaved by unpack and 128-bit permutes. Each cell sums its taps from zero in
+//! (ky, kx) order, rows and columns of dL/dy past the plane read as zeros, as the plane path's
+//! phase sweeps do: the same bits
 //! (test `stride_2_backward_is_the_plane_paths_bits`). Planes 8 and 16 wide keep their own paths
 //! ([`super::rows8`], [`super::rows16`]), small output planes of channels in multiples of eight
 //! the channel blocks.
 
 use super::stride1::inside;
-use super::{Geom, HALF, LANES, forward_planes, has_fma, k3_backward_planes};
+use super::{
+    Geom, HALF, LANES, Scratch, backward_planes, forward_planes, has_fma, plane_weight_grad,
+};
 use std::arch::x86_64::*;
 
 /// Whether a layer with this geometry goes through this path's forward (k = 3 or 5).
@@ -42,11 +46,6 @@ pub(super) fn takes(g: &Geom) -> bool {
         && g.wo == g.w.div_ceil(2)
         && g.w < (i32::MAX as usize) / 2 - 4 * HALF
         && has_fma()
-}
-
-/// Whether a layer with this geometry goes through this path's backward (k = 3 only).
-pub(super) fn takes_backward(g: &Geom) -> bool {
-    g.k == 3 && takes(g)
 }
 
 /// Forward over all planes (as [`super::forward`]); panics unless `takes(g)`.
@@ -67,8 +66,8 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
     }
 }
 
-/// Backward over all planes (as [`super::backward`]): dL/dx into `dx`, each plane's nine
-/// weight gradients into `dw_planes` (overwritten); panics unless `takes_backward(g)`.
+/// Backward over all planes (as [`super::backward`]): dL/dx into `dx`, each plane's k²
+/// weight gradients into `dw_planes` (overwritten); panics unless `takes(g)`.
 pub(super) fn backward(
     g: &Geom,
     c: usize,
@@ -76,17 +75,27 @@ pub(super) fn backward(
     dx: &mut [f32],
     dw_planes: &mut [f32],
 ) {
-    assert!(takes_backward(g), "stride 2 backward for {g:?}");
+    assert!(takes(g), "stride 2 backward for {g:?}");
     let (width, wo) = (g.w, g.wo);
-    // SAFETY: `takes_backward` checked AVX2 and FMA on this CPU; the driver hands each plane
-    // its h·w inputs and gradients, ho·wo output gradients.
-    k3_backward_planes(
-        g,
-        c,
-        inputs,
-        (dx, dw_planes),
-        &|h, ho, xwd, dx, dw| unsafe { plane_backward(h, width, (ho, wo), xwd, dx, dw) },
-    );
+    // SAFETY (both): `takes` checked AVX2 and FMA on this CPU; the driver hands each plane its
+    // h·w inputs and gradients, ho·wo output gradients.
+    if g.k == 5 {
+        backward_planes::<25>(
+            g,
+            c,
+            inputs,
+            (dx, dw_planes),
+            &|h, ho, xwd, dx, dw, sc| unsafe { plane_backward5(g, (h, ho), xwd, (dx, dw), sc) },
+        );
+    } else {
+        backward_planes::<9>(
+            g,
+            c,
+            inputs,
+            (dx, dw_planes),
+            &|h, ho, xwd, dx, dw, _| unsafe { plane_backward(h, width, (ho, wo), xwd, dx, dw) },
+        );
+    }
 }
 
 /// Where a block of eight outputs reads its input row: unmasked, or with the masks of its
@@ -375,8 +384,33 @@ unsafe fn plane_backward(
     // SAFETY: AVX2 and FMA by the contract; sizes checked above.
     unsafe {
         weight_grads(h, w, (ho, wo), x, dy, dw);
-        input_grads(h, w, (ho, wo), wk, dy, dx);
+        input_grads::<3, 9>(h, w, (ho, wo), wk, dy, dx);
     }
+}
+
+/// One plane's 5×5 backward (`g` the layer's geometry, this plane's h and ho): dL/dw by the
+/// plane path (read from the plane in registers as the 3×3 kernel's is, it ran no faster:
+/// sixty-fourth session), dL/dx in registers.
+///
+/// # Safety
+/// The CPU must have AVX2 and FMA; g.k = 5, g.s = 2, `x` and `dx` hold h·w values, `dy` ho·wo,
+/// ho = ⌈h/2⌉, wo = ⌈w/2⌉.
+#[target_feature(enable = "avx2,fma")]
+unsafe fn plane_backward5(
+    g: &Geom,
+    (h, ho): (usize, usize),
+    (x, wk, dy): (&[f32], &[f32; 25], &[f32]),
+    (dx, dw): (&mut [f32], &mut [f32; 25]),
+    sc: &mut Scratch,
+) {
+    let (w, wo) = (g.w, g.wo);
+    let hw = h.checked_mul(w).expect("plane size overflows");
+    let howo = ho.checked_mul(wo).expect("plane size overflows");
+    assert!(x.len() == hw && dx.len() == hw && dy.len() == howo);
+    assert!(g.k == 5 && ho == h.div_ceil(2) && wo == w.div_ceil(2));
+    plane_weight_grad::<true>(g, x, dy, sc, dw);
+    // SAFETY: AVX2 and FMA by the contract; sizes checked above.
+    unsafe { input_grads::<5, 25>(h, w, (ho, wo), wk, dy, dx) };
 }
 
 /// dL/dw of one plane: per tap, lane sums of dL/dy times the forward's tap registers over the
@@ -435,79 +469,185 @@ unsafe fn weight_grads(
     }
 }
 
-/// dL/dx of one plane, sixteen columns at a time as their even and odd halves: input cell
-/// (i, j) takes the taps (ky, kx) with 2·oy + ky = i + 1 and 2·ox + kx = j + 1, summed from
-/// zero in (ky, kx) order, rows and columns of dL/dy past the plane read as zeros: the sums
-/// of the plane path's phase sweeps, bit for bit.
+/// dL/dx of one plane of a k×k kernel (KK = k² taps, k = 3 or 5): input cell (i, j) takes the
+/// taps (ky, kx) with 2·oy + ky = i + k/2 and 2·ox + kx = j + k/2, summed from zero in (ky, kx)
+/// order, rows and columns of dL/dy past the plane read as zeros: the sums of the plane path's
+/// phase sweeps, bit for bit. Two input rows and two blocks of sixteen columns at a time,
+/// each block as its even and odd columns: eight sums in flight (one row and block at a time,
+/// a 5×5 cell's chain of nine multiply–adds waits on their latency).
 ///
 /// # Safety
 /// AVX2 and FMA; `dx` holds h·w values, `dy` ho·wo, ho = ⌈h/2⌉, wo = ⌈w/2⌉.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn input_grads(
+unsafe fn input_grads<const K: usize, const KK: usize>(
     h: usize,
     w: usize,
     (ho, wo): (usize, usize),
-    wk: &[f32; 9],
+    wk: &[f32; KK],
     dy: &[f32],
     dx: &mut [f32],
 ) {
-    let wv: [__m256; 9] = std::array::from_fn(|t| _mm256_set1_ps(wk[t]));
-    let z = _mm256_setzero_ps();
-    // dL/dy row m's eight values from column c₀ and the eight from c₀ + 1; zeros past the plane.
-    let drow = |m: usize, c0: usize, inner: bool| -> (__m256, __m256) {
-        if m >= ho {
-            return (z, z);
-        }
-        let p = dy[m * wo..][..wo].as_ptr();
-        // SAFETY: inner, c₀ + 9 ≤ wo; masked lanes are not read (wrapping arithmetic: the
-        // addresses of masked lanes are never dereferenced).
+    assert!(K * K == KK && (K == 3 || K == 5));
+    assert!(dx.len() == h * w && dy.len() == ho * wo && ho == h.div_ceil(2));
+    assert!(wo == w.div_ceil(2));
+    let wv: [__m256; KK] = std::array::from_fn(|t| _mm256_set1_ps(wk[t]));
+    let mut i = 0;
+    // SAFETY (both): rows i .. i + R ≤ h, i even; the rest is this function's contract.
+    while i + 2 <= h {
+        unsafe { input_rows::<K, KK, 2>(i, w, (ho, wo), &wv, dy, dx) };
+        i += 2;
+    }
+    if i < h {
+        unsafe { input_rows::<K, KK, 1>(i, w, (ho, wo), &wv, dy, dx) };
+    }
+}
+
+/// Input rows i₀ .. i₀ + R (i₀ even) of one plane's dL/dx (see [`input_grads`]), from dL/dy
+/// rows i₀/2 − 1 .. i₀/2 + 1.
+///
+/// # Safety
+/// AVX2 and FMA; i₀ even, i₀ + R ≤ h; `dx` holds h·w values, `dy` ho·wo, ho = ⌈h/2⌉,
+/// wo = ⌈w/2⌉.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn input_rows<const K: usize, const KK: usize, const R: usize>(
+    i0: usize,
+    w: usize,
+    (ho, wo): (usize, usize),
+    wv: &[__m256; KK],
+    dy: &[f32],
+    dx: &mut [f32],
+) {
+    // dL/dy rows i₀/2 − 1 + e (those above wrap past ho): None, zeros, past the plane.
+    let drows: [Option<&[f32]>; 3] = std::array::from_fn(|e| {
+        let m = (i0 / 2 + e).wrapping_sub(1);
+        (m < ho).then(|| &dy[m * wo..][..wo])
+    });
+    let dst = dx[i0 * w..][..R * w].as_mut_ptr();
+    // Blocks whose loads (dL/dy columns c₀ − 1 .. c₀ + 9 with c₀ = j₀/2, from c₀ for k = 3)
+    // and stores (columns j₀ .. j₀ + 16) stay inside their rows: j₀ + 18 ≤ w puts
+    // c₀ + 9 ≤ w/2 ≤ wo.
+    let interior = |j0: usize| (K == 3 || j0 >= 2) && j0 + LANES + 2 <= w;
+    let mut j0 = 0;
+    while j0 < w {
+        // SAFETY: j₀ < w, and unmasked blocks are interior; the rest is this function's
+        // contract.
         unsafe {
-            if inner {
-                (_mm256_loadu_ps(p.add(c0)), _mm256_loadu_ps(p.add(c0 + 1)))
+            if interior(j0) && interior(j0 + LANES) {
+                dx_block::<K, KK, R, 2, false>(&drows, j0, (w, wo), wv, dst);
+                j0 += 2 * LANES;
             } else {
-                (
-                    _mm256_maskload_ps(p.wrapping_add(c0), inside(c0 as isize, wo)),
-                    _mm256_maskload_ps(p.wrapping_add(c0 + 1), inside(c0 as isize + 1, wo)),
-                )
+                if interior(j0) {
+                    dx_block::<K, KK, R, 1, false>(&drows, j0, (w, wo), wv, dst);
+                } else {
+                    dx_block::<K, KK, R, 1, true>(&drows, j0, (w, wo), wv, dst);
+                }
+                j0 += LANES;
             }
         }
-    };
-    for i in 0..h {
-        let dst = dx[i * w..][..w].as_mut_ptr();
-        let mut j0 = 0;
-        while j0 < w {
-            let (c0, inner) = (j0 / 2, j0 + 2 * HALF + 2 <= w);
-            let (even, odd) = if i % 2 == 0 {
-                let (v, v1) = drow(i / 2, c0, inner);
-                let e = _mm256_fmadd_ps(wv[4], v, z);
-                (e, _mm256_fmadd_ps(wv[5], v, _mm256_fmadd_ps(wv[3], v1, z)))
-            } else {
-                // Tap rows ky = 0 (output row (i + 1)/2) before ky = 2 (row (i − 1)/2).
-                let (b, b1) = drow(i.div_ceil(2), c0, inner);
-                let (a, a1) = drow(i / 2, c0, inner);
-                let e = _mm256_fmadd_ps(wv[7], a, _mm256_fmadd_ps(wv[1], b, z));
-                let o = _mm256_fmadd_ps(wv[2], b, _mm256_fmadd_ps(wv[0], b1, z));
-                (e, _mm256_fmadd_ps(wv[8], a, _mm256_fmadd_ps(wv[6], a1, o)))
-            };
-            // Within each 128-bit lane [e0 o0 e1 o1] and [e2 o2 e3 o3]: columns j₀ .. j₀ + 8
-            // are the low lanes of both, j₀ + 8 .. j₀ + 16 the high lanes.
+    }
+}
+
+/// V blocks of sixteen input columns from j₀ of input rows i₀ .. i₀ + R (`dst` from row i₀'s
+/// start, rows w apart), from dL/dy rows i₀/2 − 1 .. i₀/2 + 1 (`drows`, each wo wide, None past
+/// the plane). dL/dy row i₀/2 − 1 + e serves input row i₀ + r with tap row ky = r + k/2 + 2 −
+/// 2e, so the rows go from e = 2 down: each sum takes its tap rows in ascending order, and in
+/// each its taps kx in ascending order, column 2c + q taking tap kx from dL/dy column
+/// c + (q + k/2 − kx)/2. `MASKED`: lane masks on every load and store.
+///
+/// # Safety
+/// AVX2 and FMA; j₀ < w; `dst` holds R·w values; unless `MASKED`, j₀ + 16(V − 1) + 18 ≤ w and,
+/// for k = 5, j₀ ≥ 2.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn dx_block<
+    const K: usize,
+    const KK: usize,
+    const R: usize,
+    const V: usize,
+    const MASKED: bool,
+>(
+    drows: &[Option<&[f32]>; 3],
+    j0: usize,
+    (w, wo): (usize, usize),
+    wv: &[__m256; KK],
+    dst: *mut f32,
+) {
+    let p = K / 2;
+    let z = _mm256_setzero_ps();
+    // acc[r][q][v]: the columns of parity q of block v in input row i₀ + r.
+    let mut acc = [[[z; V]; 2]; R];
+    // Plain counted loops over constants, so that they unroll and the loads and weights stay
+    // in registers (written with iterator filters, they indexed both on the stack).
+    for e in (0..3usize).rev() {
+        if (0..R).all(|r| r + p + 2 < 2 * e || r + p + 2 - 2 * e >= K) {
+            continue;
+        }
+        // Columns c + d − 1 for the eight c from block v's c₀ (d = 0 only for k = 5).
+        let ld: [[__m256; V]; 3] = std::array::from_fn(|d| {
+            std::array::from_fn(|v| {
+                let Some(row) = drows[e] else { return z };
+                if K == 3 && d == 0 {
+                    return z;
+                }
+                let c = j0 / 2 + v * HALF + d;
+                let at = row.as_ptr().wrapping_add(c).wrapping_sub(1);
+                // SAFETY: unmasked, columns c₀ − 1 .. c₀ + 9 are inside the row (the contract);
+                // masked lanes are neither read nor faulted on.
+                unsafe {
+                    if MASKED {
+                        _mm256_maskload_ps(at, inside(c as isize - 1, wo))
+                    } else {
+                        _mm256_loadu_ps(at)
+                    }
+                }
+            })
+        });
+        for r in 0..R {
+            if r + p + 2 < 2 * e || r + p + 2 - 2 * e >= K {
+                continue;
+            }
+            let ky = r + p + 2 - 2 * e;
+            for q in 0..2 {
+                for kx in 0..K {
+                    if !(q + p + kx).is_multiple_of(2) {
+                        continue;
+                    }
+                    let (wt, d) = (wv[K * ky + kx], (q + p + 2 - kx) / 2);
+                    for v in 0..V {
+                        acc[r][q][v] = _mm256_fmadd_ps(wt, ld[d][v], acc[r][q][v]);
+                    }
+                }
+            }
+        }
+    }
+    for (r, acc) in acc.iter().enumerate() {
+        for v in 0..V {
+            let (even, odd) = (acc[0][v], acc[1][v]);
+            // Within each 128-bit lane [e0 o0 e1 o1] and [e2 o2 e3 o3]: the block's first eight
+            // columns are the low lanes of both, the next eight the high lanes.
             let (lo, hi) = (_mm256_unpacklo_ps(even, odd), _mm256_unpackhi_ps(even, odd));
             let (left, right) = (
                 _mm256_permute2f128_ps::<0x20>(lo, hi),
                 _mm256_permute2f128_ps::<0x31>(lo, hi),
             );
-            // SAFETY: inner, j₀ + 16 ≤ w; otherwise the masks keep the stores inside the row.
+            let j = j0 + v * LANES;
+            let d = dst.wrapping_add(r * w + j);
+            // SAFETY: j + 16 ≤ w, or no lane past the row is written (a left-edge block
+            // masks its loads only).
             unsafe {
-                if inner {
-                    _mm256_storeu_ps(dst.add(j0), left);
-                    _mm256_storeu_ps(dst.add(j0 + HALF), right);
+                if MASKED && j + LANES > w {
+                    _mm256_maskstore_ps(d, inside(j as isize, w), left);
+                    _mm256_maskstore_ps(
+                        d.wrapping_add(HALF),
+                        inside((j + HALF) as isize, w),
+                        right,
+                    );
                 } else {
-                    let j = j0 as isize;
-                    _mm256_maskstore_ps(dst.wrapping_add(j0), inside(j, w), left);
-                    _mm256_maskstore_ps(dst.wrapping_add(j0 + HALF), inside(j + 8, w), right);
+                    _mm256_storeu_ps(d, left);
+                    _mm256_storeu_ps(d.add(HALF), right);
                 }
             }
-            j0 += LANES;
         }
     }
 }
@@ -533,8 +673,8 @@ mod tests {
         }
     }
 
-    /// The backward through the entry point, the same widths and those whose last block holds
-    /// seven outputs, 1–40 rows, finite values and then infinities among them: dL/dx and dL/dw
+    /// The 3×3 and 5×5 backward through the entry point, the same widths and those whose last
+    /// block holds seven outputs, 1–40 rows, finite values and then infinities among them: dL/dx and dL/dw
     /// bit for bit the plane path's (padding taps and the lanes past the last output column
     /// summed as its zeros are).
     #[test]
@@ -545,7 +685,9 @@ mod tests {
         for w in [
             1, 2, 3, 7, 8, 9, 13, 14, 15, 16, 17, 18, 29, 30, 31, 32, 33, 35, 70, 87, 139,
         ] {
-            super::super::assert_plane_path_backward((w, 2), 300 + w as u64, true, backward);
+            for k in [3, 5] {
+                super::super::assert_plane_path_backward((w, k, 2), 300 + w as u64, true, backward);
+            }
         }
     }
 }
