@@ -22,6 +22,7 @@
 //! plane path), again the same bits.
 
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 #[cfg(target_arch = "x86_64")]
 mod channels;
@@ -589,7 +590,7 @@ fn backward_plane<const FMA: bool>(
     wk: &[f32],
     dy: &[f32],
     sc: &mut Scratch,
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
     dw: &mut [f32],
 ) {
     plane_weight_grad::<FMA>(g, x, dy, sc, dw);
@@ -609,11 +610,12 @@ fn backward_plane<const FMA: bool>(
             unsafe { stride1::plane(g.h, g.w, dy, flip, &sc.zeros, dx) };
             return;
         }
+        let dx = zeroed_chunk(dx);
         fill::<FMA>(g, dy, &mut sc.buf, &mut sc.shape);
         forward_padded::<FMA>(g, &sc.buf, &sc.offs, &sc.flip, dx);
         return;
     }
-    strided_dx::<FMA>(g, wk, dy, sc, dx);
+    strided_dx::<FMA>(g, wk, dy, sc, zeroed_chunk(dx));
 }
 
 /// dL/dw of one plane's k² taps into `dw` (overwritten), from its input `x` padded into the
@@ -827,10 +829,30 @@ fn backward_plane_fma(
     wk: &[f32],
     dy: &[f32],
     sc: &mut Scratch,
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
     dw: &mut [f32],
 ) {
     backward_plane::<true>(g, x, wk, dy, sc, dx, dw)
+}
+
+/// `out` zeroed and handed back as initialised values: the paths that write through
+/// `&mut [f32]` zero their own chunk just before writing it, while it is in cache (a
+/// separate pass over a fresh output moved its bytes twice).
+fn zeroed_chunk(out: &mut [MaybeUninit<f32>]) -> &mut [f32] {
+    out.fill(MaybeUninit::new(0.0));
+    // SAFETY: every element was just written; MaybeUninit<f32> has f32's layout.
+    unsafe { &mut *(out as *mut [MaybeUninit<f32>] as *mut [f32]) }
+}
+
+/// Initialised values seen as possibly uninitialised, for the entry points that take an
+/// output they overwrite whole (the tests hand them NaNs, so a value left unwritten shows).
+///
+/// # Safety
+/// Whoever writes through the result writes initialised values only.
+#[cfg(test)]
+unsafe fn as_uninit(s: &mut [f32]) -> &mut [MaybeUninit<f32>] {
+    // SAFETY: same layout; the caller keeps every element initialised.
+    unsafe { &mut *(s as *mut [f32] as *mut [MaybeUninit<f32>]) }
 }
 
 /// Whether this CPU has AVX2 and FMA (the fused code paths).
@@ -846,11 +868,12 @@ pub(crate) fn has_fma() -> bool {
 }
 
 /// Forward over all planes: `x` is N·C planes of h×w, `w` C kernels of k², `y` N·C planes of
-/// ho×wo (overwritten). Shapes are the caller's to check.
-pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
+/// ho×wo, every value written (so it may start uninitialised). Shapes are the caller's to
+/// check.
+pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUninit<f32>]) {
     let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
     if howo == 0 || hw == 0 {
-        y.fill(0.0);
+        y.fill(MaybeUninit::new(0.0));
         return;
     }
     #[cfg(target_arch = "x86_64")]
@@ -883,6 +906,7 @@ pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
         .enumerate()
         .with_min_len(g.planes_per_task())
         .for_each_init(Scratch::default, |sc, (idx, out)| {
+            let out = zeroed_chunk(out);
             let xp = &x[idx * hw..][..hw];
             let wk = &w[(idx % c) * kk..][..kk];
             #[cfg(target_arch = "x86_64")]
@@ -896,7 +920,8 @@ pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
         });
 }
 
-/// Backward over all planes: dL/dx into `dx` (N·C planes of h×w, overwritten) and per-plane
+/// Backward over all planes: dL/dx into `dx` (N·C planes of h×w, every value written, so it
+/// may start uninitialised) and per-plane
 /// dL/dw into `dw_planes` (N·C blocks of k², overwritten; the caller sums over images in a
 /// fixed order so the result does not depend on the thread count).
 pub(crate) fn backward(
@@ -905,12 +930,12 @@ pub(crate) fn backward(
     x: &[f32],
     w: &[f32],
     dy: &[f32],
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
     dw_planes: &mut [f32],
 ) {
     let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
     if hw == 0 || howo == 0 {
-        dx.fill(0.0);
+        dx.fill(MaybeUninit::new(0.0));
         dw_planes.fill(0.0);
         return;
     }
@@ -962,8 +987,8 @@ fn forward_planes<const KK: usize>(
     g: &Geom,
     c: usize,
     (x, w): (&[f32], &[f32]),
-    y: &mut [f32],
-    plane: impl Fn(usize, usize, &[f32], &[f32; KK], &mut [f32]) + Sync,
+    y: &mut [MaybeUninit<f32>],
+    plane: impl Fn(usize, usize, &[f32], &[f32; KK], &mut [MaybeUninit<f32>]) + Sync,
 ) {
     let (hw, howo) = (g.h * g.w, g.ho * g.wo);
     assert!(g.k * g.k == KK && x.len() / hw == y.len() / howo && w.len() == KK * c);
@@ -979,8 +1004,14 @@ fn forward_planes<const KK: usize>(
 
 /// One plane's k×k backward (KK = k² taps): (h, ho, (x, taps, dy), dx, dw, scratch).
 #[cfg(target_arch = "x86_64")]
-type BackwardPlane<'a, const KK: usize> = dyn Fn(usize, usize, (&[f32], &[f32; KK], &[f32]), &mut [f32], &mut [f32; KK], &mut Scratch)
-    + Sync
+type BackwardPlane<'a, const KK: usize> = dyn Fn(
+        usize,
+        usize,
+        (&[f32], &[f32; KK], &[f32]),
+        &mut [MaybeUninit<f32>],
+        &mut [f32; KK],
+        &mut Scratch,
+    ) + Sync
     + 'a;
 
 /// A k×k backward (KK = k² taps) over every plane: dL/dx into `dx`, each plane's k² weight
@@ -991,7 +1022,7 @@ fn backward_planes<const KK: usize>(
     g: &Geom,
     c: usize,
     (x, w, dy): (&[f32], &[f32], &[f32]),
-    (dx, dw_planes): (&mut [f32], &mut [f32]),
+    (dx, dw_planes): (&mut [MaybeUninit<f32>], &mut [f32]),
     plane: &BackwardPlane<'_, KK>,
 ) {
     let (hw, howo) = (g.h * g.w, g.ho * g.wo);
@@ -1030,15 +1061,15 @@ impl Geom {
     }
 }
 
+/// A forward path's entry point: (geometry, channels, x, taps, y).
+#[cfg(all(test, target_arch = "x86_64"))]
+type ForwardPath = fn(&Geom, usize, &[f32], &[f32], &mut [MaybeUninit<f32>]);
+
 /// Checks a k×k forward path at stride `s` for planes `w` wide against the plane path, bit for
 /// bit: planes of 1–40 rows (odd and even, fewer rows than the kernel), values of both signs
 /// and zeros, two images of three channels through `fwd`, the path's entry point.
 #[cfg(all(test, target_arch = "x86_64"))]
-fn assert_plane_path_bits(
-    (w, k, s): (usize, usize, usize),
-    seed: u64,
-    fwd: fn(&Geom, usize, &[f32], &[f32], &mut [f32]),
-) {
+fn assert_plane_path_bits((w, k, s): (usize, usize, usize), seed: u64, fwd: ForwardPath) {
     use rand::{Rng, SeedableRng, rngs::StdRng};
     let mut rng = StdRng::seed_from_u64(seed);
     let mut sc = Scratch::default();
@@ -1058,7 +1089,8 @@ fn assert_plane_path_bits(
             .collect();
         let wk: Vec<f32> = (0..c * kk).map(|_| rng.random_range(-1.0..1.0)).collect();
         let mut y = vec![f32::NAN; n * c * howo];
-        fwd(&g, c, &x, &wk, &mut y);
+        // SAFETY: the paths write initialised values only.
+        fwd(&g, c, &x, &wk, unsafe { as_uninit(&mut y) });
         for p in 0..n * c {
             let mut y0 = vec![f32::NAN; howo];
             // SAFETY: the callers run only where has_fma() holds.
@@ -1095,7 +1127,7 @@ fn assert_plane_path_backward(
     (w, k, s): (usize, usize, usize),
     seed: u64,
     exact: bool,
-    bwd: fn(&Geom, usize, (&[f32], &[f32], &[f32]), &mut [f32], &mut [f32]),
+    bwd: fn(&Geom, usize, (&[f32], &[f32], &[f32]), &mut [MaybeUninit<f32>], &mut [f32]),
 ) {
     use rand::{Rng, SeedableRng, rngs::StdRng};
     let mut rng = StdRng::seed_from_u64(seed);
@@ -1131,7 +1163,14 @@ fn assert_plane_path_backward(
         let wk: Vec<f32> = (0..c * kk).map(|i| value(i, false)).collect();
         let mut dx = vec![f32::NAN; n * c * hw];
         let mut dw = vec![f32::NAN; n * c * kk];
-        bwd(&g, c, (&x, &wk, &dy), &mut dx, &mut dw);
+        bwd(
+            &g,
+            c,
+            (&x, &wk, &dy),
+            // SAFETY: the paths write initialised values only.
+            unsafe { as_uninit(&mut dx) },
+            &mut dw,
+        );
         for p in 0..n * c {
             let (mut dx0, mut dw0) = (vec![f32::NAN; hw], vec![f32::NAN; kk]);
             let dyp = &dy[p * howo..][..howo];
@@ -1143,7 +1182,7 @@ fn assert_plane_path_backward(
                     &wk[(p % c) * kk..][..kk],
                     dyp,
                     &mut sc,
-                    &mut dx0,
+                    as_uninit(&mut dx0),
                     &mut dw0,
                 )
             };
@@ -1289,11 +1328,20 @@ mod tests {
                     // SAFETY: has_fma() checked the CPU.
                     unsafe {
                         forward_plane_fma(&g, &x, &wk, sc, &mut y);
-                        backward_plane_fma(&g, &x, &wk, &dy, sc, &mut dx, &mut dw);
+                        backward_plane_fma(&g, &x, &wk, &dy, sc, as_uninit(&mut dx), &mut dw);
                     }
                 } else {
                     forward_plane::<false>(&g, &x, &wk, sc, &mut y);
-                    backward_plane::<false>(&g, &x, &wk, &dy, sc, &mut dx, &mut dw);
+                    backward_plane::<false>(
+                        &g,
+                        &x,
+                        &wk,
+                        &dy,
+                        sc,
+                        // SAFETY: the paths write initialised values only.
+                        unsafe { as_uninit(&mut dx) },
+                        &mut dw,
+                    );
                 }
                 close(&y, &y0, "y");
                 // Blocking rows and lanes must not reorder the sum: every output adds its taps

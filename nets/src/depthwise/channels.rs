@@ -16,6 +16,7 @@
 use super::{Geom, has_fma};
 use rayon::prelude::*;
 use std::arch::x86_64::*;
+use std::mem::MaybeUninit;
 
 /// Channels per block: one f32 register.
 const CB: usize = 8;
@@ -193,7 +194,7 @@ fn padded_width(g: &Geom) -> usize {
 }
 
 /// Forward over all planes (as [`super::forward`]); panics unless `takes(g, c)`.
-pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
+pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUninit<f32>]) {
     // The blocks below run AVX2 and FMA code on that check alone.
     assert!(takes(g, c), "channel blocks for {c} channels of {g:?}");
     let (hw, howo, kk) = (g.h * g.w, g.ho * g.wo, g.k * g.k);
@@ -208,7 +209,7 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
             let xb = &x[b * CB * hw..][..CB * hw];
             let wv = &table[(b % blocks) * kk * CB..][..kk * CB];
             // SAFETY: `takes` checked AVX2 and FMA on this CPU.
-            unsafe { forward_block(g, &plan, xb, wv, sc, out) };
+            unsafe { forward_block(g, &plan, xb, wv, sc, super::zeroed_chunk(out)) };
         });
 }
 
@@ -219,7 +220,7 @@ pub(super) fn backward(
     x: &[f32],
     w: &[f32],
     dy: &[f32],
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
     dw_planes: &mut [f32],
 ) {
     assert!(takes(g, c), "channel blocks for {c} channels of {g:?}");
@@ -236,7 +237,7 @@ pub(super) fn backward(
             let dyb = &dy[b * CB * howo..][..CB * howo];
             let wv = &table[(b % blocks) * kk * CB..][..kk * CB];
             // SAFETY: `takes` checked AVX2 and FMA on this CPU.
-            unsafe { backward_block(g, &plan, xb, wv, dyb, sc, dxb, dwb) };
+            unsafe { backward_block(g, &plan, xb, wv, dyb, sc, super::zeroed_chunk(dxb), dwb) };
         });
 }
 
@@ -727,7 +728,15 @@ mod tests {
                 // SAFETY: has_fma() checked the CPU.
                 unsafe {
                     forward_plane_fma(&g, xp, wp, &mut psc, &mut y0);
-                    backward_plane_fma(&g, xp, wp, dyp, &mut psc, &mut dx0, &mut dw0);
+                    backward_plane_fma(
+                        &g,
+                        xp,
+                        wp,
+                        dyp,
+                        &mut psc,
+                        super::super::as_uninit(&mut dx0),
+                        &mut dw0,
+                    );
                 }
                 for (i, (a, b)) in y[ch * howo..][..howo].iter().zip(&y0).enumerate() {
                     assert_eq!(a.to_bits(), b.to_bits(), "y[{ch}][{i}] {a} vs {b} in {g:?}");
@@ -785,8 +794,18 @@ mod tests {
                 let mut y = vec![0.0; n * c * howo];
                 let mut dx = vec![0.0; n * c * hw];
                 let mut dw = vec![0.0; n * c * kk];
-                forward(&g, c, &x, &wk, &mut y);
-                backward(&g, c, &x, &wk, &dy, &mut dx, &mut dw);
+                // SAFETY: the paths write initialised values only.
+                forward(&g, c, &x, &wk, unsafe { super::super::as_uninit(&mut y) });
+                backward(
+                    &g,
+                    c,
+                    &x,
+                    &wk,
+                    &dy,
+                    // SAFETY: the paths write initialised values only.
+                    unsafe { super::super::as_uninit(&mut dx) },
+                    &mut dw,
+                );
                 (y, dx, dw)
             })
         };

@@ -11,6 +11,7 @@
 
 use super::{Geom, backward_planes, forward_planes, has_fma};
 use std::arch::x86_64::*;
+use std::mem::MaybeUninit;
 
 /// Whether a layer with this geometry goes through this path.
 pub(super) fn takes(g: &Geom) -> bool {
@@ -24,7 +25,7 @@ pub(super) fn takes(g: &Geom) -> bool {
 }
 
 /// Forward over all planes (as [`super::forward`]); panics unless `takes(g)`.
-pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
+pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUninit<f32>]) {
     // The planes below run AVX2 and FMA code on that check alone.
     assert!(takes(g), "rows of 16 for {g:?}");
     // SAFETY: `takes` checked AVX2 and FMA on this CPU.
@@ -64,7 +65,7 @@ fn taps(x: &[f32], h: usize, r: isize) -> [__m256; 3] {
 /// # Safety
 /// The CPU has AVX2 and FMA; `x` holds h·16 values and `out` ho·8.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [f32]) {
+unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [MaybeUninit<f32>]) {
     assert!(x.len() >= h * 16 && out.len() >= ho * 8);
     let wv: [__m256; 9] = std::array::from_fn(|t| _mm256_set1_ps(wk[t]));
     // Output row m reads input rows 2m − 1, 2m, 2m + 1; the last is the next row's first.
@@ -80,7 +81,7 @@ unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [f32]) 
         }
         let dst = &mut out[8 * m..][..8];
         // SAFETY: `dst` holds eight values.
-        unsafe { _mm256_storeu_ps(dst.as_mut_ptr(), acc) };
+        unsafe { _mm256_storeu_ps(dst.as_mut_ptr().cast(), acc) };
         top = bottom;
     }
 }
@@ -91,7 +92,7 @@ pub(super) fn backward(
     g: &Geom,
     c: usize,
     inputs: (&[f32], &[f32], &[f32]),
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
     dw_planes: &mut [f32],
 ) {
     assert!(takes(g), "rows of 16 for {g:?}");
@@ -119,7 +120,7 @@ unsafe fn plane_backward(
     h: usize,
     ho: usize,
     (x, wk, dy): (&[f32], &[f32; 9], &[f32]),
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
     dw: &mut [f32; 9],
 ) {
     assert!(x.len() >= h * 16 && dx.len() >= h * 16 && dy.len() >= ho * 8);
@@ -173,9 +174,12 @@ unsafe fn plane_backward(
         let dst = &mut dx[16 * r..][..16];
         // SAFETY: `dst` holds sixteen values: two stores of eight.
         unsafe {
-            _mm256_storeu_ps(dst.as_mut_ptr(), _mm256_permute2f128_ps::<0x20>(lo, hi));
             _mm256_storeu_ps(
-                dst.as_mut_ptr().add(8),
+                dst.as_mut_ptr().cast(),
+                _mm256_permute2f128_ps::<0x20>(lo, hi),
+            );
+            _mm256_storeu_ps(
+                dst.as_mut_ptr().cast::<f32>().add(8),
                 _mm256_permute2f128_ps::<0x31>(lo, hi),
             );
         }

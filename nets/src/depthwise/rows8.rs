@@ -12,6 +12,7 @@
 
 use super::{Geom, backward_planes, forward_planes, has_fma};
 use std::arch::x86_64::*;
+use std::mem::MaybeUninit;
 
 /// Whether a layer with this geometry goes through this path.
 pub(super) fn takes(g: &Geom) -> bool {
@@ -19,7 +20,7 @@ pub(super) fn takes(g: &Geom) -> bool {
 }
 
 /// Forward over all planes (as [`super::forward`]); panics unless `takes(g)`.
-pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
+pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUninit<f32>]) {
     // The planes below run AVX2 and FMA code on that check alone.
     assert!(takes(g), "rows of 8 for {g:?}");
     // SAFETY: `takes` checked AVX2 and FMA on this CPU.
@@ -68,7 +69,7 @@ fn taps(x: &[f32], h: usize, lo: isize, hi: isize) -> [__m256; 3] {
 /// # Safety
 /// The CPU has AVX2 and FMA; `x` holds h·8 values and `out` ho·4.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [f32]) {
+unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [MaybeUninit<f32>]) {
     assert!(x.len() >= h * 8 && out.len() >= ho * 4);
     let wv: [__m256; 9] = std::array::from_fn(|t| _mm256_set1_ps(wk[t]));
     let mut m = 0;
@@ -85,12 +86,12 @@ unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [f32]) 
         if m + 1 < ho {
             let dst = &mut out[4 * m..][..8];
             // SAFETY: `dst` holds eight values: output rows m and m + 1.
-            unsafe { _mm256_storeu_ps(dst.as_mut_ptr(), acc) };
+            unsafe { _mm256_storeu_ps(dst.as_mut_ptr().cast(), acc) };
         } else {
             // An odd last row: its pair's high lane is past the plane.
             let dst = &mut out[4 * m..][..4];
             // SAFETY: `dst` holds four values.
-            unsafe { _mm_storeu_ps(dst.as_mut_ptr(), _mm256_castps256_ps128(acc)) };
+            unsafe { _mm_storeu_ps(dst.as_mut_ptr().cast(), _mm256_castps256_ps128(acc)) };
         }
         m += 2;
     }
@@ -102,7 +103,7 @@ pub(super) fn backward(
     g: &Geom,
     c: usize,
     inputs: (&[f32], &[f32], &[f32]),
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
     dw_planes: &mut [f32],
 ) {
     assert!(takes(g), "rows of 8 for {g:?}");
@@ -143,7 +144,7 @@ unsafe fn plane_backward(
     h: usize,
     ho: usize,
     (x, wk, dy): (&[f32], &[f32; 9], &[f32]),
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
     dw: &mut [f32; 9],
 ) {
     assert!(x.len() >= h * 8 && dx.len() >= h * 8 && dy.len() >= ho * 4);
@@ -202,11 +203,21 @@ unsafe fn plane_backward(
         let (lo, hi) = (_mm256_unpacklo_ps(e, o), _mm256_unpackhi_ps(e, o));
         let dst = &mut dx[16 * m..][..8];
         // SAFETY: `dst` holds eight values, input row 2m.
-        unsafe { _mm256_storeu_ps(dst.as_mut_ptr(), _mm256_permute2f128_ps::<0x20>(lo, hi)) };
+        unsafe {
+            _mm256_storeu_ps(
+                dst.as_mut_ptr().cast(),
+                _mm256_permute2f128_ps::<0x20>(lo, hi),
+            )
+        };
         if 2 * m + 1 < h {
             let dst = &mut dx[16 * m + 8..][..8];
             // SAFETY: `dst` holds eight values, input row 2m + 1.
-            unsafe { _mm256_storeu_ps(dst.as_mut_ptr(), _mm256_permute2f128_ps::<0x31>(lo, hi)) };
+            unsafe {
+                _mm256_storeu_ps(
+                    dst.as_mut_ptr().cast(),
+                    _mm256_permute2f128_ps::<0x31>(lo, hi),
+                )
+            };
         }
     }
 }

@@ -10,6 +10,7 @@
 
 use super::{Geom, HALF, forward_planes, has_fma};
 use std::arch::x86_64::*;
+use std::mem::MaybeUninit;
 
 /// Whether a layer with this geometry goes through this path.
 pub(super) fn takes(g: &Geom) -> bool {
@@ -25,7 +26,7 @@ pub(super) fn takes(g: &Geom) -> bool {
 }
 
 /// Forward over all planes (as [`super::forward`]); panics unless `takes(g)`.
-pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
+pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUninit<f32>]) {
     // The planes below run AVX2 and FMA code on that check alone.
     assert!(takes(g), "stride 1 for {g:?}");
     // The padding rows' one row of zeros, read by every plane.
@@ -64,7 +65,7 @@ pub(super) unsafe fn plane(
     x: &[f32],
     wk: &[f32; 9],
     zeros: &[f32],
-    out: &mut [f32],
+    out: &mut [MaybeUninit<f32>],
 ) {
     // Checked without wrapping: the blocks below trust h·w.
     let hw = h.checked_mul(w).expect("plane size overflows");
@@ -97,7 +98,7 @@ unsafe fn rows<const R: usize>(
     taps: &[__m256; 9],
     zeros: &[f32],
     m: usize,
-    out: &mut [f32],
+    out: &mut [MaybeUninit<f32>],
 ) {
     // Input rows m − 1 .. m + R; those outside the plane are the zero padding.
     let mut src = [zeros.as_ptr(); 6];
@@ -107,7 +108,7 @@ unsafe fn rows<const R: usize>(
             *p = x[r * w..].as_ptr();
         }
     }
-    let dst = out[m * w..].as_mut_ptr();
+    let dst = out[m * w..].as_mut_ptr().cast::<f32>();
     let mut x0 = 0;
     while x0 < w {
         // SAFETY: every row behind `src` holds w values; an interior block reads columns
@@ -230,7 +231,16 @@ mod tests {
                 let dy: Vec<f32> = (0..len).map(|_| rng.random_range(-1.0..1.0)).collect();
                 let wk: Vec<f32> = (0..c * 9).map(|_| rng.random_range(-1.0..1.0)).collect();
                 let (mut dx, mut dw) = (vec![f32::NAN; len], vec![f32::NAN; n * c * 9]);
-                super::super::backward(&g, c, &x, &wk, &dy, &mut dx, &mut dw);
+                super::super::backward(
+                    &g,
+                    c,
+                    &x,
+                    &wk,
+                    &dy,
+                    // SAFETY: the paths write initialised values only.
+                    unsafe { super::super::as_uninit(&mut dx) },
+                    &mut dw,
+                );
                 for p in 0..n * c {
                     let flip: Vec<f32> = wk[(p % c) * 9..][..9].iter().rev().copied().collect();
                     let mut dx0 = vec![f32::NAN; h * w];

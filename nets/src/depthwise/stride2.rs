@@ -34,6 +34,7 @@ use super::{
     Geom, HALF, LANES, Scratch, backward_planes, forward_planes, has_fma, plane_weight_grad,
 };
 use std::arch::x86_64::*;
+use std::mem::MaybeUninit;
 
 /// Whether a layer with this geometry goes through this path's forward (k = 3 or 5).
 pub(super) fn takes(g: &Geom) -> bool {
@@ -49,7 +50,7 @@ pub(super) fn takes(g: &Geom) -> bool {
 }
 
 /// Forward over all planes (as [`super::forward`]); panics unless `takes(g)`.
-pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [f32]) {
+pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUninit<f32>]) {
     // The planes below run AVX2 and FMA code on that check alone.
     assert!(takes(g), "stride 2 for {g:?}");
     let (width, wo) = (g.w, g.wo);
@@ -72,7 +73,7 @@ pub(super) fn backward(
     g: &Geom,
     c: usize,
     inputs: (&[f32], &[f32], &[f32]),
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
     dw_planes: &mut [f32],
 ) {
     assert!(takes(g), "stride 2 backward for {g:?}");
@@ -189,7 +190,7 @@ unsafe fn plane<const K: usize, const KK: usize>(
     (ho, wo): (usize, usize),
     x: &[f32],
     wk: &[f32; KK],
-    out: &mut [f32],
+    out: &mut [MaybeUninit<f32>],
 ) {
     // Checked without wrapping: the blocks below trust these sizes.
     let hw = h.checked_mul(w).expect("plane size overflows");
@@ -232,7 +233,7 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
     wo: usize,
     x: &[f32],
     wv: &[__m256; KK],
-    out: &mut [f32],
+    out: &mut [MaybeUninit<f32>],
 ) {
     // Input rows 2m − k/2 + i (at most 2·4 + 5 − 2 of them), sliced once for all blocks;
     // rows above or below the plane (those above wrap past h) read as None.
@@ -240,7 +241,7 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
         let r = (2 * m + i).wrapping_sub(K / 2);
         (i < 2 * R + K - 2 && r < h).then(|| &x[r * w..][..w])
     });
-    let dst = out[m * wo..][..R * wo].as_mut_ptr();
+    let dst = out[m * wo..][..R * wo].as_mut_ptr().cast::<f32>();
     let rows = &rows[..2 * R + K - 2];
     let mut x0 = 0;
     while x0 < wo {
@@ -373,7 +374,7 @@ unsafe fn plane_backward(
     w: usize,
     (ho, wo): (usize, usize),
     (x, wk, dy): (&[f32], &[f32; 9], &[f32]),
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
     dw: &mut [f32; 9],
 ) {
     // Checked without wrapping: the blocks below trust these sizes.
@@ -400,7 +401,7 @@ unsafe fn plane_backward5(
     g: &Geom,
     (h, ho): (usize, usize),
     (x, wk, dy): (&[f32], &[f32; 25], &[f32]),
-    (dx, dw): (&mut [f32], &mut [f32; 25]),
+    (dx, dw): (&mut [MaybeUninit<f32>], &mut [f32; 25]),
     sc: &mut Scratch,
 ) {
     let (w, wo) = (g.w, g.wo);
@@ -485,7 +486,7 @@ unsafe fn input_grads<const K: usize, const KK: usize>(
     (ho, wo): (usize, usize),
     wk: &[f32; KK],
     dy: &[f32],
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
 ) {
     assert!(K * K == KK && (K == 3 || K == 5));
     assert!(dx.len() == h * w && dy.len() == ho * wo && ho == h.div_ceil(2));
@@ -516,14 +517,14 @@ unsafe fn input_rows<const K: usize, const KK: usize, const R: usize>(
     (ho, wo): (usize, usize),
     wv: &[__m256; KK],
     dy: &[f32],
-    dx: &mut [f32],
+    dx: &mut [MaybeUninit<f32>],
 ) {
     // dL/dy rows i₀/2 − 1 + e (those above wrap past ho): None, zeros, past the plane.
     let drows: [Option<&[f32]>; 3] = std::array::from_fn(|e| {
         let m = (i0 / 2 + e).wrapping_sub(1);
         (m < ho).then(|| &dy[m * wo..][..wo])
     });
-    let dst = dx[i0 * w..][..R * w].as_mut_ptr();
+    let dst = dx[i0 * w..][..R * w].as_mut_ptr().cast::<f32>();
     // Blocks whose loads (dL/dy columns c₀ − 1 .. c₀ + 9 with c₀ = j₀/2, from c₀ for k = 3)
     // and stores (columns j₀ .. j₀ + 16) stay inside their rows: j₀ + 18 ≤ w puts
     // c₀ + 9 ≤ w/2 ≤ wo.
