@@ -242,7 +242,6 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
         (i < 2 * R + K - 2 && r < h).then(|| &x[r * w..][..w])
     });
     let dst = out[m * wo..][..R * wo].as_mut_ptr().cast::<f32>();
-    let rows = &rows[..2 * R + K - 2];
     let mut x0 = 0;
     while x0 < wo {
         // Interior blocks apart, so that their loads and stores compile without masks, and
@@ -256,16 +255,16 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
             // is the 3×3 kernel's only: an interior 5×5 block always has a partner.
             if x0 + HALF < wo && (inner || K == 5) {
                 if inner {
-                    block::<K, KK, R, 2, false>(rows, x0, (w, wo), wv, dst);
+                    block::<K, KK, R, 2, false>(&rows, x0, (w, wo), wv, dst);
                 } else {
-                    block::<K, KK, R, 2, true>(rows, x0, (w, wo), wv, dst);
+                    block::<K, KK, R, 2, true>(&rows, x0, (w, wo), wv, dst);
                 }
                 x0 += 2 * HALF;
             } else {
                 if interior(x0) {
-                    block::<K, KK, R, 1, false>(rows, x0, (w, wo), wv, dst);
+                    block::<K, KK, R, 1, false>(&rows, x0, (w, wo), wv, dst);
                 } else {
-                    block::<K, KK, R, 1, true>(rows, x0, (w, wo), wv, dst);
+                    block::<K, KK, R, 1, true>(&rows, x0, (w, wo), wv, dst);
                 }
                 x0 += HALF;
             }
@@ -291,7 +290,7 @@ unsafe fn block<
     const V: usize,
     const MASKED: bool,
 >(
-    rows: &[Option<&[f32]>],
+    rows: &[Option<&[f32]>; 11],
     x0: usize,
     (w, wo): (usize, usize),
     wv: &[__m256; KK],
@@ -305,7 +304,10 @@ unsafe fn block<
         }
     });
     let mut acc = [[_mm256_setzero_ps(); V]; R];
-    for (i, row) in rows.iter().enumerate() {
+    // A constant trip count (not the slice's length), so that the loop unrolls and each
+    // output row's accumulators stay in registers.
+    for i in 0..2 * R + K - 2 {
+        let row = &rows[i];
         for pair in 0..pairs(K) {
             // SAFETY: every row in `rows` holds w values; `reach` is Inside only where the
             // columns `pair_loads` reads lie inside it.
