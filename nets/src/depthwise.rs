@@ -921,9 +921,9 @@ pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUn
 }
 
 /// Backward over all planes: dL/dx into `dx` (N·C planes of h×w, every value written, so it
-/// may start uninitialised) and per-plane
-/// dL/dw into `dw_planes` (N·C blocks of k², overwritten; the caller sums over images in a
-/// fixed order so the result does not depend on the thread count).
+/// may start uninitialised) and per-plane dL/dw into `dw_planes` (N·C blocks of k²,
+/// overwritten; the caller sums over images in a fixed order so the result does not depend on
+/// the thread count).
 pub(crate) fn backward(
     g: &Geom,
     c: usize,
