@@ -255,8 +255,10 @@ impl Phases {
 pub fn depthwise_forward(x: &Tensor, w: &[f32], k: usize, stride: usize) -> Result<Tensor> {
     check_weights(w.len(), x.c * k * k, "depthwise")?;
     check_stride(stride)?;
+    check_holds(x, "depthwise input")?;
     let g = depthwise_geom(x, k, stride);
-    // SAFETY: the forward writes every output value (its contract).
+    // SAFETY: the forward writes every output value (its contract); the input holds its
+    // n·c·h·w values, so n·c·ho·wo (ho ≤ h, wo ≤ w) does not overflow.
     let y = unsafe {
         written(x.n * x.c * g.ho * g.wo, |y| {
             depthwise::forward(&g, x.c, &x.data, w, y)
@@ -277,6 +279,20 @@ unsafe fn written(len: usize, fill: impl FnOnce(&mut [MaybeUninit<f32>])) -> Vec
     // SAFETY: `fill` wrote all `len` values (the contract).
     unsafe { v.set_len(len) };
     v
+}
+
+/// Refuses a tensor whose values are not n·c·h·w (its fields are public): the depthwise
+/// entry points size their outputs from the shape and must write all of them.
+fn check_holds(x: &Tensor, what: &str) -> Result<()> {
+    let len = x.shape().iter().try_fold(1usize, |a, &b| a.checked_mul(b));
+    if len != Some(x.data.len()) {
+        return Err(NetsError::Shape(format!(
+            "{what}: {} values for shape {:?}",
+            x.data.len(),
+            x.shape()
+        )));
+    }
+    Ok(())
 }
 
 fn check_stride(stride: usize) -> Result<()> {
@@ -309,6 +325,8 @@ pub fn depthwise_vjp(
     check_weights(w.len(), x.c * k * k, "depthwise")?;
     check_weights(dw.len(), w.len(), "depthwise gradient")?;
     check_stride(stride)?;
+    check_holds(x, "depthwise input")?;
+    check_holds(dy, "depthwise upstream gradient")?;
     let g = depthwise_geom(x, k, stride);
     if dy.shape() != [x.n, x.c, g.ho, g.wo] {
         return Err(NetsError::Shape(format!(
@@ -318,7 +336,8 @@ pub fn depthwise_vjp(
     }
     let kk = k * k;
     let mut per_plane = vec![0.0f32; x.n * x.c * kk];
-    // SAFETY: the backward writes every value of dL/dx (its contract).
+    // SAFETY: the backward writes every value of dL/dx (its contract), whose n·c planes of
+    // h×w are x's values (checked above).
     let dx = unsafe {
         written(x.data.len(), |dx| {
             depthwise::backward(&g, x.c, &x.data, w, &dy.data, dx, &mut per_plane)
@@ -677,5 +696,28 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// A tensor whose values are not n·c·h·w (its fields are public) is refused by the
+    /// depthwise entry points, which size their outputs from the shape and write all of them;
+    /// the same tensors with their values in place go through.
+    #[test]
+    fn depthwise_refuses_a_tensor_that_does_not_hold_its_shape() {
+        let (k, s) = (3, 2);
+        let w = vec![0.1f32; 2 * k * k];
+        let mut x = tensor(1, 2, 5, 6, 3);
+        let dy = tensor(1, 2, out_size(5, k, s), out_size(6, k, s), 4);
+        let mut dw = vec![0.0f32; w.len()];
+        assert!(depthwise_forward(&x, &w, k, s).is_ok());
+        assert!(depthwise_vjp(&x, &w, k, s, &dy, &mut dw).is_ok());
+        x.data.push(1.0);
+        assert!(depthwise_forward(&x, &w, k, s).is_err());
+        assert!(depthwise_vjp(&x, &w, k, s, &dy, &mut dw).is_err());
+        x.data.truncate(x.data.len() - 2);
+        assert!(depthwise_forward(&x, &w, k, s).is_err());
+        assert!(depthwise_vjp(&x, &w, k, s, &dy, &mut dw).is_err());
+        let (x, mut short) = (tensor(1, 2, 5, 6, 3), dy.clone());
+        short.data.pop();
+        assert!(depthwise_vjp(&x, &w, k, s, &short, &mut dw).is_err());
     }
 }

@@ -876,6 +876,9 @@ pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUn
         y.fill(MaybeUninit::new(0.0));
         return;
     }
+    // Whole planes, one output plane per input plane: every path below writes y plane by
+    // plane.
+    assert!(x.len().is_multiple_of(hw) && y.len() == howo * (x.len() / hw));
     #[cfg(target_arch = "x86_64")]
     if rows16::takes(g) {
         rows16::forward(g, c, x, w, y);
@@ -939,6 +942,10 @@ pub(crate) fn backward(
         dw_planes.fill(0.0);
         return;
     }
+    // Whole planes that pair one to one with the weight gradients' blocks: every path below
+    // zips the two, and a plane of dL/dx left out of the zip would stay unwritten.
+    assert!(dx.len() == x.len() && dx.len().is_multiple_of(hw));
+    assert!(dw_planes.len() == kk * (dx.len() / hw) && dy.len() == howo * (dx.len() / hw));
     #[cfg(target_arch = "x86_64")]
     if rows16::takes(g) {
         rows16::backward(g, c, (x, w, dy), dx, dw_planes);
@@ -1026,7 +1033,8 @@ fn backward_planes<const KK: usize>(
     plane: &BackwardPlane<'_, KK>,
 ) {
     let (hw, howo) = (g.h * g.w, g.ho * g.wo);
-    assert!(g.k * g.k == KK && x.len() == dx.len() && x.len() / hw == dy.len() / howo);
+    assert!(g.k * g.k == KK && x.len() == dx.len() && x.len().is_multiple_of(hw));
+    assert!(x.len() / hw == dy.len() / howo);
     assert!(w.len() == KK * c && dw_planes.len() == KK * (x.len() / hw));
     dx.par_chunks_mut(hw)
         .zip(dw_planes.par_chunks_mut(KK))
@@ -1129,6 +1137,8 @@ fn assert_plane_path_backward(
     exact: bool,
     bwd: fn(&Geom, usize, (&[f32], &[f32], &[f32]), &mut [MaybeUninit<f32>], &mut [f32]),
 ) {
+    // The tolerances below are the 3×3 kernel's.
+    assert!(exact || k == 3, "inexact comparison for k = 3 only");
     use rand::{Rng, SeedableRng, rngs::StdRng};
     let mut rng = StdRng::seed_from_u64(seed);
     let mut sc = Scratch::default();

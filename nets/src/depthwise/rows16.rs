@@ -106,7 +106,7 @@ pub(super) fn backward(
     );
 }
 
-/// One 16-wide plane's backward: `x` h·16 values, `dy` ho·8, into `dx` (h·16, overwritten)
+/// One 16-wide plane's backward: `x` h·16 values, `dy` ho·8, into `dx` (h·16, written whole)
 /// and `dw` (the nine taps' gradients, overwritten). As the 8-wide path's
 /// ([`super::rows8`]): dL/dw from the forward's tap registers against each output row,
 /// reduced across lanes at the end; dL/dx row by row as its even and odd columns,

@@ -126,7 +126,7 @@ pub(super) fn lane_sum(v: __m256) -> f32 {
     _mm_cvtss_f32(_mm_add_ss(s, _mm_movehdup_ps(s)))
 }
 
-/// One 8-wide plane's backward: `x` h·8 values, `dy` ho·4, into `dx` (h·8, overwritten) and
+/// One 8-wide plane's backward: `x` h·8 values, `dy` ho·4, into `dx` (h·8, written whole) and
 /// `dw` (the nine taps' gradients, overwritten).
 ///
 /// dL/dw[ky, kx] is Σ dy ⊙ (the forward's tap register), two output rows per register as in

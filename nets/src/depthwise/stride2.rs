@@ -36,7 +36,8 @@ use super::{
 use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
-/// Whether a layer with this geometry goes through this path's forward (k = 3 or 5).
+/// Whether a layer with this geometry goes through this path, forward and backward (k = 3 or
+/// 5).
 pub(super) fn takes(g: &Geom) -> bool {
     // Column indices (below w + 2·HALF) fit the lane masks' 32-bit integers.
     (g.k == 3 || g.k == 5)
@@ -54,7 +55,7 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUn
     // The planes below run AVX2 and FMA code on that check alone.
     assert!(takes(g), "stride 2 for {g:?}");
     let (width, wo) = (g.w, g.wo);
-    // The padding rows' one row of zeros, read by every plane.
+    // The padding rows' one row of zeros, read by every plane of the 3×3 kernel.
     let zeros = vec![0.0f32; g.w];
     // SAFETY: `takes` checked AVX2 and FMA on this CPU; the driver hands each plane its h·w
     // inputs and ho·wo outputs.
@@ -287,10 +288,10 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
 }
 
 /// V blocks of eight outputs from column x₀ of output rows m .. m + R (`dst` from row m's
-/// start, rows wo apart), from input rows 2m − k/2 .. (`rows`, 2R + k − 2 of them, the row of
-/// zeros for the padding); `MASKED`: some block reaches past a row's edge (see [`block_reach`]). Each input
-/// row's taps go, kx by kx, into every output row they reach, so each output sums its taps
-/// from zero in (ky, kx) order.
+/// start, rows wo apart), from input rows 2m − k/2 .. (`rows`, 2R + k − 2 of them; the padding
+/// rows the row of zeros for k = 3, None for k = 5); `MASKED`: some block reaches past a row's
+/// edge (see [`block_reach`]). Each input row's taps go, kx by kx, into every output row they
+/// reach, so each output sums its taps from zero in (ky, kx) order.
 ///
 /// # Safety
 /// AVX2 and FMA; every row in `rows` holds w values, `dst` R·wo; x0 + 8(V − 1) < wo; unless
@@ -385,8 +386,8 @@ fn swap_quarters(v: __m256) -> __m256 {
     _mm256_castpd_ps(_mm256_permute4x64_pd::<0xD8>(_mm256_castps_pd(v)))
 }
 
-/// One plane's backward: `x` and `dx` h·w values, `dy` ho·wo, the nine taps' gradients into
-/// `dw` (both overwritten).
+/// One plane's 3×3 backward: `x` and `dx` h·w values, `dy` ho·wo; dL/dx written whole, the
+/// nine taps' gradients into `dw` (overwritten).
 ///
 /// # Safety
 /// The CPU must have AVX2 and FMA; ho = ⌈h/2⌉, wo = ⌈w/2⌉.
@@ -412,8 +413,8 @@ unsafe fn plane_backward(
 }
 
 /// One plane's 5×5 backward (`g` the layer's geometry, this plane's h and ho): dL/dw by the
-/// plane path (read from the plane in registers as the 3×3 kernel's is, it ran no faster:
-/// sixty-fourth session), dL/dx in registers.
+/// plane path (read from the plane in registers as the 3×3 kernel's is, it ran no faster),
+/// dL/dx in registers.
 ///
 /// # Safety
 /// The CPU must have AVX2 and FMA; g.k = 5, g.s = 2, `x` and `dx` hold h·w values, `dy` ho·wo,
@@ -572,7 +573,7 @@ unsafe fn input_rows<const K: usize, const KK: usize, const R: usize>(
 }
 
 /// V blocks of sixteen input columns from j₀ of input rows i₀ .. i₀ + R (`dst` from row i₀'s
-/// start, rows w apart), from dL/dy rows i₀/2 − 1 .. i₀/2 + 1 (`drows`, each wo wide, None past
+/// start, rows w apart), from dL/dy rows i₀/2 − 1 ..= i₀/2 + 1 (`drows`, each wo wide, None past
 /// the plane). dL/dy row i₀/2 − 1 + e serves input row i₀ + r with tap row ky = r + k/2 + 2 −
 /// 2e, so the rows go from e = 2 down: each sum takes its tap rows in ascending order, and in
 /// each its taps kx in ascending order, column 2c + q taking tap kx from dL/dy column
@@ -697,9 +698,9 @@ mod tests {
     }
 
     /// The 3×3 and 5×5 backward through the entry point, the same widths and those whose last
-    /// block holds seven outputs, 1–40 rows, finite values and then infinities among them: dL/dx and dL/dw
-    /// bit for bit the plane path's (padding taps and the lanes past the last output column
-    /// summed as its zeros are).
+    /// block holds seven outputs, 1–40 rows, finite values and then infinities among them:
+    /// dL/dx and dL/dw bit for bit the plane path's (padding taps and the lanes past the last
+    /// output column summed as its zeros are).
     #[test]
     fn stride_2_backward_is_the_plane_paths_bits() {
         if !has_fma() {
