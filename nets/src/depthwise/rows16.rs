@@ -34,16 +34,38 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUn
     });
 }
 
+/// A padding row.
+static ZEROS: [f32; 16] = [0.0; 16];
+
 /// One input row `r` (−1 and `h` are the zero padding) as its (left, centre, right) taps for
 /// the eight outputs: odd columns shifted right by one, even columns, odd columns.
 #[target_feature(enable = "avx2,fma")]
 #[inline]
 fn taps(x: &[f32], h: usize, r: isize) -> [__m256; 3] {
-    let zero = _mm256_setzero_ps();
     if r < 0 || r as usize >= h {
-        return [zero; 3];
+        return [_mm256_setzero_ps(); 3];
     }
-    let row = &x[r as usize * 16..][..16];
+    row_taps(&x[r as usize * 16..][..16])
+}
+
+/// As [`taps`], the padding rows read from a row of zeros: a select rather than a branch
+/// around the loads (the forward 11 % faster on 240×16×16, one thread; the backward's dL/dw
+/// 5 % slower that way, so it keeps [`taps`]).
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn taps_selected(x: &[f32], h: usize, r: isize) -> [__m256; 3] {
+    row_taps(if r < 0 || r as usize >= h {
+        &ZEROS
+    } else {
+        &x[r as usize * 16..][..16]
+    })
+}
+
+/// A row of sixteen values as its (left, centre, right) taps for the eight outputs.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn row_taps(row: &[f32]) -> [__m256; 3] {
+    let row = &row[..16];
     // SAFETY: `row` holds 16 values: two loads of eight.
     let (lo, hi) = unsafe {
         (
@@ -57,7 +79,11 @@ fn taps(x: &[f32], h: usize, r: isize) -> [__m256; 3] {
     let even = order(_mm256_shuffle_ps::<0x88>(lo, hi));
     let odd = order(_mm256_shuffle_ps::<0xDD>(lo, hi));
     let shifted = _mm256_permutevar8x32_ps(odd, _mm256_setr_epi32(0, 0, 1, 2, 3, 4, 5, 6));
-    [_mm256_blend_ps::<1>(shifted, zero), even, odd]
+    [
+        _mm256_blend_ps::<1>(shifted, _mm256_setzero_ps()),
+        even,
+        odd,
+    ]
 }
 
 /// The `ho` output rows of eight of one 16-wide plane of `h` rows.
@@ -69,10 +95,10 @@ unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [MaybeU
     assert!(x.len() >= h * 16 && out.len() >= ho * 8);
     let wv: [__m256; 9] = std::array::from_fn(|t| _mm256_set1_ps(wk[t]));
     // Output row m reads input rows 2m − 1, 2m, 2m + 1; the last is the next row's first.
-    let mut top = taps(x, h, -1);
+    let mut top = taps_selected(x, h, -1);
     for m in 0..ho {
-        let mid = taps(x, h, 2 * m as isize);
-        let bottom = taps(x, h, 2 * m as isize + 1);
+        let mid = taps_selected(x, h, 2 * m as isize);
+        let bottom = taps_selected(x, h, 2 * m as isize + 1);
         let mut acc = _mm256_setzero_ps();
         for (ky, row) in [&top, &mid, &bottom].into_iter().enumerate() {
             for (kx, v) in row.iter().enumerate() {
