@@ -284,8 +284,7 @@ unsafe fn written(len: usize, fill: impl FnOnce(&mut [MaybeUninit<f32>])) -> Vec
 /// Refuses a tensor whose values are not n·c·h·w (its fields are public): the depthwise
 /// entry points size their outputs from the shape and must write all of them.
 fn check_holds(x: &Tensor, what: &str) -> Result<()> {
-    let len = x.shape().iter().try_fold(1usize, |a, &b| a.checked_mul(b));
-    if len != Some(x.data.len()) {
+    if !x.holds_its_shape() {
         return Err(NetsError::Shape(format!(
             "{what}: {} values for shape {:?}",
             x.data.len(),

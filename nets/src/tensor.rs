@@ -30,12 +30,18 @@ pub(crate) fn zeroed(len: usize) -> Vec<f32> {
     v
 }
 
+/// n·c·h·w values, or None where the product overflows `usize` (a wrapped product would give
+/// a tensor whose shape claims more values than it holds).
+fn shape_len([n, c, h, w]: [usize; 4]) -> Option<usize> {
+    [c, h, w].iter().try_fold(n, |a, &b| a.checked_mul(b))
+}
+
 impl Tensor {
     /// An all-zero tensor of the given shape; panics when n·c·h·w overflows `usize` (a wrapped
     /// product would give a tensor whose shape claims more values than it holds).
     pub fn zeros(n: usize, c: usize, h: usize, w: usize) -> Self {
-        let len = [c, h, w].iter().try_fold(n, |a, &b| a.checked_mul(b));
-        let len = len.unwrap_or_else(|| panic!("tensor shape ({n},{c},{h},{w}) overflows usize"));
+        let len = shape_len([n, c, h, w])
+            .unwrap_or_else(|| panic!("tensor shape ({n},{c},{h},{w}) overflows usize"));
         Self {
             n,
             c,
@@ -45,11 +51,16 @@ impl Tensor {
         }
     }
 
+    /// Whether `data` holds exactly n·c·h·w values (the fields are public, so a tensor can be
+    /// built or changed that does not).
+    pub(crate) fn holds_its_shape(&self) -> bool {
+        shape_len(self.shape()) == Some(self.data.len())
+    }
+
     /// Wraps `data`; fails when its length is not n·c·h·w.
     pub fn from_vec(n: usize, c: usize, h: usize, w: usize, data: Vec<f32>) -> Result<Self> {
         // Checked: a wrapped product let a shape of 2⁶³ + 1 rows hold eight values (a review).
-        let len = [c, h, w].iter().try_fold(n, |a, &b| a.checked_mul(b));
-        if len != Some(data.len()) {
+        if shape_len([n, c, h, w]) != Some(data.len()) {
             return Err(NetsError::Shape(format!(
                 "data of length {} cannot hold ({n},{c},{h},{w})",
                 data.len()
