@@ -1,8 +1,9 @@
-//! Depthwise convolution forward and backward (dL/dx and dL/dw) at batch 16 on the shapes of
-//! the nets bench and the small maps of the min subnet, under the CLI's allocator settings:
-//! the fastest of N runs and its GMAC/s (the backward counts two MACs per forward MAC).
+//! Depthwise convolution forward and backward (dL/dx and dL/dw) at batch 16 (or BATCH) on the
+//! shapes of the nets bench and the small maps of the min subnet, under the CLI's allocator
+//! settings: the fastest of N runs and its GMAC/s (the backward counts two MACs per forward
+//! MAC). A smaller batch shows whether a layer is bound by memory (its data then fit in L2).
 //!
-//! Usage: `cargo run --release -p nanoeye-nets --example dw_prof -- [N] [CxHxW/sS/kK]`
+//! Usage: `cargo run --release -p nanoeye-nets --example dw_prof -- [N] [CxHxW/sS/kK] [BATCH]`
 
 use nanoeye_nets::Tensor;
 use nanoeye_nets::conv::{depthwise_forward, depthwise_vjp, out_size};
@@ -34,30 +35,31 @@ fn main() {
     let mut args = std::env::args().skip(1);
     let reps: usize = args.next().map_or(30, |s| s.parse().expect("N"));
     let only = args.next();
+    let batch: usize = args.next().map_or(16, |s| s.parse().expect("BATCH"));
+    assert!(batch > 0, "BATCH: at least one image");
     // The binary's allocator and its settings, so these times are the CLI's.
     nanoeye_alloc::like_cli();
     // Inside the pool, as the supernet runs its passes.
-    rayon::scope(|_| run(reps, only.as_deref()));
+    rayon::scope(|_| run(reps, only.as_deref(), batch));
 }
 
-fn run(reps: usize, only: Option<&str>) {
-    const N: usize = 16;
+fn run(reps: usize, only: Option<&str>, n: usize) {
     for (c, h, w, s) in SHAPES {
         for k in [3usize, 5, 7] {
             let name = format!("{c}x{h}x{w}/s{s}/k{k}");
             if only.is_some_and(|o| o != name) {
                 continue;
             }
-            let len = N * c * h * w;
+            let len = n * c * h * w;
             let values = (0..len)
                 .map(|i| ((i * 7919) % 1000) as f32 * 1e-3)
                 .collect();
-            let x = Tensor::from_vec(N, c, h, w, values).expect("shape");
+            let x = Tensor::from_vec(n, c, h, w, values).expect("shape");
             let wt = vec![0.01f32; c * k * k];
             let (ho, wo) = (out_size(h, k, s), out_size(w, k, s));
-            let dy = Tensor::from_vec(N, c, ho, wo, vec![0.5; N * c * ho * wo]).expect("shape");
+            let dy = Tensor::from_vec(n, c, ho, wo, vec![0.5; n * c * ho * wo]).expect("shape");
             let mut dw = vec![0.0f32; c * k * k];
-            let macs = (N * c * ho * wo * k * k) as f64;
+            let macs = (n * c * ho * wo * k * k) as f64;
             let (mut tf, mut tb) = (f64::MAX, f64::MAX);
             for _ in 0..reps {
                 let t = Instant::now();
