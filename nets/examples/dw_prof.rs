@@ -3,7 +3,8 @@
 //! settings: the fastest of N runs and its GMAC/s (the backward counts two MACs per forward
 //! MAC). A smaller batch shows whether a layer is bound by memory (its data then fit in L2).
 //!
-//! Usage: `cargo run --release -p nanoeye-nets --example dw_prof -- [N] [CxHxW/sS/kK] [BATCH]`
+//! Usage: `cargo run --release -p nanoeye-nets --example dw_prof -- [N] [CxHxW/sS/kK|all]
+//! [BATCH]`
 
 use nanoeye_nets::Tensor;
 use nanoeye_nets::conv::{depthwise_forward, depthwise_vjp, out_size};
@@ -34,7 +35,7 @@ const SHAPES: [(usize, usize, usize, usize); 15] = [
 fn main() {
     let mut args = std::env::args().skip(1);
     let reps: usize = args.next().map_or(30, |s| s.parse().expect("N"));
-    let only = args.next();
+    let only = args.next().filter(|s| s != "all");
     let batch: usize = args.next().map_or(16, |s| s.parse().expect("BATCH"));
     assert!(batch > 0, "BATCH: at least one image");
     // The binary's allocator and its settings, so these times are the CLI's.
@@ -70,7 +71,7 @@ fn run(reps: usize, only: Option<&str>, n: usize) {
                 tb = tb.min(t.elapsed().as_secs_f64());
             }
             println!(
-                "{name}: forward {:.1} µs ({:.1} GMAC/s), backward {:.1} µs ({:.1} GMAC/s)",
+                "{name}: forward {:.1} µs ({:.1} GMAC/s), backward {:.1} µs ({:.1} GMAC/s), batch {n}",
                 tf * 1e6,
                 macs / tf * 1e-9,
                 tb * 1e6,

@@ -161,10 +161,9 @@ pub(super) fn backward(
 }
 
 /// One 16-wide plane's backward: `x` h·16 values, `dy` ho·8, into `dx` (h·16, written whole)
-/// and `dw` (the nine taps' gradients, overwritten). As the 8-wide path's
-/// ([`super::rows8`]): dL/dw from the forward's tap registers against each output row,
-/// reduced across lanes at the end; dL/dx row by row as its even and odd columns,
-/// interleaved. Sums in other orders than the plane path's (test
+/// and `dw` (the nine taps' gradients, overwritten): dL/dw from the forward's tap registers
+/// against each output row, reduced across lanes at the end; dL/dx row by row as its even
+/// and odd columns, interleaved. Sums in other orders than the plane path's (test
 /// `rows_of_16_backward_is_the_plane_paths`).
 ///
 /// # Safety

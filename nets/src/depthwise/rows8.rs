@@ -1,11 +1,11 @@
 //! Depthwise 3×3 at stride 2 on planes 8 pixels wide, in registers.
 //!
 //! Such a plane's output rows are four values, half a 256-bit register, and consecutive output
-//! rows are contiguous, so in the forward a register holds output rows m and m + 1. Its low lane reads input
-//! rows 2m − 1 + ky and its high lane rows 2m + 1 + ky: each pair of input rows is split into
-//! even and odd columns by two in-lane shuffles, and the odd columns shifted by one value
-//! within each lane give the left tap, so an output pair is nine fused multiply–adds and one
-//! store, with no padded copy of the plane and no transposition into channel blocks (the
+//! rows are contiguous, so in the forward a register holds output rows m and m + 1. Its low
+//! lane reads input rows 2m − 1 + ky and its high lane rows 2m + 1 + ky: each pair of input
+//! rows is split into even and odd columns by two in-lane shuffles, and the odd columns
+//! shifted by one value within each lane give the left tap, so an output pair is nine fused
+//! multiply–adds and one store, with no padded copy of the plane and no transposition into channel blocks (the
 //! channel-block path, which took these planes, ran 480×8×8 at stride 2 at 1.5–1.7× the
 //! memory roofline). Each output sums its taps in (ky, kx) order from zero, as the plane path
 //! does, so y is the plane path's bits (test `rows_of_8_give_the_plane_paths_bits`).
@@ -15,9 +15,9 @@ use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
 /// Height of the square planes (a 128² input at stride 16) whose row loops are compiled for
-/// it: unrolled, with their padding rows known, 480×8×8's forward ran 1.8× as fast on one
-/// thread as with the height a run-time value (137 → 75 µs at batch 16), and the backward
-/// this replaced 1.6×.
+/// it: unrolled, with their padding rows known. On one thread at batch 16, 480×8×8's forward
+/// ran 137 → 75 µs with it; the backward 294 → 184 µs (the version [`plane_backward`]
+/// replaced), 153 µs as it is now.
 const SQUARE: usize = 8;
 
 /// Whether a layer with this geometry goes through this path.
@@ -194,10 +194,12 @@ fn split(x: &[f32], h: usize, r: isize) -> __m256 {
 /// rows, then odd ones, adds the two and reduces the lanes (s₀ + s₂) + (s₁ + s₃): the sums
 /// and orders of the two-rows-per-register version this replaced (the left taps' lanes move
 /// by one, a reordering that addition's commutativity leaves exact), whose bits it gave on
-/// random planes of 1–40 rows when it replaced it (zeros may differ in sign; an infinite x
-/// in the last column makes the left taps' sums NaN, 0 · ∞ in D′'s zero lane). Sums are in
-/// other orders than the plane path's: the same values to round-off (test
-/// `rows_of_8_backward_is_the_plane_paths`).
+/// random planes of 1–40 rows when it replaced it (zeros may differ in sign). With infinite
+/// values the left taps' sums differ from that version's and the plane path's: an infinite
+/// x in the last column makes them NaN (0 · ∞ in D′'s zero lane; dropping that lane by a
+/// blend made the backward 9 % slower), and an infinite dL/dy in an output row's first
+/// column does not (there it met the padding column). Sums are in other orders than the
+/// plane path's: the same values to round-off (test `rows_of_8_backward_is_the_plane_paths`).
 ///
 /// # Safety
 /// The CPU has AVX2 and FMA; the slices are as long as stated.
@@ -234,7 +236,7 @@ unsafe fn plane_backward_rows<const H: usize>(
     let (h, ho) = if H > 0 { (H, H.div_ceil(2)) } else { (h, ho) };
     assert!(x.len() >= h * 8 && dx.len() >= h * 8 && dy.len() >= ho * 4);
     let zero = _mm256_setzero_ps();
-    let out_row = |m: usize| out_row(dy, ho, m);
+    let dy_row = |m: usize| out_row(dy, ho, m);
     // Per tap row ky, [centre | right] sums (D ⊙ input row) at 2ky and [· | left] ones
     // (D' ⊙ input row) at 2ky + 1: over even output rows, then odd ones added.
     let mut sums = [zero; 6];
@@ -242,7 +244,7 @@ unsafe fn plane_backward_rows<const H: usize>(
         let (mut c0, mut c1, mut c2, mut l0, mut l1, mut l2) = (zero, zero, zero, zero, zero, zero);
         let mut m = first;
         while m < ho {
-            let (d, next) = out_row(m);
+            let (d, next) = dy_row(m);
             let r = 2 * m as isize - 1;
             let (r0, r1, r2) = (split(x, h, r), split(x, h, r + 1), split(x, h, r + 2));
             c0 = _mm256_fmadd_ps(d, r0, c0);
@@ -277,10 +279,10 @@ unsafe fn plane_backward_rows<const H: usize>(
     let (w_odd, w_odd_next) = (pair(wk[7], wk[8]), pair(0.0, wk[6]));
     let (w_below, w_below_next) = (pair(wk[1], wk[2]), pair(0.0, wk[0]));
     let interleave = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
-    let mut below = out_row(0);
+    let mut below = dy_row(0);
     for m in 0..h.div_ceil(2) {
         let (d, next) = below;
-        below = out_row(m + 1);
+        below = dy_row(m + 1);
         let even = _mm256_fmadd_ps(w_even_next, next, _mm256_mul_ps(w_even, d));
         let dst = &mut dx[16 * m..][..8];
         // SAFETY: `dst` holds eight values, input row 2m.

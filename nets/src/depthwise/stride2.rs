@@ -12,8 +12,8 @@
 //! row they reach, eight independent sums in flight (one block's k² multiply–adds as a single
 //! chain waited on their latency). Rows above and below the plane are zero taps, and the
 //! blocks at the left and right edges load and store with lane masks (masked lanes read as
-//! zero), except that where the blocks ending at the row's end read no column past it (even
-//! widths, 3×3) the last one or two start there, over some outputs again. Every output sums
+//! zero), except that where the blocks ending at the row's end read no column past it (3×3,
+//! even widths from 18) the last one or two start there, over some outputs again. Every output sums
 //! its k² taps from zero in (ky, kx) order, padding included, as the plane path does, so y is
 //! the plane path's bits wherever its block starts (test `stride_2_gives_the_plane_paths_bits`).
 //!
@@ -270,18 +270,21 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
             // Edge blocks in pairs too for the 5×5 kernel (7 % faster at 96×44×70) but not
             // for the 3×3 one (8 % slower; one thread, `dw_prof`). So a single unmasked block
             // is the 3×3 kernel's only: an interior 5×5 block always has a partner.
-            // Where the blocks ending at the row's end are unmasked (even widths, 3×3), the
-            // last one or two run there, over some outputs again: each output's sum is the
+            // Where the blocks ending at the row's end are unmasked (3×3, even widths from 18),
+            // the last one or two run there, over some outputs again: each output's sum is the
             // same wherever its block starts, so those are rewritten with their own bits, and
             // the right edge needs no masked loads. On 96×44×70 a single block and a masked
             // one became one unmasked pair: two threads 429–446 → 388–398 µs (`dw_prof`).
-            let end = wo.wrapping_sub(2 * HALF);
-            let last_pair = x0 + HALF < wo && end < x0 && interior(end) && interior(end + HALF);
-            if x0 >= 1 && !inner && last_pair {
-                block::<K, KK, R, 2, false>(&rows, end, (w, wo), wv, dst);
+            // Such a start lies before x0 and its block ends at wo (the bound above holds).
+            let last = |blocks: usize| {
+                wo.checked_sub(blocks * HALF)
+                    .filter(|&e| e < x0 && (0..blocks).all(|v| interior(e + v * HALF)))
+            };
+            if let (false, true, Some(e)) = (inner, x0 + HALF < wo, last(2)) {
+                block::<K, KK, R, 2, false>(&rows, e, (w, wo), wv, dst);
                 x0 = wo;
-            } else if x0 >= 1 && !interior(x0) && interior(wo - HALF) && wo - HALF < x0 {
-                block::<K, KK, R, 1, false>(&rows, wo - HALF, (w, wo), wv, dst);
+            } else if let (false, Some(e)) = (interior(x0), last(1)) {
+                block::<K, KK, R, 1, false>(&rows, e, (w, wo), wv, dst);
                 x0 = wo;
             } else if x0 + HALF < wo && (inner || K == 5) {
                 if inner {
