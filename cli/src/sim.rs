@@ -684,14 +684,19 @@ fn loss(a: LossArgs) -> Result<()> {
     let t_bwd = lap();
     let g = chain.finish(&map, &psfs, acc)?;
     let t_vjp = lap();
-    if let Some(p) = &a.grad_out {
-        util::write_atomic(p, &npy_mat64(&g.phase_rad)?)
-            .with_context(|| format!("--grad-out {}", p.display()))?;
-    }
     for (name, v) in [("loss", l.total), ("d_pitch", g.p_hat)] {
         if !v.is_finite() {
             bail!("{name} is not finite ({v}); check --exposure-ms and --pitch-um");
         }
+    }
+    // Checked before --grad-out is written, so that no gradient file with NaN is left behind.
+    let phase = &g.phase_rad;
+    if (0..phase.ncols()).any(|j| (0..phase.nrows()).any(|i| !phase[(i, j)].is_finite())) {
+        bail!("∂L/∂φ is not finite everywhere; check --exposure-ms and --pitch-um");
+    }
+    if let Some(p) = &a.grad_out {
+        util::write_atomic(p, &npy_mat64(&g.phase_rad)?)
+            .with_context(|| format!("--grad-out {}", p.display()))?;
     }
     let out = serde_json::json!({
         "loss": l.total,
