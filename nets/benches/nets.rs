@@ -179,7 +179,9 @@ fn layers(c: &mut Criterion) {
     // (widths 70 and 35: rows that end in a partial register block) and the stride-2 layer that
     // reads the 44×70 map; stride 2 halves the output, so its MACs are a quarter. The 8×8
     // maps are the min subnet's last stages at 128² (output planes of 64 and 16 values: the
-    // channel-block path).
+    // channel-block path). The stride-2 layers reading the 22×35 and 32×32 maps have output
+    // planes of 198 and 256 values: the channel blocks' largest, where their transposes of
+    // four input pixels per output cost the most.
     for (c, h, w, s) in [
         (240usize, 16usize, 16usize, 1usize),
         (240, 16, 16, 2),
@@ -189,6 +191,8 @@ fn layers(c: &mut Criterion) {
         (96, 44, 70, 1),
         (96, 44, 70, 2),
         (192, 22, 35, 1),
+        (192, 22, 35, 2),
+        (96, 32, 32, 2),
     ] {
         // The memory roofline of the shape: the least any depthwise pass must move, streamed
         // on both cores (forward: read x, write y; backward: read x and dL/dy, write dL/dx),
