@@ -24,6 +24,19 @@
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
 
+/// `$f::<$square>(args)` when `$h == $square`, else `$f::<0>(args)`: a plane function's
+/// version compiled for that height (row loops unrolled, padding rows known) or for any.
+#[cfg(target_arch = "x86_64")]
+macro_rules! at_height {
+    ($h:expr, $square:expr, $f:ident($($arg:expr),* $(,)?)) => {
+        if $h == $square {
+            $f::<$square>($($arg),*)
+        } else {
+            $f::<0>($($arg),*)
+        }
+    };
+}
+
 #[cfg(target_arch = "x86_64")]
 mod channels;
 #[cfg(target_arch = "x86_64")]

@@ -77,13 +77,7 @@ fn taps(x: &[f32], h: usize, lo: isize, hi: isize) -> [__m256; 3] {
 #[target_feature(enable = "avx2,fma")]
 unsafe fn plane(h: usize, ho: usize, x: &[f32], wk: &[f32; 9], out: &mut [MaybeUninit<f32>]) {
     // SAFETY: as this function's.
-    unsafe {
-        if h == SQUARE {
-            plane_rows::<SQUARE>(h, ho, x, wk, out)
-        } else {
-            plane_rows::<0>(h, ho, x, wk, out)
-        }
-    }
+    unsafe { at_height!(h, SQUARE, plane_rows(h, ho, x, wk, out)) }
 }
 
 /// [`plane`] for planes of `H` rows (`h` and `ho` unused), or of `h` when `H` is 0.
@@ -212,13 +206,7 @@ unsafe fn plane_backward(
     dw: &mut [f32; 9],
 ) {
     // SAFETY: as this function's.
-    unsafe {
-        if h == SQUARE {
-            plane_backward_rows::<SQUARE>(h, ho, inputs, dx, dw)
-        } else {
-            plane_backward_rows::<0>(h, ho, inputs, dx, dw)
-        }
-    }
+    unsafe { at_height!(h, SQUARE, plane_backward_rows(h, ho, inputs, dx, dw)) }
 }
 
 /// [`plane_backward`] for planes of `H` rows (`h` and `ho` unused), or of `h` when `H` is 0.

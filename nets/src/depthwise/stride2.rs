@@ -13,9 +13,9 @@
 //! chain waited on their latency). Rows above and below the plane are zero taps, and the
 //! blocks at the left and right edges load and store with lane masks (masked lanes read as
 //! zero), except that where the blocks ending at the row's end read no column past it (3×3,
-//! even widths from 18) the last one or two start there, over some outputs again. Every output sums
-//! its k² taps from zero in (ky, kx) order, padding included, as the plane path does, so y is
-//! the plane path's bits wherever its block starts (test `stride_2_gives_the_plane_paths_bits`).
+//! even widths from 18) the last one or two start there, over some outputs again. Every
+//! output sums its k² taps from zero in (ky, kx) order, padding included, as the plane path
+//! does, so y is the plane path's bits wherever its block starts (test `stride_2_gives_the_plane_paths_bits`).
 //!
 //! The backward needs no phase-split copies either. The 3×3 kernel's dL/dw takes the forward's
 //! tap registers against each block of dL/dy (put in the same lane order), one accumulator per
