@@ -209,7 +209,7 @@ pub(super) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUn
             let xb = &x[b * CB * hw..][..CB * hw];
             let wv = &table[(b % blocks) * kk * CB..][..kk * CB];
             // SAFETY: `takes` checked AVX2 and FMA on this CPU.
-            unsafe { forward_block(g, &plan, xb, wv, sc, super::zeroed_chunk(out)) };
+            unsafe { forward_block(g, &plan, xb, wv, sc, out) };
         });
 }
 
@@ -237,14 +237,21 @@ pub(super) fn backward(
             let dyb = &dy[b * CB * howo..][..CB * howo];
             let wv = &table[(b % blocks) * kk * CB..][..kk * CB];
             // SAFETY: `takes` checked AVX2 and FMA on this CPU.
-            unsafe { backward_block(g, &plan, xb, wv, dyb, sc, super::zeroed_chunk(dxb), dwb) };
+            unsafe { backward_block(g, &plan, xb, wv, dyb, sc, dxb, dwb) };
         });
 }
 
-/// One block's forward: `xb` eight planes of h×w, `out` eight of ho×wo, `wv` the block's
-/// weights ([`weight_table`]).
+/// One block's forward: `xb` eight planes of h×w, `out` eight of ho×wo (every value written),
+/// `wv` the block's weights ([`weight_table`]).
 #[target_feature(enable = "avx2,fma")]
-fn forward_block(g: &Geom, plan: &Plan, xb: &[f32], wv: &[f32], sc: &mut Scratch, out: &mut [f32]) {
+fn forward_block(
+    g: &Geom,
+    plan: &Plan,
+    xb: &[f32],
+    wv: &[f32],
+    sc: &mut Scratch,
+    out: &mut [MaybeUninit<f32>],
+) {
     let (s, wp) = (g.s, padded_width(g));
     sc.load_input(g, xb);
     sc.out.resize(g.ho * g.wo * CB, 0.0);
@@ -260,9 +267,10 @@ fn forward_block(g: &Geom, plan: &Plan, xb: &[f32], wv: &[f32], sc: &mut Scratch
     from_channels(&sc.out, out);
 }
 
-/// One block's backward: dL/dx into `dxb` (eight planes of h×w), each plane's k² weight
-/// gradients into `dwb` (overwritten); `wv` the block's weights ([`weight_table`]), turned by
-/// 180° at stride 1, phase by phase ([`Plan::phase_order`]) at stride s ≥ 2.
+/// One block's backward: dL/dx into `dxb` (eight planes of h×w, every value written), each
+/// plane's k² weight gradients into `dwb` (overwritten); `wv` the block's weights
+/// ([`weight_table`]), turned by 180° at stride 1, phase by phase ([`Plan::phase_order`]) at
+/// stride s ≥ 2.
 #[allow(clippy::too_many_arguments)]
 #[target_feature(enable = "avx2,fma")]
 fn backward_block(
@@ -272,7 +280,7 @@ fn backward_block(
     wv: &[f32],
     dyb: &[f32],
     sc: &mut Scratch,
-    dxb: &mut [f32],
+    dxb: &mut [MaybeUninit<f32>],
     dwb: &mut [f32],
 ) {
     let (p, wp) = (g.pad(), padded_width(g));
@@ -581,9 +589,9 @@ fn to_channels(src: &[f32], w: usize, dst: &mut [f32], wp: usize, p: usize) {
 }
 
 /// The channels-innermost pixels of `src` (unpadded, `dst.len() / 8` of them) into eight
-/// planes `dst`.
+/// planes `dst`, every value written, so the caller's output is not zeroed first.
 #[target_feature(enable = "avx2,fma")]
-fn from_channels(src: &[f32], dst: &mut [f32]) {
+fn from_channels(src: &[f32], dst: &mut [MaybeUninit<f32>]) {
     let hw = dst.len() / CB;
     assert!(src.len() >= hw * CB);
     let mut i = 0;
@@ -595,14 +603,14 @@ fn from_channels(src: &[f32], dst: &mut [f32]) {
                 _mm256_loadu_ps(src.as_ptr().add((i + n) * CB))
             }));
             for (j, v) in t.iter().enumerate() {
-                _mm256_storeu_ps(dst.as_mut_ptr().add(j * hw + i), *v);
+                _mm256_storeu_ps(dst.as_mut_ptr().add(j * hw + i).cast(), *v);
             }
         }
         i += CB;
     }
     for i in i..hw {
         for j in 0..CB {
-            dst[j * hw + i] = src[i * CB + j];
+            dst[j * hw + i] = MaybeUninit::new(src[i * CB + j]);
         }
     }
 }
@@ -696,7 +704,7 @@ mod tests {
                 let dyb = &dy[b * CB * howo..][..CB * howo];
                 let wv = &table[b * kk * CB..][..kk * CB];
                 let wt = &turned[b * kk * CB..][..kk * CB];
-                // SAFETY: has_fma() checked the CPU.
+                // SAFETY: has_fma() checked the CPU; the blocks write initialised values only.
                 unsafe {
                     forward_block(
                         &g,
@@ -704,7 +712,7 @@ mod tests {
                         xb,
                         wv,
                         &mut sc,
-                        &mut y[b * CB * howo..][..CB * howo],
+                        super::super::as_uninit(&mut y[b * CB * howo..][..CB * howo]),
                     );
                     backward_block(
                         &g,
@@ -713,7 +721,7 @@ mod tests {
                         wt,
                         dyb,
                         &mut sc,
-                        &mut dx[b * CB * hw..][..CB * hw],
+                        super::super::as_uninit(&mut dx[b * CB * hw..][..CB * hw]),
                         &mut dw[b * CB * kk..][..CB * kk],
                     );
                 }
@@ -817,8 +825,9 @@ mod tests {
         for b in 0..n * c / CB {
             let mut y = vec![0.0; CB * howo];
             let wv = &table[(b % (c / CB)) * kk * CB..][..kk * CB];
-            // SAFETY: has_fma() checked the CPU.
-            unsafe { forward_block(&g, &plan, &x[b * CB * hw..][..CB * hw], wv, &mut sc, &mut y) };
+            let xb = &x[b * CB * hw..][..CB * hw];
+            // SAFETY: has_fma() checked the CPU; the block writes initialised values only.
+            unsafe { forward_block(&g, &plan, xb, wv, &mut sc, super::super::as_uninit(&mut y)) };
             assert_eq!(y, one.0[b * CB * howo..][..CB * howo]);
         }
     }
