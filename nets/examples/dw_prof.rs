@@ -4,7 +4,7 @@
 //! MAC). A smaller batch shows whether a layer is bound by memory (its data then fit in L2).
 //!
 //! Usage: `cargo run --release -p nanoeye-nets --example dw_prof -- [N] [CxHxW/sS/kK|all]
-//! [BATCH]`
+//! [BATCH]`; a CxHxW/sS/kK off the list runs that shape alone.
 
 use nanoeye_nets::Tensor;
 use nanoeye_nets::conv::{depthwise_forward, depthwise_vjp, out_size};
@@ -44,13 +44,33 @@ fn main() {
     rayon::scope(|_| run(reps, only.as_deref(), batch));
 }
 
+/// The shape `CxHxW/sS/kK` as (channels, height, width, stride, kernel).
+fn parse(name: &str) -> Option<(usize, usize, usize, usize, usize)> {
+    let (dims, rest) = name.split_once("/s")?;
+    let (s, k) = rest.split_once("/k")?;
+    let d: Vec<usize> = dims
+        .split('x')
+        .map(|v| v.parse().ok())
+        .collect::<Option<_>>()?;
+    let [c, h, w] = d[..] else { return None };
+    Some((c, h, w, s.parse().ok()?, k.parse().ok()?))
+}
+
 fn run(reps: usize, only: Option<&str>, n: usize) {
-    for (c, h, w, s) in SHAPES {
-        for k in [3usize, 5, 7] {
+    let mut cases: Vec<(usize, usize, usize, usize, usize)> = SHAPES
+        .iter()
+        .flat_map(|&(c, h, w, s)| [3, 5, 7].map(|k| (c, h, w, s, k)))
+        .collect();
+    if let Some(o) = only {
+        let shape = parse(o).unwrap_or_else(|| panic!("shape {o}: expected CxHxW/sS/kK or all"));
+        cases.retain(|&v| v == shape);
+        if cases.is_empty() {
+            cases.push(shape);
+        }
+    }
+    for (c, h, w, s, k) in cases {
+        {
             let name = format!("{c}x{h}x{w}/s{s}/k{k}");
-            if only.is_some_and(|o| o != name) {
-                continue;
-            }
             let len = n * c * h * w;
             let values = (0..len)
                 .map(|i| ((i * 7919) % 1000) as f32 * 1e-3)

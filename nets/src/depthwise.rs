@@ -903,7 +903,7 @@ pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUn
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if channels::takes(g, c) {
+    if channels::takes(g, c) && !stride2::preferred(g, false) {
         channels::forward(g, c, x, w, y);
         return;
     }
@@ -970,7 +970,7 @@ pub(crate) fn backward(
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if channels::takes(g, c) {
+    if channels::takes(g, c) && !stride2::preferred(g, true) {
         channels::backward(g, c, x, w, dy, dx, dw_planes);
         return;
     }

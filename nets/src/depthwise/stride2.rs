@@ -10,10 +10,13 @@
 //! before its store. The forward goes four output rows at a time, two blocks of eight
 //! outputs wide where the row allows: each input row's taps, kx by kx, go into every output
 //! row they reach, eight independent sums in flight (one block's k² multiply–adds as a single
-//! chain waited on their latency). Rows above and below the plane are zero taps, and the
-//! blocks at the left and right edges load and store with lane masks (masked lanes read as
-//! zero), except that where the blocks ending at the row's end read no column past it (3×3,
-//! even widths from 18) the last one or two start there, over some outputs again. Every
+//! chain waited on their latency). Rows above and below the plane are zero taps. The first
+//! block of a row (with its neighbour where that is interior) loads columns 0 .. 16 and
+//! shifts them up two lanes for the columns −2 .. 14 its first pair reads, the two before the
+//! row as zeros (widths from 16 for 3×3, 18 for 5×5). Other blocks at the edges load and store
+//! with lane masks (masked lanes read as zero), except that where the blocks ending at the
+//! row's end read no column past it (3×3, even widths from 18) the last one or two start
+//! there, over some outputs again. Every
 //! output sums its k² taps from zero in (ky, kx) order, padding included, as the plane path
 //! does, so y is the plane path's bits wherever its block starts (test `stride_2_gives_the_plane_paths_bits`).
 //!
@@ -50,6 +53,20 @@ pub(super) fn takes(g: &Geom) -> bool {
         && g.wo == g.w.div_ceil(2)
         && g.w < (i32::MAX as usize) / 2 - 4 * HALF
         && has_fma()
+}
+
+/// Whether a layer the channel blocks ([`super::channels`]) could take runs faster here: the
+/// 3×3 forward on output rows of 14 or more (two or three blocks of eight, their edges
+/// unmasked on even widths), the backward on rows of whole blocks (16, 24, 32 outputs). The
+/// channel blocks transpose four input pixels per output at stride 2; on narrower rows, and
+/// for the 5×5 forward, they are still the faster (`dw_prof`, docs/bench/nets.md).
+pub(super) fn preferred(g: &Geom, backward: bool) -> bool {
+    takes(g)
+        && if backward {
+            g.wo >= 2 * HALF && g.wo.is_multiple_of(HALF)
+        } else {
+            g.k == 3 && g.wo >= 14
+        }
 }
 
 /// Forward over all planes (as [`super::forward`]); panics unless `takes(g)`.
@@ -110,6 +127,9 @@ pub(super) fn backward(
 #[derive(Clone, Copy)]
 enum Reach {
     Inside,
+    /// The first block of a row (x₀ = 0) whose columns from 0 are inside it: the two columns
+    /// before the row, which only the first pair reads, are lanes shifted in as zeros.
+    Left,
     Masked([__m256i; 6]),
 }
 
@@ -137,13 +157,28 @@ fn block_reach<const K: usize>(x0: usize, w: usize, wo: usize) -> (Reach, Option
     (Reach::Masked(m), Some(inside(x0 as isize, wo)))
 }
 
+/// Whether the first block of a row (x₀ = 0) of a k×k kernel reads its input row as
+/// [`Reach::Left`]: columns 0 .. 2·pairs(k) + 12 inside the row (w wide), which also puts its
+/// eight outputs inside theirs.
+const fn left_inside<const K: usize>(w: usize) -> bool {
+    2 * pairs(K) + 12 <= w
+}
+
+/// [`block`]'s `EDGE`: every block reads its rows unmasked ([`Reach::Inside`]).
+const INSIDE: u8 = 0;
+/// [`block`]'s `EDGE`: the first block at x₀ = 0 as [`Reach::Left`], any other inside.
+const LEFT: u8 = 1;
+/// [`block`]'s `EDGE`: each block as [`block_reach`] finds it, lane masks where it reaches
+/// past a row.
+const MASKS: u8 = 2;
+
 /// Pair `i` of input row `row`'s loads for the eight outputs from `x0`: columns 2x₀ − 2 + 2i
 /// .. + 16 (zeros for the padding, None); its even and odd halves are the columns 2j − 2 + 2i
 /// and 2j − 1 + 2i of the eight outputs j, in the lane order 0 1 4 5 2 3 6 7.
 ///
 /// # Safety
 /// AVX2; `row` holds at least the columns `reach` lets through (all of 2x₀ − 2 + 2i ..
-/// 2x₀ + 2i + 14 when `Inside`).
+/// 2x₀ + 2i + 14 when `Inside`, and when `Left` (x₀ = 0) those for i ≥ 1, 0 .. 16 for i = 0).
 #[target_feature(enable = "avx2,fma")]
 #[inline]
 unsafe fn pair_loads(row: Option<&[f32]>, x0: usize, i: usize, reach: Reach) -> (__m256, __m256) {
@@ -158,6 +193,21 @@ unsafe fn pair_loads(row: Option<&[f32]>, x0: usize, i: usize, reach: Reach) -> 
     unsafe {
         match reach {
             Reach::Inside => (_mm256_loadu_ps(p.add(at)), _mm256_loadu_ps(p.add(at + 8))),
+            // Columns −2 .. 14 from the loads of 0 .. 16, moved up two lanes: a byte shift
+            // within 128-bit lanes of (upper, lower) pairs of halves put side by side.
+            Reach::Left if i == 0 => {
+                let (u0, u1) = (_mm256_loadu_ps(p), _mm256_loadu_ps(p.add(8)));
+                let lo = _mm256_permute2f128_ps::<0x08>(u0, u0);
+                let mid = _mm256_permute2f128_ps::<0x21>(u0, u1);
+                let shift = |hi: __m256, lo: __m256| {
+                    _mm256_castsi256_ps(_mm256_alignr_epi8::<8>(
+                        _mm256_castps_si256(hi),
+                        _mm256_castps_si256(lo),
+                    ))
+                };
+                (shift(u0, lo), shift(u1, mid))
+            }
+            Reach::Left => (_mm256_loadu_ps(p.add(at)), _mm256_loadu_ps(p.add(at + 8))),
             Reach::Masked(m) => (
                 _mm256_maskload_ps(p.wrapping_add(at), m[2 * i]),
                 _mm256_maskload_ps(p.wrapping_add(at.wrapping_add(8)), m[2 * i + 1]),
@@ -280,24 +330,32 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
                 wo.checked_sub(blocks * HALF)
                     .filter(|&e| e < x0 && (0..blocks).all(|v| interior(e + v * HALF)))
             };
-            if let (false, true, Some(e)) = (inner, x0 + HALF < wo, last(2)) {
-                block::<K, KK, R, 2, false>(&rows, e, (w, wo), wv, dst);
+            if x0 == 0 && left_inside::<K>(w) {
+                if interior(HALF) {
+                    block::<K, KK, R, 2, LEFT>(&rows, 0, (w, wo), wv, dst);
+                    x0 = 2 * HALF;
+                } else {
+                    block::<K, KK, R, 1, LEFT>(&rows, 0, (w, wo), wv, dst);
+                    x0 = HALF;
+                }
+            } else if let (false, true, Some(e)) = (inner, x0 + HALF < wo, last(2)) {
+                block::<K, KK, R, 2, INSIDE>(&rows, e, (w, wo), wv, dst);
                 x0 = wo;
             } else if let (false, Some(e)) = (interior(x0), last(1)) {
-                block::<K, KK, R, 1, false>(&rows, e, (w, wo), wv, dst);
+                block::<K, KK, R, 1, INSIDE>(&rows, e, (w, wo), wv, dst);
                 x0 = wo;
             } else if x0 + HALF < wo && (inner || K == 5) {
                 if inner {
-                    block::<K, KK, R, 2, false>(&rows, x0, (w, wo), wv, dst);
+                    block::<K, KK, R, 2, INSIDE>(&rows, x0, (w, wo), wv, dst);
                 } else {
-                    block::<K, KK, R, 2, true>(&rows, x0, (w, wo), wv, dst);
+                    block::<K, KK, R, 2, MASKS>(&rows, x0, (w, wo), wv, dst);
                 }
                 x0 += 2 * HALF;
             } else {
                 if interior(x0) {
-                    block::<K, KK, R, 1, false>(&rows, x0, (w, wo), wv, dst);
+                    block::<K, KK, R, 1, INSIDE>(&rows, x0, (w, wo), wv, dst);
                 } else {
-                    block::<K, KK, R, 1, true>(&rows, x0, (w, wo), wv, dst);
+                    block::<K, KK, R, 1, MASKS>(&rows, x0, (w, wo), wv, dst);
                 }
                 x0 += HALF;
             }
@@ -307,34 +365,28 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
 
 /// V blocks of eight outputs from column x₀ of output rows m .. m + R (`dst` from row m's
 /// start, rows wo apart), from input rows 2m − k/2 .. (`rows`, 2R + k − 2 of them; the padding
-/// rows the row of zeros for k = 3, None for k = 5); `MASKED`: some block reaches past a row's
-/// edge (see [`block_reach`]). Each input row's taps go, kx by kx, into every output row they
-/// reach, so each output sums its taps from zero in (ky, kx) order.
+/// rows the row of zeros for k = 3, None for k = 5); `EDGE`: [`INSIDE`], [`LEFT`] (x₀ = 0, the
+/// first block [`Reach::Left`]) or [`MASKS`] (some block may reach past a row's edge, see
+/// [`block_reach`]). Each input row's taps go, kx by kx, into every output row they reach, so
+/// each output sums its taps from zero in (ky, kx) order.
 ///
 /// # Safety
-/// AVX2 and FMA; every row in `rows` holds w values, `dst` R·wo; x0 + 8(V − 1) < wo; unless
-/// `MASKED`, x₀ ≥ 1 and 2(x₀ + 8(V − 1)) + 2·pairs(k) + 12 ≤ w.
+/// AVX2 and FMA; every row in `rows` holds w values, `dst` R·wo; x0 + 8(V − 1) < wo; for
+/// `INSIDE`, x₀ ≥ 1 and 2(x₀ + 8(V − 1)) + 2·pairs(k) + 12 ≤ w; for `LEFT`, x₀ = 0,
+/// [`left_inside`] and, for V = 2, block 1 as for `INSIDE`.
 #[target_feature(enable = "avx2,fma")]
 #[inline]
-unsafe fn block<
-    const K: usize,
-    const KK: usize,
-    const R: usize,
-    const V: usize,
-    const MASKED: bool,
->(
+unsafe fn block<const K: usize, const KK: usize, const R: usize, const V: usize, const EDGE: u8>(
     rows: &[Option<&[f32]>; 11],
     x0: usize,
     (w, wo): (usize, usize),
     wv: &[__m256; KK],
     dst: *mut f32,
 ) {
-    let reach: [(Reach, Option<__m256i>); V] = std::array::from_fn(|v| {
-        if MASKED {
-            block_reach::<K>(x0 + v * HALF, w, wo)
-        } else {
-            (Reach::Inside, None)
-        }
+    let reach: [(Reach, Option<__m256i>); V] = std::array::from_fn(|v| match EDGE {
+        MASKS => block_reach::<K>(x0 + v * HALF, w, wo),
+        LEFT if v == 0 => (Reach::Left, None),
+        _ => (Reach::Inside, None),
     });
     let mut acc = [[_mm256_setzero_ps(); V]; R];
     // A constant trip count (not the slice's length), so that the loop unrolls and each
@@ -478,7 +530,11 @@ unsafe fn weight_grads(
         let d = dy[m * wo..][..wo].as_ptr();
         let mut x0 = 0;
         while x0 < wo {
-            let (reach, keep) = block_reach::<3>(x0, w, wo);
+            let (reach, keep) = if x0 == 0 && left_inside::<3>(w) {
+                (Reach::Left, None)
+            } else {
+                block_reach::<3>(x0, w, wo)
+            };
             // SAFETY: unmasked, x0 + 8 ≤ w / 2 ≤ wo; masked lanes are not read.
             let g = unsafe {
                 match keep {
