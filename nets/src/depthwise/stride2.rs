@@ -16,7 +16,8 @@
 //! row as zeros (widths from 16 for 3×3, 18 for 5×5). Other blocks at the edges load and store
 //! with lane masks (masked lanes read as zero), except that where the blocks ending at the
 //! row's end read no column past it (3×3, even widths from 18) the last one or two start
-//! there, over some outputs again. Every
+//! there, over some outputs again; on odd widths (3×3, from 17) they read one column past it,
+//! which the last block loads one column early and shifts in as zero. Every
 //! output sums its k² taps from zero in (ky, kx) order, padding included, as the plane path
 //! does, so y is the plane path's bits wherever its block starts (test `stride_2_gives_the_plane_paths_bits`).
 //!
@@ -130,6 +131,9 @@ enum Reach {
     /// The first block of a row (x₀ = 0) whose columns from 0 are inside it: the two columns
     /// before the row, which only the first pair reads, are lanes shifted in as zeros.
     Left,
+    /// The last block of a row of odd width w of the 3×3 kernel, at x₀ = wo − 8 ≥ 1: its one
+    /// column past the row (w, the last its second pair reads) is a lane shifted in as zero.
+    Right,
     Masked([__m256i; 6]),
 }
 
@@ -171,6 +175,8 @@ const LEFT: u8 = 1;
 /// [`block`]'s `EDGE`: each block as [`block_reach`] finds it, lane masks where it reaches
 /// past a row.
 const MASKS: u8 = 2;
+/// [`block`]'s `EDGE` (3×3 only): the last block as [`Reach::Right`], any other inside.
+const RIGHT: u8 = 3;
 
 /// Pair `i` of input row `row`'s loads for the eight outputs from `x0`: columns 2x₀ − 2 + 2i
 /// .. + 16 (zeros for the padding, None); its even and odd halves are the columns 2j − 2 + 2i
@@ -207,7 +213,20 @@ unsafe fn pair_loads(row: Option<&[f32]>, x0: usize, i: usize, reach: Reach) -> 
                 };
                 (shift(u0, lo), shift(u1, mid))
             }
-            Reach::Left => (_mm256_loadu_ps(p.add(at)), _mm256_loadu_ps(p.add(at + 8))),
+            // Columns 2x₀ + 8 .. 2x₀ + 16 = w + 1 from the load of w − 8 .. w, moved down one
+            // lane: the same byte shift with the upper half's lanes above it zero.
+            Reach::Right if i == 1 => {
+                let v = _mm256_loadu_ps(p.add(at + 7));
+                let hi = _mm256_permute2f128_ps::<0x81>(v, v);
+                let b = _mm256_castsi256_ps(_mm256_alignr_epi8::<4>(
+                    _mm256_castps_si256(hi),
+                    _mm256_castps_si256(v),
+                ));
+                (_mm256_loadu_ps(p.add(at)), b)
+            }
+            Reach::Left | Reach::Right => {
+                (_mm256_loadu_ps(p.add(at)), _mm256_loadu_ps(p.add(at + 8)))
+            }
             Reach::Masked(m) => (
                 _mm256_maskload_ps(p.wrapping_add(at), m[2 * i]),
                 _mm256_maskload_ps(p.wrapping_add(at.wrapping_add(8)), m[2 * i + 1]),
@@ -330,6 +349,17 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
                 wo.checked_sub(blocks * HALF)
                     .filter(|&e| e < x0 && (0..blocks).all(|v| interior(e + v * HALF)))
             };
+            // On odd widths the blocks ending at the row's end read one column past it, which
+            // the last one shifts in as zero instead (3×3).
+            let right = |blocks: usize| {
+                wo.checked_sub(blocks * HALF).filter(|&e| {
+                    K == 3
+                        && !w.is_multiple_of(2)
+                        && e >= 1
+                        && e < x0
+                        && (0..blocks - 1).all(|v| interior(e + v * HALF))
+                })
+            };
             if x0 == 0 && left_inside::<K>(w) {
                 if interior(HALF) {
                     block::<K, KK, R, 2, LEFT>(&rows, 0, (w, wo), wv, dst);
@@ -343,6 +373,12 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
                 x0 = wo;
             } else if let (false, Some(e)) = (interior(x0), last(1)) {
                 block::<K, KK, R, 1, INSIDE>(&rows, e, (w, wo), wv, dst);
+                x0 = wo;
+            } else if let (false, true, Some(e)) = (inner, x0 + HALF < wo, right(2)) {
+                block::<K, KK, R, 2, RIGHT>(&rows, e, (w, wo), wv, dst);
+                x0 = wo;
+            } else if let (false, Some(e)) = (interior(x0), right(1)) {
+                block::<K, KK, R, 1, RIGHT>(&rows, e, (w, wo), wv, dst);
                 x0 = wo;
             } else if x0 + HALF < wo && (inner || K == 5) {
                 if inner {
@@ -386,6 +422,7 @@ unsafe fn block<const K: usize, const KK: usize, const R: usize, const V: usize,
     let reach: [(Reach, Option<__m256i>); V] = std::array::from_fn(|v| match EDGE {
         MASKS => block_reach::<K>(x0 + v * HALF, w, wo),
         LEFT if v == 0 => (Reach::Left, None),
+        RIGHT if v == V - 1 => (Reach::Right, None),
         _ => (Reach::Inside, None),
     });
     let mut acc = [[_mm256_setzero_ps(); V]; R];
