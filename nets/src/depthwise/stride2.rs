@@ -57,16 +57,17 @@ pub(super) fn takes(g: &Geom) -> bool {
 }
 
 /// Whether a layer the channel blocks ([`super::channels`]) could take runs faster here: the
-/// 3×3 forward on output rows of 14 or more (two or three blocks of eight, their edges
-/// unmasked on even widths), the backward on rows of whole blocks (16, 24, 32 outputs). The
-/// channel blocks transpose four input pixels per output at stride 2; on narrower rows, and
-/// for the 5×5 forward, they are still the faster (`dw_prof`, docs/bench/nets.md).
+/// 3×3 forward on output rows of 13 or more (two or three blocks of eight, their edges
+/// unmasked from widths 16), the backward on rows of whole blocks (16, 24, 32 outputs). The
+/// channel blocks transpose four input pixels per output at stride 2; on narrower rows, for
+/// the other backward rows and for the 5×5 forward they are still the faster (`dw_prof`,
+/// docs/bench/nets.md).
 pub(super) fn preferred(g: &Geom, backward: bool) -> bool {
     takes(g)
         && if backward {
             g.wo >= 2 * HALF && g.wo.is_multiple_of(HALF)
         } else {
-            g.k == 3 && g.wo >= 14
+            g.k == 3 && g.wo >= 13
         }
 }
 
