@@ -69,34 +69,32 @@ fn run(reps: usize, only: Option<&str>, n: usize) {
         }
     }
     for (c, h, w, s, k) in cases {
-        {
-            let name = format!("{c}x{h}x{w}/s{s}/k{k}");
-            let len = n * c * h * w;
-            let values = (0..len)
-                .map(|i| ((i * 7919) % 1000) as f32 * 1e-3)
-                .collect();
-            let x = Tensor::from_vec(n, c, h, w, values).expect("shape");
-            let wt = vec![0.01f32; c * k * k];
-            let (ho, wo) = (out_size(h, k, s), out_size(w, k, s));
-            let dy = Tensor::from_vec(n, c, ho, wo, vec![0.5; n * c * ho * wo]).expect("shape");
-            let mut dw = vec![0.0f32; c * k * k];
-            let macs = (n * c * ho * wo * k * k) as f64;
-            let (mut tf, mut tb) = (f64::MAX, f64::MAX);
-            for _ in 0..reps {
-                let t = Instant::now();
-                black_box(depthwise_forward(&x, &wt, k, s).expect("forward"));
-                tf = tf.min(t.elapsed().as_secs_f64());
-                let t = Instant::now();
-                black_box(depthwise_vjp(&x, &wt, k, s, &dy, &mut dw).expect("backward"));
-                tb = tb.min(t.elapsed().as_secs_f64());
-            }
-            println!(
-                "{name}: forward {:.1} µs ({:.1} GMAC/s), backward {:.1} µs ({:.1} GMAC/s), batch {n}",
-                tf * 1e6,
-                macs / tf * 1e-9,
-                tb * 1e6,
-                2.0 * macs / tb * 1e-9
-            );
+        let name = format!("{c}x{h}x{w}/s{s}/k{k}");
+        let len = n * c * h * w;
+        let values = (0..len)
+            .map(|i| ((i * 7919) % 1000) as f32 * 1e-3)
+            .collect();
+        let x = Tensor::from_vec(n, c, h, w, values).expect("shape");
+        let wt = vec![0.01f32; c * k * k];
+        let (ho, wo) = (out_size(h, k, s), out_size(w, k, s));
+        let dy = Tensor::from_vec(n, c, ho, wo, vec![0.5; n * c * ho * wo]).expect("shape");
+        let mut dw = vec![0.0f32; c * k * k];
+        let macs = (n * c * ho * wo * k * k) as f64;
+        let (mut tf, mut tb) = (f64::MAX, f64::MAX);
+        for _ in 0..reps {
+            let t = Instant::now();
+            black_box(depthwise_forward(&x, &wt, k, s).expect("forward"));
+            tf = tf.min(t.elapsed().as_secs_f64());
+            let t = Instant::now();
+            black_box(depthwise_vjp(&x, &wt, k, s, &dy, &mut dw).expect("backward"));
+            tb = tb.min(t.elapsed().as_secs_f64());
         }
+        println!(
+            "{name}: forward {:.1} µs ({:.1} GMAC/s), backward {:.1} µs ({:.1} GMAC/s), batch {n}",
+            tf * 1e6,
+            macs / tf * 1e-9,
+            tb * 1e6,
+            2.0 * macs / tb * 1e-9
+        );
     }
 }

@@ -593,7 +593,8 @@ fn to_channels(src: &[f32], w: usize, dst: &mut [f32], wp: usize, p: usize) {
 #[target_feature(enable = "avx2,fma")]
 fn from_channels(src: &[f32], dst: &mut [MaybeUninit<f32>]) {
     let hw = dst.len() / CB;
-    assert!(src.len() >= hw * CB);
+    // Eight whole planes, so that the transposes and the tail below write every value.
+    assert!(dst.len() == hw * CB && src.len() >= hw * CB);
     let mut i = 0;
     while i + CB <= hw {
         // SAFETY: pixels i .. i + 8 are inside `src`, rows i .. i + 8 of each plane inside
@@ -823,7 +824,7 @@ mod tests {
         let order: Vec<usize> = (0..kk).collect();
         let (table, plan) = (weight_table(&wk, c, kk, &order), Plan::new(&g));
         for b in 0..n * c / CB {
-            let mut y = vec![0.0; CB * howo];
+            let mut y = vec![f32::NAN; CB * howo];
             let wv = &table[(b % (c / CB)) * kk * CB..][..kk * CB];
             let xb = &x[b * CB * hw..][..CB * hw];
             // SAFETY: has_fma() checked the CPU; the block writes initialised values only.

@@ -33,7 +33,7 @@
 //! phase sweeps do: the same bits
 //! (test `stride_2_backward_is_the_plane_paths_bits`). Planes 8 and 16 wide keep their own paths
 //! ([`super::rows8`], [`super::rows16`]), small output planes of channels in multiples of eight
-//! the channel blocks.
+//! the channel blocks, except the rows this path covers faster ([`preferred`]).
 
 use super::stride1::inside;
 use super::{
@@ -184,8 +184,9 @@ const RIGHT: u8 = 3;
 /// and 2j − 1 + 2i of the eight outputs j, in the lane order 0 1 4 5 2 3 6 7.
 ///
 /// # Safety
-/// AVX2; `row` holds at least the columns `reach` lets through (all of 2x₀ − 2 + 2i ..
-/// 2x₀ + 2i + 14 when `Inside`, and when `Left` (x₀ = 0) those for i ≥ 1, 0 .. 16 for i = 0).
+/// AVX2; `row` holds at least the columns `reach` lets through: all of 2x₀ − 2 + 2i ..
+/// 2x₀ + 2i + 14 when `Inside`; when `Left` (x₀ = 0) those for i ≥ 1 and 0 .. 16 for i = 0;
+/// when `Right` (3×3 only, i ≤ 1: pair 1 is the last), 2x₀ − 2 .. w with 2x₀ + 16 = w + 1.
 #[target_feature(enable = "avx2,fma")]
 #[inline]
 unsafe fn pair_loads(row: Option<&[f32]>, x0: usize, i: usize, reach: Reach) -> (__m256, __m256) {
@@ -194,9 +195,9 @@ unsafe fn pair_loads(row: Option<&[f32]>, x0: usize, i: usize, reach: Reach) -> 
     };
     let p = row.as_ptr();
     let at = (2 * x0 + 2 * i).wrapping_sub(2);
-    // SAFETY: inside the row by the contract, or masked (masked lanes are neither read nor
-    // faulted on; wrapping arithmetic: addresses before or past the row are never
-    // dereferenced).
+    // SAFETY: inside the row by the contract (Inside, Left and Right read only columns of the
+    // row), or masked (masked lanes are neither read nor faulted on; wrapping arithmetic:
+    // addresses before or past the row are never dereferenced).
     unsafe {
         match reach {
             Reach::Inside => (_mm256_loadu_ps(p.add(at)), _mm256_loadu_ps(p.add(at + 8))),
@@ -337,9 +338,12 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
         // SAFETY: x0 + 8(V − 1) < wo; the rest is this function's contract.
         unsafe {
             let inner = interior(x0) && interior(x0 + HALF);
-            // Edge blocks in pairs too for the 5×5 kernel (7 % faster at 96×44×70) but not
-            // for the 3×3 one (8 % slower; one thread, `dw_prof`). So a single unmasked block
-            // is the 3×3 kernel's only: an interior 5×5 block always has a partner.
+            // Masked edge blocks in pairs too for the 5×5 kernel (7 % faster at 96×44×70) but
+            // not for the 3×3 one (8 % slower; one thread, `dw_prof`). So a single unmasked
+            // INSIDE block is the 3×3 kernel's only: an interior 5×5 block always has a
+            // partner. The first block unmasked (LEFT) goes with its neighbour where that is
+            // interior; on narrower rows the 3×3 one runs alone, the 5×5 one stays a masked
+            // pair as before.
             // Where the blocks ending at the row's end are unmasked (3×3, even widths from 18),
             // the last one or two run there, over some outputs again: each output's sum is the
             // same wherever its block starts, so those are rewritten with their own bits, and
@@ -357,11 +361,11 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
                     K == 3
                         && !w.is_multiple_of(2)
                         && e >= 1
-                        && e < x0
+                        && e <= x0
                         && (0..blocks - 1).all(|v| interior(e + v * HALF))
                 })
             };
-            if x0 == 0 && left_inside::<K>(w) {
+            if x0 == 0 && left_inside::<K>(w) && (K == 3 || interior(HALF)) {
                 if interior(HALF) {
                     block::<K, KK, R, 2, LEFT>(&rows, 0, (w, wo), wv, dst);
                     x0 = 2 * HALF;
@@ -403,14 +407,16 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
 /// V blocks of eight outputs from column x₀ of output rows m .. m + R (`dst` from row m's
 /// start, rows wo apart), from input rows 2m − k/2 .. (`rows`, 2R + k − 2 of them; the padding
 /// rows the row of zeros for k = 3, None for k = 5); `EDGE`: [`INSIDE`], [`LEFT`] (x₀ = 0, the
-/// first block [`Reach::Left`]) or [`MASKS`] (some block may reach past a row's edge, see
-/// [`block_reach`]). Each input row's taps go, kx by kx, into every output row they reach, so
-/// each output sums its taps from zero in (ky, kx) order.
+/// first block [`Reach::Left`]), [`RIGHT`] (the last block [`Reach::Right`]) or [`MASKS`]
+/// (some block may reach past a row's edge, see [`block_reach`]). Each input row's taps go, kx
+/// by kx, into every output row they reach, so each output sums its taps from zero in (ky, kx)
+/// order.
 ///
 /// # Safety
 /// AVX2 and FMA; every row in `rows` holds w values, `dst` R·wo; x0 + 8(V − 1) < wo; for
 /// `INSIDE`, x₀ ≥ 1 and 2(x₀ + 8(V − 1)) + 2·pairs(k) + 12 ≤ w; for `LEFT`, x₀ = 0,
-/// [`left_inside`] and, for V = 2, block 1 as for `INSIDE`.
+/// [`left_inside`] and, for V = 2, block 1 as for `INSIDE`; for `RIGHT`, k = 3, w odd, the
+/// last block at x₀ + 8(V − 1) = wo − 8 ≥ 1 and, for V = 2, block 0 as for `INSIDE`.
 #[target_feature(enable = "avx2,fma")]
 #[inline]
 unsafe fn block<const K: usize, const KK: usize, const R: usize, const V: usize, const EDGE: u8>(
@@ -420,6 +426,8 @@ unsafe fn block<const K: usize, const KK: usize, const R: usize, const V: usize,
     wv: &[__m256; KK],
     dst: *mut f32,
 ) {
+    // Reach::Right's shifted load replaces pair 1's, the 3×3 kernel's last pair only.
+    debug_assert!(EDGE != RIGHT || K == 3);
     let reach: [(Reach, Option<__m256i>); V] = std::array::from_fn(|v| match EDGE {
         MASKS => block_reach::<K>(x0 + v * HALF, w, wo),
         LEFT if v == 0 => (Reach::Left, None),
@@ -438,8 +446,8 @@ unsafe fn block<const K: usize, const KK: usize, const R: usize, const V: usize,
             rows[i]
         };
         for pair in 0..pairs(K) {
-            // SAFETY: every row in `rows` holds w values; `reach` is Inside only where the
-            // columns `pair_loads` reads lie inside it.
+            // SAFETY: every row in `rows` holds w values; `reach` is unmasked (Inside, Left,
+            // Right) only where the columns `pair_loads` reads lie inside it.
             let ab: [(__m256, __m256); V] = std::array::from_fn(|v| unsafe {
                 pair_loads(row, x0 + v * HALF, pair, reach[v].0)
             });
@@ -475,8 +483,8 @@ unsafe fn block<const K: usize, const KK: usize, const R: usize, const V: usize,
         for (v, a) in acc.iter().enumerate() {
             // Lanes 0 1 4 5 2 3 6 7 back to column order.
             let a = swap_quarters(*a);
-            // SAFETY: output row m + r holds wo values; unmasked, x0 + 8V ≤ w / 2 ≤ wo;
-            // masked, no lane past the row is written.
+            // SAFETY: output row m + r holds wo values; unmasked, x0 + 8V ≤ wo (≤ w / 2 for
+            // Inside and Left, = wo for Right); masked, no lane past the row is written.
             unsafe {
                 let d = dst.add(r * wo + x0 + v * HALF);
                 match reach[v].1 {
@@ -586,8 +594,8 @@ unsafe fn weight_grads(
             // input there would make NaN; finite ones change nothing).
             let keep = keep.map(|mask| swap_quarters(_mm256_castsi256_ps(mask)));
             for (ky, r) in rows.iter().enumerate() {
-                // SAFETY: every row `row` gives holds w values; `reach` is Inside only where
-                // the columns `taps` reads lie inside it.
+                // SAFETY: every row `row` gives holds w values; `reach` is unmasked (Inside,
+                // Left) only where the columns `taps` reads lie inside it.
                 let t = unsafe { taps3(*r, x0, reach) };
                 for (kx, v) in t.iter().enumerate() {
                     let v = keep.map_or(*v, |k| _mm256_and_ps(*v, k));
@@ -801,7 +809,7 @@ mod tests {
             return;
         }
         for w in [
-            1, 2, 3, 7, 8, 9, 15, 16, 17, 18, 31, 32, 33, 35, 70, 87, 139,
+            1, 2, 3, 7, 8, 9, 15, 16, 17, 18, 31, 32, 33, 35, 47, 49, 70, 87, 139,
         ] {
             for k in [3, 5] {
                 super::super::assert_plane_path_bits((w, k, 2), 200 + w as u64, forward);
