@@ -134,6 +134,23 @@ impl Default for TrainConfig {
     }
 }
 
+/// Refuses a task gradient w.r.t. the camera image or its mask target that is not finite: a
+/// diverged network can keep a finite loss while that gradient overflows f32, so it is
+/// refused here, naming the rates, before the sensor refuses it.
+fn finite_task_grads(task: &TaskGrads) -> Result<()> {
+    if [&task.input, &task.mask]
+        .iter()
+        .any(|t| t.data.iter().any(|v| !v.is_finite()))
+    {
+        return Err(param(
+            "lr_net",
+            "the loss's gradient w.r.t. the camera image or its mask target is not finite: \
+             training diverged; lower the learning rates",
+        ));
+    }
+    Ok(())
+}
+
 /// The first step of the window of `every` sandwich steps that holds step `t`, and whether
 /// `t` ends it (windows start at multiples of `every`; the last of `steps` ends the last one).
 fn window_of(t: usize, every: usize, steps: usize) -> (usize, bool) {
@@ -704,18 +721,7 @@ impl<'a> Trainer<'a> {
         lr_scale: f64,
         window: Option<bool>,
     ) -> Result<f64> {
-        // A diverged network can keep a finite loss while its gradient w.r.t. the image
-        // overflows f32: refused here, naming the rates, before the sensor refuses it.
-        if [&task.input, &task.mask]
-            .iter()
-            .any(|t| t.data.iter().any(|v| !v.is_finite()))
-        {
-            return Err(param(
-                "lr_net",
-                "the loss's gradient w.r.t. the camera image or its mask target is not finite: \
-                 training diverged; lower the learning rates",
-            ));
-        }
+        finite_task_grads(task)?;
         // A step that does not move φ needs ∂L/∂p̂ only: the chain skips S1's PSF adjoint.
         let moves_phase = lr_phase > 0.0;
         let mut acc = if moves_phase {
@@ -848,10 +854,20 @@ impl<'a> Trainer<'a> {
     pub fn phase_gradient(&mut self, t: usize) -> Result<(f64, Mat<f64>)> {
         let s = self.chain_step_with(t, true)?;
         let (losses, task) = self.sandwich_loss(t, &s.fwd)?;
+        finite_task_grads(&task)?;
         let mut acc = self.chain.accumulator();
         self.chain
             .backward(&s.frames, &s.psfs, &s.fwd, &task.input, &mut acc)?;
         let g = self.chain.finish(&s.map, &s.psfs, acc)?;
+        if g.phase_rad
+            .col_iter()
+            .any(|c| c.iter().any(|v| !v.is_finite()))
+        {
+            return Err(param(
+                "lr_phase_rad",
+                format!("step {t}: ∂L/∂φ is not finite; lower the learning rates"),
+            ));
+        }
         Ok((losses.iter().sum(), g.phase_rad))
     }
 
@@ -1749,6 +1765,30 @@ pub fn evaluate_net(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A task gradient with one infinite or NaN value, in the image's or the mask's part, is
+    /// refused naming the network's rate; a finite one passes.
+    #[test]
+    fn a_non_finite_task_gradient_is_refused() {
+        let finite = || Tensor::from_vec(1, 1, 2, 3, vec![0.5; 6]).unwrap();
+        let ok = TaskGrads {
+            input: finite(),
+            mask: finite(),
+        };
+        assert!(finite_task_grads(&ok).is_ok());
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            for in_mask in [false, true] {
+                let mut g = TaskGrads {
+                    input: finite(),
+                    mask: finite(),
+                };
+                let t = if in_mask { &mut g.mask } else { &mut g.input };
+                t.data[4] = bad;
+                let e = finite_task_grads(&g).unwrap_err().to_string();
+                assert!(e.contains("lr_net"), "{e}");
+            }
+        }
+    }
 
     /// A checkpoint has the mode `File::create` gives under this umask, not a temporary
     /// file's 0600 (every output of a run was owner-only).
