@@ -709,7 +709,8 @@ impl<'a> Trainer<'a> {
     /// `window` = `Some(ends)` the step's ∂L/∂P joins φ's window in progress and φ steps, by
     /// the window's mean, only where `ends`; `extra_psf` (∂/∂P per slab of a term besides the
     /// task's at the same φ, weighted already) joins it where φ steps, before the one PSF VJP
-    /// of the step. Returns the RMS change of φ (rad).
+    /// of the step. Returns the RMS change of φ (rad). The callers have refused a non-finite
+    /// `task` ([`finite_task_grads`]) before stepping the network.
     #[allow(clippy::too_many_arguments)]
     fn update_optics(
         &mut self,
@@ -721,7 +722,6 @@ impl<'a> Trainer<'a> {
         lr_scale: f64,
         window: Option<bool>,
     ) -> Result<f64> {
-        finite_task_grads(task)?;
         // A step that does not move φ needs ∂L/∂p̂ only: the chain skips S1's PSF adjoint.
         let moves_phase = lr_phase > 0.0;
         let mut acc = if moves_phase {
@@ -877,6 +877,8 @@ impl<'a> Trainer<'a> {
         let (lr_phase, ends) = self.phase_window(t);
         let s = self.chain_step_with(t, lr_phase > 0.0)?;
         let (losses, task) = self.sandwich_loss(t, &s.fwd)?;
+        // Before the network's step, so that a diverged step changes nothing.
+        finite_task_grads(&task)?;
         self.opt.step(
             &mut self.net,
             cosine_lr(self.cfg.lr_net, 0.0, t, self.cfg.steps),
@@ -1090,6 +1092,7 @@ impl<'a> Trainer<'a> {
                 "fine-tuning diverged; lower the learning rates",
             ));
         }
+        finite_task_grads(&task)?;
         self.opt.step(&mut self.net, self.cfg.lr_net * lr_scale)?;
         let macs = self.macs_at(arch, self.pitch_um)?;
         // d/dp̂ [λ (C/B − 1)] with C ∝ p̂⁻²: −2λC/(B p̂), only while over the budget.
