@@ -28,9 +28,11 @@
 //! from the plane this way it ran no faster). dL/dx goes two input rows and two blocks of
 //! sixteen columns at a time: a block's even columns take the taps kx ≡ k/2 (mod 2), its odd
 //! columns the others, each from a load of eight dL/dy columns offset by −1, 0 or +1; the two
-//! halves are interleaved by unpack and 128-bit permutes. Each cell sums its taps from zero in
-//! (ky, kx) order, rows and columns of dL/dy past the plane read as zeros, as the plane path's
-//! phase sweeps do: the same bits
+//! halves are interleaved by unpack and 128-bit permutes; on odd widths (3×3, from 17) the last
+//! block starts at the odd column w − 16 (over columns already written), its halves' parities
+//! swapped, instead of masking the edge. Each cell sums its taps from zero in (ky, kx) order,
+//! rows and columns of dL/dy past the plane read as zeros, as the plane path's phase sweeps
+//! do, wherever its block starts: the same bits
 //! (test `stride_2_backward_is_the_plane_paths_bits`). Planes 8 and 16 wide keep their own paths
 //! ([`super::rows8`], [`super::rows16`]), small output planes of channels in multiples of eight
 //! the channel blocks, except the rows this path covers faster ([`preferred`]).
@@ -58,14 +60,16 @@ pub(super) fn takes(g: &Geom) -> bool {
 
 /// Whether a layer the channel blocks ([`super::channels`]) could take runs faster here: the
 /// 3×3 forward on output rows of 13 or more (two or three blocks of eight, their edges
-/// unmasked from widths 16), the backward on rows of whole blocks (16, 24, 32 outputs). The
-/// channel blocks transpose four input pixels per output at stride 2; on narrower rows, for
-/// the other backward rows and for the 5×5 forward they are still the faster (`dw_prof`,
+/// unmasked from widths 16), the backward on rows of whole blocks (16, 24, 32 outputs) and the
+/// 3×3 backward on odd widths from 35 (rows of 18 or more; its dL/dx's last block unmasked).
+/// The channel blocks transpose four input pixels per output at stride 2; on narrower rows,
+/// for the other backward rows and for the 5×5 forward they are still the faster (`dw_prof`,
 /// docs/bench/nets.md).
 pub(super) fn preferred(g: &Geom, backward: bool) -> bool {
     takes(g)
         && if backward {
-            g.wo >= 2 * HALF && g.wo.is_multiple_of(HALF)
+            g.wo.is_multiple_of(HALF) && g.wo >= 2 * HALF
+                || g.k == 3 && !g.w.is_multiple_of(2) && g.wo > 2 * HALF + 1
         } else {
             g.k == 3 && g.wo >= 13
         }
@@ -669,22 +673,29 @@ unsafe fn input_rows<const K: usize, const KK: usize, const R: usize>(
     });
     let dst = dx[i0 * w..][..R * w].as_mut_ptr().cast::<f32>();
     // Blocks whose loads (dL/dy columns c₀ − 1 .. c₀ + 9 with c₀ = j₀/2, from c₀ for k = 3)
-    // and stores (columns j₀ .. j₀ + 16) stay inside their rows: j₀ + 18 ≤ w puts
-    // c₀ + 9 ≤ w/2 ≤ wo.
-    let interior = |j0: usize| (K == 3 || j0 >= 2) && j0 + LANES + 2 <= w;
+    // and stores (columns j₀ .. j₀ + 16) stay inside their rows.
+    let interior = |j0: usize| (K == 3 || j0 >= 2) && j0 / 2 + 9 <= wo && j0 + LANES <= w;
+    // On odd widths (3×3) the last block that ends at the row's end starts at the odd column
+    // w − 16, over columns already written (each cell's sum is the same wherever its block
+    // starts), so the right edge needs no masks.
+    let odd_last = K == 3 && !w.is_multiple_of(2) && w > LANES;
     let mut j0 = 0;
     while j0 < w {
-        // SAFETY: j₀ < w, and unmasked blocks are interior; the rest is this function's
-        // contract.
+        // SAFETY: j₀ < w, and unmasked blocks are interior (the odd last block: c₀ + 9 = wo,
+        // columns w − 16 .. w); the rest is this function's contract.
         unsafe {
             if interior(j0) && interior(j0 + LANES) {
-                dx_block::<K, KK, R, 2, false>(&drows, j0, (w, wo), wv, dst);
+                dx_block::<K, KK, R, 2, false, false>(&drows, j0, (w, wo), wv, dst);
                 j0 += 2 * LANES;
             } else {
                 if interior(j0) {
-                    dx_block::<K, KK, R, 1, false>(&drows, j0, (w, wo), wv, dst);
+                    dx_block::<K, KK, R, 1, false, false>(&drows, j0, (w, wo), wv, dst);
+                } else if odd_last && w - LANES <= j0 {
+                    dx_block::<K, KK, R, 1, false, true>(&drows, w - LANES, (w, wo), wv, dst);
+                    j0 = w;
+                    continue;
                 } else {
-                    dx_block::<K, KK, R, 1, true>(&drows, j0, (w, wo), wv, dst);
+                    dx_block::<K, KK, R, 1, true, false>(&drows, j0, (w, wo), wv, dst);
                 }
                 j0 += LANES;
             }
@@ -697,11 +708,13 @@ unsafe fn input_rows<const K: usize, const KK: usize, const R: usize>(
 /// the plane). dL/dy row i₀/2 − 1 + e serves input row i₀ + r with tap row ky = r + k/2 + 2 −
 /// 2e, so the rows go from e = 2 down: each sum takes its tap rows in ascending order, and in
 /// each its taps kx in ascending order, column 2c + q taking tap kx from dL/dy column
-/// c + (q + k/2 − kx)/2. `MASKED`: lane masks on every load and store.
+/// c + (q + k/2 − kx)/2. `MASKED`: lane masks on every load and store. `ODD` (3×3, V = 1):
+/// j₀ is odd, so lane pair (c, q) holds column j₀ + 2c + q of parity 1 − q, its taps chosen
+/// and its dL/dy columns offset accordingly.
 ///
 /// # Safety
-/// AVX2 and FMA; j₀ < w; `dst` holds R·w values; unless `MASKED`, j₀ + 16(V − 1) + 18 ≤ w and,
-/// for k = 5, j₀ ≥ 2.
+/// AVX2 and FMA; j₀ < w; `dst` holds R·w values; unless `MASKED`, j₀ + 16V ≤ w and
+/// ⌊j₀/2⌋ + 8(V − 1) + 9 ≤ wo and, for k = 5, j₀ ≥ 2.
 #[target_feature(enable = "avx2,fma")]
 #[inline]
 unsafe fn dx_block<
@@ -710,6 +723,7 @@ unsafe fn dx_block<
     const R: usize,
     const V: usize,
     const MASKED: bool,
+    const ODD: bool,
 >(
     drows: &[Option<&[f32]>; 3],
     j0: usize,
@@ -718,8 +732,11 @@ unsafe fn dx_block<
     dst: *mut f32,
 ) {
     let p = K / 2;
+    // An odd start moves the 3×3 kernel's taps to dL/dy columns d = 1, 2 only (ld below).
+    debug_assert!(!ODD || (K == 3 && V == 1 && !MASKED));
     let z = _mm256_setzero_ps();
-    // acc[r][q][v]: the columns of parity q of block v in input row i₀ + r.
+    // acc[r][q][v]: the columns j₀ + 2c + q of block v in input row i₀ + r (parity q, or
+    // 1 − q for an odd start).
     let mut acc = [[[z; V]; 2]; R];
     // Plain counted loops over constants, so that they unroll and the loads and weights stay
     // in registers (written with iterator filters, they indexed both on the stack).
@@ -753,11 +770,14 @@ unsafe fn dx_block<
             }
             let ky = r + p + 2 - 2 * e;
             for q in 0..2 {
+                // Column j₀ + 2c + q is 2(c₀ + c) + q, or for an odd start 2(c₀ + c + q) + 1 − q.
+                let parity = q ^ ODD as usize;
                 for kx in 0..K {
-                    if !(q + p + kx).is_multiple_of(2) {
+                    if !(parity + p + kx).is_multiple_of(2) {
                         continue;
                     }
-                    let (wt, d) = (wv[K * ky + kx], (q + p + 2 - kx) / 2);
+                    let d = (parity + p + 2 - kx) / 2 + ODD as usize * q;
+                    let wt = wv[K * ky + kx];
                     for v in 0..V {
                         acc[r][q][v] = _mm256_fmadd_ps(wt, ld[d][v], acc[r][q][v]);
                     }
