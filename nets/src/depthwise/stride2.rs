@@ -714,7 +714,8 @@ unsafe fn input_rows<const K: usize, const KK: usize, const R: usize>(
 ///
 /// # Safety
 /// AVX2 and FMA; j₀ < w; `dst` holds R·w values; unless `MASKED`, j₀ + 16V ≤ w and
-/// ⌊j₀/2⌋ + 8(V − 1) + 9 ≤ wo and, for k = 5, j₀ ≥ 2.
+/// ⌊j₀/2⌋ + 8(V − 1) + 9 ≤ wo and, for k = 5, j₀ ≥ 2. `ODD` (for its values, not its memory
+/// accesses): k = 3, V = 1, not `MASKED`, j₀ odd.
 #[target_feature(enable = "avx2,fma")]
 #[inline]
 unsafe fn dx_block<
@@ -733,7 +734,7 @@ unsafe fn dx_block<
 ) {
     let p = K / 2;
     // An odd start moves the 3×3 kernel's taps to dL/dy columns d = 1, 2 only (ld below).
-    debug_assert!(!ODD || (K == 3 && V == 1 && !MASKED));
+    debug_assert!(!ODD || (K == 3 && V == 1 && !MASKED && !j0.is_multiple_of(2)));
     let z = _mm256_setzero_ps();
     // acc[r][q][v]: the columns j₀ + 2c + q of block v in input row i₀ + r (parity q, or
     // 1 − q for an odd start).
