@@ -837,12 +837,80 @@ fn scale_of(m: f32) -> f32 {
     }
 }
 
+/// The pixels of an H×W image one layer's composition can change: per row one span of
+/// columns (empty where it changes none), and where that span starts in a plane that holds
+/// the spans packed row after row. The whole-grid path's layers reach every pixel; a layer on
+/// tiles reaches its tiles' windows, so its planes on the tape and the passes over them skip
+/// the rest of the frame (where α∗P = 0 and I⁽ᵏ⁾ = I⁽ᵏ⁻¹⁾ exactly).
+#[derive(Debug)]
+struct Reach {
+    /// Per row, its span of columns [start, end).
+    spans: Vec<(usize, usize)>,
+    /// Per row, where its span starts in a packed plane; one more entry: the plane's length.
+    at: Vec<usize>,
+}
+
+impl Reach {
+    /// Every pixel of an h×w image: the packed planes are the row-major image.
+    fn full(h: usize, w: usize) -> Self {
+        Self::from_spans(vec![(0, w); h])
+    }
+
+    /// From per-row spans (start ≥ end: empty).
+    fn from_spans(mut spans: Vec<(usize, usize)>) -> Self {
+        let mut at = Vec::with_capacity(spans.len() + 1);
+        let mut n = 0;
+        for s in &mut spans {
+            if s.0 >= s.1 {
+                *s = (0, 0);
+            }
+            at.push(n);
+            n += s.1 - s.0;
+        }
+        at.push(n);
+        Reach { spans, at }
+    }
+
+    /// Pixels in the reach (the length of its packed planes).
+    fn len(&self) -> usize {
+        self.at[self.spans.len()]
+    }
+
+    /// The non-empty rows: (row, its columns, their range in a packed plane).
+    fn rows(&self) -> impl Iterator<Item = (usize, Range<usize>, Range<usize>)> + '_ {
+        self.spans
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.1 > s.0)
+            .map(|(r, &(a, b))| (r, a..b, self.at[r]..self.at[r] + b - a))
+    }
+
+    /// Where pixel (r, c), which must lie in the reach, is in a packed plane.
+    #[inline]
+    fn packed(&self, r: usize, c: usize) -> usize {
+        debug_assert!(
+            self.spans[r].0 <= c && c < self.spans[r].1,
+            "({r}, {c}) outside"
+        );
+        self.at[r] + c - self.spans[r].0
+    }
+}
+
+/// One layer's planes on S1's tape, over its reach: I⁽ᵏ⁻¹⁾ (the image below it) and α∗P.
+struct Planes {
+    prev: Vec<f32>,
+    o: Vec<f32>,
+    reach: Reach,
+}
+
 /// What a spectral forward pass keeps for the PSF VJP: per layer the image below it and its
-/// occlusion α∗P, in f32 (the adjoint needs them to round-off precision only), row-major H×W
-/// like the padded grid they meet; and the layer spectra the pass computed (none when they
-/// were given), which the VJP uses in place of computing them again.
+/// occlusion α∗P over the pixels the layer reaches (the whole image on the whole grid, the
+/// tiles' windows on tiles), in f32 (the adjoint needs them to round-off precision only);
+/// the final image; and the layer spectra the pass computed (none when they were given),
+/// which the VJP uses in place of computing them again.
 pub struct S1Tape {
-    saved: Vec<Option<(Vec<f32>, Vec<f32>)>>,
+    saved: Vec<Option<Planes>>,
+    /// The final image, row-major H×W.
     image: Vec<f32>,
     /// Per layer, its radiance channel's scale ([`SpectralLayer::radiance_scale`]).
     scales: Vec<f32>,
@@ -1552,7 +1620,11 @@ impl LayeredImager {
                     o.extend(src.iter().map(|v| v.im));
                     cur.extend(src.iter().zip(prow).map(|(&v, &p)| compose(v, p)));
                 }
-                saved.push(Some((std::mem::replace(&mut prev, cur), o)));
+                saved.push(Some(Planes {
+                    prev: std::mem::replace(&mut prev, cur),
+                    o,
+                    reach: Reach::full(h, w),
+                }));
             } else {
                 for (prow, grow) in prev.chunks_exact_mut(w).zip(out.chunks_exact_mut(nx)) {
                     self.p32.ix.process_with_scratch(grow, &mut sb.scratch);
@@ -1575,7 +1647,7 @@ impl LayeredImager {
     fn finish_pass(
         &self,
         image: Vec<f32>,
-        saved: Vec<Option<(Vec<f32>, Vec<f32>)>>,
+        saved: Vec<Option<Planes>>,
         scales: Vec<f32>,
         record: Option<(Vec<Option<Vec<c32>>>, Vec<Vec<u32>>)>,
         keep: bool,
@@ -1647,9 +1719,11 @@ impl LayeredImager {
         // I⁽ᵏ⁾ of each layer: the next non-empty layer's `prev`, or the final image.
         let mut above: &[f32] = &tape.image;
         for k in (0..n).rev() {
-            let Some((prev, o)) = &tape.saved[k] else {
+            let Some(Planes { prev, o, reach }) = &tape.saved[k] else {
                 continue;
             };
+            // The whole grid keeps whole images: I⁽ᵏ⁾ of a layer is the next one's I⁽ᵏ⁻¹⁾.
+            debug_assert_eq!(reach.len(), h * w, "whole-grid planes");
             let l = &layers[k];
             let spec = match spectra.map(|s| s.layers[k].as_deref()) {
                 Some(None) => {

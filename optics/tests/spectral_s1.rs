@@ -739,8 +739,19 @@ fn tiles_without_coverage_are_skipped() {
     let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f64 - 3.0);
     let mut acc = im.kernel_grad_accumulator(1);
     im.vjp_kernels(&layers, &tape, &g, &mut acc, None).unwrap();
+    let scale = acc.radiance_scale[0];
     let kg = im.kernel_grads(acc);
     let lg = im.vjp(&reference, &g).unwrap();
+    // ∂/∂(radiance scale) = Σ_k Σ ∂L/∂L_k · L_k: the full layer's term reads the image below
+    // the patch's layer over the patch's reach, which the tape keeps alone.
+    let want: f64 = (0..2)
+        .flat_map(|k| (0..h).flat_map(move |i| (0..w).map(move |j| (k, i, j))))
+        .map(|(k, i, j)| lg.radiance[k][(i, j)] * rad[(i, j)] as f64)
+        .sum();
+    assert!(
+        (scale - want).abs() < 1e-4 * (1.0 + want.abs()),
+        "radiance scale: {scale} vs {want}"
+    );
     for i in 0..wp {
         for j in 0..wp {
             let want = lg.psf[0][(i, j)] + lg.psf[1][(i, j)];

@@ -381,6 +381,26 @@ impl LayeredImager {
         c.saturating_sub(y0)..t.n.min(h + c - y0).min(th + self.wp - 1)
     }
 
+    /// The pixels the windows of `tiles` cover, as one span per image row from the first
+    /// window's column to the last's; the spans' ends rounded out to multiples of
+    /// [`DOT_LANES`] (or the row's end), so that the adjoint's partial sums over a span take
+    /// each pixel in the lane a whole row gives it.
+    fn reach(&self, t: &Tiling, tiles: &[u32]) -> Reach {
+        let (h, w) = (self.h, self.w);
+        let c = self.wp / 2;
+        let mut spans = vec![(usize::MAX, 0); h];
+        for &tile in tiles {
+            let (y0, x0, th, tw) = t.origin(tile);
+            let (ys, xs) = (self.window(t, y0, th, h), self.window(t, x0, tw, w));
+            let (a, b) = (x0 + xs.start - c, x0 + xs.end - c);
+            let (a, b) = (a - a % DOT_LANES, b.next_multiple_of(DOT_LANES).min(w));
+            for s in &mut spans[y0 + ys.start - c..y0 + ys.end - c] {
+                *s = (s.0.min(a), s.1.max(b));
+            }
+        }
+        Reach::from_spans(spans)
+    }
+
     /// [`Self::layer_spectra`] on tiles.
     pub(super) fn tiled_layer_spectra(
         &self,
@@ -423,9 +443,11 @@ impl LayeredImager {
     /// [`Self::spectral`] on tiles: per covered tile its transform (or its given spectrum)
     /// times P̂, the inverse, and its part of the layer's composition. The whole-grid path's
     /// I⁽ᵏ⁾ = gain·(L∗P) + (1 − α∗P)·I⁽ᵏ⁻¹⁾ is linear in the convolution, so each tile's part
-    /// goes straight into I⁽ᵏ⁾, which starts as a copy of I⁽ᵏ⁻¹⁾ (where no tile reaches, α∗P
-    /// is 0 and it stays so exactly), and with a tape into α∗P, which the tape keeps whole;
-    /// no complex plane of the convolution is written and read back.
+    /// goes straight into the image, updated in place from I⁽ᵏ⁻¹⁾ to I⁽ᵏ⁾ (where no tile
+    /// reaches, α∗P is 0 and it stays so exactly) while the tiles read I⁽ᵏ⁻¹⁾ from a copy of
+    /// the layer's reach alone; with a tape, that copy and α∗P over the reach are kept. No
+    /// complex plane of the convolution is written and read back, and no pass over the whole
+    /// frame is made per layer.
     pub(super) fn tiled_spectral(
         &self,
         t: &Tiling,
@@ -437,8 +459,8 @@ impl LayeredImager {
         let (h, w, n) = (self.h, self.w, t.n);
         let (cy, cx) = (self.wp / 2, self.wp / 2);
         let nn = n * n;
-        let mut prev = vec![0.0f32; h * w];
-        // Without a tape, I⁽ᵏ⁾ is written into this buffer and swapped with I⁽ᵏ⁻¹⁾.
+        let mut image = vec![0.0f32; h * w];
+        // Without a tape, each layer's copy of I⁽ᵏ⁻¹⁾ reuses this buffer.
         let mut spare = Vec::new();
         let mut saved = Vec::with_capacity(layers.len());
         let mut record = (keep && spectra.is_none()).then(|| (Vec::new(), Vec::new()));
@@ -479,20 +501,23 @@ impl LayeredImager {
                 }
             };
             let gain = l.gain as f64 * scale as f64;
-            let mut cur = if keep {
-                prev.clone()
+            let reach = self.reach(t, tiles);
+            let mut prev = if keep {
+                Vec::with_capacity(reach.len())
             } else {
                 let mut c = std::mem::take(&mut spare);
                 c.clear();
-                c.extend_from_slice(&prev);
                 c
             };
+            for (r, cols, _) in reach.rows() {
+                prev.extend_from_slice(&image[r * w + cols.start..r * w + cols.end]);
+            }
             // Zeros written, not calloc'd: fresh pages that the tiles first read and then
             // write fault twice, the second time with a TLB shootdown across the threads
             // (the forward at batch 16 on 2 cores took 0.75–0.79 s instead of 0.64–0.67 s).
             let mut o = keep.then(|| {
-                let mut o = Vec::with_capacity(h * w);
-                o.extend(std::iter::repeat_n(0.0f32, h * w));
+                let mut o = Vec::with_capacity(reach.len());
+                o.extend(std::iter::repeat_n(0.0f32, reach.len()));
                 o
             });
             let mut rec = record
@@ -522,10 +547,12 @@ impl LayeredImager {
                 t.ifft2(&mut tb.b, ys.clone(), &mut tb.a, &mut tb.scratch);
                 for m in ys {
                     let src = &tb.a[m * n + xs.start..m * n + xs.end];
-                    let at = (y0 + m - cy) * w + x0 + xs.start - cx;
-                    let span = at..at + src.len();
-                    let o = o.as_mut().map(|o| &mut o[span.clone()]);
-                    add_tile_row(gain, src, &prev[span.clone()], &mut cur[span], o);
+                    let (y, x) = (y0 + m - cy, x0 + xs.start - cx);
+                    let at = reach.packed(y, x);
+                    let packed = at..at + src.len();
+                    let o = o.as_mut().map(|o| &mut o[packed.clone()]);
+                    let span = y * w + x..y * w + x + src.len();
+                    add_tile_row(gain, src, &prev[packed], &mut image[span], o);
                 }
             }
             if let Some((r, tl)) = record.as_mut() {
@@ -533,14 +560,13 @@ impl LayeredImager {
                 tl.push(tiles.to_vec());
             }
             scales.push(scale);
-            let prev_image = std::mem::replace(&mut prev, cur);
             match o {
-                Some(o) => saved.push(Some((prev_image, o))),
-                None => spare = prev_image,
+                Some(o) => saved.push(Some(Planes { prev, o, reach })),
+                None => spare = prev,
             }
         }
         t.pool.give(tb);
-        self.finish_pass(prev, saved, scales, record, keep)
+        self.finish_pass(image, saved, scales, record, keep)
     }
 
     /// [`Self::vjp_kernels`] on tiles for ∂loss/∂I = `gi` (row-major): per covered tile the
@@ -561,9 +587,11 @@ impl LayeredImager {
         let nn = n * n;
         let norm = 1.0 / nn as f32;
         let mut tb = t.buffers();
-        let mut above: &[f32] = &tape.image;
+        // I⁽ᵏ⁾ of the layer at hand: the final image, set back to I⁽ᵏ⁻¹⁾ over each layer's
+        // reach once the layer is done (outside its reach the two are equal).
+        let mut above = tape.image.clone();
         for k in (0..layers.len()).rev() {
-            let Some((prev, o)) = &tape.saved[k] else {
+            let Some(Planes { prev, o, reach }) = &tape.saved[k] else {
                 continue;
             };
             let l = &layers[k];
@@ -611,11 +639,13 @@ impl LayeredImager {
                     let row = &mut tb.a[m * n..(m + 1) * n];
                     row[..xs.start].fill(c32::new(0.0, 0.0));
                     row[xs.end..].fill(c32::new(0.0, 0.0));
-                    let span = (y0 + m - cy) * w + gx.start..(y0 + m - cy) * w + gx.end;
+                    let y = y0 + m - cy;
+                    let span = y * w + gx.start..y * w + gx.end;
+                    let at = reach.packed(y, gx.start);
                     row[xs.clone()]
                         .iter_mut()
-                        .zip(&gi[span.clone()])
-                        .zip(&prev[span])
+                        .zip(&gi[span])
+                        .zip(&prev[at..at + gx.len()])
                         .for_each(|((v, &gv), &p)| *v = gradient_value(gain, gv, p));
                 }
                 t.fft2(&mut tb.a, ys, &mut tb.b, &mut tb.scratch);
@@ -627,22 +657,25 @@ impl LayeredImager {
                 );
                 fresh = false;
             }
-            // With every window read, ∂L/∂I⁽ᵏ⁻¹⁾ over ∂L/∂I⁽ᵏ⁾ and the radiance scale's term.
+            // With every window read, ∂L/∂I⁽ᵏ⁻¹⁾ over ∂L/∂I⁽ᵏ⁾ and the radiance scale's term,
+            // over the reach alone: outside it ∂L/∂I⁽ᵏ⁻¹⁾ = ∂L/∂I⁽ᵏ⁾ and the term is 0
+            // exactly. The spans start at multiples of DOT_LANES, so the partial sums are
+            // those of whole rows.
             let mut dots = [0.0f64; DOT_LANES];
-            for r in 0..h {
-                let span = r * w..(r + 1) * w;
+            for (r, cols, packed) in reach.rows() {
+                let span = r * w + cols.start..r * w + cols.end;
                 adjoint_row(
                     gain,
                     &mut gi[span.clone()],
-                    &prev[span.clone()],
-                    &o[span.clone()],
-                    &above[span],
+                    &prev[packed.clone()],
+                    &o[packed.clone()],
+                    &above[span.clone()],
                     None,
                     &mut dots,
                 );
+                above[span].copy_from_slice(&prev[packed]);
             }
             acc.radiance_scale[l.kernel] += dots.iter().sum::<f64>();
-            above = prev;
         }
         t.pool.give(tb);
         Ok(())
