@@ -267,15 +267,15 @@ unsafe fn transpose_raw(rows: &[&[f32]], dst: *mut f32, ld: usize, h: usize, w: 
 }
 
 /// Values c .. c + 8 of the eight rows `src` into rows c .. c + 8, columns r .. r + 8 of the
-/// row-major `dst` of `h` columns: the 8×8 transposition by unpacks, shuffles and 128-bit
-/// permutes.
+/// row-major `dst` whose rows are `ld` values apart: the 8×8 transposition by unpacks,
+/// shuffles and 128-bit permutes.
 ///
 /// # Safety
-/// Each `src[i]` is valid for reads of c + 8 values; `dst` for writes at (c + j)·h + r + i,
+/// Each `src[i]` is valid for reads of c + 8 values; `dst` for writes at (c + j)·ld + r + i,
 /// i, j < 8.
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
 #[inline]
-unsafe fn transpose8(src: [*const f32; 8], c: usize, dst: *mut f32, h: usize, r: usize) {
+unsafe fn transpose8(src: [*const f32; 8], c: usize, dst: *mut f32, ld: usize, r: usize) {
     use std::arch::x86_64::*;
     // SAFETY: inside the rows and `dst` by the contract; unaligned loads and stores.
     unsafe {
@@ -307,7 +307,7 @@ unsafe fn transpose8(src: [*const f32; 8], c: usize, dst: *mut f32, h: usize, r:
             _mm256_permute2f128_ps::<0x31>(u3, u7),
         ];
         for (j, o) in out.into_iter().enumerate() {
-            _mm256_storeu_ps(dst.add((c + j) * h + r), o);
+            _mm256_storeu_ps(dst.add((c + j) * ld + r), o);
         }
     }
 }
@@ -852,7 +852,8 @@ fn scale_of(m: f32) -> f32 {
 /// The pixels of an H×W image one layer's composition can change: per row one span of
 /// columns (empty where it changes none), and where that span starts in a plane that holds
 /// the spans packed row after row. The whole-grid path's layers reach every pixel; a layer on
-/// tiles reaches its tiles' windows, so its planes on the tape and the passes over them skip
+/// tiles reaches, per row, from its first tile window to its last, widened to multiples of
+/// [`DOT_LANES`] (`tiled::reach`), so its planes on the tape and the passes over them skip
 /// the rest of the frame (where α∗P = 0 and I⁽ᵏ⁾ = I⁽ᵏ⁻¹⁾ exactly).
 #[derive(Debug)]
 struct Reach {
@@ -908,11 +909,14 @@ impl Reach {
     }
 }
 
-/// One layer's planes on S1's tape, over its reach: I⁽ᵏ⁻¹⁾ (the image below it) and α∗P.
+/// One layer's planes on S1's tape, over its reach: I⁽ᵏ⁻¹⁾ (the image below it) and α∗P;
+/// on tiles also the tiles the layer was imaged on, which its reach was made from (the
+/// backward takes them instead of finding them again, and refuses spectra of other tiles).
 struct Planes {
     prev: Vec<f32>,
     o: Vec<f32>,
     reach: Reach,
+    tiles: Vec<u32>,
 }
 
 /// What a spectral forward pass keeps for the PSF VJP: per layer the image below it and its
@@ -924,6 +928,8 @@ pub struct S1Tape {
     saved: Vec<Option<Planes>>,
     /// The final image, row-major H×W.
     image: Vec<f32>,
+    /// The spectral grid of the imager that made it ([`LayeredImager::spectral_grid`]).
+    grid: (usize, usize, usize),
     /// Per layer, its radiance channel's scale ([`SpectralLayer::radiance_scale`]).
     scales: Vec<f32>,
     spectra: Option<LayerSpectra>,
@@ -1651,6 +1657,7 @@ impl LayeredImager {
                     prev: std::mem::replace(&mut prev, cur),
                     o,
                     reach: Reach::full(h, w),
+                    tiles: Vec::new(),
                 }));
             } else {
                 for (prow, grow) in prev.chunks_exact_mut(w).zip(out.chunks_exact_mut(nx)) {
@@ -1693,6 +1700,7 @@ impl LayeredImager {
         let tape = keep.then_some(S1Tape {
             saved,
             image,
+            grid: self.spectral_grid(),
             scales,
             spectra,
         });
@@ -1723,6 +1731,12 @@ impl LayeredImager {
                 tape.saved.len()
             )));
         }
+        if tape.grid != self.spectral_grid() {
+            // Its planes cover the reach of another imager's tiles (or whole frames).
+            return Err(OpticsError::Shape(
+                "the tape comes from another imager (another grid or tiling)".into(),
+            ));
+        }
         self.check_layers(layers)?;
         let spectra = spectra.or(tape.spectra.as_ref());
         self.check_spectra(layers, spectra)?;
@@ -1746,11 +1760,11 @@ impl LayeredImager {
         // I⁽ᵏ⁾ of each layer: the next non-empty layer's `prev`, or the final image.
         let mut above: &[f32] = &tape.image;
         for k in (0..n).rev() {
-            let Some(Planes { prev, o, reach }) = &tape.saved[k] else {
+            let Some(Planes { prev, o, .. }) = &tape.saved[k] else {
                 continue;
             };
-            // The whole grid keeps whole images: I⁽ᵏ⁾ of a layer is the next one's I⁽ᵏ⁻¹⁾.
-            debug_assert_eq!(reach.len(), h * w, "whole-grid planes");
+            // The whole grid keeps whole images (the tape's grid is this imager's, checked
+            // above): I⁽ᵏ⁾ of a layer is the next one's I⁽ᵏ⁻¹⁾.
             let l = &layers[k];
             let spec = match spectra.map(|s| s.layers[k].as_deref()) {
                 Some(None) => {

@@ -764,6 +764,26 @@ fn tiles_without_coverage_are_skipped() {
     }
     let whole = LayeredImager::with_tiles(h, w, wp, None).unwrap();
     assert_eq!(whole.tile(), None);
+    // The tape holds each layer's planes over the tiles it imaged: another imager's backward
+    // refuses it, and so does this one given spectra of other tiles (another frame's patch),
+    // rather than reading them against planes that do not cover them.
+    let mut acc = whole.kernel_grad_accumulator(1);
+    let err = whole.vjp_kernels(&layers, &tape, &g, &mut acc, None).err();
+    let err = err.expect("refused").to_string();
+    assert!(err.contains("another imager"), "{err}");
+    let moved = Mat::from_fn(h, w, |i, j| if i < 3 && j < 3 { 0.8 } else { 0.0 });
+    let other = im
+        .layer_spectra(&[
+            SpectralLayer::new(rad.as_ref(), ones.as_ref(), 0),
+            SpectralLayer::new(rad.as_ref(), moved.as_ref(), 0),
+        ])
+        .unwrap();
+    let mut acc = im.kernel_grad_accumulator(1);
+    let err = im
+        .vjp_kernels(&layers, &tape, &g, &mut acc, Some(&other))
+        .err();
+    let err = err.expect("refused").to_string();
+    assert!(err.contains("other tiles"), "{err}");
     // The forward pass's refusal of other spectra, as text.
     let refused = |ks: &KernelSpectra, spectra: Option<&LayerSpectra>| {
         let err = im.forward_spectral(&layers, ks, spectra).err();

@@ -561,7 +561,12 @@ impl LayeredImager {
             }
             scales.push(scale);
             match o {
-                Some(o) => saved.push(Some(Planes { prev, o, reach })),
+                Some(o) => saved.push(Some(Planes {
+                    prev,
+                    o,
+                    reach,
+                    tiles: tiles.to_vec(),
+                })),
                 None => spare = prev,
             }
         }
@@ -569,10 +574,10 @@ impl LayeredImager {
         self.finish_pass(image, saved, scales, record, keep)
     }
 
-    /// [`Self::vjp_kernels`] on tiles for ∂loss/∂I = `gi` (row-major): per covered tile the
-    /// transform of its N×N window of the gradient times the tile's conjugate spectrum, into
-    /// the kernel's N×N accumulator, then the adjoint's pass over the whole image as on the
-    /// whole grid.
+    /// [`Self::vjp_kernels`] on tiles for ∂loss/∂I = `gi` (row-major): per tile the forward
+    /// imaged (the tape's), the transform of its N×N window of the gradient times the tile's
+    /// conjugate spectrum, into the kernel's N×N accumulator, then the adjoint's pass over
+    /// the layer's reach.
     pub(super) fn tiled_vjp_kernels(
         &self,
         t: &Tiling,
@@ -591,32 +596,34 @@ impl LayeredImager {
         // reach once the layer is done (outside its reach the two are equal).
         let mut above = tape.image.clone();
         for k in (0..layers.len()).rev() {
-            let Some(Planes { prev, o, reach }) = &tape.saved[k] else {
+            let Some(Planes {
+                prev,
+                o,
+                reach,
+                tiles,
+            }) = &tape.saved[k]
+            else {
                 continue;
             };
             let l = &layers[k];
             let gain = l.gain as f64 * tape.scales[k] as f64;
-            let scanned;
-            let (tiles, spec): (&[u32], Option<&[c32]>) =
-                match spectra.map(|s| (s.layers[k].as_deref(), &s.tiles[k])) {
-                    Some((None, _)) => {
-                        return Err(OpticsError::Shape(format!(
-                            "layer {k} has no spectrum but was imaged: spectra of other layers"
-                        )));
-                    }
-                    Some((Some(s), tiles)) => (tiles, Some(s)),
-                    None => {
-                        scanned = self.scan(t, l, k)?;
-                        match &scanned {
-                            Some((tiles, _)) => (tiles, None),
-                            None => {
-                                return Err(OpticsError::Shape(format!(
-                                    "layer {k} has no coverage but was imaged: other layers"
-                                )));
-                            }
-                        }
-                    }
-                };
+            // The tiles the forward imaged, which the tape's planes cover: spectra of other
+            // tiles (another frame's) are refused, not read against them.
+            let spec = match spectra.map(|s| (s.layers[k].as_deref(), &s.tiles[k])) {
+                Some((None, _)) => {
+                    return Err(OpticsError::Shape(format!(
+                        "layer {k} has no spectrum but was imaged: spectra of other layers"
+                    )));
+                }
+                Some((Some(_), st)) if st != tiles => {
+                    return Err(OpticsError::Shape(format!(
+                        "layer {k}'s spectra are of other tiles than its forward's: spectra \
+                         of another frame"
+                    )));
+                }
+                Some((Some(s), _)) => Some(s),
+                None => None,
+            };
             let mut fresh = acc.spec[l.kernel].is_none();
             let slot = acc.spec[l.kernel].get_or_insert_with(|| self.spare_spectrum());
             let lines = spec.is_none().then(|| l.lines());
@@ -709,6 +716,100 @@ impl LayeredImager {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `tape` with each layer's planes widened to the whole image (I⁽ᵏ⁻¹⁾ outside its reach
+    /// from the layers above it, α∗P zero there): what the tape held before reaches.
+    fn whole_planes(im: &LayeredImager, tape: &S1Tape) -> S1Tape {
+        let (h, w) = (im.h, im.w);
+        let mut above = tape.image.clone();
+        let mut saved: Vec<Option<Planes>> = tape.saved.iter().map(|_| None).collect();
+        for k in (0..tape.saved.len()).rev() {
+            let Some(p) = &tape.saved[k] else { continue };
+            let (mut prev, mut o) = (above.clone(), vec![0.0f32; h * w]);
+            for (r, cols, packed) in p.reach.rows() {
+                let span = r * w + cols.start..r * w + cols.end;
+                prev[span.clone()].copy_from_slice(&p.prev[packed.clone()]);
+                o[span].copy_from_slice(&p.o[packed]);
+            }
+            above = prev.clone();
+            saved[k] = Some(Planes {
+                prev,
+                o,
+                reach: Reach::full(h, w),
+                tiles: p.tiles.clone(),
+            });
+        }
+        S1Tape {
+            saved,
+            image: tape.image.clone(),
+            grid: tape.grid,
+            scales: tape.scales.clone(),
+            spectra: None,
+        }
+    }
+
+    /// The PSF adjoint over each layer's reach gives the bits of the pass over whole rows:
+    /// outside the reach its terms are exact zeros and ∂L/∂I passes unchanged, and the spans
+    /// start and end where whole rows put each pixel in the same partial sum (a layer over
+    /// everything, a band, a 3×3 patch in one tile, and a block whose reach starts mid-row).
+    #[test]
+    fn the_adjoint_over_the_reach_gives_the_whole_rows_bits() {
+        let (h, w, wp) = (40, 45, 5);
+        let im = LayeredImager::with_tiles(h, w, wp, Some(12)).unwrap();
+        let t = im.tiling.as_ref().expect("tiled");
+        let psf = Mat::from_fn(wp, wp, |i, j| 1.0 / (1.0 + (i * 2 + j) as f32));
+        let ks = im.kernel_spectra(&[Some(&psf), Some(&psf)]).unwrap();
+        let rad = Mat::from_fn(h, w, |i, j| 0.1 + ((i * 7 + j * 13) % 17) as f32 / 7.0);
+        let ones = Mat::from_fn(h, w, |_, _| 1.0f32);
+        // Tile columns 2 and 3: windows from column 22, the reach from 16.
+        let block = Mat::from_fn(h, w, |i, j| {
+            if (5..35).contains(&i) && j >= 27 {
+                0.3 + (i * j % 5) as f32 / 9.0
+            } else {
+                0.0
+            }
+        });
+        let patch = Mat::from_fn(h, w, |i, j| {
+            if (14..17).contains(&i) && (29..32).contains(&j) {
+                0.8
+            } else {
+                0.0
+            }
+        });
+        let band = Mat::from_fn(h, w, |i, j| {
+            if (26..30).contains(&i) && j > 3 {
+                0.6
+            } else {
+                0.0
+            }
+        });
+        let layers = [
+            SpectralLayer::new(rad.as_ref(), ones.as_ref(), 0),
+            SpectralLayer::new(rad.as_ref(), band.as_ref(), 1),
+            SpectralLayer::new(rad.as_ref(), patch.as_ref(), 0),
+            SpectralLayer::new(rad.as_ref(), block.as_ref(), 1),
+        ];
+        let (_, mut tape) = im.forward_spectral(&layers, &ks, None).unwrap();
+        // The reaches differ from whole rows, and one starts past column 0.
+        let reach = |k: usize| &tape.saved[k].as_ref().expect("covered").reach;
+        assert!((1..4).all(|k| reach(k).len() < h * w));
+        assert!(reach(3).rows().all(|(_, c, _)| c.start == 16));
+        let spectra = tape.take_spectra().expect("recorded");
+        let whole = whole_planes(&im, &tape);
+        let g = Mat::from_fn(h, w, |i, j| ((i * 5 + j * 3) % 7) as f32 / 3.0 - 1.1);
+        let mut gi = vec![0.0f32; h * w];
+        f32::rows_into(&g, &mut gi);
+        let run = |tape: &S1Tape| {
+            let mut acc = im.kernel_grad_accumulator(2);
+            im.tiled_vjp_kernels(t, &layers, tape, gi.clone(), &mut acc, Some(&spectra))
+                .unwrap();
+            acc
+        };
+        let (a, b) = (run(&tape), run(&whole));
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&a.radiance_scale), bits(&b.radiance_scale));
+        assert!(a.spec == b.spec, "∂L/∂P's spectra differ");
+    }
 
     /// The blocked transposition (register blocks and the one-value edges) moves every value
     /// of the given rows and columns to its transposed place and writes nothing else: ranges
