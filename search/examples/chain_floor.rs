@@ -114,10 +114,22 @@ fn main() {
         t_fft_t.0 * 1e3,
         t_fft_t.1 * 1e3
     );
+    // A dataset whose frames' spectra would not all fit the budget keeps none
+    // (search/src/spectra.rs): its "kept" rows below then compute them too, with two FFTs
+    // per layer (or covered tile) forward, and their floor counts one.
+    let kept = chain.cached_layer_spectra();
     println!(
-        "first forward of the frames (computes and keeps their layer spectra): {:.1} ms per frame",
-        t_first / n * 1e3
+        "first forward of the frames (computes their layer spectra, keeps them where the \
+         dataset's fit the budget): {:.1} ms per frame; frames with kept spectra: {kept} of {}",
+        t_first / n * 1e3,
+        frames.len()
     );
+    if kept < frames.len() {
+        println!(
+            "NOTE: not every frame's spectra are kept (the dataset's exceed the budget): the \
+             \"kept\" rows below compute them in each forward (two FFTs per layer or tile)"
+        );
+    }
     if let Some((t, nt, covered, tf)) = tiles {
         println!(
             "S1 on tiles of {t} px ({nt}x{nt} grids): {:.1} covered tiles per frame; one bare \
