@@ -57,6 +57,16 @@ pub(super) struct Tiling {
     pool: Pool<TileBuffers>,
 }
 
+/// Where a tile's N×N grid meets the image ([`LayeredImager::tile_window`]).
+struct TileWindow {
+    /// Grid rows and columns that land in the image and hold the tile's convolution.
+    ys: Range<usize>,
+    xs: Range<usize>,
+    /// The image rows and columns they are.
+    rows: Range<usize>,
+    cols: Range<usize>,
+}
+
 /// Work space of the tiled path: three tile grids and FFT scratch.
 struct TileBuffers {
     a: Vec<c32>,
@@ -381,20 +391,37 @@ impl LayeredImager {
         c.saturating_sub(y0)..t.n.min(h + c - y0).min(th + self.wp - 1)
     }
 
+    /// Where tile `tile`'s N×N grid meets the image ([`Self::window`] both ways): grid rows
+    /// `ys` are image rows `rows`, grid columns `xs` image columns `cols`, in order. The
+    /// forward's overlap-add, the adjoint's windows and the layer's reach all take it from
+    /// here, so every window lies inside its layer's reach.
+    fn tile_window(&self, t: &Tiling, tile: u32) -> TileWindow {
+        let (y0, x0, th, tw) = t.origin(tile);
+        let c = self.wp / 2;
+        let (ys, xs) = (
+            self.window(t, y0, th, self.h),
+            self.window(t, x0, tw, self.w),
+        );
+        TileWindow {
+            rows: y0 + ys.start - c..y0 + ys.end - c,
+            cols: x0 + xs.start - c..x0 + xs.end - c,
+            ys,
+            xs,
+        }
+    }
+
     /// The pixels the windows of `tiles` cover, as one span per image row from the first
     /// window's column to the last's; the spans' ends rounded out to multiples of
     /// [`DOT_LANES`] (or the row's end), so that the adjoint's partial sums over a span take
     /// each pixel in the lane a whole row gives it.
     fn reach(&self, t: &Tiling, tiles: &[u32]) -> Reach {
-        let (h, w) = (self.h, self.w);
-        let c = self.wp / 2;
-        let mut spans = vec![(usize::MAX, 0); h];
+        let w = self.w;
+        let mut spans = vec![(usize::MAX, 0); self.h];
         for &tile in tiles {
-            let (y0, x0, th, tw) = t.origin(tile);
-            let (ys, xs) = (self.window(t, y0, th, h), self.window(t, x0, tw, w));
-            let (a, b) = (x0 + xs.start - c, x0 + xs.end - c);
+            let win = self.tile_window(t, tile);
+            let (a, b) = (win.cols.start, win.cols.end);
             let (a, b) = (a - a % DOT_LANES, b.next_multiple_of(DOT_LANES).min(w));
-            for s in &mut spans[y0 + ys.start - c..y0 + ys.end - c] {
+            for s in &mut spans[win.rows] {
                 *s = (s.0.min(a), s.1.max(b));
             }
         }
@@ -457,7 +484,6 @@ impl LayeredImager {
         keep: bool,
     ) -> Result<(Mat<f32>, Option<S1Tape>)> {
         let (h, w, n) = (self.h, self.w, t.n);
-        let (cy, cx) = (self.wp / 2, self.wp / 2);
         let nn = n * n;
         let mut image = vec![0.0f32; h * w];
         // Without a tape, each layer's copy of I⁽ᵏ⁻¹⁾ reuses this buffer.
@@ -542,16 +568,14 @@ impl LayeredImager {
                         tb.b.iter_mut().zip(p).for_each(|(b, p)| *b *= p);
                     }
                 }
-                let (y0, x0, th, tw) = t.origin(tile);
-                let (ys, xs) = (self.window(t, y0, th, h), self.window(t, x0, tw, w));
-                t.ifft2(&mut tb.b, ys.clone(), &mut tb.a, &mut tb.scratch);
-                for m in ys {
-                    let src = &tb.a[m * n + xs.start..m * n + xs.end];
-                    let (y, x) = (y0 + m - cy, x0 + xs.start - cx);
-                    let at = reach.packed(y, x);
+                let win = self.tile_window(t, tile);
+                t.ifft2(&mut tb.b, win.ys.clone(), &mut tb.a, &mut tb.scratch);
+                for (m, y) in win.ys.zip(win.rows) {
+                    let src = &tb.a[m * n + win.xs.start..m * n + win.xs.end];
+                    let at = reach.packed(y, win.cols.start);
                     let packed = at..at + src.len();
                     let o = o.as_mut().map(|o| &mut o[packed.clone()]);
-                    let span = y * w + x..y * w + x + src.len();
+                    let span = y * w + win.cols.start..y * w + win.cols.end;
                     add_tile_row(gain, src, &prev[packed], &mut image[span], o);
                 }
             }
@@ -587,8 +611,7 @@ impl LayeredImager {
         acc: &mut KernelGradAccumulator,
         spectra: Option<&LayerSpectra>,
     ) -> Result<()> {
-        let (h, w, n) = (self.h, self.w, t.n);
-        let (cy, cx) = (self.wp / 2, self.wp / 2);
+        let (w, n) = (self.w, t.n);
         let nn = n * n;
         let norm = 1.0 / nn as f32;
         let mut tb = t.buffers();
@@ -637,22 +660,19 @@ impl LayeredImager {
                         &tb.c
                     }
                 };
-                let (y0, x0, th, tw) = t.origin(tile);
-                let (ys, xs) = (self.window(t, y0, th, h), self.window(t, x0, tw, w));
-                let gx = x0 + xs.start - cx..x0 + xs.end - cx;
+                let TileWindow { ys, xs, rows, cols } = self.tile_window(t, tile);
                 // The gradient's window, computed where it is read: ∂L/∂I⁽ᵏ⁾ and I⁽ᵏ⁻¹⁾ are
                 // 8 bytes a pixel as its complex plane would be, and no plane is written.
-                for m in ys.clone() {
+                for (m, y) in ys.clone().zip(rows) {
                     let row = &mut tb.a[m * n..(m + 1) * n];
                     row[..xs.start].fill(c32::new(0.0, 0.0));
                     row[xs.end..].fill(c32::new(0.0, 0.0));
-                    let y = y0 + m - cy;
-                    let span = y * w + gx.start..y * w + gx.end;
-                    let at = reach.packed(y, gx.start);
+                    let span = y * w + cols.start..y * w + cols.end;
+                    let at = reach.packed(y, cols.start);
                     row[xs.clone()]
                         .iter_mut()
                         .zip(&gi[span])
-                        .zip(&prev[at..at + gx.len()])
+                        .zip(&prev[at..at + cols.len()])
                         .for_each(|((v, &gv), &p)| *v = gradient_value(gain, gv, p));
                 }
                 t.fft2(&mut tb.a, ys, &mut tb.b, &mut tb.scratch);
