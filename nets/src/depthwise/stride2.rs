@@ -17,7 +17,9 @@
 //! with lane masks (masked lanes read as zero), except that where the blocks ending at the
 //! row's end read no column past it (3×3, even widths from 18) the last one or two start
 //! there, over some outputs again; on odd widths (3×3, from 17) they read one column past it,
-//! which the last block loads one column early and shifts in as zero. Every
+//! which the last block loads one column early and shifts in as zero. On rows of 8n + 1 and
+//! 8n + 2 outputs (3×3) the blocks stop at 8n and the last two outputs of all four rows go in
+//! one register ([`tail_pairs`]). Every
 //! output sums its k² taps from zero in (ky, kx) order, padding included, as the plane path
 //! does, so y is the plane path's bits wherever its block starts (test `stride_2_gives_the_plane_paths_bits`).
 //!
@@ -62,6 +64,8 @@ pub(super) fn takes(g: &Geom) -> bool {
 /// 3×3 forward on output rows of 13 or more (two or three blocks of eight, their edges
 /// unmasked from widths 16), the backward on rows of whole blocks (16, 24, 32 outputs) and the
 /// 3×3 backward on odd widths from 35 (rows of 18 or more; its dL/dx's last block unmasked).
+/// Rows of 10 too: one block and the last pair ([`pairs_tail`]; 192×22×20 two threads 196
+/// → 143 µs), but not rows of 9 (336×11×18: 144 µs through the channel blocks, 150 here).
 /// The channel blocks transpose four input pixels per output at stride 2; on narrower rows,
 /// for the other backward rows and for the 5×5 forward they are still the faster (`dw_prof`,
 /// docs/bench/nets.md).
@@ -71,7 +75,7 @@ pub(super) fn preferred(g: &Geom, backward: bool) -> bool {
             g.wo.is_multiple_of(HALF) && g.wo >= 2 * HALF
                 || g.k == 3 && !g.w.is_multiple_of(2) && g.wo > 2 * HALF + 1
         } else {
-            g.k == 3 && g.wo >= 13
+            g.k == 3 && (g.wo >= 13 || g.wo == HALF + 2)
         }
 }
 
@@ -182,6 +186,25 @@ const LEFT: u8 = 1;
 const MASKS: u8 = 2;
 /// [`block`]'s `EDGE` (3×3 only): the last block as [`Reach::Right`], any other inside.
 const RIGHT: u8 = 3;
+
+/// `body` for i = 0, 1, .. n − 1 (n ≤ 11) written out, i a literal in each: the row loops of
+/// [`block`] with a constant trip count were still left rolled for some (R, V, EDGE), their
+/// taps' rows then chosen by branches and their weights indexed at run time.
+macro_rules! rows_loop {
+    ($unroll:expr, $n:expr, |$i:ident| $body:block) => {
+        if $unroll {
+            rows_loop!(@ $n, $i, $body, 0 1 2 3 4 5 6 7 8 9 10)
+        } else {
+            for $i in 0..$n $body
+        }
+    };
+    (@ $n:expr, $i:ident, $body:block, $($k:literal)*) => {{
+        $({
+            let $i: usize = $k;
+            if $i < $n $body
+        })*
+    }};
+}
 
 /// Pair `i` of input row `row`'s loads for the eight outputs from `x0`: columns 2x₀ − 2 + 2i
 /// .. + 16 (zeros for the padding, None); its even and odd halves are the columns 2j − 2 + 2i
@@ -334,8 +357,12 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
         }
     });
     let dst = out[m * wo..][..R * wo].as_mut_ptr().cast::<f32>();
+    // Blocks of eight up to `end`, the last two outputs of rows 8n + 1 or 8n + 2 wide in one
+    // register for all R rows.
+    let tail = pairs_tail(K, wo);
+    let end = if tail { wo - wo % HALF } else { wo };
     let mut x0 = 0;
-    while x0 < wo {
+    while x0 < end {
         // Interior blocks apart, so that their loads and stores compile without masks, and
         // two at a time where they can: R·V independent sums in flight.
         let interior = |x0: usize| x0 >= 1 && 2 * x0 + 2 * pairs(K) + 12 <= w;
@@ -353,9 +380,9 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
             // same wherever its block starts, so those are rewritten with their own bits, and
             // the right edge needs no masked loads. On 96×44×70 a single block and a masked
             // one became one unmasked pair: two threads 429–446 → 388–398 µs (`dw_prof`).
-            // Such a start lies before x0 and its block ends at wo (the bound above holds).
+            // Such a start lies before x0 and its block ends at `end` (the bound above holds).
             let last = |blocks: usize| {
-                wo.checked_sub(blocks * HALF)
+                end.checked_sub(blocks * HALF)
                     .filter(|&e| e < x0 && (0..blocks).all(|v| interior(e + v * HALF)))
             };
             // On odd widths the blocks ending at the row's end read one column past it, which
@@ -363,6 +390,7 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
             let right = |blocks: usize| {
                 wo.checked_sub(blocks * HALF).filter(|&e| {
                     K == 3
+                        && !tail
                         && !w.is_multiple_of(2)
                         && e >= 1
                         && e <= x0
@@ -377,19 +405,19 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
                     block::<K, KK, R, 1, LEFT>(&rows, 0, (w, wo), wv, dst);
                     x0 = HALF;
                 }
-            } else if let (false, true, Some(e)) = (inner, x0 + HALF < wo, last(2)) {
+            } else if let (false, true, Some(e)) = (inner, x0 + HALF < end, last(2)) {
                 block::<K, KK, R, 2, INSIDE>(&rows, e, (w, wo), wv, dst);
                 x0 = wo;
             } else if let (false, Some(e)) = (interior(x0), last(1)) {
                 block::<K, KK, R, 1, INSIDE>(&rows, e, (w, wo), wv, dst);
                 x0 = wo;
-            } else if let (false, true, Some(e)) = (inner, x0 + HALF < wo, right(2)) {
+            } else if let (false, true, Some(e)) = (inner, x0 + HALF < end, right(2)) {
                 block::<K, KK, R, 2, RIGHT>(&rows, e, (w, wo), wv, dst);
                 x0 = wo;
             } else if let (false, Some(e)) = (interior(x0), right(1)) {
                 block::<K, KK, R, 1, RIGHT>(&rows, e, (w, wo), wv, dst);
                 x0 = wo;
-            } else if x0 + HALF < wo && (inner || K == 5) {
+            } else if x0 + HALF < end && (inner || K == 5) {
                 if inner {
                     block::<K, KK, R, 2, INSIDE>(&rows, x0, (w, wo), wv, dst);
                 } else {
@@ -405,6 +433,12 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
                 x0 += HALF;
             }
         }
+    }
+    if tail {
+        let wv3: &[__m256; 9] = wv[..].try_into().expect("3×3 taps");
+        // SAFETY: `pairs_tail(K, wo)`, so k = 3 and the rows are the 3×3 kernel's; the rest is
+        // this function's contract.
+        unsafe { tail_pairs::<R>(&rows, (w, wo), wv3, dst) };
     }
 }
 
@@ -439,9 +473,12 @@ unsafe fn block<const K: usize, const KK: usize, const R: usize, const V: usize,
         _ => (Reach::Inside, None),
     });
     let mut acc = [[_mm256_setzero_ps(); V]; R];
-    // A constant trip count (not the slice's length), so that the loop unrolls and each
-    // output row's accumulators stay in registers.
-    for i in 0..2 * R + K - 2 {
+    // A constant trip count (not the slice's length), so that each output row's accumulators
+    // stay in registers; written out for the 3×3 kernel, whose loop LLVM left rolled for the
+    // first blocks of a row (one thread, 192×22×35: 465–506 → 391–405 µs, `dw_prof`). The
+    // 5×5 kernel's written out issued its rows' loads first and spilled them (96×44×70 two
+    // threads 794–807 → 1737–1750 µs), so it stays a loop.
+    rows_loop!(K == 3, 2 * R + K - 2, |i| {
         // The 3×3 kernel's rows are never None (see `output_rows`): Some here at compile
         // time, so no branch guards its loads.
         let row = if K == 3 {
@@ -482,7 +519,7 @@ unsafe fn block<const K: usize, const KK: usize, const R: usize, const V: usize,
                 }
             }
         }
-    }
+    });
     for (r, acc) in acc.iter().enumerate() {
         for (v, a) in acc.iter().enumerate() {
             // Lanes 0 1 4 5 2 3 6 7 back to column order.
@@ -496,6 +533,87 @@ unsafe fn block<const K: usize, const KK: usize, const R: usize, const V: usize,
                     Some(mask) => _mm256_maskstore_ps(d, mask, a),
                 }
             }
+        }
+    }
+}
+
+/// Whether the 3×3 forward on output rows `wo` wide leaves their last two outputs to
+/// [`tail_pairs`]: rows of 8n + 1 and 8n + 2 (n ≥ 1), whose last one or two outputs would
+/// otherwise take a whole block of eight (the 22×35 map's rows of 18: 24 lanes for 18
+/// outputs; that block took a third of the layer's time, 192×22×35 one thread 333 µs on
+/// rows of 16 against 487 µs on rows of 18, `dw_prof`).
+const fn pairs_tail(k: usize, wo: usize) -> bool {
+    k == 3 && wo > HALF && (wo % HALF == 1 || wo % HALF == 2)
+}
+
+/// The last two outputs (wo − 2, wo − 1) of output rows m .. m + R (R = 1, 2 or 4) of the
+/// 3×3 kernel, the four rows' pairs in one register in column order: rows m and m + 1 in the
+/// lower 128 bits, m + 2 and m + 3 in the upper. Tap kx of output j is column 2j + kx − 1, so
+/// a pair reads columns s = 2wo − 5 .. 2wo − 1 of its input rows (the last the padding on odd
+/// widths); an in-lane shuffle of four columns of two rows each gives a tap's four pairs.
+/// Each output sums its nine taps from zero in (ky, kx) order, as the blocks do, so a pair
+/// the last block also wrote (rows of 8n + 1) is rewritten with the same bits.
+///
+/// # Safety
+/// AVX2 and FMA; [`pairs_tail`] for (3, wo), wo = ⌈w/2⌉; `rows` as [`block`]'s (input rows
+/// 2m − 1 .., w values each, the padding and rows past 2R + 1 the row of zeros); `dst` R·wo.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn tail_pairs<const R: usize>(
+    rows: &[Option<&[f32]>; 11],
+    (w, wo): (usize, usize),
+    wv: &[__m256; 9],
+    dst: *mut f32,
+) {
+    debug_assert!(matches!(R, 1 | 2 | 4) && pairs_tail(3, wo) && wo == w.div_ceil(2));
+    let s = 2 * wo - 5;
+    let even = w.is_multiple_of(2);
+    // Columns s .. s + 4 of input row i (from 2m − 1), and on even widths s + 1 .. s + 5
+    // (the last, 2wo − 1 = w − 1, inside the row).
+    // SAFETY: s + 3 ≤ w − 1 always, s + 4 = w − 1 on even widths; every row holds w values.
+    let at = |i: usize, o: usize| unsafe {
+        _mm_loadu_ps(rows[i].unwrap_or_default().as_ptr().add(s + o))
+    };
+    let mut acc = _mm256_setzero_ps();
+    for ky in 0..3 {
+        // Rows 2r + ky for the output rows r = 0 1 | 2 3.
+        let (u, v) = (
+            _mm256_set_m128(at(ky + 4, 0), at(ky, 0)),
+            _mm256_set_m128(at(ky + 6, 0), at(ky + 2, 0)),
+        );
+        let t2 = if even {
+            let (u, v) = (
+                _mm256_set_m128(at(ky + 4, 1), at(ky, 1)),
+                _mm256_set_m128(at(ky + 6, 1), at(ky + 2, 1)),
+            );
+            _mm256_shuffle_ps::<0xDD>(u, v)
+        } else {
+            // Columns s + 2 and the padding past the row.
+            _mm256_blend_ps::<0xAA>(_mm256_shuffle_ps::<0x22>(u, v), _mm256_setzero_ps())
+        };
+        let taps = [
+            _mm256_shuffle_ps::<0x88>(u, v),
+            _mm256_shuffle_ps::<0xDD>(u, v),
+            t2,
+        ];
+        for (kx, t) in taps.iter().enumerate() {
+            acc = _mm256_fmadd_ps(wv[3 * ky + kx], *t, acc);
+        }
+    }
+    let (lo, hi) = (
+        _mm256_castpd256_pd128(_mm256_castps_pd(acc)),
+        _mm256_extractf128_pd::<1>(_mm256_castps_pd(acc)),
+    );
+    // SAFETY: output row r < R holds wo values from dst + r·wo; each store writes two.
+    unsafe {
+        let d = |r: usize| dst.add(r * wo + wo - 2).cast::<f64>();
+        _mm_storel_pd(d(0), lo);
+        if R > 1 {
+            _mm_storeh_pd(d(1), lo);
+        }
+        if R > 2 {
+            _mm_storel_pd(d(2), hi);
+            _mm_storeh_pd(d(3), hi);
         }
     }
 }
@@ -822,7 +940,8 @@ mod tests {
     use super::*;
 
     /// Planes of 1–40 rows and widths from one column to past several registers (odd and
-    /// even, the main job's 35, 70, 87 and 139), through the entry point: y bit for bit the
+    /// even, the main job's 35, 70, 87 and 139; rows of 8n + 1 and 8n + 2 outputs, whose last
+    /// pair [`tail_pairs`] computes, odd and even), through the entry point: y bit for bit the
     /// plane path's (padding rows and masked edge lanes summed as its zeros are).
     #[test]
     fn stride_2_gives_the_plane_paths_bits() {
@@ -830,7 +949,8 @@ mod tests {
             return;
         }
         for w in [
-            1, 2, 3, 7, 8, 9, 15, 16, 17, 18, 31, 32, 33, 35, 47, 49, 70, 87, 139,
+            1, 2, 3, 7, 8, 9, 15, 16, 17, 18, 19, 20, 31, 32, 33, 34, 35, 36, 47, 49, 50, 70, 87,
+            139,
         ] {
             for k in [3, 5] {
                 super::super::assert_plane_path_bits((w, k, 2), 200 + w as u64, forward);
