@@ -920,12 +920,12 @@ unsafe fn dx_block<
             // masks its loads only).
             unsafe {
                 if MASKED && j + LANES > w {
-                    _mm256_maskstore_ps(d, inside(j as isize, w), left);
-                    _mm256_maskstore_ps(
-                        d.wrapping_add(HALF),
-                        inside((j + HALF) as isize, w),
-                        right,
-                    );
+                    // Through a buffer: AVX2 masked stores are slow on AMD (the stride-1
+                    // forward's edges, docs/bench/nets.md).
+                    let mut buf = [0.0f32; LANES];
+                    _mm256_storeu_ps(buf.as_mut_ptr(), left);
+                    _mm256_storeu_ps(buf.as_mut_ptr().add(HALF), right);
+                    std::ptr::copy_nonoverlapping(buf.as_ptr(), d, w - j);
                 } else {
                     _mm256_storeu_ps(d, left);
                     _mm256_storeu_ps(d.add(HALF), right);
