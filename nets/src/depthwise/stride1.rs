@@ -116,8 +116,9 @@ unsafe fn rows<const R: usize>(
     let mut x0 = 0;
     while x0 < w {
         // SAFETY: every row behind `src` holds w values; an interior block reads columns
-        // x0 − 1 .. x0 + HALF + 1 ≤ w, an edge block only the columns its masks let through;
-        // rows m .. m + R of `out` hold the stores.
+        // x0 − 1 .. x0 + HALF + 1 ≤ w, the first and last blocks of a row wider than eight
+        // columns 0 .. 9 and w − 9 .. w, a block of a narrower row only the columns its masks
+        // let through; rows m .. m + R of `out` hold the stores.
         unsafe {
             if x0 >= 1 && x0 + HALF < w {
                 block::<R, INSIDE>(&src, taps, x0, w, dst);

@@ -15,11 +15,11 @@
 //! shifts them up two lanes for the columns −2 .. 14 its first pair reads, the two before the
 //! row as zeros (widths from 16 for 3×3, 18 for 5×5). Other blocks at the edges load and store
 //! with lane masks (masked lanes read as zero), except that where the blocks ending at the
-//! row's end read no column past it (3×3, even widths from 18) the last one or two start
-//! there, over some outputs again; on odd widths (3×3, from 17) they read one column past it,
+//! row's end read no column past it (3×3, even widths from 22) the last one or two start
+//! there, over some outputs again; on odd widths (3×3, from 21) they read one column past it,
 //! which the last block loads one column early and shifts in as zero. On rows of 8n + 1 and
-//! 8n + 2 outputs (3×3) the blocks stop at 8n and the last two outputs of all four rows go in
-//! one register ([`tail_pairs`]). Every
+//! 8n + 2 outputs (3×3, widths 16n + 1 .. 16n + 4) the blocks stop at 8n and the last two
+//! outputs of all four rows go in one register ([`tail_pairs`]). Every
 //! output sums its k² taps from zero in (ky, kx) order, padding included, as the plane path
 //! does, so y is the plane path's bits wherever its block starts (test `stride_2_gives_the_plane_paths_bits`).
 //!
@@ -193,6 +193,7 @@ const RIGHT: u8 = 3;
 macro_rules! rows_loop {
     ($unroll:expr, $n:expr, |$i:ident| $body:block) => {
         if $unroll {
+            debug_assert!($n <= 11, "rows_loop! writes out 11 rows");
             rows_loop!(@ $n, $i, $body, 0 1 2 3 4 5 6 7 8 9 10)
         } else {
             for $i in 0..$n $body
@@ -375,7 +376,8 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
             // partner. The first block unmasked (LEFT) goes with its neighbour where that is
             // interior; on narrower rows the 3×3 one runs alone, the 5×5 one stays a masked
             // pair as before.
-            // Where the blocks ending at the row's end are unmasked (3×3, even widths from 18),
+            // Where the blocks ending at the row's end are unmasked (3×3, even widths from 22;
+            // rows of 8n + 1 and 8n + 2 outputs end in `tail_pairs` instead),
             // the last one or two run there, over some outputs again: each output's sum is the
             // same wherever its block starts, so those are rewritten with their own bits, and
             // the right edge needs no masked loads. On 96×44×70 a single block and a masked
@@ -549,7 +551,7 @@ const fn pairs_tail(k: usize, wo: usize) -> bool {
 /// The last two outputs (wo − 2, wo − 1) of output rows m .. m + R (R = 1, 2 or 4) of the
 /// 3×3 kernel, the four rows' pairs in one register in column order: rows m and m + 1 in the
 /// lower 128 bits, m + 2 and m + 3 in the upper. Tap kx of output j is column 2j + kx − 1, so
-/// a pair reads columns s = 2wo − 5 .. 2wo − 1 of its input rows (the last the padding on odd
+/// a pair reads columns s = 2wo − 5 ..= 2wo − 1 of its input rows (the last the padding on odd
 /// widths); an in-lane shuffle of four columns of two rows each gives a tap's four pairs.
 /// Each output sums its nine taps from zero in (ky, kx) order, as the blocks do, so a pair
 /// the last block also wrote (rows of 8n + 1) is rewritten with the same bits.
@@ -600,21 +602,20 @@ unsafe fn tail_pairs<const R: usize>(
             acc = _mm256_fmadd_ps(wv[3 * ky + kx], *t, acc);
         }
     }
-    let (lo, hi) = (
-        _mm256_castpd256_pd128(_mm256_castps_pd(acc)),
-        _mm256_extractf128_pd::<1>(_mm256_castps_pd(acc)),
-    );
-    // SAFETY: output row r < R holds wo values from dst + r·wo; each store writes two.
-    unsafe {
-        let d = |r: usize| dst.add(r * wo + wo - 2).cast::<f64>();
-        _mm_storel_pd(d(0), lo);
-        if R > 1 {
-            _mm_storeh_pd(d(1), lo);
-        }
-        if R > 2 {
-            _mm_storel_pd(d(2), hi);
-            _mm_storeh_pd(d(3), hi);
-        }
+    let v = _mm256_castps_si256(acc);
+    let (lo, hi) = (_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
+    // Each pair as the low 64 bits of a register, stored unaligned (a row's pair need not
+    // start at a multiple of 8 bytes).
+    let pairs = [
+        lo,
+        _mm_unpackhi_epi64(lo, lo),
+        hi,
+        _mm_unpackhi_epi64(hi, hi),
+    ];
+    for (r, pair) in pairs.iter().enumerate().take(R) {
+        // SAFETY: output row r < R holds wo values from dst + r·wo; the store writes the last
+        // two.
+        unsafe { _mm_storeu_si64(dst.add(r * wo + wo - 2).cast::<u8>(), *pair) };
     }
 }
 
