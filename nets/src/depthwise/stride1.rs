@@ -5,8 +5,9 @@
 //! above and below the plane read a row of zeros; on rows wider than eight the first block
 //! takes column −1 as a zero shifted into its load of columns 0 .. 8, and the last block
 //! starts at w − 8 (over outputs already written) with column w shifted in as a zero, so no
-//! load or store is masked (AVX2 masked stores cost this AMD EPYC VM about a third of the
-//! 192×22×35 forward); rows of at most eight load and store under lane masks, whose masked
+//! load or store is masked (the edge blocks' masked loads and stores took about a third of
+//! the 192×22×35 forward on an AMD EPYC VM); rows of at most eight load and store under lane
+//! masks, whose masked
 //! lanes read as zero. Four output rows at a time
 //! share each input row's three shifted loads (six rows: 18 loads for 36 fused multiply–adds),
 //! and every output sums its nine taps from zero in (ky, kx) order, padding included, as the

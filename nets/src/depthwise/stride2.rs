@@ -921,8 +921,8 @@ unsafe fn dx_block<
             // masks its loads only).
             unsafe {
                 if MASKED && j + LANES > w {
-                    // Through a buffer: AVX2 masked stores are slow on AMD (the stride-1
-                    // forward's edges, docs/bench/nets.md).
+                    // Through a buffer, not AVX2 masked stores: one thread 96×44×70 2166–2215
+                    // → 1884–1925 µs on an AMD EPYC VM (docs/bench/nets.md).
                     let mut buf = [0.0f32; LANES];
                     _mm256_storeu_ps(buf.as_mut_ptr(), left);
                     _mm256_storeu_ps(buf.as_mut_ptr().add(HALF), right);
