@@ -181,7 +181,9 @@ fn layers(c: &mut Criterion) {
     // maps are the min subnet's last stages at 128² (output planes of 64 and 16 values: the
     // channel-block path). The stride-2 layers reading the 22×35 and 32×32 maps have output
     // planes of 198 and 256 values: the channel blocks' largest, where their transposes of
-    // four input pixels per output cost the most.
+    // four input pixels per output cost the most. The stride-2 layer reading the 87×139 map
+    // (the first of stage 1 at expansion 3, in subnets at full resolution): 46 MB of x and y
+    // at batch 16, far past the last-level cache.
     for (c, h, w, s) in [
         (240usize, 16usize, 16usize, 1usize),
         (240, 16, 16, 2),
@@ -193,6 +195,7 @@ fn layers(c: &mut Criterion) {
         (192, 22, 35, 1),
         (192, 22, 35, 2),
         (96, 32, 32, 2),
+        (48, 87, 139, 2),
     ] {
         // The memory roofline of the shape: the least any depthwise pass must move, streamed
         // on both cores (forward: read x, write y; backward: read x and dL/dy, write dL/dx),

@@ -55,6 +55,27 @@ const HALF: usize = LANES / 2;
 /// Smallest number of multiply–adds a rayon task should carry.
 const TASK_MACS: usize = 1 << 16;
 
+/// The narrowest rows whose register paths prefetch the input rows ahead of those in flight.
+/// At batch 16 the layers on the main job's and the bench's widest maps (87×139, 100×160)
+/// waited on their input rows from memory: the hardware prefetcher did not keep up with the
+/// several rows a group of output rows reads at once (`perf annotate`: the loads of the
+/// group's newest rows). On the 44×70 and 22×35 maps, whose rows came in time, the extra
+/// instructions cost 5–40 % (AMD EPYC VM; docs/bench/nets.md).
+#[cfg(target_arch = "x86_64")]
+const PREFETCH_WIDTH: usize = 128;
+
+/// Asks for the cache line holding `p` in L2 (into L1 it was slower: the L1's few miss
+/// buffers filled). Only a hint: `p` may lie past its slice (the next plane, or past the
+/// tensor), is never dereferenced and never faults.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn prefetch(p: *const f32) {
+    use std::arch::x86_64::{_MM_HINT_T1, _mm_prefetch};
+    // SAFETY: SSE, the instruction's only requirement, is part of every x86-64 CPU; a
+    // prefetch reads nothing the program sees, whatever the address.
+    unsafe { _mm_prefetch::<_MM_HINT_T1>(p.cast()) };
+}
+
 /// Shape of one plane's depthwise convolution (same padding k/2, stride s).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Geom {

@@ -13,7 +13,7 @@
 //! and every output sums its nine taps from zero in (ky, kx) order, padding included, as the
 //! plane path does, so y is the plane path's bits (test `stride_1_gives_the_plane_paths_bits`).
 
-use super::{Geom, HALF, forward_planes, has_fma};
+use super::{Geom, HALF, PREFETCH_WIDTH, forward_planes, has_fma, prefetch};
 use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
@@ -114,17 +114,15 @@ unsafe fn rows<const R: usize>(
         }
     }
     let dst = out[m * w..].as_mut_ptr().cast::<f32>();
-    // The first input row of the four that the group two groups on (rows m + 8 ..) reads
-    // and this group's successor does not: prefetched block by block on wide rows.
+    // The first of the four input rows that the group AHEAD rows on reads first (none of
+    // the groups before it does): prefetched block by block on wide rows.
     let ahead = x.as_ptr().wrapping_add((m + 1 + AHEAD) * w);
-    let prefetch = R == 4 && w >= PREFETCH_WIDTH;
+    let wide = R == 4 && w >= PREFETCH_WIDTH;
     let mut x0 = 0;
     while x0 < w {
-        if prefetch {
+        if wide {
             for j in 0..4 {
-                // Only a hint: addresses past the plane (the next plane, or past `x`) are
-                // never dereferenced, so wrapping arithmetic suffices.
-                _mm_prefetch::<_MM_HINT_T0>(ahead.wrapping_add(j * w + x0).cast());
+                prefetch(ahead.wrapping_add(j * w + x0));
             }
         }
         // SAFETY: every row behind `src` holds w values; an interior block reads columns
@@ -148,14 +146,11 @@ unsafe fn rows<const R: usize>(
     }
 }
 
-/// Rows ahead of a group of four output rows whose inputs its blocks prefetch: two groups.
-const AHEAD: usize = 8;
-/// The narrowest rows whose groups prefetch. At batch 16 the 24×100×160 forward waited on
-/// its new input rows from memory (`perf annotate`: the loads of the group's last rows; the
-/// hardware prefetcher did not keep up) and took 1.87–2.03 ms with the prefetch against
-/// 2.26–2.57 without; on 44×70 and 22×35 maps, whose rows came in time, the four extra
-/// instructions per block cost 5–15 % (AMD EPYC VM, docs/bench/nets.md).
-const PREFETCH_WIDTH: usize = 128;
+/// Rows ahead of a group of four output rows whose new input rows its blocks prefetch on
+/// rows of at least [`PREFETCH_WIDTH`]: four groups. On 24×100×160 at batch 16 (two threads)
+/// the forward took 2.26–2.57 ms without, 1.87–2.03 ms with two groups into L1 and
+/// 1.48–1.64 ms with four into L2.
+const AHEAD: usize = 16;
 
 /// [`block`]'s `EDGE`: columns x₀ − 1 .. x₀ + 9 inside the row.
 const INSIDE: u8 = 0;
