@@ -60,13 +60,14 @@ const TASK_MACS: usize = 1 << 16;
 /// waited on their input rows from memory: the hardware prefetcher did not keep up with the
 /// several rows a group of output rows reads at once (`perf annotate`: the loads of the
 /// group's newest rows). On the 44×70 and 22×35 maps, whose rows came in time, the extra
-/// instructions cost 5–40 % (AMD EPYC VM; docs/bench/nets.md).
+/// instructions cost 4–43 % (AMD EPYC VM; docs/bench/nets.md).
 #[cfg(target_arch = "x86_64")]
 const PREFETCH_WIDTH: usize = 128;
 
-/// Asks for the cache line holding `p` in L2 (into L1 it was slower: the L1's few miss
-/// buffers filled). Only a hint: `p` may lie past its slice (the next plane, or past the
-/// tensor), is never dereferenced and never faults.
+/// Asks for the cache line holding `p` with hint T1 (into L2 where the CPU honours it; the
+/// first form, hint T0 two groups ahead, gained less than T1 four groups ahead: distance and
+/// hint changed together). Only a hint: `p` may lie past its slice (the next plane, or past
+/// the tensor), is never dereferenced and never faults.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 fn prefetch(p: *const f32) {

@@ -373,10 +373,10 @@ unsafe fn output_rows<const K: usize, const KK: usize, const R: usize>(
     // register for all R rows.
     let tail = pairs_tail(K, wo);
     let end = if tail { wo - wo % HALF } else { wo };
-    // The eight input rows that the group of four output rows AHEAD input rows on reads
-    // first (none of the groups before it does; one row off for the 5×5 kernel), from its
-    // first: prefetched on wide rows, the columns of this step's one or two blocks.
-    let ahead = x.as_ptr().wrapping_add((2 * m + AHEAD) * w);
+    // The eight input rows that the group whose first output row is m + AHEAD / 2 reads and
+    // no group before it does (rows 2m + AHEAD + k/2 − 1 ..): prefetched on wide rows, the
+    // columns of this step's one or two blocks.
+    let ahead = x.as_ptr().wrapping_add((2 * m + AHEAD + K / 2 - 1) * w);
     let wide = R == 4 && w >= PREFETCH_WIDTH;
     let mut x0 = 0;
     while x0 < end {
