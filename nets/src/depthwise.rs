@@ -42,6 +42,8 @@ mod channels;
 #[cfg(target_arch = "x86_64")]
 mod rows16;
 #[cfg(target_arch = "x86_64")]
+mod rows4;
+#[cfg(target_arch = "x86_64")]
 mod rows8;
 #[cfg(target_arch = "x86_64")]
 mod stride1;
@@ -922,6 +924,11 @@ pub(crate) fn forward(g: &Geom, c: usize, x: &[f32], w: &[f32], y: &mut [MaybeUn
     #[cfg(target_arch = "x86_64")]
     if rows8::takes(g) {
         rows8::forward(g, c, x, w, y);
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if rows4::takes(g) {
+        rows4::forward(g, c, x, w, y);
         return;
     }
     #[cfg(target_arch = "x86_64")]
