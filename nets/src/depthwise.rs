@@ -15,11 +15,14 @@
 //! low-resolution stages), where a plane's fixed costs outweigh its multiply–adds, go through
 //! blocks of eight channels instead ([`channels`]), which give the same y and dL/dx bits.
 //! 3×3 layers at stride 2 on planes 8 or 16 wide run in registers ([`rows8`], [`rows16`]):
-//! the same y bits; their backward sums in other orders (equal to round-off). The other 3×3
-//! layers at stride 1 read the plane itself, without the padded copy ([`stride1`]), for y
-//! and for dL/dx (dL/dy correlated with the turned kernel): the same bits; so do the other
-//! 3×3 and 5×5 layers at stride 2 ([`stride2`]), forward and backward (the 5×5 dL/dw by the
-//! plane path), again the same bits.
+//! the same y bits; their backward sums in other orders (equal to round-off). The 3×3
+//! forward at stride 1 on planes 4 wide runs in registers too ([`rows4`]; the same y bits).
+//! The other 3×3 layers at stride 1 read the plane itself, without the padded copy
+//! ([`stride1`]), for y and for dL/dx (dL/dy correlated with the turned kernel): the same
+//! bits; so do the other 3×3 and 5×5 layers at stride 2 ([`stride2`]), forward and backward
+//! (the 5×5 dL/dw by the plane path), again the same bits. On rows of at least
+//! [`PREFETCH_WIDTH`] columns these two prefetch their input rows ahead of the rows in
+//! flight.
 
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
