@@ -1306,8 +1306,9 @@ mod tests {
         (y, dx, dw)
     }
 
-    /// The register paths for planes 8 and 16 wide take only their own output height: a
-    /// geometry claiming another goes to the plane path (their loops trust ho = ⌈h/2⌉).
+    /// The register paths for planes 4, 8 and 16 wide take only their own output height: a
+    /// geometry claiming another goes to the plane path (their loops trust ho = ⌈h/2⌉, and
+    /// ho = h for the 4-wide stride-1 path).
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn rows_paths_take_only_their_output_height() {
@@ -1319,6 +1320,11 @@ mod tests {
             assert!(rows8::takes(&g) || rows16::takes(&g));
             let other = Geom { ho: 3, ..g };
             assert!(!rows8::takes(&other) && !rows16::takes(&other));
+        }
+        let g = Geom::k3(10, 4, 1);
+        assert!(rows4::takes(&g));
+        for other in [Geom { ho: 3, ..g }, Geom { wo: 3, ..g }] {
+            assert!(!rows4::takes(&other));
         }
     }
 
