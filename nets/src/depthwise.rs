@@ -82,6 +82,30 @@ fn prefetch(p: *const f32) {
     unsafe { _mm_prefetch::<_MM_HINT_T1>(p.cast()) };
 }
 
+/// Output rows `m` and `m + 1` of four values (`acc`'s low and high 128-bit lanes) into
+/// `out`, a plane of `rows` such rows; only row m when it is the last (the high lane is then
+/// past the plane). The store of the 4-wide register paths ([`rows4`], [`rows8`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn store_row_pair(
+    out: &mut [MaybeUninit<f32>],
+    rows: usize,
+    m: usize,
+    acc: std::arch::x86_64::__m256,
+) {
+    use std::arch::x86_64::*;
+    if m + 1 < rows {
+        let dst = &mut out[4 * m..][..8];
+        // SAFETY: `dst` holds eight values: output rows m and m + 1.
+        unsafe { _mm256_storeu_ps(dst.as_mut_ptr().cast(), acc) };
+    } else {
+        let dst = &mut out[4 * m..][..4];
+        // SAFETY: `dst` holds four values.
+        unsafe { _mm_storeu_ps(dst.as_mut_ptr().cast(), _mm256_castps256_ps128(acc)) };
+    }
+}
+
 /// Shape of one plane's depthwise convolution (same padding k/2, stride s).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Geom {

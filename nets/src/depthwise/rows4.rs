@@ -13,7 +13,7 @@
 //! output sums its taps from zero in (ky, kx) order, padding included, as the plane path
 //! does, so y is the plane path's bits (test `rows_of_4_give_the_plane_paths_bits`).
 
-use super::{Geom, forward_planes, has_fma};
+use super::{Geom, forward_planes, has_fma, store_row_pair};
 use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
@@ -96,16 +96,7 @@ unsafe fn plane_rows<const H: usize>(
             acc = _mm256_fmadd_ps(wv[3 * ky + 1], c, acc);
             acc = _mm256_fmadd_ps(wv[3 * ky + 2], right, acc);
         }
-        if m + 1 < h {
-            let dst = &mut out[4 * m..][..8];
-            // SAFETY: `dst` holds eight values: output rows m and m + 1.
-            unsafe { _mm256_storeu_ps(dst.as_mut_ptr().cast(), acc) };
-        } else {
-            // An odd last row: its pair's high lane is past the plane.
-            let dst = &mut out[4 * m..][..4];
-            // SAFETY: `dst` holds four values.
-            unsafe { _mm_storeu_ps(dst.as_mut_ptr().cast(), _mm256_castps256_ps128(acc)) };
-        }
+        store_row_pair(out, h, m, acc);
         m += 2;
     }
 }

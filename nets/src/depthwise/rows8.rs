@@ -10,7 +10,7 @@
 //! memory roofline). Each output sums its taps in (ky, kx) order from zero, as the plane path
 //! does, so y is the plane path's bits (test `rows_of_8_give_the_plane_paths_bits`).
 
-use super::{Geom, backward_planes, forward_planes, has_fma};
+use super::{Geom, backward_planes, forward_planes, has_fma, store_row_pair};
 use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
@@ -106,16 +106,7 @@ unsafe fn plane_rows<const H: usize>(
                 acc = _mm256_fmadd_ps(wv[3 * ky + kx], *v, acc);
             }
         }
-        if m + 1 < ho {
-            let dst = &mut out[4 * m..][..8];
-            // SAFETY: `dst` holds eight values: output rows m and m + 1.
-            unsafe { _mm256_storeu_ps(dst.as_mut_ptr().cast(), acc) };
-        } else {
-            // An odd last row: its pair's high lane is past the plane.
-            let dst = &mut out[4 * m..][..4];
-            // SAFETY: `dst` holds four values.
-            unsafe { _mm_storeu_ps(dst.as_mut_ptr().cast(), _mm256_castps256_ps128(acc)) };
-        }
+        store_row_pair(out, ho, m, acc);
         m += 2;
     }
 }
