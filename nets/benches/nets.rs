@@ -183,7 +183,8 @@ fn layers(c: &mut Criterion) {
     // planes of 198 and 256 values: the channel blocks' largest, where their transposes of
     // four input pixels per output cost the most. The stride-2 layer reading the 87×139 map
     // (the first of stage 1 at expansion 3, in subnets at full resolution): 46 MB of x and y
-    // at batch 16, far past the last-level cache.
+    // at batch 16, far past the last-level cache. The stride-2 layer reading the 11×18 map
+    // (the main job's 6×9 output planes, 336 channels): channel blocks on rows of 18.
     for (c, h, w, s) in [
         (240usize, 16usize, 16usize, 1usize),
         (240, 16, 16, 2),
@@ -196,6 +197,7 @@ fn layers(c: &mut Criterion) {
         (192, 22, 35, 2),
         (96, 32, 32, 2),
         (48, 87, 139, 2),
+        (336, 11, 18, 2),
     ] {
         // The memory roofline of the shape: the least any depthwise pass must move, streamed
         // on both cores (forward: read x, write y; backward: read x and dL/dy, write dL/dx),
