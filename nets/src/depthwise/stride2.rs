@@ -701,8 +701,8 @@ unsafe fn plane_backward5(
 
 /// dL/dw and dL/dx of one plane of the 3×3 kernel (taps `wv`), in one pass: output row m's
 /// dL/dw terms, then input rows 2m and 2m + 1 of dL/dx ([`input_rows`]), so the plane's input
-/// is read and its dL/dx written in the same sweep (48×87×139, batch 16, two threads: 2.44–2.60
-/// ms against 2.48–2.73 ms as two passes; 96×44×70 970–977 against 1009–1013 µs).
+/// is read and its dL/dx written in the same sweep (48×87×139, batch 16, two threads: 2.68–2.91
+/// ms against 3.34–3.58 ms as two passes, `dw_prof`; docs/bench/nets.md).
 ///
 /// dL/dw: per tap, lane sums of dL/dy times the forward's tap registers over the rows and
 /// blocks in the plane path's order (row by row, blocks left to right, lane l holding the
