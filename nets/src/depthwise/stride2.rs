@@ -27,18 +27,19 @@
 //! tap registers against each block of dL/dy (put in the same lane order), one accumulator per
 //! tap, row by row and block by block as the plane path's chains run, so the lanes summed in
 //! column order at the end are its bits; output row m's dL/dw terms are followed by dL/dx's
-//! input rows 2m and 2m + 1, one pass over the plane ([`grads`]). The 5×5 kernel's dL/dw is
-//! the plane path's (read from the plane this way it ran no faster). dL/dx goes two input rows
-//! and two blocks of sixteen columns at a time: a block's even columns take the taps kx ≡ k/2 (mod 2), its odd
-//! columns the others, each from a load of eight dL/dy columns offset by −1, 0 or +1; the two
-//! halves are interleaved by unpack and 128-bit permutes; on odd widths (3×3, from 17) the last
-//! block starts at the odd column w − 16 (over columns already written), its halves' parities
-//! swapped, instead of masking the edge. Each cell sums its taps from zero in (ky, kx) order,
-//! rows and columns of dL/dy past the plane read as zeros, as the plane path's phase sweeps
-//! do, wherever its block starts: the same bits
-//! (test `stride_2_backward_is_the_plane_paths_bits`). Planes 8 and 16 wide keep their own paths
-//! ([`super::rows8`], [`super::rows16`]), small output planes of channels in multiples of eight
-//! the channel blocks, except the rows this path covers faster ([`preferred`]).
+//! input rows 2m and 2m + 1 (2m alone at the end of an odd height), one pass over the plane
+//! ([`grads`]). The 5×5 kernel's dL/dw is the plane path's (read from the plane this way it
+//! ran no faster). dL/dx goes two input rows and two blocks of sixteen columns at a time: a
+//! block's even columns take the taps kx ≡ k/2 (mod 2), its odd columns the others, each from
+//! a load of eight dL/dy columns offset by −1, 0 or +1; the two halves are interleaved by
+//! unpack and 128-bit permutes; on odd widths (3×3, from 17) the last block starts at the odd
+//! column w − 16 (over columns already written), its halves' parities swapped, instead of
+//! masking the edge. Each cell sums its taps from zero in (ky, kx) order, rows and columns of
+//! dL/dy past the plane read as zeros, as the plane path's phase sweeps do, wherever its block
+//! starts: the same bits (test `stride_2_backward_is_the_plane_paths_bits`). Planes 8 and 16
+//! wide keep their own paths ([`super::rows8`], [`super::rows16`]), small output planes of
+//! channels in multiples of eight the channel blocks, except the rows this path covers faster
+//! ([`preferred`]).
 
 use super::stride1::inside;
 use super::{
@@ -139,8 +140,8 @@ pub(super) fn backward(
 /// L1 and 1.33–1.44 ms with four into L2.
 const AHEAD: usize = 32;
 /// Input rows ahead of an output row whose two new input rows dL/dw prefetches on rows of at
-/// least [`PREFETCH_WIDTH`]: eight output rows. On 48×87×139 the 3×3 backward took 4.38–4.61
-/// ms without, 3.29–3.48 ms with.
+/// least [`PREFETCH_WIDTH`]: eight output rows. On 48×87×139 the 3×3 backward (then two
+/// passes, dL/dw before dL/dx) took 4.38–4.61 ms without, 3.29–3.48 ms with.
 const AHEAD_DW: usize = 16;
 
 /// Where a block of eight outputs reads its input row: unmasked, or with the masks of its
@@ -700,15 +701,16 @@ unsafe fn plane_backward5(
 }
 
 /// dL/dw and dL/dx of one plane of the 3×3 kernel (taps `wv`), in one pass: output row m's
-/// dL/dw terms, then input rows 2m and 2m + 1 of dL/dx ([`input_rows`]), so the plane's input
-/// is read and its dL/dx written in the same sweep (48×87×139, batch 16, two threads: 2.68–2.91
-/// ms against 3.34–3.58 ms as two passes, `dw_prof`; docs/bench/nets.md).
+/// dL/dw terms, then input rows 2m and 2m + 1 of dL/dx ([`input_rows`]; 2m alone when it is
+/// the last row), so the plane's input is read and its dL/dx written in the same sweep: on
+/// 48×87×139 (batch 16, two threads) 2–5 % faster than the two passes in the same binary
+/// (docs/bench/nets.md).
 ///
 /// dL/dw: per tap, lane sums of dL/dy times the forward's tap registers over the rows and
 /// blocks in the plane path's order (row by row, blocks left to right, lane l holding the
 /// columns ≡ l mod 8), the lanes then summed in column order as the plane path does: its
 /// bits. The lanes past the last output column multiply zeros by zeros, as its masked loads do.
-/// dL/dx: each row pair as [`input_grads`] computes it, the same bits.
+/// dL/dx: each row pair (or last row) as [`input_grads`] computes it, the same bits.
 ///
 /// # Safety
 /// AVX2 and FMA; `x` and `dx` hold h·w values, `dy` ho·wo, ho = ⌈h/2⌉, wo = ⌈w/2⌉.
