@@ -541,8 +541,9 @@ unsafe fn tap_sums<const T: usize>(
 /// Eight planes of `w`-wide rows (`src`, plane-major) into the padded channels-innermost
 /// layout `dst` of `wp` pixels per row, pixel (y, x) at (y + p, x + p).
 ///
-/// Row by row, eight pixels at a time, a row's last `w mod 8` as masked loads: a running
-/// position per pixel (and before it a division) cost more than the transposes at 8×8.
+/// Row by row, eight pixels at a time, a row's last `w mod 8` as masked loads (one to four of
+/// them through half a transpose): a running position per pixel (and before it a division)
+/// cost more than the transposes at 8×8.
 #[target_feature(enable = "avx2,fma")]
 fn to_channels(src: &[f32], w: usize, dst: &mut [f32], wp: usize, p: usize) {
     let hw = src.len() / CB;
@@ -557,11 +558,13 @@ fn to_channels(src: &[f32], w: usize, dst: &mut [f32], wp: usize, p: usize) {
         _mm256_set1_epi32(rem as i32),
         _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7),
     );
+    let mask4 = _mm_cmpgt_epi32(_mm_set1_epi32(rem as i32), _mm_setr_epi32(0, 1, 2, 3));
     let (s, d) = (src.as_ptr(), dst.as_mut_ptr());
     for y in 0..h {
         let mut x = 0;
-        // SAFETY (every block): pixels y·w + x .. + 8 (+ rem) of each plane are inside `src`,
-        // their destinations inside `dst` (assertion above).
+        // SAFETY (every block): pixels y·w + x .. + 8 (+ rem) of each plane are inside `src`
+        // (masked lanes past them are neither read nor faulted on), their destinations inside
+        // `dst` (assertion above).
         while x + CB <= w {
             unsafe {
                 let t = transpose(std::array::from_fn(|j| {
@@ -576,13 +579,11 @@ fn to_channels(src: &[f32], w: usize, dst: &mut [f32], wp: usize, p: usize) {
         }
         if rem > 0 && rem <= 4 {
             // Up to four pixels: eight 128-bit loads as four registers [channel j | channel
-            // j + 4], and the in-lane half of the transpose (8 shuffles, not 24): 336×11×18 at
-            // stride 2 (rows of 18), batch 16, forward 140–142 against 144–156 µs on two
-            // threads, 274–282 against 283–311 µs on one. Masked lanes are neither read nor
-            // faulted on.
+            // j + 4] (four inserts), and the in-lane half of the transpose (8 shuffles; the
+            // whole transpose is 24): 336×11×18 at stride 2 (rows of 18), batch 16, forward
+            // 140–142 against 144–156 µs on two threads, 274–282 against 283–311 µs on one.
             unsafe {
-                let m4 = _mm_cmpgt_epi32(_mm_set1_epi32(rem as i32), _mm_setr_epi32(0, 1, 2, 3));
-                let ld = |j: usize| _mm_maskload_ps(s.add(j * hw + y * w + x), m4);
+                let ld = |j: usize| _mm_maskload_ps(s.add(j * hw + y * w + x), mask4);
                 let v: [__m256; 4] = std::array::from_fn(|j| _mm256_set_m128(ld(j + 4), ld(j)));
                 let t0 = _mm256_unpacklo_ps(v[0], v[1]);
                 let t1 = _mm256_unpackhi_ps(v[0], v[1]);
@@ -595,8 +596,8 @@ fn to_channels(src: &[f32], w: usize, dst: &mut [f32], wp: usize, p: usize) {
                     _mm256_shuffle_ps::<0xEE>(t1, t3),
                 ];
                 let at = d.add(((y + p) * wp + x + p) * CB);
-                for (n, v) in px.iter().take(rem).enumerate() {
-                    _mm256_storeu_ps(at.add(n * CB), *v);
+                for (n, pixel) in px.iter().take(rem).enumerate() {
+                    _mm256_storeu_ps(at.add(n * CB), *pixel);
                 }
             }
         } else if rem > 0 {
