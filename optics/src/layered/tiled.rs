@@ -143,12 +143,9 @@ unsafe fn transpose4(src: *const c32, dst: *mut c32, n: usize, r: usize, c: usiz
 /// radiance channel over the radiance scale, imaginary: occlusion channel).
 #[inline]
 fn add_tile_row(gain: f64, s: &[c32], prev: &[f32], cur: &mut [f32], o: Option<&mut [f32]>) {
-    // A gain that f32 holds exactly (a layer's f32 gain times its power-of-two radiance
-    // scale, unless that leaves f32's range) gives the same bits in f32: the f64 product of
-    // two f32 values is exact, so its rounding to f32 is the f32 product's; eight lanes
+    // In f32 where f32 holds the gain exactly (`exact_f32`): the same bits, eight lanes
     // instead of four and no conversions.
-    let g = gain as f32;
-    if g as f64 == gain {
+    if let Some(g) = exact_f32(gain) {
         compose_row(|s, p| g * s.re - s.im * p, s, prev, cur, o);
     } else {
         compose_row(
@@ -182,6 +179,15 @@ fn compose_row(
                 *c += part(s, p);
             }
         }
+    }
+}
+
+/// One row of a tile's window of the gradient: the complex value of each pixel of ∂L/∂I⁽ᵏ⁾
+/// `gi` and I⁽ᵏ⁻¹⁾ `prev` by `value` ([`gradient_value`] or its f32 form).
+#[inline(always)]
+fn window_row(row: &mut [c32], gi: &[f32], prev: &[f32], value: impl Fn(f32, f32) -> c32) {
+    for ((v, &gv), &p) in row.iter_mut().zip(gi).zip(prev) {
+        *v = value(gv, p);
     }
 }
 
@@ -705,6 +711,7 @@ impl LayeredImager {
             let mut fresh = acc.spec[l.kernel].is_none();
             let slot = acc.spec[l.kernel].get_or_insert_with(|| self.spare_spectrum());
             let lines = spec.is_none().then(|| l.lines());
+            let exact = exact_f32(gain);
             for (i, &tile) in tiles.iter().enumerate() {
                 let a: &[c32] = match (spec, &lines) {
                     (Some(s), _) => &s[i * nn..(i + 1) * nn],
@@ -724,11 +731,11 @@ impl LayeredImager {
                     row[xs.end..].fill(c32::new(0.0, 0.0));
                     let span = y * w + cols.start..y * w + cols.end;
                     let at = reach.packed(y, cols.start);
-                    row[xs.clone()]
-                        .iter_mut()
-                        .zip(&gi[span])
-                        .zip(&prev[at..at + cols.len()])
-                        .for_each(|((v, &gv), &p)| *v = gradient_value(gain, gv, p));
+                    let (row, gi, prev) = (&mut row[xs.clone()], &gi[span], &prev[at..]);
+                    match exact {
+                        Some(g) => window_row(row, gi, prev, |gv, p| gradient_value_f32(g, gv, p)),
+                        None => window_row(row, gi, prev, |gv, p| gradient_value(gain, gv, p)),
+                    }
                 }
                 t.fft2(&mut tb.a, ys, &mut tb.b, &mut tb.scratch);
                 accumulate(
