@@ -157,18 +157,12 @@ impl GradValue for f64 {
 /// One pixel of the PSF adjoint's pass over a layer, for ∂L/∂I⁽ᵏ⁾ = `gv`, I⁽ᵏ⁻¹⁾ = `p`,
 /// α∗P = `o` and I⁽ᵏ⁾ = `above`: gv times the convolved radiance (the radiance scale's
 /// gradient term), the gradient's complex value (real: radiance channel, imaginary: occlusion
-/// channel, by `value`: [`gradient_value`] or its f32 form) and ∂L/∂I⁽ᵏ⁻¹⁾ = gv·(1 − o).
+/// channel) and ∂L/∂I⁽ᵏ⁻¹⁾ = gv·(1 − o).
 #[inline(always)]
-fn adjoint_pixel(
-    value: impl Fn(f32, f32) -> c32,
-    gv: f32,
-    p: f32,
-    o: f32,
-    above: f32,
-) -> (f64, f32, f32, f32) {
+fn adjoint_pixel(gain: f64, gv: f32, p: f32, o: f32, above: f32) -> (f64, f32, f32, f32) {
     let (g, p64, o64) = (gv as f64, p as f64, o as f64);
     let conv = above as f64 - (1.0 - o64) * p64;
-    let v = value(gv, p);
+    let v = gradient_value(gain, gv, p);
     (g * conv, v.re, v.im, gv * (1.0 - o))
 }
 
@@ -183,7 +177,7 @@ fn gradient_value(gain: f64, gv: f32, p: f32) -> c32 {
 /// it exactly, which it does unless the product leaves f32's range: the f64 product of such a
 /// gain and an f32 value is exact, so its rounding to f32 is the f32 product's. The
 /// composition and [`gradient_value`] then give their f64 form's bits in f32's eight lanes,
-/// without conversions. Called once per layer, so the loops branch outside.
+/// without conversions. Called once per layer or tile row, outside the pixel loops.
 #[inline]
 fn exact_f32(gain: f64) -> Option<f32> {
     let g = gain as f32;
@@ -221,26 +215,26 @@ fn adjoint_row(
     dots: &mut [f64; DOT_LANES],
 ) {
     // The f32 form of the complex values (as the tiled windows take them) measured no gain
-    // here: whole-grid backward 3.2–3.4 against 3.1–3.3 ms per frame at 320×200.
-    let value = |gv, p| gradient_value(gain, gv, p);
+    // here: the whole-grid backward of a 320×200 frame, one thread, minimum of 500 calls,
+    // 3.2–3.4 against 3.1–3.3 ms (four rounds).
     match gs {
-        Some(gs) => adjoint_blocks(gi, (prev, o, above), dots, value, into_row(gs)),
+        Some(gs) => adjoint_blocks(gain, gi, (prev, o, above), dots, into_row(gs)),
         // Without the complex values LLVM drops their arithmetic from the loop.
-        None => adjoint_blocks(gi, (prev, o, above), dots, value, |_, _, _| ()),
+        None => adjoint_blocks(gain, gi, (prev, o, above), dots, |_, _, _| ()),
     }
 }
 
-/// [`adjoint_row`]'s pass with the gradient's complex values from `value`, those of pixels
-/// i.. given to `emit(i, re, im)` a block of [`DOT_LANES`] at a time (the row's last w mod 8
-/// one at a time). Each block is read into registers whole and written back whole, the sums
-/// kept in registers across blocks: with stores between its loads, LLVM gathered the
-/// operands one value at a time (a third of the tiled backward's own time).
+/// [`adjoint_row`]'s pass, the gradient's complex values of pixels i.. given to
+/// `emit(i, re, im)` a block of [`DOT_LANES`] at a time (the row's last w mod 8 one at a
+/// time). Each block is read into registers whole and written back whole, the sums kept in
+/// registers across blocks: with stores between its loads, LLVM gathered the operands one
+/// value at a time (a third of the tiled backward's own time).
 #[inline(always)]
 fn adjoint_blocks(
+    gain: f64,
     gi: &mut [f32],
     (prev, o, above): (&[f32], &[f32], &[f32]),
     dots: &mut [f64; DOT_LANES],
-    value: impl Fn(f32, f32) -> c32 + Copy,
     mut emit: impl FnMut(usize, &[f32], &[f32]),
 ) {
     let w = gi.len();
@@ -260,14 +254,14 @@ fn adjoint_blocks(
         let (g0, mut g1) = (*gv, [0.0f32; DOT_LANES]);
         let (mut re, mut im) = ([0.0f32; DOT_LANES], [0.0f32; DOT_LANES]);
         for j in 0..DOT_LANES {
-            let (d, r, i, g) = adjoint_pixel(value, g0[j], p[j], oo[j], ab[j]);
+            let (d, r, i, g) = adjoint_pixel(gain, g0[j], p[j], oo[j], ab[j]);
             (sums[j], re[j], im[j], g1[j]) = (sums[j] + d, r, i, g);
         }
         *gv = g1;
         emit(c * DOT_LANES, &re, &im);
     }
     for i in body..w {
-        let (d, r, im, g) = adjoint_pixel(value, gi[i], prev[i], o[i], above[i]);
+        let (d, r, im, g) = adjoint_pixel(gain, gi[i], prev[i], o[i], above[i]);
         (sums[0], gi[i]) = (sums[0] + d, g);
         emit(i, &[r], &[im]);
     }

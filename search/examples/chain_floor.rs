@@ -141,24 +141,29 @@ fn main() {
     }
     // With kept spectra each covered tile's spectrum (N² complex f32, 0.4 MB at N = 224) is
     // read from memory once per forward: that read, timed alone with the caches evicted
-    // first, is what the FFT floor leaves out (docs/bench/chain.md).
-    let stream = tiles.map(|(_, nt, covered, _)| {
-        let len = covered.div_ceil(frames.len()) * nt * nt;
-        let spectra = vec![rustfft::num_complex::Complex::new(1.0f32, 1.0); len];
-        let mut evict = vec![0u8; 96 << 20];
-        let mut t: Vec<f64> = (0..=reps)
-            .map(|_| {
+    // first, is what the FFT floor leaves out (docs/bench/chain.md). Summed as 64-bit words
+    // with wrapping adds, which vectorise: a complex f32 sum is one chain of dependent adds
+    // and would time the adds (6.3 M of them, about as long as the read itself), not memory.
+    let stream = tiles
+        .filter(|_| kept == frames.len())
+        .map(|(_, nt, covered, _)| {
+            let len = (covered as f64 / n).round() as usize * nt * nt;
+            let words = vec![1u64; len];
+            let mut evict = vec![0u8; 96 << 20];
+            let mut read = || {
                 evict.iter_mut().for_each(|v| *v = v.wrapping_add(1));
                 std::hint::black_box(&evict);
                 clock(&mut || {
-                    let s: rustfft::num_complex::Complex<f32> = spectra.iter().sum();
+                    let s = words.iter().fold(0u64, |a, &w| a.wrapping_add(w));
                     std::hint::black_box(s);
                 })
-            })
-            .collect();
-        t.sort_by(f64::total_cmp);
-        (len as f64 * 8e-6, t[0], t[reps / 2])
-    });
+            };
+            // One untimed read first, as `time` makes one untimed call.
+            read();
+            let mut t: Vec<f64> = (0..reps).map(|_| read()).collect();
+            t.sort_by(f64::total_cmp);
+            (len as f64 * 8e-6, t[0], t[reps / 2])
+        });
     if let Some((mb, a, b)) = stream {
         println!(
             "a frame's kept spectra ({mb:.0} MB) read once from memory, caches evicted first: \
@@ -172,12 +177,18 @@ fn main() {
     // Kept spectra: forward one inverse FFT per layer, backward the gradient's spectrum per
     // layer. Not kept: the forward computes the layer's spectrum on top, the backward reads
     // it from the tape.
-    for (what, fr, ffts) in [
-        ("kept layer spectra", &frames, [1.0, 1.0]),
+    for (what, fr, ffts, reads) in [
+        (
+            "kept layer spectra",
+            &frames,
+            [1.0, 1.0],
+            kept == frames.len(),
+        ),
         (
             "layer spectra computed in each forward (on its tape for the backward)",
             &bare,
             [2.0, 1.0],
+            false,
         ),
     ] {
         let mut fwd = None;
@@ -219,8 +230,9 @@ fn main() {
             t_opt.0 / n * 1e3,
             t_opt.1 / n * 1e3
         );
-        // Kept spectra only: against one inverse FFT per covered tile plus the spectra's read.
-        if let (Some((_, _, covered, tf)), Some((_, sa, sb)), 1.0) = (tiles, stream, ffts[0]) {
+        // Frames whose spectra are kept: against one inverse FFT per covered tile plus the
+        // spectra's read.
+        if let (Some((_, _, covered, tf)), Some((_, sa, sb)), true) = (tiles, stream, reads) {
             let floor = |t: f64, s: f64| covered as f64 / n * t + s;
             println!(
                 "    on tiles: against the FFT floor plus the kept spectra's read ({:.1}, {:.1} \

@@ -731,7 +731,8 @@ impl LayeredImager {
                     row[xs.end..].fill(c32::new(0.0, 0.0));
                     let span = y * w + cols.start..y * w + cols.end;
                     let at = reach.packed(y, cols.start);
-                    let (row, gi, prev) = (&mut row[xs.clone()], &gi[span], &prev[at..]);
+                    let (row, gi, prev) =
+                        (&mut row[xs.clone()], &gi[span], &prev[at..at + cols.len()]);
                     match exact {
                         Some(g) => window_row(row, gi, prev, |gv, p| gradient_value_f32(g, gv, p)),
                         None => window_row(row, gi, prev, |gv, p| gradient_value(gain, gv, p)),
