@@ -143,7 +143,7 @@ fn main() {
     // read from memory once per forward: that read, timed alone with the caches evicted
     // first, is what the FFT floor leaves out (docs/bench/chain.md). Summed as 64-bit words
     // with wrapping adds, which vectorise: a complex f32 sum is one chain of dependent adds
-    // and would time the adds (6.3 M of them, about as long as the read itself), not memory.
+    // and would time the adds (6.3 M of them, about twice as long as the read), not memory.
     let stream = tiles
         .filter(|_| kept == frames.len())
         .map(|(_, nt, covered, _)| {
