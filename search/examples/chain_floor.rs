@@ -160,9 +160,8 @@ fn main() {
             };
             // One untimed read first, as `time` makes one untimed call.
             read();
-            let mut t: Vec<f64> = (0..reps).map(|_| read()).collect();
-            t.sort_by(f64::total_cmp);
-            (len as f64 * 8e-6, t[0], t[reps / 2])
+            let (min, med) = min_median((0..reps).map(|_| read()).collect());
+            (len as f64 * 8e-6, min, med)
         });
     if let Some((mb, a, b)) = stream {
         println!(
@@ -178,12 +177,7 @@ fn main() {
     // layer. Not kept: the forward computes the layer's spectrum on top, the backward reads
     // it from the tape.
     for (what, fr, ffts, reads) in [
-        (
-            "kept layer spectra",
-            &frames,
-            [1.0, 1.0],
-            kept == frames.len(),
-        ),
+        ("kept layer spectra", &frames, [1.0, 1.0], true),
         (
             "layer spectra computed in each forward (on its tape for the backward)",
             &bare,
@@ -230,8 +224,8 @@ fn main() {
             t_opt.0 / n * 1e3,
             t_opt.1 / n * 1e3
         );
-        // Frames whose spectra are kept: against one inverse FFT per covered tile plus the
-        // spectra's read.
+        // Frames whose spectra are kept (`stream` is timed only where all are): against one
+        // inverse FFT per covered tile plus the spectra's read.
         if let (Some((_, _, covered, tf)), Some((_, sa, sb)), true) = (tiles, stream, reads) {
             let floor = |t: f64, s: f64| covered as f64 / n * t + s;
             println!(
@@ -296,9 +290,13 @@ fn main() {
 /// call: this VM's speed moves by ±20 % between seconds.
 fn time(reps: usize, f: &mut dyn FnMut()) -> (f64, f64) {
     f();
-    let mut t: Vec<f64> = (0..reps).map(|_| clock(f)).collect();
+    min_median((0..reps).map(|_| clock(f)).collect())
+}
+
+/// (minimum, median) of a non-empty list of times.
+fn min_median(mut t: Vec<f64>) -> (f64, f64) {
     t.sort_by(f64::total_cmp);
-    (t[0], t[reps / 2])
+    (t[0], t[t.len() / 2])
 }
 
 /// (minimum, median) seconds of `reps` calls of `f` and, timed before each of them, of one
@@ -314,10 +312,7 @@ fn paired(reps: usize, f: &mut dyn FnMut(), mut floors: [&mut dyn FnMut(); 2]) -
         }
         t[0].push(clock(f));
     }
-    t.map(|mut v| {
-        v.sort_by(f64::total_cmp);
-        (v[0], v[reps / 2])
-    })
+    t.map(min_median)
 }
 
 /// Seconds of one call of `g`.
