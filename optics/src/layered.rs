@@ -940,11 +940,19 @@ impl Reach {
 
     /// The non-empty rows: (row, its columns, their range in a packed plane).
     fn rows(&self) -> impl Iterator<Item = (usize, Range<usize>, Range<usize>)> + '_ {
-        self.spans
+        self.rows_in(0..self.spans.len())
+    }
+
+    /// [`Self::rows`] among the image rows `rows`.
+    fn rows_in(
+        &self,
+        rows: Range<usize>,
+    ) -> impl Iterator<Item = (usize, Range<usize>, Range<usize>)> + '_ {
+        self.spans[rows.clone()]
             .iter()
-            .enumerate()
-            .filter(|(_, s)| s.1 > s.0)
-            .map(|(r, &(a, b))| (r, a..b, self.at[r]..self.at[r] + b - a))
+            .zip(rows)
+            .filter(|(s, _)| s.1 > s.0)
+            .map(|(&(a, b), r)| (r, a..b, self.at[r]..self.at[r] + b - a))
     }
 
     /// Where pixel (r, c), which must lie in the reach, is in a packed plane.

@@ -182,6 +182,27 @@ fn compose_row(
     }
 }
 
+/// The copy of I⁽ᵏ⁻¹⁾ `image` (rows of `w` pixels) over `reach` into `prev` and α∗P's zeros
+/// into `o`, both packed, grown from row `band` to row `end` (nothing when `end ≤ band`).
+fn grow_band(
+    reach: &Reach,
+    (image, w): (&[f32], usize),
+    band: &mut usize,
+    end: usize,
+    (prev, o): (&mut Vec<f32>, &mut Option<Vec<f32>>),
+) {
+    if end <= *band {
+        return;
+    }
+    for (r, cols, _) in reach.rows_in(*band..end) {
+        prev.extend_from_slice(&image[r * w + cols.start..r * w + cols.end]);
+    }
+    if let Some(o) = o.as_mut() {
+        o.resize(prev.len(), 0.0);
+    }
+    *band = end;
+}
+
 /// One row of a tile's window of the gradient: the complex value of each pixel of ∂L/∂I⁽ᵏ⁾
 /// `gi` and I⁽ᵏ⁻¹⁾ `prev` by `value` ([`gradient_value`] or its f32 form).
 #[inline(always)]
@@ -599,22 +620,29 @@ impl LayeredImager {
                 c.clear();
                 c
             };
-            for (r, cols, _) in reach.rows() {
-                prev.extend_from_slice(&image[r * w + cols.start..r * w + cols.end]);
-            }
-            // Zeros written, not calloc'd: fresh pages that the tiles first read and then
-            // write fault twice, the second time with a TLB shootdown across the threads
-            // (the forward at batch 16 on 2 cores took 0.75–0.79 s instead of 0.64–0.67 s).
-            let mut o = keep.then(|| {
-                let mut o = Vec::with_capacity(reach.len());
-                o.extend(std::iter::repeat_n(0.0f32, reach.len()));
-                o
-            });
+            let mut o = keep.then(|| Vec::with_capacity(reach.len()));
+            // I⁽ᵏ⁻¹⁾ copied and α∗P's zeros written a band of rows at a time, just before the
+            // first tile that adds into the band, so that the tiles find both in cache (a copy
+            // and a fill of the whole reach up front left them in memory). Rows below `band`
+            // hold both; no tile has added into a row at or past it, so the copy there is
+            // still I⁽ᵏ⁻¹⁾. Zeros are written, not calloc'd: fresh pages that the tiles first
+            // read and then write fault twice, the second time with a TLB shootdown across
+            // the threads (the forward at batch 16 on 2 cores took 0.75–0.79 s instead of
+            // 0.64–0.67 s).
+            let mut band = 0;
             let mut rec = record
                 .as_ref()
                 .map(|_| Vec::with_capacity(tiles.len() * nn));
             let lines = given.is_none().then(|| l.lines());
             for (i, &tile) in tiles.iter().enumerate() {
+                let win = self.tile_window(t, tile);
+                grow_band(
+                    &reach,
+                    (&image, w),
+                    &mut band,
+                    win.rows.end,
+                    (&mut prev, &mut o),
+                );
                 // The tile's spectrum: the kept one, or computed into b.
                 let spectrum = match given {
                     Some(s) => Some(&s[i * nn..(i + 1) * nn]),
@@ -628,7 +656,6 @@ impl LayeredImager {
                         None
                     }
                 };
-                let win = self.tile_window(t, tile);
                 let out = win.ys.clone();
                 t.ifft2_product((spectrum, p), &mut tb.b, out, &mut tb.a, &mut tb.scratch);
                 for (m, y) in win.ys.zip(win.rows) {
@@ -640,6 +667,8 @@ impl LayeredImager {
                     add_tile_row(gain, src, &prev[packed], &mut image[span], o);
                 }
             }
+            grow_band(&reach, (&image, w), &mut band, self.h, (&mut prev, &mut o));
+            debug_assert_eq!(prev.len(), reach.len());
             if let Some((r, tl)) = record.as_mut() {
                 r.push(rec);
                 tl.push(tiles.to_vec());
