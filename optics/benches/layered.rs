@@ -6,10 +6,10 @@
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use faer::Mat;
+use nanoeye_fft::{Float, Planner};
 use nanoeye_optics::psf::fast_fft_size;
 use nanoeye_optics::{LayeredImager, SpectralLayer};
 use num_complex::Complex;
-use rustfft::{FftNum, FftPlanner};
 
 fn bench(c: &mut Criterion) {
     // The binary's allocator and its settings, so these times are the CLI's.
@@ -50,13 +50,13 @@ fn bench(c: &mut Criterion) {
 }
 
 /// Two bare 2-D FFTs of an ny × nx grid in precision `T`.
-fn floor<T: FftNum>(
+fn floor<T: Float>(
     g: &mut criterion::BenchmarkGroup<criterion::measurement::WallTime>,
     name: &str,
     ny: usize,
     nx: usize,
 ) {
-    let mut planner = FftPlanner::<T>::new();
+    let mut planner = Planner::<T>::new();
     let (fx, fy) = (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny));
     // Unit values; the transforms' growth reaches ∞ after a few calls, which costs no time.
     let mut buf = vec![Complex::new(T::one(), T::one()); ny * nx];

@@ -3,9 +3,9 @@
 //! FFTs of the folded grid, and 2(N_b + W q + 2T) chirp-z FFTs of the window DFT.
 
 use criterion::{Criterion, criterion_group, criterion_main};
+use nanoeye_fft::Planner;
 use nanoeye_optics::{ApertureGrid, AsmPsf, Hyperbolic, PhaseProfile, PsfConfig, PsfModel};
 use num_complex::Complex64;
-use rustfft::FftPlanner;
 
 fn bench(c: &mut Criterion) {
     let grid = ApertureGrid::new(1e-3, 1.5e-6).expect("grid");
@@ -25,7 +25,7 @@ fn bench(c: &mut Criterion) {
     let (nl, nb) = model.sizes();
     let wq = model.field_points();
     let lc = model.chirp_len();
-    let mut planner = FftPlanner::<f64>::new();
+    let mut planner = Planner::<f64>::new();
     let fft = planner.plan_fft_forward(nl);
     let cfft = planner.plan_fft_forward(lc);
     let rows = grid.n.min(nl);

@@ -28,7 +28,7 @@ fn main() {
     // The floor: the same FFTs as benches/psf.rs's `floor_ffts_of_one_plane`.
     let (nl, nb) = model.sizes();
     let (wq, lc) = (model.field_points(), model.chirp_len());
-    let mut planner = rustfft::FftPlanner::<f64>::new();
+    let mut planner = nanoeye_fft::Planner::<f64>::new();
     let fft = planner.plan_fft_forward(nl);
     let cfft = planner.plan_fft_forward(lc);
     let one = Complex64::new(1.0, 0.0);

@@ -8,7 +8,7 @@
 
 use crate::psf::fast_fft_size;
 use faer::c64;
-use rustfft::{Fft, FftPlanner};
+use nanoeye_fft::{Fft, Planner};
 use std::f64::consts::{PI, TAU};
 use std::sync::Arc;
 
@@ -29,7 +29,7 @@ pub(crate) struct ChirpOp {
 impl ChirpOp {
     /// Builds the map from its pre- and post-multipliers and kernel k(t), t = j − i.
     pub(crate) fn new(
-        planner: &mut FftPlanner<f64>,
+        planner: &mut Planner<f64>,
         pre: Vec<c64>,
         post: Vec<c64>,
         k: impl Fn(i64) -> c64,
@@ -57,7 +57,7 @@ impl ChirpOp {
     /// The window DFT E[j, b] = df·e^{i2π df m_b (y₀ + j δ)} for m_b = m₀ + b, b < n_band,
     /// j < n_out, and its adjoint Eᴴ, both as chirp maps.
     pub(crate) fn window_dft(
-        planner: &mut FftPlanner<f64>,
+        planner: &mut Planner<f64>,
         m0: i64,
         n_band: usize,
         n_out: usize,
@@ -202,7 +202,7 @@ mod tests {
         // A PSF-like case: band −60..=60 at df = 1/1.2 mm, 96 outputs at 0.75 µm, offset window.
         let (m0, nb, nout) = (-60_i64, 121_usize, 96_usize);
         let (df, y0, delta) = (1.0 / 1.2e-3, -3.7e-5 + 0.6e-3, 0.75e-6);
-        let mut planner = FftPlanner::new();
+        let mut planner = Planner::new();
         let (fwd, adj) = ChirpOp::window_dft(&mut planner, m0, nb, nout, df, y0, delta);
         let e = dense(m0, nb, nout, df, y0, delta);
         let x: Vec<c64> = (0..nb)
@@ -233,7 +233,7 @@ mod tests {
     /// when it drops them from the field.
     #[test]
     fn bare_convolution_with_the_diagonals_applied_outside_equals_the_map() {
-        let mut planner = FftPlanner::new();
+        let mut planner = Planner::new();
         let (m0, nb, nout, df) = (-11_i64, 23usize, 17usize, 1.0 / 173e-6);
         let (y0, delta) = (-41e-6, 0.37e-6);
         let (op, _) = ChirpOp::window_dft(&mut planner, m0, nb, nout, df, y0, delta);

@@ -11,7 +11,7 @@
 use crate::error::{OpticsError, Result};
 use crate::psf::fast_fft_size;
 use faer::{Mat, MatRef, c32, c64};
-use rustfft::{Fft, FftNum, FftPlanner};
+use nanoeye_fft::{Fft, Float, Planner};
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
 
@@ -400,16 +400,16 @@ pub struct LayerGrads {
 }
 
 /// The padded grid's four transforms, planned in one precision.
-struct Plans<T: FftNum> {
+struct Plans<T: Float> {
     fy: Arc<dyn Fft<T>>,
     fx: Arc<dyn Fft<T>>,
     iy: Arc<dyn Fft<T>>,
     ix: Arc<dyn Fft<T>>,
 }
 
-impl<T: FftNum> Plans<T> {
+impl<T: Float> Plans<T> {
     fn new(ny: usize, nx: usize) -> Self {
-        let mut pl = FftPlanner::<T>::new();
+        let mut pl = Planner::<T>::new();
         Self {
             fy: pl.plan_fft_forward(ny),
             fx: pl.plan_fft_forward(nx),

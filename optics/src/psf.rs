@@ -17,8 +17,8 @@ use crate::error::{OpticsError, Result, positive};
 use crate::grid::ApertureGrid;
 use crate::profile::{PhaseMap, sag_phase};
 use faer::{Mat, c64};
+use nanoeye_fft::{Fft, Planner};
 use rayon::prelude::*;
-use rustfft::{Fft, FftPlanner};
 use std::f64::consts::{PI, TAU};
 use std::sync::{Arc, Mutex};
 
@@ -617,7 +617,7 @@ impl AsmPsf {
             }
         });
         let c = (grid.n as f64 - 1.0) * 0.5 * delta;
-        let mut planner = FftPlanner::<f64>::new();
+        let mut planner = Planner::<f64>::new();
         // Field point j sits at y_j = centre − W p/2 + (j − T + ½)δ; the grid's origin is at −c.
         let mut make_e = |center: f64| {
             let y0 = center - half_win + (0.5 - taps as f64) * sub + c;

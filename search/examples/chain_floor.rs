@@ -324,7 +324,7 @@ fn clock(g: &mut dyn FnMut()) -> f64 {
 
 /// One 2-D FFT of an ny × nx grid in precision `T` per call: the rows, then the second axis
 /// as contiguous runs of ny (no transposition, no copies, no allocation).
-fn bare_fft2<T: rustfft::FftNum>(ny: usize, nx: usize) -> impl FnMut() {
+fn bare_fft2<T: nanoeye_fft::Float>(ny: usize, nx: usize) -> impl FnMut() {
     let (fx, fy, mut buf, mut scratch) = plans::<T>(ny, nx);
     move || {
         fx.process_with_scratch(&mut buf, &mut scratch);
@@ -333,17 +333,17 @@ fn bare_fft2<T: rustfft::FftNum>(ny: usize, nx: usize) -> impl FnMut() {
 }
 
 /// A planned FFT.
-type Plan<T> = std::sync::Arc<dyn rustfft::Fft<T>>;
+type Plan<T> = std::sync::Arc<dyn nanoeye_fft::Fft<T>>;
 /// A complex grid or buffer.
-type Grid<T> = Vec<rustfft::num_complex::Complex<T>>;
+type Grid<T> = Vec<nanoeye_fft::num_complex::Complex<T>>;
 
 /// The two forward plans of a ny × nx grid (rows of nx, columns of ny), a grid of ones (1 + i)
 /// and a scratch buffer either plan can use.
-fn plans<T: rustfft::FftNum>(ny: usize, nx: usize) -> (Plan<T>, Plan<T>, Grid<T>, Grid<T>) {
-    let mut planner = rustfft::FftPlanner::<T>::new();
+fn plans<T: nanoeye_fft::Float>(ny: usize, nx: usize) -> (Plan<T>, Plan<T>, Grid<T>, Grid<T>) {
+    let mut planner = nanoeye_fft::Planner::<T>::new();
     let (fx, fy) = (planner.plan_fft_forward(nx), planner.plan_fft_forward(ny));
-    let z = rustfft::num_complex::Complex::new(T::zero(), T::zero());
-    let buf = vec![rustfft::num_complex::Complex::new(T::one(), T::one()); ny * nx];
+    let z = nanoeye_fft::num_complex::Complex::new(T::zero(), T::zero());
+    let buf = vec![nanoeye_fft::num_complex::Complex::new(T::one(), T::one()); ny * nx];
     let scratch = vec![
         z;
         fx.get_inplace_scratch_len()
@@ -357,7 +357,7 @@ fn plans<T: rustfft::FftNum>(ny: usize, nx: usize) -> (Plan<T>, Plan<T>, Grid<T>
 /// contiguous; the result left column-major, as S1 keeps its spectra. [`bare_fft2`] leaves
 /// the transposition out, so it bounds the transforms alone.
 fn fft2_transposed(ny: usize, nx: usize) -> impl FnMut() {
-    use rustfft::num_complex::Complex;
+    use nanoeye_fft::num_complex::Complex;
     const TILE: usize = 32;
     let (fx, fy, mut buf, mut scratch) = plans::<f32>(ny, nx);
     let mut cols = vec![Complex::new(0.0f32, 0.0); ny * nx];

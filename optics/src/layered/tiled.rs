@@ -218,7 +218,7 @@ impl Tiling {
     pub(super) fn new(h: usize, w: usize, wp: usize, t_min: usize) -> Self {
         let n = fast_fft_size(t_min + wp - 1);
         let t = n + 1 - wp;
-        let mut pl = FftPlanner::<f32>::new();
+        let mut pl = Planner::<f32>::new();
         Self {
             t,
             n,
