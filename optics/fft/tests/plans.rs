@@ -8,12 +8,11 @@ use nanoeye_fft::{FftDirection, Float, Planner};
 use std::sync::Arc;
 
 /// A complex exponential of frequency k0 transforms to len at bin k0 and 0 elsewhere, and the
-/// inverse of the transform is len times the input: a power of two, mixed radices, primes (7, 97)
-/// and a length with a large prime factor (423 = 9 × 47), so that the planner's several kinds of
-/// algorithm are reached.
+/// inverse of the transform is len times the input, for lengths of several kinds: 1, powers of
+/// two, mixed radices (160, 360), primes (7, 83, 97) and a large prime factor (423 = 9 × 47).
 fn delta_and_round_trip<T: Float + Into<f64>>(tol: f64) {
     let mut planner = Planner::<T>::new();
-    for len in [1usize, 7, 97, 160, 360, 423, 1024] {
+    for len in [1usize, 7, 83, 97, 160, 360, 423, 1024] {
         let k0 = 5 % len;
         let (fwd, inv) = (planner.plan_fft_forward(len), planner.plan_fft_inverse(len));
         assert_eq!((fwd.len(), inv.len()), (len, len));
