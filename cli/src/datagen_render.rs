@@ -5,6 +5,7 @@ use nanoeye_datagen::render::{
     DatasetOptions, DatasetSummary, LayerSpec, Mesh, MeshUnits, RenderError, RenderSet,
     SceneSource, finish_dataset, open_dataset, plan_dataset, render_frames, write_dataset,
 };
+use nanoeye_datagen::states::PROTOCOL_GRID;
 use nanoeye_gaze::Rig;
 use std::path::PathBuf;
 
@@ -15,7 +16,7 @@ pub enum SetArg {
     Ambiguity,
     /// Variational triplets: anchor, slip+, gaze+ frames per triplet.
     Variational,
-    /// Acquisition protocol: 7 stage positions × 49 targets per subject.
+    /// Acquisition protocol: 7 stage positions × 49 targets (--protocol-grid²) per subject.
     Protocol,
     /// Video-like sequence of --n frames: a smooth gaze path while the glasses drift 3 mm.
     Sequence,
@@ -69,6 +70,9 @@ pub struct RenderArgs {
     /// uniform in 0.2–1); 0 keeps every lid open.
     #[arg(long, default_value_t = 0.0)]
     pub blink_fraction: f64,
+    /// Targets per side of the protocol set's grid, 2–7 (D.4: 7 × 7), with --set protocol only.
+    #[arg(long, default_value_t = PROTOCOL_GRID)]
+    pub protocol_grid: usize,
 }
 
 /// Runs `datagen render`.
@@ -111,6 +115,16 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SetArg::Sequence => RenderSet::Sequence,
         SetArg::Envelope => RenderSet::Envelope,
     };
+    let g = args.protocol_grid;
+    if g != PROTOCOL_GRID && set != RenderSet::Protocol {
+        bail!("--protocol-grid: only --set protocol has a target grid");
+    }
+    if !(2..=PROTOCOL_GRID).contains(&g) {
+        bail!(
+            "--protocol-grid must be 2–{PROTOCOL_GRID} targets per side (D.4's grid is \
+             {PROTOCOL_GRID}×{PROTOCOL_GRID}), got {g}"
+        );
+    }
     let opts = DatasetOptions {
         set,
         n: args.n,
@@ -124,6 +138,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         progress: true,
         layers: LayerSpec::default(),
         blink_fraction: args.blink_fraction,
+        protocol_grid: g,
     };
     // A disk that cannot hold the frames' arrays is refused before anything is written (an
     // estimate that fails leaves the error to the writer, which names the flag).

@@ -297,7 +297,7 @@ figure{{margin:0}}figcaption{{font-size:90%;color:#555}}</style></head><body>
 <p>A metasurface lens (from a Fisher-information initialization, A.2), its effective pixel
 pitch p̂ and a MobileNetV3 supernet co-designed end to end (sandwich rule, S22), a short regularized evolution (S19–S21) choosing the subnet, that
 subnet fine-tuned behind each lens (S16's inner loop: the deployed model), and
-the acquisition protocol (D.4: 49 targets × 7 slippage states per subject) evaluated through
+the acquisition protocol (D.4: {} targets × 7 slippage states per subject) evaluated through
 the whole simulated chain: rendered depth layers → lens PSFs (S1) → sensor at p̂ (S2) →
 network → pupil centroid (S9) → ray–sphere gaze with the network's slippage (S10–S14). The
 same network is trained behind the fixed hyperbolic and double-helix lenses for comparison.
@@ -307,6 +307,8 @@ Stage times add up to {:.0} s (table at the end).</p>
 on 2 cores, so its errors are far from the paper's; `nanoeye run --print-config` lists every
 size, and `--config FILE` scales the run up (more frames, steps, REA cycles and a finer
 render).</p>"#,
+        // A run of before the grid was configurable has no key: D.4's 7 × 7.
+        cfg["protocol_grid"].as_u64().map_or(49, |g| g * g),
         // The stages' sum: a resumed run's own wall time would count only what it redid.
         r["stages"]
             .as_object()

@@ -14,6 +14,7 @@ use faer::Mat;
 use nanoeye_datagen::render::{
     Dataset, DatasetOptions, LayerSpec, RenderSet, SceneSource, write_dataset,
 };
+use nanoeye_datagen::states::PROTOCOL_GRID;
 use nanoeye_gaze::{PupilCentre, Rig, SolverKind};
 use nanoeye_nets::Arch;
 use nanoeye_search::{
@@ -101,8 +102,11 @@ pub struct RunConfig {
     /// Validation items (V of S17/S19, which the REA selects on), from the training set's kind
     /// with another seed: frames (envelope) or pairs (ambiguity).
     pub val_items: usize,
-    /// Subjects of the acquisition protocol (7 × 49 frames each).
+    /// Subjects of the acquisition protocol (7 slippage states × protocol_grid² targets each).
     pub protocol_subjects: usize,
+    /// Targets per side of the protocol's grid, 2–7 (D.4: 7, i.e. 49 targets; fewer give a
+    /// quicker, coarser protocol over the same 25° × 35° span).
+    pub protocol_grid: usize,
     /// Fisher-initialization iterations of the learned lens (A.2, `fisher init`'s L_init on the
     /// chain's PSF model, depth slabs and initial p̂, from the hyperbolic phase); 0 starts the
     /// learned lens from the hyperbolic one.
@@ -225,6 +229,7 @@ impl Default for RunConfig {
             // V 21.7° that 96 frames score 27.5° (docs/run.md, twenty-first session).
             val_items: 96,
             protocol_subjects: 1,
+            protocol_grid: PROTOCOL_GRID,
             fisher_iterations: 40,
             fisher_photons: 1e5,
             learned_lens: LearnedLens::Trained,
@@ -461,6 +466,13 @@ fn check(cfg: &RunConfig) -> Result<()> {
     }
     if cfg.train_items > 100_000 || cfg.val_items > 100_000 || cfg.protocol_subjects > 1000 {
         bail!("--config: at most 100000 training items or pairs and 1000 protocol subjects");
+    }
+    if !(2..=PROTOCOL_GRID).contains(&cfg.protocol_grid) {
+        bail!(
+            "--config: protocol_grid must be 2–{PROTOCOL_GRID} targets per side (D.4's grid is \
+             {PROTOCOL_GRID}×{PROTOCOL_GRID}), got {}",
+            cfg.protocol_grid
+        );
     }
     if (cfg.slip_head_refit || cfg.rea_head_refit) && cfg.train_items < 3 {
         bail!(
@@ -730,15 +742,17 @@ fn fallbacks(e: &nanoeye_search::FrameEval) -> usize {
     e.fallback.iter().filter(|&&f| f).count()
 }
 
-fn protocol_summary(errs: &[Option<f64>]) -> serde_json::Value {
+/// [`summarize`] over every protocol frame and per slippage state; `targets` per subject
+/// and slippage state.
+fn protocol_summary(errs: &[Option<f64>], targets: usize) -> serde_json::Value {
     let mut s = summarize(errs);
-    // Protocol order: subject, slip state (7), target (49).
+    // Protocol order: subject, slip state (7), target.
     let per_slip: Vec<serde_json::Value> = (0..7)
         .map(|k| {
             let e: Vec<Option<f64>> = errs
                 .iter()
                 .enumerate()
-                .filter(|(i, _)| (i / 49) % 7 == k)
+                .filter(|(i, _)| (i / targets) % 7 == k)
                 .map(|(_, e)| *e)
                 .collect();
             let mut r = summarize(&e);
@@ -782,6 +796,10 @@ fn set_options(
         progress: std::io::stderr().is_terminal(),
         layers: LayerSpec::default(),
         blink_fraction,
+        protocol_grid: match set {
+            RenderSet::Protocol => cfg.protocol_grid,
+            _ => PROTOCOL_GRID,
+        },
     }
 }
 
@@ -1174,7 +1192,10 @@ pub fn run(a: RunArgs) -> Result<()> {
 
     // 6. The acquisition protocol through each lens's chain with the selected subnet.
     let t = Instant::now();
-    note("evaluating the acquisition protocol (49 targets × 7 slippage states)");
+    let (grid, targets) = (cfg.protocol_grid, cfg.protocol_grid * cfg.protocol_grid);
+    note(&format!(
+        "evaluating the acquisition protocol ({targets} targets × 7 slippage states)"
+    ));
     // The three lenses at once (one thread each, as in training); merged in `LENSES` order.
     let evals = for_each_lens(|name, _, _| {
         let mut ev = LensEval::default();
@@ -1314,7 +1335,7 @@ pub fn run(a: RunArgs) -> Result<()> {
         for (k, rec) in proto.records.iter().enumerate() {
             lines += &serde_json::json!({
                 "frame": k,
-                "slip_state": (k / 49) % 7,
+                "slip_state": (k / targets) % 7,
                 "true_gaze": rec.gaze,
                 "tracked_gaze": e.gaze[k],
                 "error_deg": e.errors_deg[k],
@@ -1331,7 +1352,7 @@ pub fn run(a: RunArgs) -> Result<()> {
             lines.as_bytes(),
         )?;
         for ((key, ..), e) in solves.iter().zip(&evals) {
-            let mut v = protocol_summary(&e.errors_deg);
+            let mut v = protocol_summary(&e.errors_deg, targets);
             v["fallbacks"] = fallbacks(e).into();
             if key == name {
                 // The network's own share: segmentation and slippage against the truth.
@@ -1343,11 +1364,13 @@ pub fn run(a: RunArgs) -> Result<()> {
             ev.entries.push((key.clone(), v));
         }
         // Figures for the report: the lens's PSFs over depth, and three protocol frames
-        // (centre target; slippage states 0, 3 and 6) as the network sees them.
+        // (centre target, the one above and right of the centre on an even grid; slippage
+        // states 0, 3 and 6) as the network sees them.
         let (psf_png, depths) = crate::figures::psf_strip(&proto_chain, &map)?;
         util::write_atomic(&out.join(format!("runs/{name}/psfs.png")), &psf_png)?;
         ev.psf_depths_mm = depths;
-        let ids: Vec<usize> = [24, 3 * 49 + 24, 6 * 49 + 24]
+        let centre = (grid / 2) * grid + grid / 2;
+        let ids: Vec<usize> = [centre, 3 * targets + centre, 6 * targets + centre]
             .into_iter()
             .filter(|&i| i < proto.len())
             .collect();

@@ -1214,7 +1214,7 @@ fn fisher_init_resume_refuses_changed_parameters_and_keeps_one_checkpoint_file()
 }
 
 #[test]
-fn datagen_render_names_n_and_blink_fraction_and_refuses_a_symlinked_manifest() {
+fn datagen_render_names_n_blink_fraction_and_protocol_grid_and_refuses_a_symlinked_manifest() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
     refused(
@@ -1243,6 +1243,21 @@ fn datagen_render_names_n_and_blink_fraction_and_refuses_a_symlinked_manifest() 
                 "datagen", "render", "--set", set, "--n", "1", &flag, "--out", "b",
             ],
             "--blink-fraction",
+            p,
+        );
+    }
+    for (set, grid) in [
+        ("protocol", "1"),
+        ("protocol", "8"),
+        ("protocol", "-1"),
+        ("envelope", "3"),
+    ] {
+        let flag = format!("--protocol-grid={grid}");
+        refused(
+            &[
+                "datagen", "render", "--set", set, "--n", "1", &flag, "--out", "b",
+            ],
+            "--protocol-grid",
             p,
         );
     }
@@ -1672,6 +1687,10 @@ fn run_refuses_a_bad_config_before_any_work_or_output() {
         (r#"{"train_items": 0}"#, "train_items"),
         (r#"{"train_set": "protocol"}"#, "train_set"),
         (r#"{"train_blink_fraction": 1.5}"#, "train_blink_fraction"),
+        (r#"{"protocol_grid": 1}"#, "protocol_grid"),
+        (r#"{"protocol_grid": 8}"#, "protocol_grid"),
+        (r#"{"protocol_grid": -3}"#, "protocol_grid"),
+        (r#"{"protocol_grid": null}"#, "protocol_grid"),
         (r#"{"final_phase_lr_scale": -0.1}"#, "final_phase_lr_scale"),
         (r#"{"final_phase_lr_scale": 2}"#, "final_phase_lr_scale"),
         (r#"{"final_phase_lr_scale": null}"#, "final_phase_lr_scale"),

@@ -559,8 +559,8 @@ fn search_train_and_rea_resume_to_the_same_bytes() {
     );
 }
 
-/// The main job on the tiny configuration of main_job.rs: about a minute in the debug
-/// build, so one kill point.
+/// The main job on the tiny configuration of main_job.rs (its 3 × 3 protocol grid, fewer
+/// training frames): about 15 s in the debug build, so one kill point.
 #[test]
 fn the_main_job_resumes_to_the_same_bytes() {
     let root = tempfile::tempdir().unwrap();
@@ -568,7 +568,8 @@ fn the_main_job_resumes_to_the_same_bytes() {
         std::fs::write(
             cwd.join("tiny.json"),
             r#"{"width_px": 80, "height_px": 50, "spp": 1, "train_items": 3, "val_items": 2,
-            "protocol_subjects": 1, "train_steps": 2, "batch": 3, "random_subnets": 0,
+            "protocol_subjects": 1, "protocol_grid": 3, "train_steps": 2, "batch": 3,
+            "random_subnets": 0,
             "pitch_init_um": 60.0, "pitch_range_um": [48.0, 120.0], "rea_cycles": 1,
             "rea_population": 2, "rea_tournament": 2, "rea_epochs": 1.0, "final_steps": 2,
             "aperture_step_um": 10.0, "exposure_ms": 0.0004, "head_widths": [32, 16],

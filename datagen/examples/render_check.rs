@@ -35,6 +35,7 @@ fn main() {
             progress: false,
             layers: LayerSpec::default(),
             blink_fraction: 0.0,
+            protocol_grid: nanoeye_datagen::states::PROTOCOL_GRID,
         };
         let s = write_dataset(&opts).expect("render");
         eprintln!("{name}: {s:?}");

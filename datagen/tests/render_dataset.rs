@@ -19,6 +19,7 @@ fn opts(dir: &Path, seed: u64) -> DatasetOptions {
         progress: false,
         layers: LayerSpec::default(),
         blink_fraction: 0.0,
+        protocol_grid: nanoeye_datagen::states::PROTOCOL_GRID,
     }
 }
 
@@ -293,4 +294,64 @@ fn the_array_bytes_estimate_is_what_the_writer_writes() {
         most - least,
         3 * 2 * plane * LayerSpec::default().count as u64
     );
+}
+
+/// `protocol_grid` G: the protocol set's G × G targets span D.4's extremes (G = 3 gives the
+/// 7 × 7 grid's corner, edge-centre and centre targets, bit for bit, at the same stage
+/// positions and mounting), 7 × G² frames per subject; the manifest records G only when it is
+/// not 7 (the paper's datasets keep their layout), a resume with another grid is refused
+/// naming the key, and a grid outside 2–7 or on another set is refused.
+#[test]
+fn a_coarser_protocol_grid_takes_the_paper_grids_targets_and_is_recorded() {
+    use nanoeye_datagen::render::{open_dataset, plan_dataset};
+    let dir = tempfile::tempdir().unwrap();
+    let paper = DatasetOptions {
+        set: RenderSet::Protocol,
+        n: 1,
+        ..opts(dir.path(), 5)
+    };
+    let coarse = DatasetOptions {
+        protocol_grid: 3,
+        ..paper.clone()
+    };
+    let (p7, p3) = (
+        plan_dataset(&paper).unwrap(),
+        plan_dataset(&coarse).unwrap(),
+    );
+    assert_eq!((p7.planned.len(), p3.planned.len()), (343, 63));
+    assert_eq!((p7.manifest.frames, p3.manifest.frames), (343, 63));
+    for (i, f) in p3.planned.iter().enumerate() {
+        let (slip, row, col) = (i / 9, (i % 9) / 3, i % 3);
+        let g = &p7.planned[slip * 49 + 3 * row * 7 + 3 * col].state;
+        let s = &f.state;
+        assert_eq!(
+            (s.azimuth_rad, s.elevation_rad, s.slip_m, s.cam_rot_rad),
+            (g.azimuth_rad, g.elevation_rad, g.slip_m, g.cam_rot_rad),
+            "frame {i}"
+        );
+        assert_eq!(f.subject, p7.planned[0].subject);
+    }
+    let text = serde_json::to_string(&p7.manifest).unwrap();
+    assert!(!text.contains("protocol_grid"), "{text}");
+    assert_eq!(p3.manifest.protocol_grid, 3);
+    // Written and reopened: the same grid resumes, another is refused.
+    open_dataset(&coarse).unwrap();
+    open_dataset(&coarse).unwrap();
+    let e = open_dataset(&paper).unwrap_err().to_string();
+    assert!(e.contains("protocol_grid"), "{e}");
+    for (set, g) in [
+        (RenderSet::Protocol, 1),
+        (RenderSet::Protocol, 8),
+        (RenderSet::Protocol, usize::MAX),
+        (RenderSet::Envelope, 3),
+    ] {
+        let e = plan_dataset(&DatasetOptions {
+            set,
+            protocol_grid: g,
+            ..paper.clone()
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("protocol_grid"), "{set:?} {g}: {e}");
+    }
 }

@@ -540,7 +540,15 @@ fn ambiguity_pair_centroids_agree_once_matched_through_the_cornea() {
     use nanoeye_datagen::render::SceneSource;
     use nanoeye_datagen::render::dataset::{RenderSet, plan};
     let rig = Rig::default();
-    let frames = plan(RenderSet::Ambiguity, &rig, &SceneSource::Procedural, 6, 7).unwrap();
+    let frames = plan(
+        RenderSet::Ambiguity,
+        &rig,
+        &SceneSource::Procedural,
+        6,
+        7,
+        states::PROTOCOL_GRID,
+    )
+    .unwrap();
     let mut checked = 0;
     for item in frames.chunks(3) {
         let (slip, gaze) = (&item[1], &item[2]);

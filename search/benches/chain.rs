@@ -28,6 +28,7 @@ fn bench(c: &mut Criterion) {
         progress: false,
         layers: LayerSpec::default(),
         blink_fraction: 0.0,
+        protocol_grid: nanoeye_datagen::states::PROTOCOL_GRID,
     })
     .expect("render");
     let ds = Dataset::open(dir.path()).expect("dataset");

@@ -37,6 +37,7 @@ fn opts(dir: &Path, seed: u64) -> DatasetOptions {
         progress: false,
         layers: LayerSpec::default(),
         blink_fraction: 0.0,
+        protocol_grid: nanoeye_datagen::states::PROTOCOL_GRID,
     }
 }
 
@@ -106,7 +107,7 @@ fn datasets_round_trip_exactly() {
     assert_eq!(ds.len(), 3);
     let o = opts(dir.path(), 3);
     let rig = rig_at_size(&o.rig, W, H).unwrap();
-    let planned = plan(o.set, &rig, &o.source, o.n, o.seed).unwrap();
+    let planned = plan(o.set, &rig, &o.source, o.n, o.seed, o.protocol_grid).unwrap();
     for (i, f) in planned.iter().enumerate() {
         let pixel_seed = o.seed ^ (i as u64).wrapping_mul(0xA076_1D64_78BD_642F);
         let (frame, _) = render_planned(&rig, &o.source, f, o.spp, pixel_seed, o.layers).unwrap();

@@ -28,6 +28,7 @@ fn render(dir: &std::path::Path, set: RenderSet, n: usize) -> Dataset {
         progress: false,
         layers: LayerSpec::default(),
         blink_fraction: 0.0,
+        protocol_grid: nanoeye_datagen::states::PROTOCOL_GRID,
     })
     .unwrap();
     Dataset::open(dir).unwrap()

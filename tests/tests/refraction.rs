@@ -95,6 +95,7 @@ fn rendered(set: RenderSet, n: usize, seed: u64) -> (tempfile::TempDir, Dataset)
         progress: false,
         layers: LayerSpec::default(),
         blink_fraction: 0.0,
+        protocol_grid: nanoeye_datagen::states::PROTOCOL_GRID,
     })
     .unwrap();
     let ds = Dataset::open(d.path()).unwrap();

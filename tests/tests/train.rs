@@ -21,6 +21,7 @@ fn dataset(dir: &std::path::Path, seed: u64) -> Dataset {
         progress: false,
         layers: LayerSpec::default(),
         blink_fraction: 0.0,
+        protocol_grid: nanoeye_datagen::states::PROTOCOL_GRID,
     })
     .unwrap();
     Dataset::open(dir).unwrap()

@@ -72,6 +72,9 @@ pub struct DatasetOptions {
     /// Share (0–1) of the envelope set's frames caught in a blink or partial closure: their
     /// `lid_closure` is uniform in [`BLINK_CLOSURE`]; 0 keeps every lid open (the default).
     pub blink_fraction: f64,
+    /// Targets per side of the protocol set's grid (2–[`states::PROTOCOL_GRID`]; D.4's 7 ×
+    /// 7 is [`states::PROTOCOL_GRID`], the only value the other sets take).
+    pub protocol_grid: usize,
 }
 
 /// Range of `lid_closure` drawn for a blinking frame (see [`DatasetOptions::blink_fraction`]):
@@ -151,6 +154,21 @@ pub struct DatasetManifest {
     /// render resumed across that change is refused rather than mixed.
     #[serde(default, skip_serializing_if = "is_false")]
     pub triplet_samples_shared: bool,
+    /// Targets per side of a protocol set's grid (absent: D.4's 7, the only value written
+    /// without the key, so datasets of the paper's grid keep their layout).
+    #[serde(
+        default = "paper_protocol_grid",
+        skip_serializing_if = "is_paper_protocol_grid"
+    )]
+    pub protocol_grid: usize,
+}
+
+fn paper_protocol_grid() -> usize {
+    states::PROTOCOL_GRID
+}
+
+fn is_paper_protocol_grid(g: &usize) -> bool {
+    *g == states::PROTOCOL_GRID
 }
 
 fn is_false(b: &bool) -> bool {
@@ -225,6 +243,7 @@ pub fn plan(
     source: &SceneSource,
     n: usize,
     seed: u64,
+    protocol_grid: usize,
 ) -> Result<Vec<PlannedFrame>, RenderError> {
     let subj = |item: usize| seed.wrapping_mul(0x2545_F491_4F6C_DD1D) ^ item as u64;
     let mut out = Vec::new();
@@ -264,10 +283,11 @@ pub fn plan(
             }
         }
         RenderSet::Protocol => {
-            for (i, c) in states::protocol(rig, &Protocol::default(), n, seed)?
-                .into_iter()
-                .enumerate()
-            {
+            let p = Protocol {
+                grid: protocol_grid,
+                ..Protocol::default()
+            };
+            for (i, c) in states::protocol(rig, &p, n, seed)?.into_iter().enumerate() {
                 out.push(PlannedFrame {
                     item: i,
                     role: "capture",
@@ -488,10 +508,24 @@ pub fn render_planned(
 
 /// The manifest `write_dataset` writes for `opts` (rig resampled to the rendered size).
 pub fn manifest_for(opts: &DatasetOptions) -> Result<DatasetManifest, RenderError> {
+    let g = opts.protocol_grid;
+    let max = states::PROTOCOL_GRID;
+    if opts.set == RenderSet::Protocol && !(2..=max).contains(&g) {
+        return Err(RenderError::Invalid {
+            what: "protocol_grid",
+            reason: format!("{g} targets per side, must be 2–{max} (D.4's grid is {max}×{max})"),
+        });
+    }
+    if opts.set != RenderSet::Protocol && g != max {
+        return Err(RenderError::Invalid {
+            what: "protocol_grid",
+            reason: format!("{g}: only the protocol set has a target grid"),
+        });
+    }
     let rig = rig_at_size(&opts.rig, opts.width_px, opts.height_px)?;
     let frames = match opts.set {
         RenderSet::Ambiguity | RenderSet::Variational => opts.n.saturating_mul(3),
-        RenderSet::Protocol => opts.n.saturating_mul(7 * 49),
+        RenderSet::Protocol => opts.n.saturating_mul(7 * g * g),
         RenderSet::Sequence | RenderSet::Envelope => opts.n,
     };
     Ok(DatasetManifest {
@@ -511,6 +545,7 @@ pub fn manifest_for(opts: &DatasetOptions) -> Result<DatasetManifest, RenderErro
         frames,
         blink_fraction: opts.blink_fraction,
         triplet_samples_shared: opts.set == RenderSet::Variational,
+        protocol_grid: opts.protocol_grid,
     })
 }
 
@@ -716,7 +751,14 @@ pub fn plan_dataset(opts: &DatasetOptions) -> Result<DatasetPlan, RenderError> {
             reason: "only the envelope set samples lid closures".into(),
         });
     }
-    let mut planned = plan(opts.set, &manifest.rig, &opts.source, opts.n, opts.seed)?;
+    let mut planned = plan(
+        opts.set,
+        &manifest.rig,
+        &opts.source,
+        opts.n,
+        opts.seed,
+        opts.protocol_grid,
+    )?;
     if b > 0.0 {
         // A stream of its own per item, so the states and subjects are those of b = 0.
         for f in &mut planned {

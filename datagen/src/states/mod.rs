@@ -6,8 +6,8 @@ pub mod state;
 pub mod truncnorm;
 
 pub use sets::{
-    AmbiguityPair, Capture, MAX_PROTOCOL_SUBJECTS, MAX_SET_ITEMS, Protocol, StatesError, TableS2,
-    Triplet, ambiguity, envelope, protocol, variational,
+    AmbiguityPair, Capture, MAX_PROTOCOL_SUBJECTS, MAX_SET_ITEMS, PROTOCOL_GRID, Protocol,
+    StatesError, TableS2, Triplet, ambiguity, envelope, protocol, variational,
 };
 pub use state::{Mounting, State};
 pub use truncnorm::{TruncNormError, TruncNormal};

@@ -41,6 +41,15 @@ pub enum StatesError {
         /// The last reason a draw was rejected.
         why: &'static str,
     },
+    /// The protocol's target grid is outside what the set supports.
+    #[error(
+        "protocol grid: {grid} targets per side, must be 2–{PROTOCOL_GRID} (D.4's grid is \
+         {PROTOCOL_GRID}×{PROTOCOL_GRID})"
+    )]
+    Grid {
+        /// Requested targets per side.
+        grid: usize,
+    },
 }
 
 const MAX_ATTEMPTS: usize = 10_000;
@@ -52,6 +61,9 @@ pub const MAX_SET_ITEMS: usize = 2_000_000;
 /// Most subjects of one protocol set (343 captures of ≈0.2 KB each per subject, ≈0.5 GB at
 /// the cap, ≈1.5 GB as JSON).
 pub const MAX_PROTOCOL_SUBJECTS: usize = 10_000;
+/// Targets per side of D.4's protocol grid (7 × 7 = 49 targets); also the largest grid a
+/// protocol set takes, so [`MAX_PROTOCOL_SUBJECTS`]' memory bound holds.
+pub const PROTOCOL_GRID: usize = 7;
 
 fn check_count(what: &'static str, n: usize, max: usize) -> Result<(), StatesError> {
     if n > max {
@@ -303,7 +315,7 @@ pub fn variational(rig: &Rig, n: usize, seed: u64) -> Result<Vec<Triplet>, State
 /// The acquisition protocol's geometry (D.4).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Protocol {
-    /// Horizontal span of the 7×7 grid (rad).
+    /// Horizontal span of the target grid (rad).
     pub span_h_rad: f64,
     /// Vertical span of the grid (rad).
     pub span_v_rad: f64,
@@ -313,7 +325,7 @@ pub struct Protocol {
     pub distance_m: f64,
     /// Stage step (m).
     pub step_m: f64,
-    /// Targets per grid side.
+    /// Targets per grid side (2–[`PROTOCOL_GRID`]; D.4: 7).
     pub grid: usize,
 }
 
@@ -327,7 +339,7 @@ impl Default for Protocol {
             shift_up_rad: 5f64.to_radians(),
             distance_m: 0.40,
             step_m: 2.5e-3,
-            grid: 7,
+            grid: PROTOCOL_GRID,
         }
     }
 }
@@ -388,6 +400,9 @@ pub fn protocol(
     seed: u64,
 ) -> Result<Vec<Capture>, StatesError> {
     check_count("protocol subjects", subjects, MAX_PROTOCOL_SUBJECTS)?;
+    if !(2..=PROTOCOL_GRID).contains(&p.grid) {
+        return Err(StatesError::Grid { grid: p.grid });
+    }
     rig.validate()?;
     let t = TableS2::paper();
     let per_subject: Result<Vec<Vec<Capture>>, StatesError> = (0..subjects)
@@ -518,6 +533,29 @@ mod bad_input_tests {
     /// The envelope covers what the protocol tests: every one of the 49 targets has a training
     /// gaze within 4°, the camera goes lateral on both sides and closer and farther than any
     /// Table S2 bridge slip would take it, and the same seed gives the same states.
+    /// A grid outside 2–7 targets per side is refused (1 would put every target at one
+    /// corner, 0 give no capture, beyond 7 exceed the subjects' memory bound).
+    #[test]
+    fn protocol_grids_outside_two_to_seven_are_refused() {
+        let rig = Rig::default();
+        for grid in [0, 1, 8, usize::MAX] {
+            let p = Protocol {
+                grid,
+                ..Protocol::default()
+            };
+            let e = protocol(&rig, &p, 1, 0).unwrap_err();
+            assert!(
+                matches!(e, StatesError::Grid { grid: g } if g == grid),
+                "{e}"
+            );
+        }
+        let p = Protocol {
+            grid: 2,
+            ..Protocol::default()
+        };
+        assert_eq!(protocol(&rig, &p, 1, 0).unwrap().len(), 28);
+    }
+
     #[test]
     fn envelope_covers_the_protocol() {
         let rig = Rig::default();
