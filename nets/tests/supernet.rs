@@ -436,6 +436,31 @@ fn arch_sampling_mutation_and_json() {
     assert!(bad.validate().is_err());
 }
 
+/// The bulk little-endian copy writes the bytes `to_le_bytes` gives, value by value, for
+/// signed zeros, subnormals, infinities and NaN payloads too (the checkpoint format).
+#[test]
+fn f32_bytes_are_little_endian_value_by_value() {
+    use nanoeye_nets::checkpoint::extend_f32_le;
+    let v = [
+        0.0f32,
+        -0.0,
+        1.5,
+        -3.25e-41,
+        f32::MIN_POSITIVE,
+        f32::MAX,
+        f32::NEG_INFINITY,
+        f32::from_bits(0x7fc0_1234),
+        f32::from_bits(0xffa0_0001),
+    ];
+    let mut got = vec![9u8];
+    extend_f32_le(&mut got, &v);
+    let mut want = vec![9u8];
+    for x in v {
+        want.extend_from_slice(&x.to_bits().to_le_bytes());
+    }
+    assert_eq!(got, want);
+}
+
 #[test]
 fn checkpoint_round_trip_and_refusals() {
     let mut a = Supernet::new(tiny(), 1).unwrap();

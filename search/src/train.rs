@@ -16,6 +16,7 @@ use crate::task::{TaskGrads, task_loss};
 use faer::Mat;
 use nanoeye_datagen::render::{Batcher, Dataset};
 use nanoeye_gaze::{PupilCentre, Rig, SolverKind, angular_error, solver_for};
+use nanoeye_nets::checkpoint::extend_f32_le;
 use nanoeye_nets::loss::{hard_dice, slip_mse};
 use nanoeye_nets::optim::{Adam, AdamState, cosine_lr};
 use nanoeye_nets::{Arch, BnMode, Supernet, SupernetConfig, Tensor};
@@ -1167,11 +1168,18 @@ impl<'a> Trainer<'a> {
         let json = serde_json::to_vec(&meta).map_err(|e| param("checkpoint", e.to_string()))?;
         let net = nanoeye_nets::checkpoint::to_bytes(&mut self.net)?;
         let st = self.opt.state();
-        let mut b = Vec::with_capacity(json.len() + net.len() + 64);
+        let n = self.phase.nrows();
+        let adam: usize =
+            st.m.iter()
+                .zip(&st.v)
+                .map(|(m, v)| 8 + 4 * (m.len() + v.len()))
+                .sum();
+        let size =
+            TRAIN_MAGIC.len() + 8 + json.len() + 8 * n * n + 8 + net.len() + 4 + 8 + adam + 8;
+        let mut b = Vec::with_capacity(size);
         b.extend_from_slice(TRAIN_MAGIC);
         b.extend_from_slice(&(json.len() as u64).to_le_bytes());
         b.extend_from_slice(&json);
-        let n = self.phase.nrows();
         for i in 0..n {
             for j in 0..n {
                 b.extend_from_slice(&self.phase[(i, j)].to_le_bytes());
@@ -1183,10 +1191,10 @@ impl<'a> Trainer<'a> {
         b.extend_from_slice(&(st.m.len() as u64).to_le_bytes());
         for (m, v) in st.m.iter().zip(&st.v) {
             b.extend_from_slice(&(m.len() as u64).to_le_bytes());
-            for x in m.iter().chain(v) {
-                b.extend_from_slice(&x.to_le_bytes());
-            }
+            extend_f32_le(&mut b, m);
+            extend_f32_le(&mut b, v);
         }
+        debug_assert_eq!(b.len() + 8, size);
         let h = fnv1a(&b);
         b.extend_from_slice(&h.to_le_bytes());
         write_file_atomic(path, &b)
