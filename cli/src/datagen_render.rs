@@ -16,7 +16,7 @@ pub enum SetArg {
     Ambiguity,
     /// Variational triplets: anchor, slip+, gaze+ frames per triplet.
     Variational,
-    /// Acquisition protocol: 7 stage positions × 49 targets (--protocol-grid²) per subject.
+    /// Acquisition protocol: 7 stage positions × --protocol-grid² targets (D.4: 49) per subject.
     Protocol,
     /// Video-like sequence of --n frames: a smooth gaze path while the glasses drift 3 mm.
     Sequence,

@@ -297,7 +297,7 @@ figure{{margin:0}}figcaption{{font-size:90%;color:#555}}</style></head><body>
 <p>A metasurface lens (from a Fisher-information initialization, A.2), its effective pixel
 pitch p̂ and a MobileNetV3 supernet co-designed end to end (sandwich rule, S22), a short regularized evolution (S19–S21) choosing the subnet, that
 subnet fine-tuned behind each lens (S16's inner loop: the deployed model), and
-the acquisition protocol (D.4: {} targets × 7 slippage states per subject) evaluated through
+the acquisition protocol (D.4: 49 targets × 7 slippage states per subject{}) evaluated through
 the whole simulated chain: rendered depth layers → lens PSFs (S1) → sensor at p̂ (S2) →
 network → pupil centroid (S9) → ray–sphere gaze with the network's slippage (S10–S14). The
 same network is trained behind the fixed hyperbolic and double-helix lenses for comparison.
@@ -307,8 +307,10 @@ Stage times add up to {:.0} s (table at the end).</p>
 on 2 cores, so its errors are far from the paper's; `nanoeye run --print-config` lists every
 size, and `--config FILE` scales the run up (more frames, steps, REA cycles and a finer
 render).</p>"#,
-        // A run of before the grid was configurable has no key: D.4's 7 × 7.
-        cfg["protocol_grid"].as_u64().map_or(49, |g| g * g),
+        match cfg["protocol_grid"].as_u64() {
+            Some(g) if g != 7 => format!("; this run: a {g}×{g} grid, {} targets", g * g),
+            _ => String::new(),
+        },
         // The stages' sum: a resumed run's own wall time would count only what it redid.
         r["stages"]
             .as_object()
@@ -489,8 +491,8 @@ tone curve so the out-of-focus tails show.</p>",
     }
     writeln!(
         h,
-        "<h2>What the network sees</h2><p>Protocol frames (centre target; slippage states 0, 3 \
-and 6) through each lens and the sensor at its p̂, as the selected subnet receives them \
+        "<h2>What the network sees</h2><p>Protocol frames (centre target, next to the centre on an even \
+grid; slippage states 0, 3 and 6) through each lens and the sensor at its p̂, as the selected subnet receives them \
 (contrast stretched for display). Outline of the true visible pupil in green, of the \
 network's predicted mask (p ≥ 0.5) in red, yellow where they coincide.</p>"
     )?;

@@ -874,7 +874,8 @@ fn check_job_disk(out: &Path, cfg: &RunConfig) -> Result<()> {
         ),
         out,
         (sets.0.saturating_add(runs), sets.1.saturating_add(runs)),
-        "lower train_items, val_items, protocol_subjects, sequence_frames or width_px × height_px",
+        "lower train_items, val_items, protocol_subjects, protocol_grid, sequence_frames or \
+         width_px × height_px",
     )
 }
 
@@ -1364,8 +1365,8 @@ pub fn run(a: RunArgs) -> Result<()> {
             ev.entries.push((key.clone(), v));
         }
         // Figures for the report: the lens's PSFs over depth, and three protocol frames
-        // (centre target, the one above and right of the centre on an even grid; slippage
-        // states 0, 3 and 6) as the network sees them.
+        // (centre target, on an even grid the one next to the centre on the +azimuth,
+        // +elevation side; slippage states 0, 3 and 6) as the network sees them.
         let (psf_png, depths) = crate::figures::psf_strip(&proto_chain, &map)?;
         util::write_atomic(&out.join(format!("runs/{name}/psfs.png")), &psf_png)?;
         ev.psf_depths_mm = depths;

@@ -37,7 +37,8 @@ fn tensors(net: &mut Supernet) -> Vec<(String, Vec<f32>)> {
 pub fn to_bytes(net: &mut Supernet) -> Result<Vec<u8>> {
     let cfg = serde_json::to_vec(&net.config).map_err(|e| NetsError::Checkpoint(e.to_string()))?;
     let ts = tensors(net);
-    // The whole file at once: grown by doubling, a checkpoint of tens of MB was copied ~25 times.
+    // Reserved once and each tensor appended whole: appended 4 bytes at a time, the writing
+    // was most of a debug-build save.
     let size = MAGIC.len()
         + 8
         + cfg.len()

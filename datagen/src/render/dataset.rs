@@ -25,7 +25,8 @@ pub enum RenderSet {
     Ambiguity,
     /// Variational triplets: anchor, slip+, gaze+ (3 per item).
     Variational,
-    /// Acquisition protocol: `n` subjects × 7 stage positions × 49 targets.
+    /// Acquisition protocol: `n` subjects × 7 stage positions × `protocol_grid`² targets
+    /// (D.4: 49).
     Protocol,
     /// A video-like sequence of `n` frames of one subject: gaze on a smooth Lissajous path
     /// (azimuth ±20°, elevation 5° ± 8°) while the glasses drift 0 → 3 mm down the nasal bridge.
@@ -236,7 +237,9 @@ pub struct PlannedFrame {
 /// The frames of a set, in file order. In an ambiguity pair the `gaze` member is re-aimed so
 /// its *refracted* pupil centre lands where the `slip` member's does (the state set matches
 /// the pinhole projections; the cornea shifts them differently), so the two rendered pupils
-/// coincide; where that Newton solve fails the pinhole match is kept.
+/// coincide; where that Newton solve fails the pinhole match is kept. `protocol_grid` is the
+/// protocol set's targets per side (2–[`states::PROTOCOL_GRID`], refused otherwise); the other
+/// sets ignore it.
 pub fn plan(
     set: RenderSet,
     rig: &Rig,

@@ -530,9 +530,6 @@ mod bad_input_tests {
         }
     }
 
-    /// The envelope covers what the protocol tests: every one of the 49 targets has a training
-    /// gaze within 4°, the camera goes lateral on both sides and closer and farther than any
-    /// Table S2 bridge slip would take it, and the same seed gives the same states.
     /// A grid outside 2–7 targets per side is refused (1 would put every target at one
     /// corner, 0 give no capture, beyond 7 exceed the subjects' memory bound).
     #[test]
@@ -556,6 +553,9 @@ mod bad_input_tests {
         assert_eq!(protocol(&rig, &p, 1, 0).unwrap().len(), 28);
     }
 
+    /// The envelope covers what the protocol tests: every one of the 49 targets has a training
+    /// gaze within 4°, the camera goes lateral on both sides and closer and farther than any
+    /// Table S2 bridge slip would take it, and the same seed gives the same states.
     #[test]
     fn envelope_covers_the_protocol() {
         let rig = Rig::default();
