@@ -115,16 +115,6 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SetArg::Sequence => RenderSet::Sequence,
         SetArg::Envelope => RenderSet::Envelope,
     };
-    let g = args.protocol_grid;
-    if g != PROTOCOL_GRID && set != RenderSet::Protocol {
-        bail!("--protocol-grid: only --set protocol has a target grid");
-    }
-    if !(2..=PROTOCOL_GRID).contains(&g) {
-        bail!(
-            "--protocol-grid must be 2–{PROTOCOL_GRID} targets per side (D.4's grid is \
-             {PROTOCOL_GRID}×{PROTOCOL_GRID}), got {g}"
-        );
-    }
     let opts = DatasetOptions {
         set,
         n: args.n,
@@ -138,7 +128,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         progress: true,
         layers: LayerSpec::default(),
         blink_fraction: args.blink_fraction,
-        protocol_grid: g,
+        protocol_grid: args.protocol_grid,
     };
     // A disk that cannot hold the frames' arrays is refused before anything is written (an
     // estimate that fails leaves the error to the writer, which names the flag).
@@ -171,6 +161,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
             "--spp"
         } else if msg.contains("invalid blink_fraction") {
             "--blink-fraction"
+        } else if msg.contains("invalid protocol_grid") {
+            "--protocol-grid"
         } else if msg.contains("camera.pixel_pitch_m") {
             // The rig's sensor spread over so few pixels that each is beyond any pitch.
             "--width/--height"

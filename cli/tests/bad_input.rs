@@ -1231,33 +1231,22 @@ fn datagen_render_names_n_blink_fraction_and_protocol_grid_and_refuses_a_symlink
         "--n",
         p,
     );
-    for (set, frac) in [
-        ("envelope", "1.5"),
-        ("envelope", "NaN"),
-        ("envelope", "-0.1"),
-        ("ambiguity", "0.5"),
+    for (set, name, value) in [
+        ("envelope", "--blink-fraction", "1.5"),
+        ("envelope", "--blink-fraction", "NaN"),
+        ("envelope", "--blink-fraction", "-0.1"),
+        ("ambiguity", "--blink-fraction", "0.5"),
+        ("protocol", "--protocol-grid", "1"),
+        ("protocol", "--protocol-grid", "8"),
+        ("protocol", "--protocol-grid", "-1"),
+        ("envelope", "--protocol-grid", "3"),
     ] {
-        let flag = format!("--blink-fraction={frac}");
+        let flag = format!("{name}={value}");
         refused(
             &[
                 "datagen", "render", "--set", set, "--n", "1", &flag, "--out", "b",
             ],
-            "--blink-fraction",
-            p,
-        );
-    }
-    for (set, grid) in [
-        ("protocol", "1"),
-        ("protocol", "8"),
-        ("protocol", "-1"),
-        ("envelope", "3"),
-    ] {
-        let flag = format!("--protocol-grid={grid}");
-        refused(
-            &[
-                "datagen", "render", "--set", set, "--n", "1", &flag, "--out", "b",
-            ],
-            "--protocol-grid",
+            name,
             p,
         );
     }
