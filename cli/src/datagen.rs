@@ -39,6 +39,10 @@ pub enum Cmd {
         /// Rig JSON file; default: the built-in seed rig.
         #[arg(long)]
         rig: Option<PathBuf>,
+        /// Targets per side of the protocol set's grid, 2–7 (D.4: 7 × 7), with --set protocol
+        /// only (as `datagen render --protocol-grid`).
+        #[arg(long, default_value_t = states::PROTOCOL_GRID)]
+        protocol_grid: usize,
         /// Print a one-line JSON summary.
         #[arg(long)]
         json: bool,
@@ -110,6 +114,7 @@ pub fn run(cmd: Cmd) -> Result<()> {
             seed,
             out,
             rig,
+            protocol_grid,
             json,
         } => {
             if n == 0 {
@@ -117,6 +122,13 @@ pub fn run(cmd: Cmd) -> Result<()> {
             }
             // As the flag takes it (`ambiguity`), not the variant's Debug name.
             let name = format!("{set:?}").to_lowercase();
+            // The same rule as `datagen render`'s: only the protocol set has a grid, and the
+            // default cannot be told apart from a 7 given on another set.
+            if !matches!(set, Set::Protocol) && protocol_grid != states::PROTOCOL_GRID {
+                bail!(
+                    "--protocol-grid: with --set protocol only (--set {name} has no target grid)"
+                );
+            }
             let max = match set {
                 Set::Protocol => states::MAX_PROTOCOL_SUBJECTS,
                 Set::Ambiguity | Set::Variational => states::MAX_SET_ITEMS,
@@ -147,10 +159,19 @@ pub fn run(cmd: Cmd) -> Result<()> {
                 Set::Variational => {
                     write_jsonl(&states::variational(&rig, n, seed).with_context(why)?, &out)?
                 }
-                Set::Protocol => write_jsonl(
-                    &states::protocol(&rig, &Protocol::default(), n, seed).with_context(why)?,
-                    &out,
-                )?,
+                Set::Protocol => {
+                    let p = Protocol {
+                        grid: protocol_grid,
+                        ..Protocol::default()
+                    };
+                    let captures = match states::protocol(&rig, &p, n, seed) {
+                        Err(e @ states::StatesError::Grid { .. }) => {
+                            bail!("--protocol-grid: {e}")
+                        }
+                        r => r.with_context(why)?,
+                    };
+                    write_jsonl(&captures, &out)?
+                }
             };
             if json {
                 util::print_json(&json!({"out": out, "lines": lines, "seed": seed}))

@@ -1264,6 +1264,65 @@ fn datagen_render_names_n_blink_fraction_and_protocol_grid_and_refuses_a_symlink
 }
 
 #[test]
+fn datagen_states_takes_a_coarser_protocol_grid_and_names_bad_ones() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    for (set, value) in [
+        ("protocol", "0"),
+        ("protocol", "1"),
+        ("protocol", "8"),
+        ("protocol", "-1"),
+        ("protocol", "NaN"),
+        ("ambiguity", "3"),
+        ("variational", "2"),
+    ] {
+        let flag = format!("--protocol-grid={value}");
+        refused(
+            &[
+                "datagen", "states", "--set", set, "--n", "1", &flag, "--out", "s.jsonl",
+            ],
+            "--protocol-grid",
+            p,
+        );
+    }
+    assert!(!p.join("s.jsonl").exists(), "nothing written when refused");
+    let lines = |grid: &str, out: &str| -> Vec<serde_json::Value> {
+        let args = [
+            "datagen",
+            "states",
+            "--set",
+            "protocol",
+            "--n",
+            "1",
+            "--protocol-grid",
+            grid,
+            "--out",
+            out,
+        ];
+        succeeded(nanoeye(&args, p));
+        std::fs::read_to_string(p.join(out))
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect()
+    };
+    let (coarse, paper) = (lines("3", "g3.jsonl"), lines("7", "g7.jsonl"));
+    // D.4: 7 slip states × 49 targets; a 3 × 3 grid: 7 × 9, over the same span.
+    assert_eq!((coarse.len(), paper.len()), (63, 343));
+    for c in &coarse {
+        let (t, s) = (c["target_index"].as_u64().unwrap(), &c["slip_index"]);
+        assert!(t < 9, "target {t} of a 3 × 3 grid");
+        // Row r, column k of the 3 × 3 grid is row 3r, column 3k of D.4's 7 × 7 grid.
+        let t7 = 7 * 3 * (t / 3) + 3 * (t % 3);
+        let twin = paper
+            .iter()
+            .find(|q| q["target_index"] == t7 && &q["slip_index"] == s)
+            .unwrap();
+        assert_eq!(c["target_deg"], twin["target_deg"], "target {t}, slip {s}");
+    }
+}
+
+#[test]
 fn sim_and_search_loss_name_their_bad_flags() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
