@@ -556,10 +556,12 @@ fn split(items: &mut [Item], cb: &Aabb, bb: &Aabb) -> Option<usize> {
     let mut mid = 0;
     for k in 0..n {
         if bin_of(items[k].cen[axis], lo, scale) < split {
-            // Until the first item that goes right every item is already in place; swapping
-            // it with itself went through a stack copy of its 80 bytes.
+            // Until the first item that goes right every item is already in place. Past it
+            // mid < k: two distinct items swap through registers (`slice::swap` must allow
+            // equal indices and went through a stack copy of the 80 bytes, stalling on it).
             if k != mid {
-                items.swap(k, mid);
+                let (l, r) = items.split_at_mut(k);
+                std::mem::swap(&mut l[mid], &mut r[0]);
             }
             mid += 1;
         }
