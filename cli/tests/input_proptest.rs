@@ -637,6 +637,8 @@ fn targets() -> Vec<Target> {
     ] {
         v.push(t(set, "--n", || count(0, 4), valid_states));
         v.push(t(set, "--seed", any_number, valid_states));
+        // Refused on the pair sets unless 7, on the protocol outside 2–7.
+        v.push(t(set, "--protocol-grid", || count(0, 9), valid_states));
     }
     v.push(t(PSF, "--aperture-mm", || band(0.02, 0.6), valid_psf));
     v.push(t(PSF, "--sample-um", || band(1.0, 60.0), valid_psf));
