@@ -126,7 +126,8 @@ pub fn run(cmd: Cmd) -> Result<()> {
             // default cannot be told apart from a 7 given on another set.
             if !matches!(set, Set::Protocol) && protocol_grid != states::PROTOCOL_GRID {
                 bail!(
-                    "--protocol-grid: with --set protocol only (--set {name} has no target grid)"
+                    "--protocol-grid: with --set protocol only (--set {name} has no target \
+                     grid), got {protocol_grid}"
                 );
             }
             let max = match set {

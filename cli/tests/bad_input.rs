@@ -1306,20 +1306,43 @@ fn datagen_states_takes_a_coarser_protocol_grid_and_names_bad_ones() {
             .map(|l| serde_json::from_str(l).unwrap())
             .collect()
     };
-    let (coarse, paper) = (lines("3", "g3.jsonl"), lines("7", "g7.jsonl"));
-    // D.4: 7 slip states × 49 targets; a 3 × 3 grid: 7 × 9, over the same span.
-    assert_eq!((coarse.len(), paper.len()), (63, 343));
-    for c in &coarse {
-        let (t, s) = (c["target_index"].as_u64().unwrap(), &c["slip_index"]);
-        assert!(t < 9, "target {t} of a 3 × 3 grid");
-        // Row r, column k of the 3 × 3 grid is row 3r, column 3k of D.4's 7 × 7 grid.
-        let t7 = 7 * 3 * (t / 3) + 3 * (t % 3);
-        let twin = paper
-            .iter()
-            .find(|q| q["target_index"] == t7 && &q["slip_index"] == s)
-            .unwrap();
-        assert_eq!(c["target_deg"], twin["target_deg"], "target {t}, slip {s}");
+    let paper = lines("7", "g7.jsonl");
+    assert_eq!(paper.len(), 343, "D.4: 7 slip states × 49 targets");
+    for g in [2u64, 3, 4] {
+        let coarse = lines(&g.to_string(), "g.jsonl");
+        // 7 slip states × G² targets over the same span.
+        assert_eq!(coarse.len() as u64, 7 * g * g);
+        // Row r, column c of the G × G grid is row k·r, column k·c of D.4's 7 × 7 grid.
+        let k = 6 / (g - 1);
+        for c in &coarse {
+            let (t, s) = (c["target_index"].as_u64().unwrap(), &c["slip_index"]);
+            assert!(t < g * g, "target {t} of a {g} × {g} grid");
+            let t7 = 7 * k * (t / g) + k * (t % g);
+            let twin = paper
+                .iter()
+                .find(|q| q["target_index"] == t7 && &q["slip_index"] == s)
+                .unwrap();
+            assert_eq!(
+                c["target_deg"], twin["target_deg"],
+                "G {g}, target {t}, slip {s}"
+            );
+        }
     }
+    // The default, 7, given on a set without a grid is the default: accepted.
+    let args = [
+        "datagen",
+        "states",
+        "--set",
+        "ambiguity",
+        "--n",
+        "1",
+        "--protocol-grid",
+        "7",
+        "--out",
+        "a.jsonl",
+    ];
+    succeeded(nanoeye(&args, p));
+    assert!(p.join("a.jsonl").is_file());
 }
 
 #[test]

@@ -431,7 +431,8 @@ fn widen(nodes: &[Node]) -> Vec<Wide> {
 
 // The build's own min/max: bounds are finite (Scene::new checks), so the NaN handling of
 // f64::min/max is not needed, and ±0 ties only ever feed areas and slab tests, where the sign
-// of a zero makes no difference.
+// of a zero makes no difference. `bin_of` relies on their comparison with a NaN (the value of
+// a zero-extent axis): false, so `hi(NaN, b)` and `lo(NaN, b)` are `b`.
 #[inline(always)]
 fn lo(a: f64, b: f64) -> f64 {
     if a < b { a } else { b }
@@ -925,19 +926,23 @@ mod tests {
         }
     }
 
+    /// The next f64 below `x` ≥ 0.
     fn next_below(x: f64) -> f64 {
         if x > 0.0 {
             f64::from_bits(x.to_bits() - 1)
         } else {
-            -f64::MIN_POSITIVE
+            -f64::from_bits(1)
         }
     }
 
-    /// The binned SAH as first written: both sweeps over all twelve bins.
-    fn best_split_dense(items: &[Item], cb: &Aabb, bb: &Aabb) -> Option<(usize, usize)> {
+    /// The binned SAH as first written: both sweeps over all twelve bins. Also says whether
+    /// the chosen split is followed by an empty bin (a run the sparse sweeps skip).
+    fn best_split_dense(items: &[Item], cb: &Aabb, bb: &Aabb) -> (Option<(usize, usize)>, bool) {
         let n = items.len();
         let parent_area = bb.area().max(1e-300);
         let mut best: Option<(f64, usize, usize)> = None;
+        let mut counts = [[0usize; BINS]; 3];
+        #[allow(clippy::needless_range_loop)] // axis indexes the items' coordinates too
         for axis in 0..3 {
             let ext = cb.max[axis] - cb.min[axis];
             if ext.is_nan() || ext <= 0.0 {
@@ -973,9 +978,13 @@ mod tests {
                     best = Some((cost, axis, split));
                 }
             }
+            counts[axis] = bin_n;
         }
-        let (cost, axis, split) = best?;
-        (cost < n as f64 || n > LEAF_MAX).then_some((axis, split))
+        let Some((cost, axis, split)) = best else {
+            return (None, false);
+        };
+        let pick = (cost < n as f64 || n > LEAF_MAX).then_some((axis, split));
+        (pick, pick.is_some() && counts[axis][split] == 0)
     }
 
     /// The sweeps over occupied bins only choose the dense sweeps' split: on sets of 2–400
@@ -995,7 +1004,7 @@ mod tests {
                 id,
             }
         };
-        let mut splits = 0;
+        let (mut splits, mut gaps) = (0, 0);
         for case in 0..4000 {
             let n = if case % 4 == 0 {
                 rng.random_range(41..=400)
@@ -1023,11 +1032,13 @@ mod tests {
                 })
                 .collect();
             let (bb, cb) = extent(&items);
-            let want = best_split_dense(&items, &cb, &bb);
+            let (want, gap) = best_split_dense(&items, &cb, &bb);
             assert_eq!(best_split(&items, &cb, &bb), want, "case {case}");
             splits += usize::from(want.is_some());
+            gaps += usize::from(gap);
         }
         assert!(splits > 1000, "{splits} of 4000 sets split");
+        assert!(gaps > 1000, "{gaps} splits before an empty bin");
     }
 
     /// The portable walk (the path of CPUs without AVX) finds the same nearest hit and any-hit
