@@ -1,8 +1,9 @@
 //! Batch norm with its activation, training mode, forward and backward on the min subnet's
-//! shapes at a 128×128 input, batch 16, under the CLI's allocator settings: ns per value of
-//! each pass.
+//! shapes at a 128×128 input, batch 16 (or with `large`, the planes of at least 128 values of
+//! the max subnet at the main job's 137×220 input, batch 4), under the CLI's allocator
+//! settings: ns per value of each pass.
 //!
-//! Usage: `cargo run --release -p nanoeye-nets --example bn_prof -- [N]`
+//! Usage: `cargo run --release -p nanoeye-nets --example bn_prof -- [N] [large]`
 
 use nanoeye_nets::act::Act;
 use nanoeye_nets::norm::BatchNorm;
@@ -12,14 +13,21 @@ fn main() {
     let n: usize = std::env::args()
         .nth(1)
         .map_or(200, |s| s.parse().expect("N"));
+    let large = std::env::args().nth(2).is_some_and(|s| s == "large");
     // The binary's allocator and its settings, so these times are the CLI's.
     nanoeye_alloc::like_cli();
     // Inside the pool, as the supernet runs its passes (a pass from outside waits on a lock).
-    rayon::scope(|_| run(n));
+    rayon::scope(|_| run(n, large));
 }
 
-fn run(n: usize) {
-    let shapes = [
+fn run(n: usize, large: bool) {
+    let large_shapes = [
+        (4, 16, 69, 110, Act::HSwish),
+        (4, 96, 69, 110, Act::HSwish),
+        (4, 144, 35, 55, Act::HSwish),
+        (4, 240, 18, 28, Act::HSwish),
+    ];
+    let small_shapes = [
         (16, 16, 19, 19, Act::HSwish),
         (16, 48, 19, 19, Act::Relu),
         (16, 72, 10, 10, Act::Relu),
@@ -30,8 +38,9 @@ fn run(n: usize) {
         (16, 480, 2, 2, Act::HSwish),
         (16, 960, 2, 2, Act::HSwish),
     ];
+    let shapes: &[_] = if large { &large_shapes } else { &small_shapes };
     let (mut tf, mut tb) = (0.0, 0.0);
-    for (b, c, h, w, act) in shapes {
+    for &(b, c, h, w, act) in shapes {
         let len = b * c * h * w;
         let x = Tensor::from_vec(
             b,
