@@ -1,7 +1,7 @@
 //! Batch norm with its activation, training mode, forward and backward on the min subnet's
-//! shapes at a 128×128 input, batch 16 (or with `large`, the planes of at least 128 values of
-//! the max subnet at the main job's 137×220 input, batch 4), under the CLI's allocator
-//! settings: ns per value of each pass.
+//! shapes at a 128×128 input, batch 16 (or with `large`, one shape per plane size of at least
+//! 128 values of the max subnet at the main job's 137×220 input, batch 4, all with h-swish),
+//! under the CLI's allocator settings: ns per value of each pass.
 //!
 //! Usage: `cargo run --release -p nanoeye-nets --example bn_prof -- [N] [large]`
 
@@ -10,10 +10,15 @@ use nanoeye_nets::norm::BatchNorm;
 use nanoeye_nets::{BnMode, Tensor};
 
 fn main() {
-    let n: usize = std::env::args()
-        .nth(1)
-        .map_or(200, |s| s.parse().expect("N"));
-    let large = std::env::args().nth(2).is_some_and(|s| s == "large");
+    let usage = "usage: bn_prof [N] [large]";
+    let (mut n, mut large) = (200, false);
+    for (i, a) in std::env::args().skip(1).enumerate() {
+        match (i, a.as_str()) {
+            (_, "large") => large = true,
+            (0, s) => n = s.parse().unwrap_or_else(|_| panic!("N: {s:?}; {usage}")),
+            (_, s) => panic!("unknown argument {s:?}; {usage}"),
+        }
+    }
     // The binary's allocator and its settings, so these times are the CLI's.
     nanoeye_alloc::like_cli();
     // Inside the pool, as the supernet runs its passes (a pass from outside waits on a lock).
