@@ -15,7 +15,10 @@ fn main() {
     for (i, a) in std::env::args().skip(1).enumerate() {
         match (i, a.as_str()) {
             (_, "large") => large = true,
-            (0, s) => n = s.parse().unwrap_or_else(|_| panic!("N: {s:?}; {usage}")),
+            (0, s) => match s.parse() {
+                Ok(k) if k > 0 => n = k,
+                _ => panic!("N: {s:?}, a count of at least 1; {usage}"),
+            },
             (_, s) => panic!("unknown argument {s:?}; {usage}"),
         }
     }
