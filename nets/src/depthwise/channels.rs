@@ -611,6 +611,9 @@ fn to_channels(src: &[f32], w: usize, dst: &mut [f32], wp: usize, p: usize) {
 #[inline]
 unsafe fn store_pixels(at: *mut f32, regs: &[__m256], n: usize) {
     /// The first `N` of `regs` (a constant trip count, unrolled).
+    ///
+    /// # Safety
+    /// The CPU has AVX2; `at` has room for `N` pixels, `regs` holds at least `N`.
     #[target_feature(enable = "avx2,fma")]
     #[inline]
     unsafe fn first<const N: usize>(at: *mut f32, regs: &[__m256]) {
@@ -651,7 +654,7 @@ fn from_channels(src: &[f32], dst: &mut [MaybeUninit<f32>]) {
     if i < hw && hw >= CB {
         // The last `hw mod 8` pixels as the last eight, over values already written (the
         // same values): their scalar copies, 48 at 6×9 outputs, cost more than a transpose.
-        // SAFETY: hw − 8 + 8 = hw.
+        // SAFETY: pixels hw − 8 .. hw, inside both (the assertion above).
         unsafe { eight_pixels(s, d, hw, hw - CB) };
         return;
     }
