@@ -321,10 +321,8 @@ unsafe fn lane_sums_avx2(plane: &[f32], a: &mut [f64; LANES], b: &mut [f64; LANE
         _mm256_storeu_pd(b.as_mut_ptr(), b0);
         _mm256_storeu_pd(b.as_mut_ptr().add(4), b1);
     }
-    for (l, &v) in tail.iter().enumerate() {
-        a[l] += v as f64;
-        b[l] += (v as f64) * (v as f64);
-    }
+    // Fewer than LANES values: the plain loop's tail.
+    lane_sums_scalar(tail, a, b);
 }
 
 /// The element-wise passes of one batch-norm call: C channels of H·W pixels, γ, β.
